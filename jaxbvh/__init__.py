@@ -1,0 +1,20 @@
+"""jaxbvh: bounding volume hierarchies as JAX array programs.
+
+Public API (flat): build a tree, check it, cost it, save and load it. The layout of a
+tree is documented once, in :mod:`jaxbvh.tree`.
+"""
+
+from jaxbvh.frame import Frame
+from jaxbvh.tree import BVH, WideBVH, capacity_bucket, from_interchange, load, save, to_interchange, to_jax, to_numpy
+from jaxbvh.validate import InvalidTreeError, check, validate
+from jaxbvh.cost import all_costs, goldsmith_salmon_cost, ng_trifonov_cost, node_costs, sah
+from jaxbvh.build import BUILDERS, build
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "BVH", "WideBVH", "Frame", "InvalidTreeError", "BUILDERS",
+    "build", "check", "validate", "sah", "node_costs", "ng_trifonov_cost", "goldsmith_salmon_cost",
+    "all_costs", "save", "load", "to_interchange", "from_interchange", "to_numpy", "to_jax",
+    "capacity_bucket",
+]
