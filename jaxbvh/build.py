@@ -1,0 +1,351 @@
+"""Top-down builders, one level at a time over all open nodes (jitted).
+
+Three split rules share one level-synchronous engine:
+
+* ``"sweep"`` — full-sweep SAH (Müller & Fellner, as Ng & Trifonov describe it): every
+  split position along every axis, primitives ordered by box centre, the boxes of both
+  sides grown by a forward and a backward sweep; the cheapest split is taken.
+* ``"binned"`` — binned SAH (Wald 2007): centres bucketed into ``bins`` equal bins of the
+  node's centre bounds per axis; only the planes between bins are candidates.
+* ``"median"`` — Kay & Kajiya object median: the longest axis of the node's box, the
+  lower half of the primitives (by centre) to the left.
+
+The engine keeps the primitives in *positions*: every open node owns a contiguous run of
+positions, and for each axis a permutation lists the primitives of each run sorted by
+centre. One step of the ``while_loop`` takes every open node of the current level,
+scores its splits with segmented scans over the runs, and stably partitions the runs
+into the children's, so the work per level is a few passes over all primitives however
+many nodes are open. The same code can be vmapped over random trials.
+
+Tie rule (the NumPy reference in :mod:`jaxbvh.reference.build` keeps the same one).
+Centres are ``0.5 * lo + 0.5 * hi``; primitives with equal centres are ordered by id.
+* sweep: least cost ``A_L N_L + A_R N_R``; among equal costs the split closest to the
+  middle (``|2 N_L - N|`` least, the smaller ``N_L`` first), then the lowest axis.
+* binned: least cost; among equal costs the lowest axis, then the lowest plane. Bin of a
+  centre ``c``: ``floor((c - cmin) * B / (cmax - cmin))`` clipped to ``B - 1``; an axis
+  with ``cmax == cmin`` has no planes. A node with no plane on any axis (all centres in
+  one point) is split into its lower and upper half by primitive id.
+* median: the first longest axis; primitives sorted by (centre, id); left gets
+  ``N // 2``.
+
+Leaves. A node of one primitive is a leaf. With ``max_leaf > 1`` a node of at most
+``max_leaf`` primitives becomes a leaf when ``Ci N <= Ct + Ci (A_L N_L + A_R N_R) / A``
+(SAH termination; for a zero-area node the right side is ``Ct + Ci N``, so it stays a
+leaf); the median builder makes such nodes leaves unconditionally.
+
+Areas are half-areas of extents times a power of two fixed by the scene box, so no
+float32 overflow at 1e30 or underflow at 1e-30 (:mod:`jaxbvh.cost`).
+"""
+
+from __future__ import annotations
+
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxbvh.cost import half_area
+from jaxbvh.tree import BVH, capacity_bucket
+
+BUILDERS = ("sweep", "binned", "median")
+
+
+def check_prim_boxes(prim_lo, prim_hi, what: str = "primitive boxes"):
+    """Host-side check of ``prim_lo``, ``prim_hi`` [n, 3]; returns them as NumPy arrays.
+
+    Raises ``ValueError`` naming the problem: wrong shape, no primitives, NaN/inf
+    (with how many and which), or ``lo > hi``.
+    """
+    lo = np.asarray(prim_lo)
+    hi = np.asarray(prim_hi)
+    if lo.ndim != 2 or lo.shape[-1] != 3 or lo.shape != hi.shape:
+        raise ValueError(f"{what}: lo and hi must both have shape [n, 3], got {lo.shape} and {hi.shape}")
+    if lo.shape[0] == 0:
+        raise ValueError(f"{what}: no primitives (n = 0); a BVH needs at least one")
+    if not (np.issubdtype(lo.dtype, np.floating) and np.issubdtype(hi.dtype, np.floating)):
+        lo, hi = lo.astype(np.float64), hi.astype(np.float64)
+    bad = ~(np.isfinite(lo).all(1) & np.isfinite(hi).all(1))
+    if bad.any():
+        ids = np.flatnonzero(bad)
+        raise ValueError(f"{what}: {ids.size} of {lo.shape[0]} have NaN or infinite coordinates "
+                         f"(first: {', '.join(map(str, ids[:5]))})")
+    inverted = (lo > hi).any(1)
+    if inverted.any():
+        ids = np.flatnonzero(inverted)
+        raise ValueError(f"{what}: {ids.size} have lo > hi (first: {', '.join(map(str, ids[:5]))})")
+    return lo, hi
+
+
+def _working_dtype(dtype, given):
+    x64 = jax.config.jax_enable_x64
+    if dtype is None:
+        return np.dtype(np.float64) if (given == np.float64 and x64) else np.dtype(np.float32)
+    dtype = np.dtype(dtype)
+    if dtype == np.float64 and not x64:
+        raise ValueError("dtype float64 needs JAX's x64 mode: jax.config.update('jax_enable_x64', True)")
+    if dtype not in (np.float32, np.float64):
+        raise ValueError(f"dtype must be float32 or float64, got {dtype}")
+    return dtype
+
+
+def scene_scale(lo: np.ndarray, hi: np.ndarray) -> float:
+    """Power of two that brings the largest extent of the scene box into [0.5, 1)."""
+    m = float(np.max(hi.max(0).astype(np.float64) - lo.min(0).astype(np.float64)))
+    return float(np.ldexp(1.0, -int(np.frexp(m)[1]))) if m > 0 else 1.0
+
+
+def build(prim_lo, prim_hi, *, method: str = "sweep", max_leaf: int = 1, bins: int = 16,
+          ct: float = 1.0, ci: float = 1.0, pad: bool = True, dtype=None) -> BVH:
+    """Build a binary BVH over primitive boxes.
+
+    Args:
+      prim_lo, prim_hi: [n, 3] primitive boxes (any frame; pass scene-relative
+        coordinates, e.g. ``jaxbvh.io.Mesh.local_boxes()``, for float32 accuracy far
+        from the origin).
+      method: ``"sweep"`` (full-sweep SAH), ``"binned"`` or ``"median"``.
+      max_leaf: largest leaf; 1 (default) splits down to single primitives.
+      bins: bins per axis for ``"binned"``.
+      ct, ci: SAH traversal and intersection costs (leaf termination only).
+      pad: pad arrays to a capacity bucket (fewer recompiles) or size them exactly.
+      dtype: float32 (default) or float64 (needs x64); boxes are cast to it, so validate
+        the tree against boxes cast the same way.
+
+    Returns:
+      A :class:`~jaxbvh.tree.BVH` of JAX arrays with ``2 * capacity`` node slots, nodes
+      numbered level by level from the root 0, ``axis`` set to each split's axis.
+    """
+    if method not in BUILDERS:
+        raise ValueError(f"unknown builder {method!r}; choose one of {', '.join(BUILDERS)}")
+    if int(max_leaf) < 1:
+        raise ValueError(f"max_leaf must be >= 1, got {max_leaf}")
+    if method == "binned" and int(bins) < 2:
+        raise ValueError(f"bins must be >= 2, got {bins}")
+    lo, hi = check_prim_boxes(prim_lo, prim_hi)
+    dt = _working_dtype(dtype, lo.dtype)
+    lo, hi = lo.astype(dt), hi.astype(dt)
+    n = lo.shape[0]
+    cap = capacity_bucket(n) if pad else n
+    lo_p = np.full((cap, 3), np.inf, dt)
+    hi_p = np.full((cap, 3), -np.inf, dt)
+    lo_p[:n], hi_p[:n] = lo, hi
+    return _build(jnp.asarray(lo_p), jnp.asarray(hi_p), jnp.int32(n), jnp.int32(max_leaf),
+                  jnp.asarray(ct, dt), jnp.asarray(ci, dt), jnp.asarray(scene_scale(lo, hi), dt),
+                  method=method, bins=int(bins) if method == "binned" else 0)
+
+
+# ----------------------------------------------------------------------------------
+# the engine
+# ----------------------------------------------------------------------------------
+
+
+def _segmented_box_scan(lo, hi, starts):
+    """Inclusive running box over positions, restarting where ``starts`` is True."""
+
+    def combine(a, b):
+        fa, la, ha = a
+        fb, lb, hb = b
+        return (fa | fb, jnp.where(fb[..., None], lb, jnp.minimum(la, lb)),
+                jnp.where(fb[..., None], hb, jnp.maximum(ha, hb)))
+
+    _, run_lo, run_hi = jax.lax.associative_scan(combine, (starts, lo, hi))
+    return run_lo, run_hi
+
+
+def _split_costs(lo_pos, hi_pos, first, last, n_left, n_right, scale):
+    """Cost ``A_L N_L + A_R N_R`` of splitting each run after each position.
+
+    ``*_pos``: boxes in position order [P, 3]; ``first`` / ``last``: run boundaries.
+    """
+    fwd_lo, fwd_hi = _segmented_box_scan(lo_pos, hi_pos, first)
+    bwd_lo, bwd_hi = _segmented_box_scan(lo_pos[::-1], hi_pos[::-1], last[::-1])
+    inf = jnp.full((1, 3), jnp.inf, lo_pos.dtype)
+    right_lo = jnp.concatenate([bwd_lo[::-1][1:], inf])
+    right_hi = jnp.concatenate([bwd_hi[::-1][1:], -inf])
+    dtype = lo_pos.dtype
+    return (half_area(fwd_lo, fwd_hi, scale) * n_left.astype(dtype)
+            + half_area(right_lo, right_hi, scale) * n_right.astype(dtype))
+
+
+@partial(jax.jit, static_argnames=("method", "bins"))
+def _build(lo, hi, n, max_leaf, ct, ci, scale, *, method, bins):
+    cap = lo.shape[0]
+    nodes = 2 * cap
+    none = nodes  # out-of-range node id: scatters to it are dropped
+    dtype = lo.dtype
+    pos = jnp.arange(cap, dtype=jnp.int32)
+    is_prim = pos < n
+    centre = jnp.where(is_prim[:, None], 0.5 * lo + 0.5 * hi, jnp.inf)
+    n_orders = 1 if method == "binned" else 3
+    if method == "binned":
+        orders = pos[None, :]
+    else:  # stable sort: equal centres stay in id order
+        orders = jnp.stack([jnp.argsort(centre[:, a], stable=True).astype(jnp.int32) for a in range(3)])
+
+    int_nodes = jnp.full(nodes, -1, jnp.int32)
+    state = dict(
+        orders=orders,
+        pos_node=jnp.where(is_prim, 0, none).astype(jnp.int32),
+        start=jnp.zeros(nodes, jnp.int32),
+        count=jnp.zeros(nodes, jnp.int32).at[0].set(n),
+        frontier=jnp.zeros(nodes, bool).at[0].set(True),
+        left=int_nodes, right=int_nodes, parent=int_nodes, axis=int_nodes,
+        prim_start=jnp.zeros(nodes, jnp.int32), prim_count=jnp.zeros(nodes, jnp.int32),
+        lo=jnp.full((nodes, 3), jnp.inf, dtype), hi=jnp.full((nodes, 3), -jnp.inf, dtype),
+        next_free=jnp.int32(1),
+    )
+    node_ids = jnp.arange(nodes, dtype=jnp.int32)
+
+    def level(s):
+        orders, pos_node, frontier = s["orders"], s["pos_node"], s["frontier"]
+        active = frontier.at[pos_node].get(mode="fill", fill_value=False)
+        seg = jnp.where(active, pos_node, none)
+        start_p = s["start"].at[pos_node].get(mode="fill", fill_value=0)
+        count_p = s["count"].at[pos_node].get(mode="fill", fill_value=0)
+        offset = pos - start_p
+        first = offset == 0
+        last = offset == count_p - 1
+        count = s["count"]
+
+        # boxes of the nodes on this level
+        prim0 = orders[0]
+        box_lo = jax.ops.segment_min(lo[prim0], seg, num_segments=nodes + 1)[:nodes]
+        box_hi = jax.ops.segment_max(hi[prim0], seg, num_segments=nodes + 1)[:nodes]
+        node_lo = jnp.where(frontier[:, None], box_lo, s["lo"])
+        node_hi = jnp.where(frontier[:, None], box_hi, s["hi"])
+        node_area = half_area(node_lo, node_hi, scale)
+
+        n_left_p = offset + 1
+        n_right_p = count_p - n_left_p
+        if method == "median":
+            extent = node_hi - node_lo
+            split_axis = jnp.argmax(extent, axis=1).astype(jnp.int32)
+            n_left = count // 2
+            best = jnp.zeros(nodes, dtype)
+            sah_leaf = jnp.ones(nodes, bool)
+        elif method == "sweep":
+            candidates = []
+            keys = []
+            for a in range(3):
+                cost = _split_costs(lo[orders[a]], hi[orders[a]], first, last, n_left_p, n_right_p, scale)
+                two_k = 2 * n_left_p
+                candidates.append(jnp.where(active & (n_right_p > 0), cost, jnp.inf))
+                keys.append((jnp.abs(two_k - count_p) * 2 + (two_k > count_p)) * 3 + a)
+            cost3 = jnp.stack(candidates)  # [3, P]
+            seg3 = jnp.broadcast_to(seg, (3, cap))
+            best = jax.ops.segment_min(cost3.ravel(), seg3.ravel(), num_segments=nodes + 1)[:nodes]
+            is_best = (cost3 == best.at[seg3].get(mode="fill", fill_value=jnp.inf)) & (cost3 < jnp.inf)
+            key3 = jnp.where(is_best, jnp.stack(keys), jnp.iinfo(jnp.int32).max)
+            best_key = jax.ops.segment_min(key3.ravel(), seg3.ravel(), num_segments=nodes + 1)[:nodes]
+            # the key names the split: |2 N_L - N|, its sign and the axis
+            split_axis = best_key % 3
+            gap, upper = (best_key // 3) // 2, (best_key // 3) % 2
+            n_left = jnp.where(upper == 1, count + gap, count - gap) // 2
+            found = best < jnp.inf
+        else:  # binned
+            slots = cap // 2 + 1  # nodes that can split hold >= 2 primitives each
+            can_split = frontier & (count >= 2)
+            slot = jnp.where(can_split, jnp.cumsum(can_split.astype(jnp.int32)) - 1, slots - 1)
+            c_pos = centre[prim0]
+            cmin = jax.ops.segment_min(c_pos, seg, num_segments=nodes + 1)[:nodes]
+            cmax = jax.ops.segment_max(c_pos, seg, num_segments=nodes + 1)[:nodes]
+            span_n = cmax - cmin
+            span = span_n.at[pos_node].get(mode="fill", fill_value=0)
+            low = cmin.at[pos_node].get(mode="fill", fill_value=0)
+            binsf = jnp.asarray(bins, dtype)
+            raw = jnp.floor((c_pos - low) * binsf / jnp.where(span > 0, span, 1))
+            bin_pos = jnp.where(span > 0, jnp.clip(raw, 0, binsf - 1), 0).astype(jnp.int32)  # [P, 3]
+            slot_p = jnp.where(active, slot.at[pos_node].get(mode="fill", fill_value=slots - 1), slots - 1)
+            bin_seg = (slot_p[:, None] * 3 + jnp.arange(3)[None, :]) * bins + bin_pos  # [P, 3]
+            total = slots * 3 * bins
+            lo_rep = jnp.broadcast_to(lo[prim0][:, None, :], (cap, 3, 3)).reshape(-1, 3)
+            hi_rep = jnp.broadcast_to(hi[prim0][:, None, :], (cap, 3, 3)).reshape(-1, 3)
+            b_lo = jax.ops.segment_min(lo_rep, bin_seg.ravel(), num_segments=total).reshape(slots, 3, bins, 3)
+            b_hi = jax.ops.segment_max(hi_rep, bin_seg.ravel(), num_segments=total).reshape(slots, 3, bins, 3)
+            b_n = jax.ops.segment_sum(jnp.ones(cap * 3, jnp.int32), bin_seg.ravel(),
+                                      num_segments=total).reshape(slots, 3, bins)
+            l_lo = jax.lax.cummin(b_lo, axis=2)
+            l_hi = jax.lax.cummax(b_hi, axis=2)
+            r_lo = jax.lax.cummin(b_lo, axis=2, reverse=True)
+            r_hi = jax.lax.cummax(b_hi, axis=2, reverse=True)
+            l_n = jnp.cumsum(b_n, axis=2)
+            n_all = l_n[:, :, -1:]
+            # plane j separates bins <= j from bins > j
+            pl_n = l_n[:, :, :-1]
+            pr_n = n_all - pl_n
+            plane_cost = (half_area(l_lo[:, :, :-1], l_hi[:, :, :-1], scale) * pl_n.astype(dtype)
+                          + half_area(r_lo[:, :, 1:], r_hi[:, :, 1:], scale) * pr_n.astype(dtype))
+            plane_ok = (pl_n > 0) & (pr_n > 0)
+            plane_cost = jnp.where(plane_ok, plane_cost, jnp.inf).reshape(slots, -1)
+            pick = jnp.argmin(plane_cost, axis=1)  # first minimum: lowest axis, then plane
+            slot_best = jnp.take_along_axis(plane_cost, pick[:, None], axis=1)[:, 0]
+            slot_n_left = jnp.take_along_axis(pl_n.reshape(slots, -1), pick[:, None], axis=1)[:, 0]
+            best = jnp.where(can_split, slot_best[slot], jnp.inf)
+            found = best < jnp.inf
+            split_axis = jnp.where(found, (pick // (bins - 1))[slot], 0).astype(jnp.int32)
+            plane = jnp.where(found, (pick % (bins - 1))[slot], -1).astype(jnp.int32)
+            # no plane on any axis (all centres in one point): halves by id
+            n_left = jnp.where(found, slot_n_left[slot], count // 2)
+        if method != "median":
+            count_f = count.astype(dtype)
+            split_est = ct + jnp.where(node_area > 0, ci * best / jnp.where(node_area > 0, node_area, 1),
+                                       ci * count_f)
+            sah_leaf = (ci * count_f <= split_est) | ~found
+
+        leaf = frontier & ((count <= 1) | ((count <= max_leaf) & sah_leaf))
+        split = frontier & ~leaf
+        rank = jnp.cumsum(split.astype(jnp.int32)) - split
+        left_id = jnp.where(split, s["next_free"] + 2 * rank, none)
+        right_id = jnp.where(split, left_id + 1, none)
+        n_left = jnp.where(split, n_left, 0)
+
+        # move primitives into the children's runs
+        pos_split = active & split.at[pos_node].get(mode="fill", fill_value=False)
+        axis_p = split_axis.at[pos_node].get(mode="fill", fill_value=0)
+        n_left_at = n_left.at[pos_node].get(mode="fill", fill_value=0)
+        goes_left = offset < n_left_at
+        if method == "binned":
+            plane_at = plane.at[pos_node].get(mode="fill", fill_value=-1)
+            bin_at = jnp.take_along_axis(bin_pos, axis_p[:, None], axis=1)[:, 0]
+            goes_left = jnp.where(plane_at >= 0, bin_at <= plane_at, offset < n_left_at)
+            flags = [goes_left & pos_split]
+        else:
+            prim_at = jnp.take_along_axis(orders, axis_p[None, :], axis=0)[0]
+            goes_left = offset < n_left_at
+            left_prim = jnp.zeros(cap, bool).at[jnp.where(pos_split, prim_at, cap)].set(goes_left, mode="drop")
+            flags = [left_prim[orders[a]] & pos_split for a in range(n_orders)]
+        rows = []
+        for a in range(n_orders):
+            flag = flags[a]
+            before = jnp.cumsum(flag.astype(jnp.int32)) - flag
+            rank_left = before - before.at[start_p].get(mode="fill", fill_value=0)
+            rank_right = offset - rank_left
+            target = jnp.where(flag, start_p + rank_left, start_p + n_left_at + rank_right)
+            target = jnp.where(pos_split, target, pos)
+            rows.append(jnp.zeros(cap, jnp.int32).at[target].set(orders[a]))
+        new_orders = jnp.stack(rows)
+        # a primitive's new node follows from its new position
+        child_of_pos = jnp.where(offset < n_left_at, left_id.at[pos_node].get(mode="fill", fill_value=none),
+                                 right_id.at[pos_node].get(mode="fill", fill_value=none))
+        new_pos_node = jnp.where(pos_split, child_of_pos, pos_node)
+
+        start, cnt = s["start"], s["count"]
+        new_start = start.at[left_id].set(start, mode="drop").at[right_id].set(start + n_left, mode="drop")
+        new_count = cnt.at[left_id].set(n_left, mode="drop").at[right_id].set(cnt - n_left, mode="drop")
+        parent = s["parent"].at[left_id].set(node_ids, mode="drop").at[right_id].set(node_ids, mode="drop")
+        new_frontier = jnp.zeros(nodes, bool).at[left_id].set(True, mode="drop").at[right_id].set(True, mode="drop")
+        return dict(
+            orders=new_orders, pos_node=new_pos_node, start=new_start, count=new_count,
+            frontier=new_frontier,
+            left=jnp.where(split, left_id, s["left"]), right=jnp.where(split, right_id, s["right"]),
+            parent=parent, axis=jnp.where(split, split_axis, s["axis"]),
+            prim_start=jnp.where(leaf, start, s["prim_start"]),
+            prim_count=jnp.where(leaf, cnt, s["prim_count"]),
+            lo=node_lo, hi=node_hi,
+            next_free=s["next_free"] + 2 * jnp.sum(split, dtype=jnp.int32),
+        )
+
+    s = jax.lax.while_loop(lambda s: jnp.any(s["frontier"]), level, state)
+    return BVH(left=s["left"], right=s["right"], parent=s["parent"], lo=s["lo"], hi=s["hi"],
+               prim_start=s["prim_start"], prim_count=s["prim_count"], axis=s["axis"],
+               prim_index=jnp.where(is_prim, s["orders"][0], -1), root=jnp.int32(0))
