@@ -19,6 +19,10 @@ many nodes are open. The same code can be vmapped over random trials.
 
 Tie rule (the NumPy reference in :mod:`jaxbvh.reference.build` keeps the same one).
 Centres are ``0.5 * lo + 0.5 * hi``; primitives with equal centres are ordered by id.
+Costs count as equal when they differ by at most a relative ``TIE_TOLERANCE``
+(2^-20): XLA on CPU fuses multiply-adds, so one cost can come out one ulp apart in two
+places (or here and in NumPy), and only a tolerance makes the choice reproducible.
+
 * sweep: least cost ``A_L N_L + A_R N_R``; among equal costs the split closest to the
   middle (``|2 N_L - N|`` least, the smaller ``N_L`` first), then the lowest axis.
 * binned: least cost; among equal costs the lowest axis, then the lowest plane. Bin of a
@@ -49,6 +53,7 @@ from jaxbvh.cost import half_area
 from jaxbvh.tree import BVH, capacity_bucket
 
 BUILDERS = ("sweep", "binned", "median")
+TIE_TOLERANCE = 2.0 ** -20  # relative; costs this close count as a tie (module docstring)
 
 
 def check_prim_boxes(prim_lo, prim_hi, what: str = "primitive boxes"):
@@ -167,6 +172,7 @@ def _split_costs(lo_pos, hi_pos, first, last, n_left, n_right, scale):
             + half_area(right_lo, right_hi, scale) * n_right.astype(dtype))
 
 
+
 @partial(jax.jit, static_argnames=("method", "bins"))
 def _build(lo, hi, n, max_leaf, ct, ci, scale, *, method, bins):
     cap = lo.shape[0]
@@ -234,7 +240,8 @@ def _build(lo, hi, n, max_leaf, ct, ci, scale, *, method, bins):
             cost3 = jnp.stack(candidates)  # [3, P]
             seg3 = jnp.broadcast_to(seg, (3, cap))
             best = jax.ops.segment_min(cost3.ravel(), seg3.ravel(), num_segments=nodes + 1)[:nodes]
-            is_best = (cost3 == best.at[seg3].get(mode="fill", fill_value=jnp.inf)) & (cost3 < jnp.inf)
+            near = best * (1 + TIE_TOLERANCE)
+            is_best = (cost3 <= near.at[seg3].get(mode="fill", fill_value=jnp.inf)) & (cost3 < jnp.inf)
             key3 = jnp.where(is_best, jnp.stack(keys), jnp.iinfo(jnp.int32).max)
             best_key = jax.ops.segment_min(key3.ravel(), seg3.ravel(), num_segments=nodes + 1)[:nodes]
             # the key names the split: |2 N_L - N|, its sign and the axis
@@ -277,8 +284,9 @@ def _build(lo, hi, n, max_leaf, ct, ci, scale, *, method, bins):
                           + half_area(r_lo[:, :, 1:], r_hi[:, :, 1:], scale) * pr_n.astype(dtype))
             plane_ok = (pl_n > 0) & (pr_n > 0)
             plane_cost = jnp.where(plane_ok, plane_cost, jnp.inf).reshape(slots, -1)
-            pick = jnp.argmin(plane_cost, axis=1)  # first minimum: lowest axis, then plane
-            slot_best = jnp.take_along_axis(plane_cost, pick[:, None], axis=1)[:, 0]
+            slot_best = jnp.min(plane_cost, axis=1)
+            # first plane within the tie tolerance: lowest axis, then lowest plane
+            pick = jnp.argmax(plane_cost <= (slot_best * (1 + TIE_TOLERANCE))[:, None], axis=1)
             slot_n_left = jnp.take_along_axis(pl_n.reshape(slots, -1), pick[:, None], axis=1)[:, 0]
             best = jnp.where(can_split, slot_best[slot], jnp.inf)
             found = best < jnp.inf

@@ -1,0 +1,121 @@
+"""The ``jaxbvh`` command line tool.
+
+Each subcommand is a module ``jaxbvh.commands.<name>`` with ``add_parser(subparsers)``
+and ``run(args) -> dict``; the dict is printed as a table, or as one JSON object with
+``--json``. Errors in the input (missing or malformed files, invalid trees) print one
+line ``jaxbvh: error: ...`` on stderr and exit with status 2.
+
+JAX's persistent compilation cache is on: compiled builders are reused across runs.
+It lives in ``~/.cache/jaxbvh/jax`` unless ``JAXBVH_CACHE_DIR`` names another folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+from pathlib import Path
+
+COMMANDS = ["build", "stats", "optimize", "trace"]
+
+# errors that describe bad input, not a bug: reported in one line, exit status 2
+EXIT_USAGE = 2
+
+
+def cache_dir() -> Path:
+    """Folder of JAX's persistent compilation cache for the CLI."""
+    env = os.environ.get("JAXBVH_CACHE_DIR")
+    if env:
+        return Path(env).expanduser()
+    return Path.home() / ".cache" / "jaxbvh" / "jax"
+
+
+def enable_compilation_cache() -> Path | None:
+    """Point JAX's persistent compilation cache at :func:`cache_dir` (None if unusable)."""
+    import jax
+
+    path = cache_dir()
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None  # read-only home: run without the cache rather than fail
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    # our builders compile in well under a second on small meshes; cache them anyway
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    return path
+
+
+def _load_commands() -> dict:
+    modules = {}
+    for name in COMMANDS:
+        try:
+            modules[name] = importlib.import_module(f"jaxbvh.commands.{name}")
+        except ImportError as exc:
+            # a command whose module is not written yet; a broken import inside an
+            # existing module still surfaces
+            if exc.name != f"jaxbvh.commands.{name}":
+                raise
+    return modules
+
+
+def make_parser() -> tuple[argparse.ArgumentParser, dict]:
+    from jaxbvh import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="jaxbvh",
+        description="Build, inspect and optimize BVHs for ray tracing (JAX).",
+        epilog=f"JAX compilation cache: {cache_dir()} (set JAXBVH_CACHE_DIR to move it).")
+    parser.add_argument("--version", action="version", version=f"jaxbvh {__version__}")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    subparsers.required = True
+    modules = _load_commands()
+    for module in modules.values():
+        sub = module.add_parser(subparsers)
+        if not any("--json" in a.option_strings for a in sub._actions):
+            sub.add_argument("--json", action="store_true",
+                             help="print the result as one JSON object on stdout")
+    return parser, modules
+
+
+def _error_line(exc: BaseException) -> str:
+    from jaxbvh.validate import InvalidTreeError
+
+    if isinstance(exc, InvalidTreeError):
+        text = f"invalid BVH ({len(exc.problems)} problem(s)): " + "; ".join(exc.problems[:3])
+        if len(exc.problems) > 3:
+            text += f"; ... and {len(exc.problems) - 3} more"
+    elif isinstance(exc, OSError) and exc.filename and exc.strerror:
+        text = f"{exc.strerror}: {exc.filename}"
+    else:
+        text = str(exc) or type(exc).__name__
+    return " ".join(text.split())  # one line
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``jaxbvh`` console script; returns the exit status."""
+    from jaxbvh.commands import _common
+    from jaxbvh.io import MeshError
+    from jaxbvh.validate import InvalidTreeError
+
+    parser, modules = make_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version, usage errors (argparse prints them)
+        return int(exc.code or 0)
+    enable_compilation_cache()
+    try:
+        result = modules[args.command].run(args)
+    except (MeshError, InvalidTreeError, ValueError, FileNotFoundError, OSError) as exc:
+        print(f"jaxbvh: error: {_error_line(exc)}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("jaxbvh: interrupted", file=sys.stderr)
+        return 130
+    _common.print_result(result, as_json=getattr(args, "json", False))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
