@@ -145,7 +145,11 @@ def build(prim_lo, prim_hi, *, method: str = "sweep", max_leaf: int = 1, bins: i
 
 
 def _segmented_box_scan(lo, hi, starts):
-    """Inclusive running box over positions, restarting where ``starts`` is True."""
+    """Inclusive running box along axis 1 of [S, P, 3] boxes, restarting where ``starts``.
+
+    ``starts``: [S, P] bool. One scan serves many sequences at once (all axes, forward
+    and backward), which keeps the compiled program small.
+    """
 
     def combine(a, b):
         fa, la, ha = a
@@ -153,24 +157,32 @@ def _segmented_box_scan(lo, hi, starts):
         return (fa | fb, jnp.where(fb[..., None], lb, jnp.minimum(la, lb)),
                 jnp.where(fb[..., None], hb, jnp.maximum(ha, hb)))
 
-    _, run_lo, run_hi = jax.lax.associative_scan(combine, (starts, lo, hi))
+    _, run_lo, run_hi = jax.lax.associative_scan(combine, (starts, lo, hi), axis=1)
     return run_lo, run_hi
 
 
 def _split_costs(lo_pos, hi_pos, first, last, n_left, n_right, scale):
     """Cost ``A_L N_L + A_R N_R`` of splitting each run after each position.
 
-    ``*_pos``: boxes in position order [P, 3]; ``first`` / ``last``: run boundaries.
+    ``*_pos``: boxes in position order, one row per axis order [3, P, 3];
+    ``first`` / ``last``: [P] run boundaries; ``n_left``/``n_right``: [P] counts of
+    the two sides when splitting after the position. Returns [3, P].
     """
-    fwd_lo, fwd_hi = _segmented_box_scan(lo_pos, hi_pos, first)
-    bwd_lo, bwd_hi = _segmented_box_scan(lo_pos[::-1], hi_pos[::-1], last[::-1])
-    inf = jnp.full((1, 3), jnp.inf, lo_pos.dtype)
-    right_lo = jnp.concatenate([bwd_lo[::-1][1:], inf])
-    right_hi = jnp.concatenate([bwd_hi[::-1][1:], -inf])
+    axes = lo_pos.shape[0]
+    # forward sweeps (left sides) and backward sweeps (right sides) in one scan
+    seq_lo = jnp.concatenate([lo_pos, lo_pos[:, ::-1]])
+    seq_hi = jnp.concatenate([hi_pos, hi_pos[:, ::-1]])
+    starts = jnp.concatenate([jnp.broadcast_to(first, (axes,) + first.shape),
+                              jnp.broadcast_to(last[::-1], (axes,) + last.shape)])
+    run_lo, run_hi = _segmented_box_scan(seq_lo, seq_hi, starts)
+    fwd_lo, fwd_hi = run_lo[:axes], run_hi[:axes]
+    # the right side of a split after p is the backward run starting at p + 1
+    empty = jnp.full((axes, 1, 3), jnp.inf, lo_pos.dtype)
+    right_lo = jnp.concatenate([run_lo[axes:, ::-1][:, 1:], empty], axis=1)
+    right_hi = jnp.concatenate([run_hi[axes:, ::-1][:, 1:], -empty], axis=1)
     dtype = lo_pos.dtype
     return (half_area(fwd_lo, fwd_hi, scale) * n_left.astype(dtype)
             + half_area(right_lo, right_hi, scale) * n_right.astype(dtype))
-
 
 
 @partial(jax.jit, static_argnames=("method", "bins"))
@@ -230,19 +242,15 @@ def _build(lo, hi, n, max_leaf, ct, ci, scale, *, method, bins):
             best = jnp.zeros(nodes, dtype)
             sah_leaf = jnp.ones(nodes, bool)
         elif method == "sweep":
-            candidates = []
-            keys = []
-            for a in range(3):
-                cost = _split_costs(lo[orders[a]], hi[orders[a]], first, last, n_left_p, n_right_p, scale)
-                two_k = 2 * n_left_p
-                candidates.append(jnp.where(active & (n_right_p > 0), cost, jnp.inf))
-                keys.append((jnp.abs(two_k - count_p) * 2 + (two_k > count_p)) * 3 + a)
-            cost3 = jnp.stack(candidates)  # [3, P]
+            cost3 = _split_costs(lo[orders], hi[orders], first, last, n_left_p, n_right_p, scale)
+            cost3 = jnp.where(active & (n_right_p > 0), cost3, jnp.inf)  # [3, P]
+            two_k = 2 * n_left_p
+            key3 = (jnp.abs(two_k - count_p) * 2 + (two_k > count_p))[None, :] * 3 + jnp.arange(3)[:, None]
             seg3 = jnp.broadcast_to(seg, (3, cap))
             best = jax.ops.segment_min(cost3.ravel(), seg3.ravel(), num_segments=nodes + 1)[:nodes]
             near = best * (1 + TIE_TOLERANCE)
             is_best = (cost3 <= near.at[seg3].get(mode="fill", fill_value=jnp.inf)) & (cost3 < jnp.inf)
-            key3 = jnp.where(is_best, jnp.stack(keys), jnp.iinfo(jnp.int32).max)
+            key3 = jnp.where(is_best, key3, jnp.iinfo(jnp.int32).max)
             best_key = jax.ops.segment_min(key3.ravel(), seg3.ravel(), num_segments=nodes + 1)[:nodes]
             # the key names the split: |2 N_L - N|, its sign and the axis
             split_axis = best_key % 3
