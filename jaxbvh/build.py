@@ -245,7 +245,7 @@ def _build(lo, hi, n, max_leaf, ct, ci, scale, *, method, bins):
             cost3 = _split_costs(lo[orders], hi[orders], first, last, n_left_p, n_right_p, scale)
             cost3 = jnp.where(active & (n_right_p > 0), cost3, jnp.inf)  # [3, P]
             two_k = 2 * n_left_p
-            key3 = (jnp.abs(two_k - count_p) * 2 + (two_k > count_p))[None, :] * 3 + jnp.arange(3)[:, None]
+            key3 = (jnp.abs(two_k - count_p) * 2 + (two_k > count_p))[None, :] * 3 + jnp.arange(3, dtype=jnp.int32)[:, None]
             seg3 = jnp.broadcast_to(seg, (3, cap))
             best = jax.ops.segment_min(cost3.ravel(), seg3.ravel(), num_segments=nodes + 1)[:nodes]
             near = best * (1 + TIE_TOLERANCE)
@@ -271,7 +271,7 @@ def _build(lo, hi, n, max_leaf, ct, ci, scale, *, method, bins):
             raw = jnp.floor((c_pos - low) * binsf / jnp.where(span > 0, span, 1))
             bin_pos = jnp.where(span > 0, jnp.clip(raw, 0, binsf - 1), 0).astype(jnp.int32)  # [P, 3]
             slot_p = jnp.where(active, slot.at[pos_node].get(mode="fill", fill_value=slots - 1), slots - 1)
-            bin_seg = (slot_p[:, None] * 3 + jnp.arange(3)[None, :]) * bins + bin_pos  # [P, 3]
+            bin_seg = (slot_p[:, None] * 3 + jnp.arange(3, dtype=jnp.int32)[None, :]) * bins + bin_pos  # [P, 3]
             total = slots * 3 * bins
             lo_rep = jnp.broadcast_to(lo[prim0][:, None, :], (cap, 3, 3)).reshape(-1, 3)
             hi_rep = jnp.broadcast_to(hi[prim0][:, None, :], (cap, 3, 3)).reshape(-1, 3)

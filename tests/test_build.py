@@ -55,8 +55,8 @@ def test_jax_builder_equals_reference_on_extreme_soups(tri, method):
     assert canonical(got) == canonical(want)
 
 
-@settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(data=box_sets(max_size=30), method=st.sampled_from(jaxbvh.BUILDERS))
+@settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(data=box_sets(min_size=9, max_size=16), method=st.sampled_from(jaxbvh.BUILDERS))
 def test_float64_builder_equals_reference(data, method):
     with jax.enable_x64(True):
         lo, hi = (a.astype(np.float64) for a in data)
