@@ -127,6 +127,9 @@ def build(prim_lo, prim_hi, *, method: str = "sweep", max_leaf: int = 1, bins: i
     if method == "binned" and int(bins) < 2:
         raise ValueError(f"bins must be >= 2, got {bins}")
     lo, hi = check_prim_boxes(prim_lo, prim_hi)
+    if method == "binned" and capacity_bucket(lo.shape[0]) * int(bins) >= 2**31:
+        raise ValueError(f"binned build of {lo.shape[0]} primitives with {bins} bins needs keys past int32; "
+                         "use fewer bins")
     dt = _working_dtype(dtype, lo.dtype)
     lo, hi = lo.astype(dt), hi.astype(dt)
     n = lo.shape[0]
@@ -246,63 +249,47 @@ def _build(lo, hi, n, max_leaf, ct, ci, scale, *, method, bins):
             cost3 = jnp.where(active & (n_right_p > 0), cost3, jnp.inf)  # [3, P]
             two_k = 2 * n_left_p
             key3 = (jnp.abs(two_k - count_p) * 2 + (two_k > count_p))[None, :] * 3 + jnp.arange(3, dtype=jnp.int32)[:, None]
+        else:  # binned
+            c_pos = centre[prim0]
+            cmin = jax.ops.segment_min(c_pos, seg, num_segments=nodes + 1)[:nodes]
+            cmax = jax.ops.segment_max(c_pos, seg, num_segments=nodes + 1)[:nodes]
+            span = (cmax - cmin).at[pos_node].get(mode="fill", fill_value=0)
+            low = cmin.at[pos_node].get(mode="fill", fill_value=0)
+            binsf = jnp.asarray(bins, dtype)
+            raw = jnp.floor((c_pos - low) * binsf / jnp.where(span > 0, span, 1))
+            bin_pos = jnp.where(active[:, None] & (span > 0), jnp.clip(raw, 0, binsf - 1), 0).astype(jnp.int32)
+            # order every run by bin along each axis (stable: by id within a bin); runs
+            # stay where they are because the key leads with the run's start
+            run_key = jnp.where(is_prim, start_p, cap)[None, :] * bins + bin_pos.T  # [3, P]
+            by_bin = jnp.argsort(run_key, axis=1, stable=True).astype(jnp.int32)
+            sorted_prims = prim0[by_bin]
+            bin_sorted = jnp.take_along_axis(bin_pos.T, by_bin, axis=1)
+            cost3 = _split_costs(lo[sorted_prims], hi[sorted_prims], first, last, n_left_p, n_right_p, scale)
+            next_bin = jnp.concatenate([bin_sorted[:, 1:], jnp.full((3, 1), -1, jnp.int32)], axis=1)
+            # candidates: the planes between two occupied bins (the last of each bin)
+            cost3 = jnp.where(active & (n_right_p > 0) & (bin_sorted != next_bin), cost3, jnp.inf)
+            key3 = jnp.arange(3, dtype=jnp.int32)[:, None] * bins + bin_sorted  # lowest axis, then plane
+        if method != "median":
             seg3 = jnp.broadcast_to(seg, (3, cap))
             best = jax.ops.segment_min(cost3.ravel(), seg3.ravel(), num_segments=nodes + 1)[:nodes]
             near = best * (1 + TIE_TOLERANCE)
             is_best = (cost3 <= near.at[seg3].get(mode="fill", fill_value=jnp.inf)) & (cost3 < jnp.inf)
             key3 = jnp.where(is_best, key3, jnp.iinfo(jnp.int32).max)
             best_key = jax.ops.segment_min(key3.ravel(), seg3.ravel(), num_segments=nodes + 1)[:nodes]
-            # the key names the split: |2 N_L - N|, its sign and the axis
-            split_axis = best_key % 3
-            gap, upper = (best_key // 3) // 2, (best_key // 3) % 2
-            n_left = jnp.where(upper == 1, count + gap, count - gap) // 2
             found = best < jnp.inf
-        else:  # binned
-            slots = cap // 2 + 1  # nodes that can split hold >= 2 primitives each
-            can_split = frontier & (count >= 2)
-            slot = jnp.where(can_split, jnp.cumsum(can_split.astype(jnp.int32)) - 1, slots - 1)
-            c_pos = centre[prim0]
-            cmin = jax.ops.segment_min(c_pos, seg, num_segments=nodes + 1)[:nodes]
-            cmax = jax.ops.segment_max(c_pos, seg, num_segments=nodes + 1)[:nodes]
-            span_n = cmax - cmin
-            span = span_n.at[pos_node].get(mode="fill", fill_value=0)
-            low = cmin.at[pos_node].get(mode="fill", fill_value=0)
-            binsf = jnp.asarray(bins, dtype)
-            raw = jnp.floor((c_pos - low) * binsf / jnp.where(span > 0, span, 1))
-            bin_pos = jnp.where(span > 0, jnp.clip(raw, 0, binsf - 1), 0).astype(jnp.int32)  # [P, 3]
-            slot_p = jnp.where(active, slot.at[pos_node].get(mode="fill", fill_value=slots - 1), slots - 1)
-            bin_seg = (slot_p[:, None] * 3 + jnp.arange(3, dtype=jnp.int32)[None, :]) * bins + bin_pos  # [P, 3]
-            total = slots * 3 * bins
-            lo_rep = jnp.broadcast_to(lo[prim0][:, None, :], (cap, 3, 3)).reshape(-1, 3)
-            hi_rep = jnp.broadcast_to(hi[prim0][:, None, :], (cap, 3, 3)).reshape(-1, 3)
-            b_lo = jax.ops.segment_min(lo_rep, bin_seg.ravel(), num_segments=total).reshape(slots, 3, bins, 3)
-            b_hi = jax.ops.segment_max(hi_rep, bin_seg.ravel(), num_segments=total).reshape(slots, 3, bins, 3)
-            b_n = jax.ops.segment_sum(jnp.ones(cap * 3, jnp.int32), bin_seg.ravel(),
-                                      num_segments=total).reshape(slots, 3, bins)
-            l_lo = jax.lax.cummin(b_lo, axis=2)
-            l_hi = jax.lax.cummax(b_hi, axis=2)
-            r_lo = jax.lax.cummin(b_lo, axis=2, reverse=True)
-            r_hi = jax.lax.cummax(b_hi, axis=2, reverse=True)
-            l_n = jnp.cumsum(b_n, axis=2)
-            n_all = l_n[:, :, -1:]
-            # plane j separates bins <= j from bins > j
-            pl_n = l_n[:, :, :-1]
-            pr_n = n_all - pl_n
-            plane_cost = (half_area(l_lo[:, :, :-1], l_hi[:, :, :-1], scale) * pl_n.astype(dtype)
-                          + half_area(r_lo[:, :, 1:], r_hi[:, :, 1:], scale) * pr_n.astype(dtype))
-            plane_ok = (pl_n > 0) & (pr_n > 0)
-            plane_cost = jnp.where(plane_ok, plane_cost, jnp.inf).reshape(slots, -1)
-            slot_best = jnp.min(plane_cost, axis=1)
-            # first plane within the tie tolerance: lowest axis, then lowest plane
-            pick = jnp.argmax(plane_cost <= (slot_best * (1 + TIE_TOLERANCE))[:, None], axis=1)
-            slot_n_left = jnp.take_along_axis(pl_n.reshape(slots, -1), pick[:, None], axis=1)[:, 0]
-            best = jnp.where(can_split, slot_best[slot], jnp.inf)
-            found = best < jnp.inf
-            split_axis = jnp.where(found, (pick // (bins - 1))[slot], 0).astype(jnp.int32)
-            plane = jnp.where(found, (pick % (bins - 1))[slot], -1).astype(jnp.int32)
-            # no plane on any axis (all centres in one point): halves by id
-            n_left = jnp.where(found, slot_n_left[slot], count // 2)
-        if method != "median":
+            if method == "sweep":
+                # the key names the split: |2 N_L - N|, its sign and the axis
+                split_axis = best_key % 3
+                gap, upper = (best_key // 3) // 2, (best_key // 3) % 2
+                n_left = jnp.where(upper == 1, count + gap, count - gap) // 2
+            else:
+                split_axis = jnp.where(found, best_key // bins, 0)
+                plane = jnp.where(found, best_key % bins, -1)
+                at_best = is_best & (key3 == best_key.at[seg3].get(mode="fill", fill_value=-1))
+                n_left3 = jnp.where(at_best, n_left_p[None, :], 0)
+                n_left = jax.ops.segment_max(n_left3.ravel(), seg3.ravel(), num_segments=nodes + 1)[:nodes]
+                # no plane on any axis (all centres in one point): halves by id
+                n_left = jnp.where(found, n_left, count // 2)
             count_f = count.astype(dtype)
             split_est = ct + jnp.where(node_area > 0, ci * best / jnp.where(node_area > 0, node_area, 1),
                                        ci * count_f)
@@ -319,7 +306,6 @@ def _build(lo, hi, n, max_leaf, ct, ci, scale, *, method, bins):
         pos_split = active & split.at[pos_node].get(mode="fill", fill_value=False)
         axis_p = split_axis.at[pos_node].get(mode="fill", fill_value=0)
         n_left_at = n_left.at[pos_node].get(mode="fill", fill_value=0)
-        goes_left = offset < n_left_at
         if method == "binned":
             plane_at = plane.at[pos_node].get(mode="fill", fill_value=-1)
             bin_at = jnp.take_along_axis(bin_pos, axis_p[:, None], axis=1)[:, 0]
