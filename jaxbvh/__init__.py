@@ -12,9 +12,23 @@ from jaxbvh.build import BUILDERS, build
 
 __version__ = "0.1.0"
 
+_LAZY = {"load_mesh": ("jaxbvh.io", "load_mesh"), "io": ("jaxbvh.io", None), "rays": ("jaxbvh.rays", None),
+         "rotate": ("jaxbvh.rotate", None)}
+
+
+def __getattr__(name):
+    # trimesh and the optimizers load only when first used, keeping `import jaxbvh` light
+    if name in _LAZY:
+        import importlib
+
+        module_name, attribute = _LAZY[name]
+        module = importlib.import_module(module_name)
+        return getattr(module, attribute) if attribute else module
+    raise AttributeError(f"module 'jaxbvh' has no attribute {name!r}")
+
 __all__ = [
     "BVH", "WideBVH", "Frame", "InvalidTreeError", "BUILDERS",
     "build", "check", "validate", "sah", "node_costs", "ng_trifonov_cost", "goldsmith_salmon_cost",
     "all_costs", "save", "load", "to_interchange", "from_interchange", "to_numpy", "to_jax",
-    "capacity_bucket",
+    "capacity_bucket", "load_mesh",
 ]
