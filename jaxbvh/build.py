@@ -15,7 +15,11 @@ positions, and for each axis a permutation lists the primitives of each run sort
 centre. One step of the ``while_loop`` takes every open node of the current level,
 scores its splits with segmented scans over the runs, and stably partitions the runs
 into the children's, so the work per level is a few passes over all primitives however
-many nodes are open. The same code can be vmapped over random trials.
+many nodes are open. The same code can be vmapped over random trials. Binning needs no
+bins in memory here: the runs are already sorted by centre, so bins never decrease along
+a run and Wald's candidate planes are the positions where the bin changes; the binned
+builder is the sweep restricted to those positions (same partitions as counting into
+bins, at the sweep's cost).
 
 Tie rule (the NumPy reference in :mod:`jaxbvh.reference.build` keeps the same one).
 Centres are ``0.5 * lo + 0.5 * hi``; primitives with equal centres are ordered by id.
@@ -197,11 +201,8 @@ def _build(lo, hi, n, max_leaf, ct, ci, scale, *, method, bins):
     pos = jnp.arange(cap, dtype=jnp.int32)
     is_prim = pos < n
     centre = jnp.where(is_prim[:, None], 0.5 * lo + 0.5 * hi, jnp.inf)
-    n_orders = 1 if method == "binned" else 3
-    if method == "binned":
-        orders = pos[None, :]
-    else:  # stable sort: equal centres stay in id order
-        orders = jnp.stack([jnp.argsort(centre[:, a], stable=True).astype(jnp.int32) for a in range(3)])
+    # one permutation per axis, each run sorted by centre (stable: equal centres by id)
+    orders = jnp.stack([jnp.argsort(centre[:, a], stable=True).astype(jnp.int32) for a in range(3)])
 
     int_nodes = jnp.full(nodes, -1, jnp.int32)
     state = dict(
@@ -250,23 +251,19 @@ def _build(lo, hi, n, max_leaf, ct, ci, scale, *, method, bins):
             two_k = 2 * n_left_p
             key3 = (jnp.abs(two_k - count_p) * 2 + (two_k > count_p))[None, :] * 3 + jnp.arange(3, dtype=jnp.int32)[:, None]
         else:  # binned
+            # the per-axis orders are sorted by centre, so bins never decrease along a run:
+            # the planes between occupied bins are the positions where the bin changes
             c_pos = centre[prim0]
             cmin = jax.ops.segment_min(c_pos, seg, num_segments=nodes + 1)[:nodes]
             cmax = jax.ops.segment_max(c_pos, seg, num_segments=nodes + 1)[:nodes]
-            span = (cmax - cmin).at[pos_node].get(mode="fill", fill_value=0)
-            low = cmin.at[pos_node].get(mode="fill", fill_value=0)
+            span = (cmax - cmin).at[pos_node].get(mode="fill", fill_value=0).T  # [3, P]
+            low = cmin.at[pos_node].get(mode="fill", fill_value=0).T
+            c_sorted = jnp.stack([centre[orders[a], a] for a in range(3)])
             binsf = jnp.asarray(bins, dtype)
-            raw = jnp.floor((c_pos - low) * binsf / jnp.where(span > 0, span, 1))
-            bin_pos = jnp.where(active[:, None] & (span > 0), jnp.clip(raw, 0, binsf - 1), 0).astype(jnp.int32)
-            # order every run by bin along each axis (stable: by id within a bin); runs
-            # stay where they are because the key leads with the run's start
-            run_key = jnp.where(is_prim, start_p, cap)[None, :] * bins + bin_pos.T  # [3, P]
-            by_bin = jnp.argsort(run_key, axis=1, stable=True).astype(jnp.int32)
-            sorted_prims = prim0[by_bin]
-            bin_sorted = jnp.take_along_axis(bin_pos.T, by_bin, axis=1)
-            cost3 = _split_costs(lo[sorted_prims], hi[sorted_prims], first, last, n_left_p, n_right_p, scale)
+            raw = jnp.floor((c_sorted - low) * binsf / jnp.where(span > 0, span, 1))
+            bin_sorted = jnp.where(active & (span > 0), jnp.clip(raw, 0, binsf - 1), 0).astype(jnp.int32)
+            cost3 = _split_costs(lo[orders], hi[orders], first, last, n_left_p, n_right_p, scale)
             next_bin = jnp.concatenate([bin_sorted[:, 1:], jnp.full((3, 1), -1, jnp.int32)], axis=1)
-            # candidates: the planes between two occupied bins (the last of each bin)
             cost3 = jnp.where(active & (n_right_p > 0) & (bin_sorted != next_bin), cost3, jnp.inf)
             key3 = jnp.arange(3, dtype=jnp.int32)[:, None] * bins + bin_sorted  # lowest axis, then plane
         if method != "median":
@@ -284,11 +281,11 @@ def _build(lo, hi, n, max_leaf, ct, ci, scale, *, method, bins):
                 n_left = jnp.where(upper == 1, count + gap, count - gap) // 2
             else:
                 split_axis = jnp.where(found, best_key // bins, 0)
-                plane = jnp.where(found, best_key % bins, -1)
                 at_best = is_best & (key3 == best_key.at[seg3].get(mode="fill", fill_value=-1))
                 n_left3 = jnp.where(at_best, n_left_p[None, :], 0)
                 n_left = jax.ops.segment_max(n_left3.ravel(), seg3.ravel(), num_segments=nodes + 1)[:nodes]
-                # no plane on any axis (all centres in one point): halves by id
+                # no plane on any axis (all centres in one point): halves by id, which
+                # is the order of every axis when all centres are equal
                 n_left = jnp.where(found, n_left, count // 2)
             count_f = count.astype(dtype)
             split_est = ct + jnp.where(node_area > 0, ci * best / jnp.where(node_area > 0, node_area, 1),
@@ -306,18 +303,12 @@ def _build(lo, hi, n, max_leaf, ct, ci, scale, *, method, bins):
         pos_split = active & split.at[pos_node].get(mode="fill", fill_value=False)
         axis_p = split_axis.at[pos_node].get(mode="fill", fill_value=0)
         n_left_at = n_left.at[pos_node].get(mode="fill", fill_value=0)
-        if method == "binned":
-            plane_at = plane.at[pos_node].get(mode="fill", fill_value=-1)
-            bin_at = jnp.take_along_axis(bin_pos, axis_p[:, None], axis=1)[:, 0]
-            goes_left = jnp.where(plane_at >= 0, bin_at <= plane_at, offset < n_left_at)
-            flags = [goes_left & pos_split]
-        else:
-            prim_at = jnp.take_along_axis(orders, axis_p[None, :], axis=0)[0]
-            goes_left = offset < n_left_at
-            left_prim = jnp.zeros(cap, bool).at[jnp.where(pos_split, prim_at, cap)].set(goes_left, mode="drop")
-            flags = [left_prim[orders[a]] & pos_split for a in range(n_orders)]
+        prim_at = jnp.take_along_axis(orders, axis_p[None, :], axis=0)[0]
+        goes_left = offset < n_left_at
+        left_prim = jnp.zeros(cap, bool).at[jnp.where(pos_split, prim_at, cap)].set(goes_left, mode="drop")
+        flags = [left_prim[orders[a]] & pos_split for a in range(3)]
         rows = []
-        for a in range(n_orders):
+        for a in range(3):
             flag = flags[a]
             before = jnp.cumsum(flag.astype(jnp.int32)) - flag
             rank_left = before - before.at[start_p].get(mode="fill", fill_value=0)
