@@ -142,7 +142,10 @@ def _visit(t: _Tree, n, min_gain, temperature=None, draws=None):
             delta = c[3] - best
             accept = False
             if temperature > 0:
-                accept = draws[n, c[0]] < np.exp(-max(delta, t.dtype(0)) / temperature)
+                # xi < exp(-delta / T), written as the JAX version evaluates it
+                with np.errstate(divide="ignore"):
+                    reach = -temperature * np.log(draws[n, c[0]])
+                accept = max(delta, t.dtype(0)) < reach
             if delta < -tol or accept:
                 best, chosen = c[3], c
     if chosen is None:

@@ -1,0 +1,862 @@
+"""Tree rotations (Kensler 2008): hill climbing and simulated annealing, scored in parallel.
+
+The moves
+=========
+At an interior node ``n`` with children ``L``, ``R`` and grandchildren ``LL``, ``LR``
+(of ``L``) and ``RL``, ``RR`` (of ``R``) there are six moves, always in this order::
+
+    0: L <-> RL    1: L <-> RR    2: R <-> LL    3: R <-> LR    4: LL <-> RL    5: LL <-> RR
+
+Each one swaps the contents of two child *slots* (``child[n, 0]`` is the slot of ``L``,
+``child[R, 0]`` that of ``RL``, ...), so node ids never change and the untouched child
+keeps its slot. Rotations need the grandchild to exist; swaps need both children
+interior. A move changes the boxes of ``n``'s children only, never ``n``'s own box, so
+its effect on the tree's SAH has the sign of its effect on ``n``'s own cost ``C(n)``
+(:mod:`jaxbvh.cost`), which is computed in O(1) from the children's and grandchildren's
+areas and costs. :func:`score_moves` does that for all six moves of every node in one
+vectorised call.
+
+Passes
+======
+A pass visits interior nodes children first and, at each, recomputes ``C(n)`` and
+applies one move (or none). A move at ``n`` reads and writes only ``n``'s subtree, so
+nodes of equal *height* (longest path to a leaf, measured when the pass starts) have
+disjoint subtrees and can be processed at once; processing heights lowest first gives
+exactly the tree the sequential post-order visit gives (:mod:`jaxbvh.reference.rotate`).
+Each height is processed in windows of a few fixed sizes, so a pass costs work
+proportional to the nodes it visits, not ``nodes x height``.
+
+Only nodes whose subtree changed since they last chose "no move" can choose differently
+(the choice at a node that finds no improving move is the same at every temperature),
+so after the first pass a cold pass visits just those nodes and their ancestors:
+work proportional to the moves made, not to the tree.
+
+* **Hill climbing** (:func:`hill_climb`): apply the move of least cost if it lowers
+  ``C(n)``; repeat passes until one makes no move.
+* **Simulated annealing** (:func:`anneal`): candidates in the fixed order above are
+  compared with the best found so far (initially "no move"); a better one always becomes
+  the best, a worse one when a uniform ``xi`` falls below ``exp(-de / T)`` (``de`` the
+  difference in ``C(n)``; never when ``T == 0``), tested as ``de < -T log(xi)``; the
+  best is applied. One uniform per
+  (pass, node, candidate), drawn by :func:`annealing_draws` and indexed by node id.
+  The temperature of pass ``i`` is ``schedule(i)``, any optax-style schedule
+  (default :func:`jaxbvh.schedule.kensler_schedule`); after ``steps`` passes the tree is
+  quenched at ``T = 0`` until a pass makes no move.
+
+Exactness
+=========
+Decisions must not hinge on the last bit: XLA may fuse multiply-adds, so two evaluations
+of the same cost can differ by an ulp, and a move that leaves a box unchanged could look
+like an improvement ("phantom moves", passes that never end, results that depend on the
+thread count). A move counts as better only when it lowers ``C(n)`` by more than
+``min_gain * C(n)`` (default ``64 * eps`` of the float type); among the improving moves
+hill climbing takes the first whose cost is within that margin of the least. The NumPy
+reference uses the same rule, so both give the same tree. "No node" is the out-of-range
+index ``N`` with ``mode="drop"``/``"fill"``, never ``-1`` (which would wrap).
+
+After optimizing, :func:`assign_split_axes` (Kensler's final pass) gives every interior
+node the axis along which its children are separated most (overlap least) and orders
+the children along it, for front-to-back traversal.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from functools import partial
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxbvh.cost import extent_scale, half_area
+from jaxbvh.schedule import kensler_temperature
+from jaxbvh.tree import BVH, capacity_bucket, to_jax, to_numpy
+
+MOVES = ("L<->RL", "L<->RR", "R<->LL", "R<->LR", "LL<->RL", "LL<->RR")
+
+# The two slots each move swaps, as (which node, which side). Node codes: 0 = n, 1 = L, 2 = R.
+_SLOT_A = ((0, 0), (0, 0), (0, 1), (0, 1), (1, 0), (1, 0))
+_SLOT_B = ((2, 0), (2, 1), (1, 0), (1, 1), (2, 0), (2, 1))
+_CHANGES_L = (False, False, True, True, True, True)
+_CHANGES_R = (True, True, False, False, True, True)
+
+DEFAULT_WINDOWS = (512,)
+DEFAULT_FRONTIER = 16384
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class RotateResult:
+    """What an optimizer returns.
+
+    ``tree``: the optimized :class:`~jaxbvh.tree.BVH` (same capacity as the input).
+    ``sah``: its SAH cost; ``sah_start``: the input's. ``passes``: passes run (the last
+    one made no move when the optimizer converged). ``moves``: moves applied in all.
+    ``history``: [max_passes] SAH after each pass, NaN after the last pass run.
+    For several chains (``anneal(..., chains=K)``), ``chain_sah`` [K] holds every
+    chain's final SAH and the other fields describe the best chain.
+    """
+
+    tree: Any
+    sah: Any
+    sah_start: Any
+    passes: Any
+    moves: Any
+    history: Any
+    chain_sah: Any = None
+
+
+class _State(NamedTuple):
+    child: Any   # [N, 2] int32, -1 none
+    parent: Any  # [N] int32
+    lo: Any      # [N, 3]
+    hi: Any      # [N, 3]
+    cost: Any    # [N] C(n), kept current for every real node
+    height: Any  # [N] int32, 0 for leaves; current for every real node
+    dirty: Any   # [N] bool: subtree changed since the node last chose "no move"
+
+
+# ----------------------------------------------------------------------------------
+# Small helpers
+# ----------------------------------------------------------------------------------
+
+
+def _none_to_oob(idx, size):
+    """Map ``-1`` ("none") to the out-of-range id ``size``."""
+    return jnp.where(idx < 0, size, idx)
+
+
+def _take(arr, idx, fill):
+    """``arr[idx]`` with ids ``< 0`` or ``>= len(arr)`` giving ``fill``.
+
+    A clamped gather and a select: the same result as ``mode="fill"`` with a smaller
+    program (compile time), and no wrap-around of ``-1``.
+    """
+    n = arr.shape[0]
+    ok = (idx >= 0) & (idx < n)
+    got = jnp.take(arr, jnp.clip(idx, 0, n - 1), axis=0, mode="clip")
+    return jnp.where(ok.reshape(ok.shape + (1,) * (arr.ndim - 1)), got, fill)
+
+
+def _select(choice, options):
+    """``options[choice]`` elementwise: ``options`` a list of 6 arrays [W, ...]."""
+    out = options[0]
+    c = choice.reshape(choice.shape + (1,) * (out.ndim - 1))
+    for k in range(1, len(options)):
+        out = jnp.where(c == k, options[k], out)
+    return out
+
+
+def node_cost(parent_area, area_a, cost_a, area_b, cost_b, ct):
+    """``C(n)`` of an interior node from its two children (formula of :mod:`jaxbvh.cost`)."""
+    positive = parent_area > 0
+    weighted = (area_a * cost_a + area_b * cost_b) / jnp.where(positive, parent_area, 1)
+    return ct + jnp.where(positive, weighted, cost_a + cost_b)
+
+
+def default_min_gain(dtype) -> float:
+    """Relative margin a move must beat: ``64 * eps`` of ``dtype`` (7.6e-6 for float32)."""
+    return float(64 * np.finfo(np.dtype(dtype)).eps)
+
+
+def annealing_draws(key, pass_index, capacity: int, dtype=jnp.float32):
+    """The uniforms of one annealing pass: [capacity, 6], row = node id, column = move.
+
+    The optimizer and the NumPy reference both take their draws from here.
+    """
+    return jax.random.uniform(jax.random.fold_in(key, pass_index), (capacity, 6), dtype)
+
+
+# ----------------------------------------------------------------------------------
+# Scoring: all six moves of a set of nodes
+# ----------------------------------------------------------------------------------
+
+
+class _Part(NamedTuple):
+    lo: Any
+    hi: Any
+    area: Any
+    cost: Any
+    height: Any
+
+
+def _gather_part(st, ids, scale):
+    lo = _take(st.lo, ids, jnp.inf)
+    hi = _take(st.hi, ids, -jnp.inf)
+    return _Part(lo, hi, half_area(lo, hi, scale), _take(st.cost, ids, 0), _take(st.height, ids, 0))
+
+
+def _combine(a: _Part, b: _Part, scale, ct) -> _Part:
+    lo = jnp.minimum(a.lo, b.lo)
+    hi = jnp.maximum(a.hi, b.hi)
+    area = half_area(lo, hi, scale)
+    return _Part(lo, hi, area, node_cost(area, a.area, a.cost, b.area, b.cost, ct),
+                 1 + jnp.maximum(a.height, b.height))
+
+
+def _score(st, nodes, scale, ct):
+    """Scores of the six moves at ``nodes`` [W] (``N`` = no node).
+
+    Returns a dict of [W] / [W, 6] arrays: the family ids, the current cost ``cur``,
+    ``cand`` (cost of ``n`` after each move), ``legal``, the new parts of ``L`` and
+    ``R`` after each move, and the new height of ``n``.
+    """
+    cap = st.child.shape[0]
+    kids = _take(st.child, nodes, -1)
+    left, right = kids[:, 0], kids[:, 1]
+    lk = _take(st.child, left, -1)
+    rk = _take(st.child, right, -1)
+    ll, lr, rl, rr = lk[:, 0], lk[:, 1], rk[:, 0], rk[:, 1]
+    n_area = half_area(_take(st.lo, nodes, jnp.inf), _take(st.hi, nodes, -jnp.inf), scale)
+    parts = tuple(_gather_part(st, i, scale) for i in (left, right, ll, lr, rl, rr))
+    L, R, LL, LR, RL, RR = jax.lax.optimization_barrier(parts)  # gathered once (compile time)
+
+    cur = node_cost(n_area, L.area, L.cost, R.area, R.cost, ct)
+
+    def cost_n(a, b):
+        return node_cost(n_area, a.area, a.cost, b.area, b.cost, ct), 1 + jnp.maximum(a.height, b.height)
+
+    r0 = _combine(L, RR, scale, ct)   # 0: L <-> RL, R = (L, RR)
+    r1 = _combine(RL, L, scale, ct)   # 1: L <-> RR, R = (RL, L)
+    l2 = _combine(R, LR, scale, ct)   # 2: R <-> LL, L = (R, LR)
+    l3 = _combine(LL, R, scale, ct)   # 3: R <-> LR, L = (LL, R)
+    l4 = _combine(RL, LR, scale, ct)  # 4: LL <-> RL, L = (RL, LR), R = (LL, RR)
+    r4 = _combine(LL, RR, scale, ct)
+    l5 = _combine(RR, LR, scale, ct)  # 5: LL <-> RR, L = (RR, LR), R = (RL, LL)
+    r5 = _combine(RL, LL, scale, ct)
+    n_after = [cost_n(RL, r0), cost_n(RR, r1), cost_n(l2, LL), cost_n(l3, LR), cost_n(l4, r4),
+               cost_n(l5, r5)]
+    new_left = [L, L, l2, l3, l4, l5]
+    new_right = [r0, r1, R, R, r4, r5]
+
+    real = nodes < cap
+    l_in, r_in = ll >= 0, rl >= 0
+    interior = real & (left >= 0)
+    legal = jnp.stack([r_in, r_in, l_in, l_in, l_in & r_in, l_in & r_in], axis=1) & interior[:, None]
+
+    return dict(
+        left=left, right=right, interior=interior, cur=cur,
+        cand=jnp.stack([c for c, _ in n_after], axis=1),
+        n_height=[h for _, h in n_after],
+        cur_height=1 + jnp.maximum(L.height, R.height),
+        legal=legal, new_left=new_left, new_right=new_right,
+    )
+
+
+def score_moves(tree, ct=1.0, ci=1.0):
+    """Cost of every node before and after each of the six moves (one jitted call).
+
+    Returns ``(current [N], after [N, 6], legal [N, 6])``: ``current`` is ``C(n)``,
+    ``after[n, m]`` what ``C(n)`` becomes after move ``m`` (:data:`MOVES`), ``legal``
+    whether the move exists there. Leaves and padding have no legal move.
+    """
+    return _score_moves(to_jax(tree), ct, ci)
+
+
+@jax.jit
+def _score_moves(tree, ct, ci):
+    scale, st = _init(tree, ct, ci)
+    s = _score(st, jnp.arange(tree.left.shape[0]), scale, jnp.asarray(ct, tree.lo.dtype))
+    return s["cur"], s["cand"], s["legal"]
+
+
+# ----------------------------------------------------------------------------------
+# Decisions and application
+# ----------------------------------------------------------------------------------
+
+
+def _choose_greedy(cand, cur, legal, tol):
+    """Hill climbing: the first move within ``tol`` of the least cost, if it improves."""
+    improving = legal & (cand < (cur - tol)[:, None])
+    least = jnp.min(jnp.where(improving, cand, jnp.inf), axis=1)
+    near = improving & (cand <= (least + tol)[:, None])
+    return jnp.where(jnp.any(improving, axis=1), jnp.argmax(near, axis=1), -1)
+
+
+def _choose_annealing(cand, cur, legal, tol, temperature, draws):
+    """Kensler's annealing rule: candidates in order against the best so far.
+
+    ``xi < exp(-de / T)`` is evaluated as ``max(de, 0) < -T log(xi)``: the same test,
+    with the logarithm taken once per candidate outside the sequential chain (six
+    chained exponentials made XLA's compile time explode).
+    """
+    hot = temperature > 0
+    reach = jnp.where(hot, -temperature * jnp.log(draws), -1)  # [W, 6]; -1: accept none
+    best = cur
+    choice = jnp.full(cur.shape, -1, jnp.int32)
+    for m in range(6):
+        delta = cand[:, m] - best
+        take = legal[:, m] & ((delta < -tol) | (jnp.maximum(delta, 0) < reach[:, m]))
+        best = jnp.where(take, cand[:, m], best)
+        choice = jnp.where(take, m, choice)
+    return choice
+
+
+def _process(st, nodes, scale, ct, min_gain, temperature, draws, annealing):
+    """Score ``nodes`` (disjoint subtrees), pick a move for each, apply them all."""
+    cap = st.child.shape[0]
+    s = _score(st, nodes, scale, ct)
+    cur, cand, legal = s["cur"], s["cand"], s["legal"]
+    tol = min_gain * jnp.abs(cur)
+    # materialise the scores once: otherwise XLA copies their computation into every
+    # step of the choosers, and compile time triples
+    cand, cur, tol = jax.lax.optimization_barrier((cand, cur, tol))
+    if annealing:
+        rows = _take(draws, nodes, 1)
+        choice = _choose_annealing(cand, cur, legal, tol, temperature, rows)
+    else:
+        choice = _choose_greedy(cand, cur, legal, tol)
+    choice = jnp.where(s["interior"], choice, -1)
+    moved = choice >= 0
+    m = jnp.maximum(choice, 0)
+    left, right = s["left"], s["right"]
+    oob = jnp.full_like(nodes, cap)
+    interior_nodes = jnp.where(s["interior"], nodes, cap)
+
+    # swap the two slots' contents
+    family = (nodes, left, right)
+    a_node = _select(m, [family[a] for a, _ in _SLOT_A])
+    b_node = _select(m, [family[b] for b, _ in _SLOT_B])
+    a_side = _select(m, [jnp.int32(side) for _, side in _SLOT_A])
+    b_side = _select(m, [jnp.int32(side) for _, side in _SLOT_B])
+    a_node = jnp.where(moved, a_node, cap)
+    b_node = jnp.where(moved, b_node, cap)
+    flat = st.child.reshape(-1)
+    a_slot = jnp.where(moved, 2 * a_node + a_side, 2 * cap)
+    b_slot = jnp.where(moved, 2 * b_node + b_side, 2 * cap)
+    a_val = _take(flat, a_slot, -1)
+    b_val = _take(flat, b_slot, -1)
+    flat = flat.at[a_slot].set(b_val, mode="drop").at[b_slot].set(a_val, mode="drop")
+    parent = st.parent.at[jnp.where(moved, b_val, cap)].set(a_node, mode="drop")
+    parent = parent.at[jnp.where(moved, a_val, cap)].set(b_node, mode="drop")
+
+    # new boxes, costs and heights of the changed children, and of n
+    def pick(parts):
+        return _Part(*(_select(m, list(f)) for f in zip(*parts)))
+
+    new_l, new_r = pick(s["new_left"]), pick(s["new_right"])
+    l_changes = moved & _select(m, [jnp.bool_(x) for x in _CHANGES_L])
+    r_changes = moved & _select(m, [jnp.bool_(x) for x in _CHANGES_R])
+    l_at = jnp.where(l_changes, left, oob)
+    r_at = jnp.where(r_changes, right, oob)
+    lo = st.lo.at[l_at].set(new_l.lo, mode="drop").at[r_at].set(new_r.lo, mode="drop")
+    hi = st.hi.at[l_at].set(new_l.hi, mode="drop").at[r_at].set(new_r.hi, mode="drop")
+    n_cost = jnp.where(moved, _select(m, [cand[:, k] for k in range(6)]), cur)
+    n_height = jnp.where(moved, _select(m, s["n_height"]), s["cur_height"])
+    cost = (st.cost.at[l_at].set(new_l.cost, mode="drop").at[r_at].set(new_r.cost, mode="drop")
+            .at[interior_nodes].set(n_cost, mode="drop"))
+    height = (st.height.at[l_at].set(new_l.height, mode="drop")
+              .at[r_at].set(new_r.height, mode="drop")
+              .at[interior_nodes].set(n_height, mode="drop"))
+    dirty = (st.dirty.at[interior_nodes].set(moved, mode="drop")
+             .at[l_at].set(True, mode="drop").at[r_at].set(True, mode="drop"))
+    new = _State(flat.reshape(cap, 2), parent, lo, hi, cost, height, dirty)
+    return new, jnp.sum(moved, dtype=jnp.int32)
+
+
+# ----------------------------------------------------------------------------------
+# One pass
+# ----------------------------------------------------------------------------------
+
+
+def _active_set(st, interior, everything, frontier):
+    """Nodes to visit: the dirty ones and their ancestors (all interior when ``everything``).
+
+    A superset is always safe (a clean node chooses "no move" again), so when more than
+    ``frontier`` nodes are dirty we visit all interior nodes.
+    """
+    cap = st.child.shape[0]
+    n_dirty = jnp.sum(st.dirty & interior)
+
+    def walk(_):
+        ids = jnp.nonzero(st.dirty & interior, size=frontier, fill_value=cap)[0]
+        mark = jnp.zeros(cap, bool).at[ids].set(True, mode="drop")
+
+        def cond(carry):
+            return jnp.any(carry[1] < cap)
+
+        def body(carry):
+            mark, ids = carry
+            up = _none_to_oob(_take(st.parent, ids, -1), cap)
+            seen = _take(mark, up, True)
+            up = jnp.where(seen, cap, up)
+            return mark.at[up].set(True, mode="drop"), up
+
+        return jax.lax.while_loop(cond, body, (mark, ids))[0]
+
+    return jax.lax.cond(everything | (n_dirty > frontier), lambda _: interior, walk, None)
+
+
+def _sorted_by_height(ids, height, valid):
+    """``ids`` sorted by ``height`` (``valid`` only; the rest last), and the sorted heights.
+
+    One sort of a packed ``height << bits | position`` key (much faster than an argsort
+    on CPU); when some height does not fit the packed key, an argsort instead.
+    """
+    size = ids.shape[0]
+    bits = max(1, int(size).bit_length())
+    top = (1 << (32 - bits)) - 1  # key of invalid entries; heights must stay below it
+    big = jnp.int32(2 ** 31 - 1)
+    fits = jnp.max(jnp.where(valid, height, 0)) < top
+
+    def packed(_):
+        key = jnp.where(valid, height, top).astype(jnp.uint32)
+        packed = jnp.sort((key << bits) | jnp.arange(size, dtype=jnp.uint32))
+        pos = (packed & ((1 << bits) - 1)).astype(jnp.int32)
+        return pos
+
+    def argsort(_):
+        return jnp.argsort(jnp.where(valid, height, big), stable=True).astype(jnp.int32)
+
+    if bits >= 31:
+        pos = argsort(None)
+    else:
+        pos = jax.lax.cond(fits, packed, argsort, None)
+    ok = valid[pos]
+    return jnp.where(ok, ids[pos], -1), jnp.where(ok, height[pos], big)
+
+
+def _schedule_order(active, height, frontier):
+    """Active nodes sorted by height, the sorted heights, and their number.
+
+    Entries past the count hold ``N`` (no node) and a huge height.
+    """
+    cap = active.shape[0]
+    big = jnp.int32(2 ** 31 - 1)
+    count = jnp.sum(active, dtype=jnp.int32)
+
+    def full(_):
+        order, keys = _sorted_by_height(jnp.arange(cap, dtype=jnp.int32), height, active)
+        return jnp.where(order >= 0, order, cap), keys
+
+    def small(_):
+        ids = jnp.nonzero(active, size=frontier, fill_value=cap)[0].astype(jnp.int32)
+        valid = ids < cap
+        h = _take(height, ids, 0)
+        order, keys = _sorted_by_height(ids, h, valid)
+        return (jnp.full(cap, cap, jnp.int32).at[:frontier].set(jnp.where(order >= 0, order, cap)),
+                jnp.full(cap, big, jnp.int32).at[:frontier].set(keys))
+
+    if frontier >= cap:
+        return full(None) + (count,)
+    order, keys = jax.lax.cond(count > frontier, full, small, None)
+    return order, keys, count
+
+
+def _pass(st, interior, scale, ct, min_gain, temperature, draws, *, annealing, windows, frontier):
+    """One pass over the tree; returns the new state and the number of moves.
+
+    Heights are processed lowest first; a height's nodes go through windows of the
+    largest size in ``windows`` while that many remain, then the next size down.
+    """
+    cap = st.child.shape[0]
+    frontier = min(frontier, cap)
+    windows = tuple(sorted({min(w, cap) for w in windows}, reverse=True))
+    everything = temperature > 0 if annealing else jnp.bool_(False)
+    active = _active_set(st, interior, everything, frontier)
+    order, keys, count = _schedule_order(active, st.height, frontier)
+    order = jnp.concatenate([order, jnp.full(windows[0], cap, jnp.int32)])
+
+    def window_loop(carry, width, last):
+        """Windows of ``width`` while at least ``width`` (``last``: any) nodes remain."""
+        def cond(c):
+            _, start, end, _ = c
+            return (end - start >= width) | (last & (start < end))
+
+        def body(c):
+            st, start, end, moves = c
+            nodes = jax.lax.dynamic_slice(order, (start,), (width,))
+            nodes = jnp.where(start + jnp.arange(width) < end, nodes, cap)
+            st, made = _process(st, nodes, scale, ct, min_gain, temperature, draws, annealing)
+            return st, start + jnp.minimum(width, end - start), end, moves + made
+
+        return jax.lax.while_loop(cond, body, carry)
+
+    def cond(carry):
+        return carry[1] < count
+
+    def body(carry):
+        st, start, moves = carry
+        end = jnp.searchsorted(keys, keys[start], side="right").astype(jnp.int32)
+        carry = (st, start, end, moves)
+        for i, width in enumerate(windows):
+            carry = window_loop(carry, width, i == len(windows) - 1)
+        st, start, _, moves = carry
+        return st, start, moves
+
+    st, _, moves = jax.lax.while_loop(cond, body, (st, jnp.int32(0), jnp.int32(0)))
+    return st, moves
+
+
+# ----------------------------------------------------------------------------------
+# Initial state, whole runs
+# ----------------------------------------------------------------------------------
+
+
+def _init(tree, ct, ci):
+    """Scale and optimizer state of ``tree``: costs and heights by bottom-up sweeps."""
+    dtype = tree.lo.dtype
+    ct = jnp.asarray(ct, dtype)
+    ci = jnp.asarray(ci, dtype)
+    cap = tree.left.shape[0]
+    child = jnp.stack([tree.left, tree.right], axis=1).astype(jnp.int32)
+    scale = extent_scale(tree.lo[tree.root], tree.hi[tree.root])
+    area = half_area(tree.lo, tree.hi, scale)
+    is_leaf = tree.prim_count > 0
+    interior = child[:, 0] >= 0
+    left, right = _none_to_oob(child[:, 0], cap), _none_to_oob(child[:, 1], cap)
+    area_l = _take(area, left, 0)
+    area_r = _take(area, right, 0)
+    leaf_cost = ci * tree.prim_count.astype(dtype)
+
+    def sweep(cost, height):
+        cl = _take(cost, left, 0)
+        cr = _take(cost, right, 0)
+        hl = _take(height, left, 0)
+        hr = _take(height, right, 0)
+        cost = jnp.where(interior, node_cost(area, area_l, cl, area_r, cr, ct), jnp.where(is_leaf, leaf_cost, ct))
+        height = jnp.where(interior, 1 + jnp.maximum(hl, hr), 0)
+        return cost, height
+
+    def cond(carry):
+        return carry[2]
+
+    def body(carry):
+        cost, height, _ = carry
+        new_cost, new_height = sweep(cost, height)
+        return new_cost, new_height, jnp.any(new_height != height) | jnp.any(new_cost != cost)
+
+    cost0 = jnp.where(is_leaf, leaf_cost, ct)
+    height0 = jnp.zeros(cap, jnp.int32)
+    cost, height, _ = jax.lax.while_loop(cond, body, (cost0, height0, jnp.bool_(True)))
+    st = _State(child, tree.parent.astype(jnp.int32), tree.lo, tree.hi, cost, height, interior)
+    return scale, st
+
+
+def _to_tree(tree, st):
+    return tree.replace(left=st.child[:, 0], right=st.child[:, 1], parent=st.parent,
+                        lo=st.lo, hi=st.hi)
+
+
+class _Dynamic(NamedTuple):
+    """Run parameters passed as values (changing them does not recompile)."""
+
+    ct: Any
+    ci: Any
+    min_gain: Any
+    steps: Any     # annealing passes that follow the schedule
+    limit: Any     # most passes in all
+    period: Any    # Kensler schedule (when no schedule is given)
+    hottest: Any
+
+
+def _optimize(tree, key, dyn: _Dynamic, *, annealing, schedule, history_len, keep_best,
+              windows, frontier, on_pass=None):
+    """The whole run (traceable, vmappable): passes until converged or ``dyn.limit``."""
+    dtype = tree.lo.dtype
+    ct = jnp.asarray(dyn.ct, dtype)
+    min_gain = jnp.asarray(dyn.min_gain, dtype)
+    steps = jnp.asarray(dyn.steps, jnp.int32)
+    limit = jnp.minimum(jnp.asarray(dyn.limit, jnp.int32), history_len)
+    scale, st = _init(tree, ct, dyn.ci)
+    interior = st.child[:, 0] >= 0
+    cap = st.child.shape[0]
+    root = tree.root
+    start_cost = st.cost[root]
+    history = jnp.full(history_len, jnp.nan, dtype)
+
+    def temperature(i):
+        if not annealing:
+            return jnp.zeros((), dtype)
+        if schedule is None:
+            t = kensler_temperature(i, jnp.maximum(steps, 1), dyn.period, dyn.hottest)
+        else:
+            t = schedule(i)
+        t = jnp.asarray(t, dtype)
+        return jnp.where(i < steps, jnp.maximum(t, 0), 0)
+
+    def cond(carry):
+        st, i, last, total, hist, best = carry
+        more = (i == 0) | (last > 0)
+        if annealing:
+            more = more | (i < steps)
+        return (i < limit) & more
+
+    def body(carry):
+        st, i, last, total, hist, best = carry
+        t = temperature(i)
+        if annealing:
+            draws = jax.lax.cond(t > 0, lambda: annealing_draws(key, i, cap, dtype),
+                                 lambda: jnp.ones((cap, 6), dtype))
+        else:
+            draws = None
+        st, moves = _pass(st, interior, scale, ct, min_gain, t, draws, annealing=annealing,
+                          windows=windows, frontier=frontier)
+        c = st.cost[root]
+        hist = hist.at[i].set(c)
+        if on_pass is not None:
+            jax.debug.callback(on_pass, i, c, moves, t)
+        if keep_best:
+            better = c < best[0]
+            best = jax.lax.cond(better, lambda: (c, st), lambda: best)
+        return st, i + 1, moves, total + moves, hist, best
+
+    best = (start_cost, st) if keep_best else (start_cost, None)
+    carry = (st, jnp.int32(0), jnp.int32(0), jnp.int32(0), history, best)
+    st, passes, _, total, history, best = jax.lax.while_loop(cond, body, carry)
+    if keep_best:
+        final_cost, st = best
+    else:
+        final_cost = st.cost[root]
+    return RotateResult(_to_tree(tree, st), final_cost, start_cost, passes, total, history)
+
+
+_STATIC = ("annealing", "schedule", "history_len", "keep_best", "windows", "frontier",
+           "split_axes", "on_pass")
+
+
+@partial(jax.jit, static_argnames=_STATIC)
+def _run_one(tree, key, dyn, *, split_axes, **static):
+    out = _optimize(tree, key, dyn, **static)
+    return _finish(out, split_axes)
+
+
+@partial(jax.jit, static_argnames=_STATIC)
+def _run_chains(tree, keys, dyn, *, split_axes, **static):
+    # chains one after another (lax.map), not vmapped: under vmap every cond runs both
+    # branches and every chain waits for the slowest at each level, which on CPU cost
+    # 15x more than running the chains in turn
+    outs = jax.lax.map(lambda k: _optimize(tree, k, dyn, **static), keys)
+    best = jnp.argmin(outs.sah)
+    one = jax.tree_util.tree_map(lambda a: a[best], outs)
+    one = dataclasses.replace(one, chain_sah=outs.sah)
+    return _finish(one, split_axes)
+
+
+@partial(jax.jit, static_argnames=_STATIC)
+def _run_batch(trees, keys, dyn, *, split_axes, **static):
+    def one(tree, key):
+        return _finish(_optimize(tree, key, dyn, **static), split_axes)
+    return jax.vmap(one)(trees, keys)
+
+
+def _finish(out: RotateResult, split_axes: bool) -> RotateResult:
+    if split_axes:
+        out = dataclasses.replace(out, tree=_assign_split_axes(out.tree))
+    return out
+
+
+# ----------------------------------------------------------------------------------
+# Public API
+# ----------------------------------------------------------------------------------
+
+
+def _check_tree(tree, name="tree"):
+    if not isinstance(tree, BVH):
+        raise ValueError(f"{name} must be a binary jaxbvh.BVH, got {type(tree).__name__}")
+
+
+def _setup(tree, *, ct, ci, min_gain, limit, windows, frontier, steps=0, period=50, hottest=1.5,
+           annealing=False, schedule=None, keep_best=False, split_axes=True, on_pass=None):
+    """Checked arguments as (dynamic values, static options)."""
+    if not ct >= 0 or not ci >= 0:
+        raise ValueError(f"ct and ci must be >= 0, got ct={ct}, ci={ci}")
+    if limit < 1:
+        raise ValueError(f"the pass limit must be >= 1, got {limit}")
+    if not windows or min(windows) < 1:
+        raise ValueError(f"windows must be positive sizes, got {windows}")
+    if frontier < 1:
+        raise ValueError(f"frontier must be >= 1, got {frontier}")
+    if steps < 0:
+        raise ValueError(f"steps must be >= 0, got {steps}")
+    if period < 1:
+        raise ValueError(f"period must be >= 1, got {period}")
+    if not hottest >= 0:
+        raise ValueError(f"hottest must be >= 0, got {hottest}")
+    if schedule is not None and not callable(schedule):
+        raise ValueError(f"schedule must be a function step -> temperature, got {schedule!r}")
+    dtype = np.dtype(tree.lo.dtype)
+    if min_gain is None:
+        min_gain = default_min_gain(dtype)
+    if not min_gain >= 0:
+        raise ValueError(f"min_gain must be >= 0, got {min_gain}")
+    dyn = _Dynamic(np.float32(ct), np.float32(ci), np.float32(min_gain), np.int32(steps),
+                   np.int32(limit), np.float32(period), np.float32(hottest))
+    static = dict(annealing=annealing, schedule=schedule, history_len=capacity_bucket(int(limit)),
+                  keep_best=bool(keep_best), windows=tuple(int(w) for w in windows),
+                  frontier=int(frontier), split_axes=bool(split_axes), on_pass=on_pass)
+    return dyn, static
+
+
+def hill_climb(tree, *, ct: float = 1.0, ci: float = 1.0, max_passes: int = 1000,
+               min_gain: float | None = None, split_axes: bool = True,
+               windows=DEFAULT_WINDOWS, frontier: int = DEFAULT_FRONTIER,
+               on_pass: Callable | None = None) -> RotateResult:
+    """Kensler's hill climbing: passes of the best improving move per node until none.
+
+    ``tree``: a :class:`~jaxbvh.tree.BVH` (NumPy or JAX arrays, any capacity).
+    ``max_passes``: stop after this many passes even if not converged (``passes ==
+    max_passes`` and the last one moved). ``min_gain``: relative margin a move must beat
+    (module docstring). ``split_axes``: run :func:`assign_split_axes` at the end.
+    ``windows``, ``frontier``: work sizes (speed only, never the result).
+    ``on_pass(pass_index, sah, moves, temperature)``: host callback after every pass
+    (progress bars); a new function object compiles anew.
+    The result's tree has the same capacity; it is identical, pass by pass, to
+    :func:`jaxbvh.reference.rotate.hill_climb`.
+    """
+    _check_tree(tree)
+    dyn, static = _setup(tree, ct=ct, ci=ci, min_gain=min_gain, limit=max_passes, windows=windows,
+                         frontier=frontier, split_axes=split_axes, on_pass=on_pass)
+    return _run_one(to_jax(tree), jax.random.key(0), dyn, **static)
+
+
+def anneal(key, tree, *, schedule: Callable | None = None, steps: int = 1250,
+           hottest: float = 1.5, period: int = 50, chains: int = 1, keep_best: bool = True,
+           max_quench: int = 1000, ct: float = 1.0, ci: float = 1.0,
+           min_gain: float | None = None, split_axes: bool = True,
+           windows=DEFAULT_WINDOWS, frontier: int = DEFAULT_FRONTIER,
+           on_pass: Callable | None = None) -> RotateResult:
+    """Kensler's simulated annealing of tree rotations.
+
+    ``key``: a ``jax.random`` key. ``schedule``: optax-style ``step -> temperature``
+    (default Kensler's, :func:`jaxbvh.schedule.kensler_schedule` with ``steps``,
+    ``period``, ``hottest``); passes ``0 .. steps-1`` use it, then passes at ``T = 0``
+    follow (at most ``max_quench``) until one makes no move. ``keep_best``: return the
+    tree of least SAH seen after any pass (else the last). ``chains``: run that many
+    independent chains (keys split from ``key``, run in turn) and return the best;
+    ``chain_sah`` lists them all. Other arguments as :func:`hill_climb`. Changing
+    ``steps``, ``period``, ``hottest`` does not recompile (a given ``schedule`` is
+    compiled once per function object).
+    """
+    _check_tree(tree)
+    if chains < 1:
+        raise ValueError(f"chains must be >= 1, got {chains}")
+    if max_quench < 1:
+        raise ValueError(f"max_quench must be >= 1, got {max_quench}")
+    dyn, static = _setup(tree, ct=ct, ci=ci, min_gain=min_gain, limit=steps + max_quench,
+                         windows=windows, frontier=frontier, steps=steps, period=period,
+                         hottest=hottest, annealing=True, schedule=schedule,
+                         keep_best=keep_best, split_axes=split_axes, on_pass=on_pass)
+    tree = to_jax(tree)
+    if chains == 1:
+        return _run_one(tree, key, dyn, **static)
+    return _run_chains(tree, jax.random.split(key, chains), dyn, **static)
+
+
+def optimize_batch(trees, keys=None, *, method: str = "hc", schedule: Callable | None = None,
+                   steps: int = 1250, hottest: float = 1.5, period: int = 50,
+                   keep_best: bool = True, max_passes: int = 1000, ct: float = 1.0,
+                   ci: float = 1.0, min_gain: float | None = None, split_axes: bool = True,
+                   windows=DEFAULT_WINDOWS, frontier: int = DEFAULT_FRONTIER) -> RotateResult:
+    """Optimize a batch of trees at once (vmapped); every field gains a leading axis.
+
+    ``trees``: a :class:`~jaxbvh.tree.BVH` whose arrays have a leading batch axis B
+    (:func:`stack_trees`); the arrays may be sharded over devices along it
+    (``jax.sharding``), and the result is sharded the same way. ``keys``: [B] keys for
+    ``method="sa"``. ``max_passes`` is the pass limit for ``"hc"`` and the quench limit
+    for ``"sa"``.
+    """
+    _check_tree(trees, "trees")
+    if method not in ("hc", "sa"):
+        raise ValueError(f"method must be 'hc' or 'sa', got {method!r}")
+    batch = trees.left.shape[0]
+    annealing = method == "sa"
+    if annealing and keys is None:
+        raise ValueError("optimize_batch: method 'sa' needs keys (one per tree)")
+    if keys is None:
+        keys = jax.random.split(jax.random.key(0), batch)
+    dyn, static = _setup(trees, ct=ct, ci=ci, min_gain=min_gain,
+                         limit=steps + max_passes if annealing else max_passes,
+                         windows=windows, frontier=frontier, steps=steps if annealing else 0,
+                         period=period, hottest=hottest, annealing=annealing,
+                         schedule=schedule if annealing else None,
+                         keep_best=keep_best and annealing, split_axes=split_axes)
+    return _run_batch(trees, keys, dyn, **static)
+
+
+# ----------------------------------------------------------------------------------
+# Split axes (Kensler's final pass)
+# ----------------------------------------------------------------------------------
+
+
+def split_axis_rule(lo_a, hi_a, lo_b, hi_b, xp=jnp):
+    """Axis of greatest separation of two boxes (least overlap), and whether to swap.
+
+    Separation along an axis is ``max(lo_b - hi_a, lo_a - hi_b)`` (negative: overlap);
+    the first axis with the greatest wins. The children are swapped when the first one's
+    centre is above the second's along that axis. Works on NumPy or JAX arrays [..., 3].
+    """
+    gap = xp.maximum(lo_b - hi_a, lo_a - hi_b)
+    axis = xp.argmax(gap, axis=-1)
+    centre_a = xp.take_along_axis(lo_a + hi_a, axis[..., None], axis=-1)[..., 0]
+    centre_b = xp.take_along_axis(lo_b + hi_b, axis[..., None], axis=-1)[..., 0]
+    return axis.astype(xp.int32), centre_a > centre_b
+
+
+@jax.jit
+def _assign_split_axes(tree):
+    cap = tree.left.shape[0]
+    interior = tree.left >= 0
+    left, right = _none_to_oob(tree.left, cap), _none_to_oob(tree.right, cap)
+    lo_a = _take(tree.lo, left, 0)
+    hi_a = _take(tree.hi, left, 0)
+    lo_b = _take(tree.lo, right, 0)
+    hi_b = _take(tree.hi, right, 0)
+    axis, swap = split_axis_rule(lo_a, hi_a, lo_b, hi_b)
+    swap = swap & interior
+    return tree.replace(left=jnp.where(swap, tree.right, tree.left),
+                        right=jnp.where(swap, tree.left, tree.right),
+                        axis=jnp.where(interior, axis, -1).astype(jnp.int32))
+
+
+def assign_split_axes(tree):
+    """Kensler's final pass: set ``axis`` of every interior node and order its children.
+
+    The axis is the one of greatest separation between the two children's boxes (least
+    overlap if none separates, :func:`split_axis_rule`); the child lower along it goes
+    left. Leaves get ``-1``. The SAH does not change.
+    """
+    _check_tree(tree)
+    return _assign_split_axes(to_jax(tree))
+
+
+# ----------------------------------------------------------------------------------
+# Batching helpers
+# ----------------------------------------------------------------------------------
+
+
+def pad_tree(tree, nodes: int, prims: int):
+    """``tree`` (NumPy) padded to capacity ``nodes`` / ``prims`` with inert entries."""
+    t = to_numpy(tree)
+    n, p = t.left.shape[0], t.prim_index.shape[0]
+    if nodes < n or prims < p:
+        raise ValueError(f"pad_tree: capacity ({nodes}, {prims}) is below the tree's ({n}, {p})")
+
+    def pad(a, rows, fill):
+        out = np.full((rows,) + a.shape[1:], fill, a.dtype)
+        out[: a.shape[0]] = a
+        return out
+
+    return BVH(left=pad(t.left, nodes, -1), right=pad(t.right, nodes, -1),
+               parent=pad(t.parent, nodes, -1), lo=pad(t.lo, nodes, np.inf),
+               hi=pad(t.hi, nodes, -np.inf), prim_start=pad(t.prim_start, nodes, 0),
+               prim_count=pad(t.prim_count, nodes, 0), axis=pad(t.axis, nodes, -1),
+               prim_index=pad(t.prim_index, prims, -1), root=np.asarray(t.root, np.int32))
+
+
+def stack_trees(trees):
+    """One batched :class:`BVH` from several, all padded to one capacity bucket."""
+    trees = [to_numpy(t) for t in trees]
+    if not trees:
+        raise ValueError("stack_trees: no trees")
+    nodes = capacity_bucket(max(t.left.shape[0] for t in trees))
+    prims = capacity_bucket(max(t.prim_index.shape[0] for t in trees))
+    padded = [pad_tree(t, nodes, prims) for t in trees]
+    return jax.tree_util.tree_map(lambda *a: np.stack(a), *padded)
+
+
+def unstack_trees(trees) -> list:
+    """The trees of a batch (:func:`stack_trees`, :func:`optimize_batch`) as a list."""
+    t = to_numpy(trees)
+    return [jax.tree_util.tree_map(lambda a: a[i], t) for i in range(t.left.shape[0])]

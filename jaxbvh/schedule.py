@@ -1,0 +1,61 @@
+"""Annealing temperature schedules, optax style: a schedule is a function ``step -> T``.
+
+Anything that takes a schedule (:func:`jaxbvh.rotate.anneal`) accepts every optax
+schedule as well (``optax.linear_schedule``, ``optax.cosine_decay_schedule``, ...), and
+the schedules here can be handed to code that expects optax schedules. ``step`` may be
+a Python int or a traced int32 scalar; the result is a float32 scalar.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import jax.numpy as jnp
+
+KENSLER_STEPS = 1250
+KENSLER_PERIOD = 50
+KENSLER_HOTTEST = 1.5
+
+
+@lru_cache(maxsize=64)  # the same parameters give the same function: jit caches hit
+def kensler_schedule(steps: int = KENSLER_STEPS, period: int = KENSLER_PERIOD,
+                     hottest: float = KENSLER_HOTTEST):
+    """Kensler's clamped, linearly ramped sine (Kensler 2008, section 4).
+
+    ``T(i) = max(0, -sin(2 pi i / period)) * (steps - i) * hottest / steps``, and 0 for
+    ``i >= steps``. Defaults are the paper's: N = 1250 passes, f = 50, h = 1.5 (the
+    paper's useful range for ``hottest`` is 0.8 - 2.2). The first half period is cold,
+    so annealing starts as hill climbing.
+    """
+    if steps < 1:
+        raise ValueError(f"kensler_schedule: steps must be >= 1, got {steps}")
+    if period < 1:
+        raise ValueError(f"kensler_schedule: period must be >= 1, got {period}")
+    if not hottest >= 0:
+        raise ValueError(f"kensler_schedule: hottest must be >= 0, got {hottest}")
+
+    def schedule(step):
+        return kensler_temperature(step, steps, period, hottest)
+
+    return schedule
+
+
+def kensler_temperature(step, steps, period, hottest):
+    """Kensler's ``T(step)`` with every argument possibly traced (one compile for all)."""
+    i = jnp.asarray(step, jnp.float32)
+    period = jnp.asarray(period, jnp.float32)
+    steps = jnp.asarray(steps, jnp.float32)
+    wave = jnp.maximum(0.0, -jnp.sin(2.0 * jnp.pi * jnp.mod(i, period) / period))
+    ramp = jnp.maximum(0.0, (steps - i) * (hottest / steps))
+    return (wave * ramp).astype(jnp.float32)
+
+
+@lru_cache(maxsize=64)
+def constant_schedule(value: float):
+    """``T(i) = value`` for every step (``0`` turns annealing into greedy descent)."""
+
+    def schedule(step):
+        del step
+        return jnp.asarray(value, jnp.float32)
+
+    return schedule
