@@ -50,7 +50,8 @@ of the same cost can differ by an ulp, and a move that leaves a box unchanged co
 like an improvement ("phantom moves", passes that never end, results that depend on the
 thread count). A move counts as better only when it lowers ``C(n)`` by more than
 ``min_gain * C(n)`` (default ``64 * eps`` of the float type); among the improving moves
-hill climbing takes the first whose cost is within that margin of the least. The NumPy
+hill climbing takes the first whose cost is within that margin of the least, and
+annealing counts a worse candidate within the margin as a tie (``de = 0``). The NumPy
 reference uses the same rule, so both give the same tree. "No node" is the out-of-range
 index ``N`` with ``mode="drop"``/``"fill"``, never ``-1`` (which would wrap).
 
@@ -277,7 +278,7 @@ def _choose_greedy(cand, cur, legal, tol):
 def _choose_annealing(cand, cur, legal, tol, temperature, draws):
     """Kensler's annealing rule: candidates in order against the best so far.
 
-    ``xi < exp(-de / T)`` is evaluated as ``max(de, 0) < -T log(xi)``: the same test,
+    ``xi < exp(-de / T)`` is evaluated as ``de < -T log(xi)``: the same test,
     with the logarithm taken once per candidate outside the sequential chain (six
     chained exponentials made XLA's compile time explode).
     """
@@ -287,7 +288,10 @@ def _choose_annealing(cand, cur, legal, tol, temperature, draws):
     choice = jnp.full(cur.shape, -1, jnp.int32)
     for m in range(6):
         delta = cand[:, m] - best
-        take = legal[:, m] & ((delta < -tol) | (jnp.maximum(delta, 0) < reach[:, m]))
+        # a tie within tol counts as de = 0 (always taken when hot): an ulp of noise in
+        # de must not decide against a tiny reach
+        excess = jnp.where(delta <= tol, 0, delta)
+        take = legal[:, m] & ((delta < -tol) | (excess < reach[:, m]))
         best = jnp.where(take, cand[:, m], best)
         choice = jnp.where(take, m, choice)
     return choice

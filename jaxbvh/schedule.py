@@ -45,7 +45,10 @@ def kensler_temperature(step, steps, period, hottest):
     i = jnp.asarray(step, jnp.float32)
     period = jnp.asarray(period, jnp.float32)
     steps = jnp.asarray(steps, jnp.float32)
-    wave = jnp.maximum(0.0, -jnp.sin(2.0 * jnp.pi * jnp.mod(i, period) / period))
+    phase = jnp.mod(i, period) / period
+    # exactly 0 on the cold half: float32 sin(pi) is -8.7e-8, not 0, and a temperature
+    # of 1e-7 would make acceptance hinge on the last bit of a cost difference
+    wave = jnp.where(phase > 0.5, jnp.maximum(0.0, -jnp.sin(2.0 * jnp.pi * phase)), 0.0)
     ramp = jnp.maximum(0.0, (steps - i) * (hottest / steps))
     return (wave * ramp).astype(jnp.float32)
 

@@ -145,7 +145,8 @@ def _visit(t: _Tree, n, min_gain, temperature=None, draws=None):
                 # xi < exp(-delta / T), written as the JAX version evaluates it
                 with np.errstate(divide="ignore"):
                     reach = -temperature * np.log(draws[n, c[0]])
-                accept = max(delta, t.dtype(0)) < reach
+                excess = t.dtype(0) if delta <= tol else delta  # ties count as 0
+                accept = excess < reach
             if delta < -tol or accept:
                 best, chosen = c[3], c
     if chosen is None:
