@@ -31,7 +31,8 @@ that are not -1.
 Capacity. ``N`` and ``P`` may exceed what the tree needs: arrays are padded to a
 *capacity bucket* (:func:`capacity_bucket`) so that jitted functions compile for a few
 sizes rather than one per mesh. Padded entries are inert: no links, count 0, empty box,
-and no real node points at them. ``N = 2 * P`` for trees our builders make.
+and no real node points at them. Our builders make ``N = 2 * P``; a loaded tree gets
+the bucket of its own node count (leaves of several primitives need far fewer nodes).
 
 Units. Boxes are in whatever frame the primitive boxes were given in; :mod:`jaxbvh.io`
 hands out scene-relative boxes together with the :class:`~jaxbvh.frame.Frame` that maps
@@ -283,8 +284,6 @@ def from_interchange(arrays, *, pad: bool = True, dtype=None):
 
     node_cap = capacity_bucket(nodes) if pad else nodes
     prim_cap = capacity_bucket(prim_index.shape[0]) if pad else prim_index.shape[0]
-    if pad:
-        node_cap = max(node_cap, 2 * prim_cap) if child.shape[1] == 2 else node_cap
     fdt = fields["lo"].dtype
     common = dict(
         parent=_pad_rows(parent, node_cap, -1),
