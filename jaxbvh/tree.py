@@ -196,17 +196,12 @@ def to_interchange(tree) -> dict[str, np.ndarray]:
     used = int(count.sum())
     prim_index = np.asarray(t.prim_index)
     # keep the prim_index slots the leaves use, in order, and re-point the leaves
-    order = np.argsort(start[count > 0], kind="stable")
-    leaf_ids = np.flatnonzero(count > 0)[order]
+    leaf_ids = np.flatnonzero(count > 0)
+    leaf_ids = leaf_ids[np.argsort(start[leaf_ids], kind="stable")]
+    leaf_counts = count[leaf_ids].astype(np.int64)
     new_start = np.zeros_like(start)
-    pieces = []
-    offset = 0
-    for leaf in leaf_ids:
-        s, c = start[leaf], count[leaf]
-        pieces.append(prim_index[s : s + c])
-        new_start[leaf] = offset
-        offset += c
-    prim_c = np.concatenate(pieces).astype(np.int32) if pieces else np.zeros(0, np.int32)
+    new_start[leaf_ids] = np.cumsum(leaf_counts) - leaf_counts
+    prim_c = prim_index[concat_ranges(start[leaf_ids], leaf_counts)].astype(np.int32)
     assert prim_c.shape[0] == used
     return {
         "child": child_c.astype(np.int32),
@@ -217,6 +212,14 @@ def to_interchange(tree) -> dict[str, np.ndarray]:
         "hi": np.asarray(t.hi)[keep],
         "root": np.int32(new_id[int(t.root)]),
     }
+
+
+def concat_ranges(starts, counts) -> np.ndarray:
+    """``concatenate([arange(s, s + c) for s, c in zip(starts, counts)])``, vectorised (int64)."""
+    starts = np.asarray(starts, np.int64)
+    counts = np.asarray(counts, np.int64)
+    offsets = np.cumsum(counts) - counts
+    return np.arange(int(counts.sum()), dtype=np.int64) + np.repeat(starts - offsets, counts)
 
 
 def _pad_rows(a: np.ndarray, rows: int, fill) -> np.ndarray:

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxbvh.tree import to_numpy
+from jaxbvh.tree import concat_ranges, to_numpy
 
 
 class InvalidTreeError(ValueError):
@@ -136,8 +136,7 @@ def check(tree, prim_lo=None, prim_hi=None, n_prims: int | None = None) -> list[
     total = int(count[leaves].sum())
     if total:
         leaf_of_slot = np.repeat(leaves, count[leaves])
-        slots = np.concatenate([np.arange(s, s + c) for s, c in zip(start[leaves], count[leaves])]) \
-            if len(leaves) < 64 else _runs(start[leaves], count[leaves])
+        slots = concat_ranges(start[leaves], count[leaves])
         prims = prim_index[slots]
     else:
         leaf_of_slot = slots = prims = np.zeros(0, np.int64)
@@ -172,13 +171,6 @@ def check(tree, prim_lo=None, prim_hi=None, n_prims: int | None = None) -> list[
             problems.append(f"leaf box(es) {_few(np.unique(owner[outside]))} do not contain "
                             f"primitive(s) {_few(p[outside])}")
     return problems
-
-
-def _runs(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
-    """Concatenation of ``arange(s, s + c)`` for each pair, vectorised."""
-    total = int(counts.sum())
-    offsets = np.repeat(starts - np.concatenate([[0], np.cumsum(counts)[:-1]]), counts)
-    return np.arange(total) + offsets
 
 
 def validate(tree, prim_lo=None, prim_hi=None, n_prims: int | None = None):
