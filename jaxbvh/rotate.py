@@ -72,7 +72,7 @@ import numpy as np
 
 from jaxbvh.cost import extent_scale, half_area
 from jaxbvh.schedule import kensler_temperature
-from jaxbvh.tree import BVH, capacity_bucket, to_jax, to_numpy
+from jaxbvh.tree import BVH, capacity_bucket, pad_to, to_jax, to_numpy
 
 MOVES = ("L<->RL", "L<->RR", "R<->LL", "R<->LR", "LL<->RL", "LL<->RR")
 
@@ -830,23 +830,7 @@ def assign_split_axes(tree):
 # ----------------------------------------------------------------------------------
 
 
-def pad_tree(tree, nodes: int, prims: int):
-    """``tree`` (NumPy) padded to capacity ``nodes`` / ``prims`` with inert entries."""
-    t = to_numpy(tree)
-    n, p = t.left.shape[0], t.prim_index.shape[0]
-    if nodes < n or prims < p:
-        raise ValueError(f"pad_tree: capacity ({nodes}, {prims}) is below the tree's ({n}, {p})")
-
-    def pad(a, rows, fill):
-        out = np.full((rows,) + a.shape[1:], fill, a.dtype)
-        out[: a.shape[0]] = a
-        return out
-
-    return BVH(left=pad(t.left, nodes, -1), right=pad(t.right, nodes, -1),
-               parent=pad(t.parent, nodes, -1), lo=pad(t.lo, nodes, np.inf),
-               hi=pad(t.hi, nodes, -np.inf), prim_start=pad(t.prim_start, nodes, 0),
-               prim_count=pad(t.prim_count, nodes, 0), axis=pad(t.axis, nodes, -1),
-               prim_index=pad(t.prim_index, prims, -1), root=np.asarray(t.root, np.int32))
+pad_tree = pad_to  # kept under its first name; lives in jaxbvh.tree
 
 
 def stack_trees(trees):

@@ -228,6 +228,26 @@ def _pad_rows(a: np.ndarray, rows: int, fill) -> np.ndarray:
     return out
 
 
+def pad_to(tree, nodes: int, prims: int):
+    """``tree`` (as NumPy) padded with inert entries to capacity ``nodes`` / ``prims``.
+
+    Works for :class:`BVH` and :class:`WideBVH`; raises ``ValueError`` if the tree is
+    already larger. Used to give trees of a batch one shape.
+    """
+    t = to_numpy(tree)
+    n, p = t.parent.shape[0], t.prim_index.shape[0]
+    if nodes < n or prims < p:
+        raise ValueError(f"pad_to: capacity ({nodes}, {prims}) is below the tree's ({n}, {p})")
+    common = dict(parent=_pad_rows(t.parent, nodes, -1), lo=_pad_rows(t.lo, nodes, np.inf),
+                  hi=_pad_rows(t.hi, nodes, -np.inf), prim_start=_pad_rows(t.prim_start, nodes, 0),
+                  prim_count=_pad_rows(t.prim_count, nodes, 0), prim_index=_pad_rows(t.prim_index, prims, -1),
+                  root=np.asarray(t.root, np.int32))
+    if isinstance(t, WideBVH):
+        return WideBVH(child=_pad_rows(t.child, nodes, -1), **common)
+    return BVH(left=_pad_rows(t.left, nodes, -1), right=_pad_rows(t.right, nodes, -1),
+               axis=_pad_rows(t.axis, nodes, -1), **common)
+
+
 def from_interchange(arrays, *, pad: bool = True, dtype=None):
     """Tree from interchange arrays (any node order, any root, leaves of any size).
 

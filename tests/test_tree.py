@@ -193,3 +193,16 @@ def test_tinybvh_trees_load_validate_and_cost_what_tinybvh_says(name):
     lo, hi = mesh.prim_boxes()
     jaxbvh.validate(tree, lo.astype(np.float32), hi.astype(np.float32))
     assert float(jaxbvh.sah(jaxbvh.to_jax(tree))) == pytest.approx(tinybvh_sah, abs=1e-3)
+
+
+@SETTINGS
+@given(data=box_sets(max_size=30), extra=st.integers(0, 20))
+def test_padding_is_inert(data, extra):
+    lo, hi = data
+    tree = jaxbvh.build(lo, hi, pad=False)
+    padded = jaxbvh.tree.pad_to(tree, tree.capacity + extra, lo.shape[0] + extra)
+    jaxbvh.validate(padded, lo, hi)
+    assert float(jaxbvh.sah(jaxbvh.to_jax(padded))) == float(jaxbvh.sah(tree))
+    assert canonical(padded) == canonical(tree)
+    with pytest.raises(ValueError, match="below"):
+        jaxbvh.tree.pad_to(tree, tree.capacity - 1, lo.shape[0])
