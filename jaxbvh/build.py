@@ -55,6 +55,7 @@ import numpy as np
 
 from jaxbvh.cost import half_area
 from jaxbvh.tree import BVH, capacity_bucket
+from jaxbvh.validate import few_ids
 
 BUILDERS = ("sweep", "binned", "median")
 TIE_TOLERANCE = 2.0 ** -20  # relative; costs this close count as a tie (module docstring)
@@ -78,11 +79,11 @@ def check_prim_boxes(prim_lo, prim_hi, what: str = "primitive boxes"):
     if bad.any():
         ids = np.flatnonzero(bad)
         raise ValueError(f"{what}: {ids.size} of {lo.shape[0]} have NaN or infinite coordinates "
-                         f"(first: {', '.join(map(str, ids[:5]))})")
+                         f"(first: {few_ids(ids)})")
     inverted = (lo > hi).any(1)
     if inverted.any():
         ids = np.flatnonzero(inverted)
-        raise ValueError(f"{what}: {ids.size} have lo > hi (first: {', '.join(map(str, ids[:5]))})")
+        raise ValueError(f"{what}: {ids.size} have lo > hi (first: {few_ids(ids)})")
     return lo, hi
 
 

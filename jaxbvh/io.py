@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxbvh.frame import Frame
+from jaxbvh.validate import few_ids
 
 __all__ = ["Mesh", "MeshError", "TreeFile", "load_mesh", "load_any", "bundled_mesh_path",
            "boxes_in_frame"]
@@ -126,12 +127,6 @@ def bundled_mesh_path() -> Path:
 # ----------------------------------------------------------------------------------
 
 
-def _few(ids, limit=5) -> str:
-    ids = np.asarray(ids).ravel()
-    text = ", ".join(str(int(i)) for i in ids[:limit])
-    return text + (", ..." if ids.size > limit else "")
-
-
 def _read(path: str):
     """``trimesh.load`` with every failure turned into a :class:`MeshError`."""
     import trimesh
@@ -175,7 +170,7 @@ def _geometry_arrays(path: str, name: str, geometry) -> tuple[np.ndarray, np.nda
         bad = (faces < 0) | (faces >= vertices.shape[0])
         if bad.any():
             rows = np.flatnonzero(bad.any(axis=1))
-            raise MeshError(f"{where}: face index out of range: face(s) {_few(rows)} name vertex "
+            raise MeshError(f"{where}: face index out of range: face(s) {few_ids(rows)} name vertex "
                             f"{int(faces[bad][0])}, but there are {vertices.shape[0]} vertices")
     return vertices, faces.astype(np.int32)
 
@@ -186,10 +181,10 @@ def _check_finite(where: str, vertices: np.ndarray, faces: np.ndarray):
         return
     ids = np.flatnonzero(bad)
     users = np.flatnonzero(bad[faces].any(axis=1)) if faces.size else np.zeros(0, int)
-    used = f"used by face(s) {_few(users)}" if users.size else "used by no face"
+    used = f"used by face(s) {few_ids(users)}" if users.size else "used by no face"
     count = f"{ids.size} vertex" if ids.size == 1 else f"{ids.size} vertices"
     raise MeshError(f"{where}: NaN/inf coordinates in {count} "
-                    f"(vertex index {_few(ids)}; {used})")
+                    f"(vertex index {few_ids(ids)}; {used})")
 
 
 def _flips_winding(transform: np.ndarray) -> bool:

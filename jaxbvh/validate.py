@@ -31,7 +31,8 @@ class InvalidTreeError(ValueError):
         super().__init__(f"invalid BVH ({len(problems)} problem(s)):\n  {shown}{more}")
 
 
-def _few(ids, limit=5) -> str:
+def few_ids(ids, limit=5) -> str:
+    """The first ``limit`` ids as text, with how many there are in all: for error messages."""
     ids = np.asarray(ids).ravel()
     text = ", ".join(str(int(i)) for i in ids[:limit])
     return text + (f", ... ({ids.size} in all)" if ids.size > limit else "")
@@ -64,7 +65,7 @@ def check(tree, prim_lo=None, prim_hi=None, n_prims: int | None = None) -> list[
         return [f"root {root} is outside the {nodes} nodes"]
     bad_ids = (child < -1) | (child >= nodes)
     if bad_ids.any():
-        return [f"child ids out of range at node(s) {_few(np.flatnonzero(bad_ids.any(1)))}"]
+        return [f"child ids out of range at node(s) {few_ids(np.flatnonzero(bad_ids.any(1)))}"]
 
     has_child = child >= 0
     n_child = has_child.sum(axis=1)
@@ -84,20 +85,20 @@ def check(tree, prim_lo=None, prim_hi=None, n_prims: int | None = None) -> list[
         nxt = child[frontier].ravel()
         nxt = nxt[nxt >= 0]
         if (visits[nxt] > 0).any() or len(np.unique(nxt)) < len(nxt):
-            problems.append(f"node(s) {_few(np.unique(nxt[visits[nxt] > 0]))} reached more than "
+            problems.append(f"node(s) {few_ids(np.unique(nxt[visits[nxt] > 0]))} reached more than "
                             "once from the root (cycle or shared child)")
             break
         frontier = nxt
     if (visits > 1).any():
-        problems.append(f"node(s) {_few(np.flatnonzero(visits > 1))} reached more than once")
+        problems.append(f"node(s) {few_ids(np.flatnonzero(visits > 1))} reached more than once")
     unreached = real & (visits == 0)
     if unreached.any():
-        problems.append(f"real node(s) {_few(np.flatnonzero(unreached))} not reachable from root {root}")
+        problems.append(f"real node(s) {few_ids(np.flatnonzero(unreached))} not reachable from root {root}")
     pad = ~real
     if pad.any():
         pad_box = np.isfinite(lo[pad]).any(1) | np.isfinite(hi[pad]).any(1)
         if pad_box.any() or (parent[pad] != -1).any():
-            problems.append(f"padding node(s) {_few(np.flatnonzero(pad)[pad_box | (parent[pad] != -1)])} "
+            problems.append(f"padding node(s) {few_ids(np.flatnonzero(pad)[pad_box | (parent[pad] != -1)])} "
                             "are not inert (need parent -1 and the empty box)")
 
     # 3. parent links
@@ -105,24 +106,24 @@ def check(tree, prim_lo=None, prim_hi=None, n_prims: int | None = None) -> list[
     kids = child[rows, cols]
     wrong = parent[kids] != rows
     if wrong.any():
-        problems.append(f"parent of node(s) {_few(kids[wrong])} does not name the node that lists them as child")
+        problems.append(f"parent of node(s) {few_ids(kids[wrong])} does not name the node that lists them as child")
     orphan = real & (parent >= 0)
     if orphan.any():
         p = parent[orphan]
         listed = (child[p] == np.flatnonzero(orphan)[:, None]).any(1)
         if (~listed).any():
-            problems.append(f"node(s) {_few(np.flatnonzero(orphan)[~listed])} name a parent that "
+            problems.append(f"node(s) {few_ids(np.flatnonzero(orphan)[~listed])} name a parent that "
                             "does not list them as a child")
 
     # 4. node kinds
     both = (n_child > 0) & (count > 0)
     if both.any():
-        problems.append(f"node(s) {_few(np.flatnonzero(both))} have both children and primitives")
+        problems.append(f"node(s) {few_ids(np.flatnonzero(both))} have both children and primitives")
     single = n_child == 1
     if single.any():
-        problems.append(f"interior node(s) {_few(np.flatnonzero(single))} have only one child")
+        problems.append(f"interior node(s) {few_ids(np.flatnonzero(single))} have only one child")
     if (count < 0).any():
-        problems.append(f"negative prim_count at node(s) {_few(np.flatnonzero(count < 0))}")
+        problems.append(f"negative prim_count at node(s) {few_ids(np.flatnonzero(count < 0))}")
 
     # 5. primitives exactly once
     leaves = np.flatnonzero((count > 0) & (visits > 0))
@@ -130,7 +131,7 @@ def check(tree, prim_lo=None, prim_hi=None, n_prims: int | None = None) -> list[
         n_prims = int(np.asarray(prim_lo).shape[0])
     out_of_range = (start[leaves] < 0) | (start[leaves] + count[leaves] > prim_index.shape[0])
     if out_of_range.any():
-        problems.append(f"leaf/leaves {_few(leaves[out_of_range])} run past prim_index "
+        problems.append(f"leaf/leaves {few_ids(leaves[out_of_range])} run past prim_index "
                         f"({prim_index.shape[0]} slots)")
         leaves = leaves[~out_of_range]
     total = int(count[leaves].sum())
@@ -146,30 +147,30 @@ def check(tree, prim_lo=None, prim_hi=None, n_prims: int | None = None) -> list[
         problems.append("leaves share prim_index slots")
     bad_prim = (prims < 0) | (prims >= n_prims)
     if bad_prim.any():
-        problems.append(f"leaves reference primitive ids outside [0, {n_prims}): {_few(prims[bad_prim])}")
+        problems.append(f"leaves reference primitive ids outside [0, {n_prims}): {few_ids(prims[bad_prim])}")
     seen = np.bincount(prims[~bad_prim], minlength=n_prims) if n_prims else np.zeros(0, np.int64)
     if (seen > 1).any():
-        problems.append(f"primitive(s) {_few(np.flatnonzero(seen > 1))} referenced more than once")
+        problems.append(f"primitive(s) {few_ids(np.flatnonzero(seen > 1))} referenced more than once")
     if (seen == 0).any():
-        problems.append(f"primitive(s) {_few(np.flatnonzero(seen == 0))} referenced by no leaf")
+        problems.append(f"primitive(s) {few_ids(np.flatnonzero(seen == 0))} referenced by no leaf")
 
     # 6. boxes
     r = np.flatnonzero(real)
     malformed = ~(np.isfinite(lo[r]).all(1) & np.isfinite(hi[r]).all(1) & (lo[r] <= hi[r]).all(1))
     if malformed.any():
-        problems.append(f"node(s) {_few(r[malformed])} have non-finite or inverted boxes")
+        problems.append(f"node(s) {few_ids(r[malformed])} have non-finite or inverted boxes")
     out = (lo[kids] < lo[rows]).any(1) | (hi[kids] > hi[rows]).any(1)
     if out.any():
-        problems.append(f"box of node(s) {_few(rows[out])} does not contain the box of child(ren) "
-                        f"{_few(kids[out])}")
+        problems.append(f"box of node(s) {few_ids(rows[out])} does not contain the box of child(ren) "
+                        f"{few_ids(kids[out])}")
     if prim_lo is not None and prim_hi is not None and total:
         plo, phi = np.asarray(prim_lo), np.asarray(prim_hi)
         ok = ~bad_prim
         p, owner = prims[ok], leaf_of_slot[ok]
         outside = (plo[p] < lo[owner]).any(1) | (phi[p] > hi[owner]).any(1)
         if outside.any():
-            problems.append(f"leaf box(es) {_few(np.unique(owner[outside]))} do not contain "
-                            f"primitive(s) {_few(p[outside])}")
+            problems.append(f"leaf box(es) {few_ids(np.unique(owner[outside]))} do not contain "
+                            f"primitive(s) {few_ids(p[outside])}")
     return problems
 
 
