@@ -228,9 +228,18 @@ def run(args):
                 res, warm, compile_s = timed(
                     lambda: rotate.anneal(key, tj, steps=steps, chains=chains), args.repeat)
                 rows.append({**base, "method": "sa", "steps": steps, "chains": chains,
+                             "hottest": rotate.DEFAULT_HOTTEST,
                              "sah": float(res.sah), "passes": int(res.passes),
                              "moves": int(res.moves), "seconds": warm, "compile_seconds": compile_s})
                 print(rows[-1], file=sys.stderr)
+        for hottest in args.sweep_hottest:
+            key = jax.random.key(args.seed)
+            res = jax.block_until_ready(rotate.anneal(key, tj, steps=args.sweep_steps,
+                                                      hottest=hottest))
+            rows.append({**base, "method": "sa", "steps": args.sweep_steps, "chains": 1,
+                         "hottest": hottest, "sweep": True, "sah": float(res.sah),
+                         "passes": int(res.passes), "moves": int(res.moves)})
+            print(rows[-1], file=sys.stderr)
     reference = None
     if args.reference:
         path = DATA / "trees" / "legocar_binned_ref.npz"
@@ -260,12 +269,36 @@ def write(rows, reference, args):
              f"{args.repeat}; SAH with Ct = Ci = 1.", "",
              "| input | nodes | start SAH | method | N | K | SAH | change | passes | seconds | compile s | tinybvh SAH (s) |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    sweep = [r for r in rows if r.get("sweep")]
+    rows = [r for r in rows if not r.get("sweep")]
     for r in rows:
         tiny = f"{r['tinybvh_sah']:.3f} ({r['tinybvh_seconds']:.2f})" if "tinybvh_sah" in r else "-"
         change = 100 * (r["sah"] / r["start_sah"] - 1)
         lines.append(f"| {r['input']} | {r['nodes']:,} | {r['start_sah']:.3f} | {r['method']} | "
                      f"{r['steps'] or '-'} | {r['chains']} | {r['sah']:.3f} | {change:+.1f}% | "
                      f"{r['passes']} | {r['seconds']:.3f} | {r['compile_seconds']:.1f} | {tiny} |")
+    lines += ["", "Equal time against tinybvh's reinsertion optimizer (its seconds are from its "
+              "README, same kind of machine): the lowest SAH any run here reached within that time.",
+              "", "| input | tinybvh SAH (s) | best here within that time | run |", "|---|---|---|---|"]
+    for name in dict.fromkeys(r["input"] for r in rows if "tinybvh_sah" in r):
+        mine = [r for r in rows if r["input"] == name]
+        ok = [r for r in mine if r["seconds"] <= mine[0]["tinybvh_seconds"]]
+        best = min(ok, key=lambda r: r["sah"]) if ok else None
+        run_ = ("-" if best is None else "HC" if best["method"] == "hc"
+                else f"SA N={best['steps']} K={best['chains']}")
+        lines.append(f"| {name} | {mine[0]['tinybvh_sah']:.3f} ({mine[0]['tinybvh_seconds']:.2f}) | "
+                     f"{'-' if best is None else format(best['sah'], '.3f')} | {run_} |")
+    if sweep:
+        hs = sorted({r["hottest"] for r in sweep})
+        lines += ["", f"Peak temperature h (annealing, N = {sweep[0]['steps']}, one chain, seed "
+                      f"{args.seed}): SAH reached. The default is h = {rotate.DEFAULT_HOTTEST}; "
+                      "Kensler's 1.5 is in the last column.", "",
+                  "| input | HC | " + " | ".join(f"h = {h:g}" for h in hs) + " |",
+                  "|---|---|" + "---|" * len(hs)]
+        for name in dict.fromkeys(r["input"] for r in sweep):
+            hc = next(r["sah"] for r in rows if r["input"] == name and r["method"] == "hc")
+            by_h = {r["hottest"]: r["sah"] for r in sweep if r["input"] == name}
+            lines.append(f"| {name} | {hc:.3f} | " + " | ".join(f"{by_h[h]:.3f}" for h in hs) + " |")
     if reference:
         lines += ["", f"NumPy reference hill climbing on {reference['input']}: "
                       f"{reference['numpy_seconds']:.2f} s vs JAX {reference['jax_seconds']:.3f} s "
@@ -304,6 +337,11 @@ def main(argv=None):
     parser.add_argument("--chains", nargs="*", type=int, default=None)
     parser.add_argument("--chain-steps", type=int, default=50,
                         help="schedule length used for the K > 1 runs")
+    parser.add_argument("--sweep-hottest", nargs="*", type=float, default=None,
+                        help="peak temperatures h to compare (default with --full: "
+                             "0.05 0.1 0.15 0.3 1.5)")
+    parser.add_argument("--sweep-steps", type=int, default=250,
+                        help="schedule length of the h comparison")
     parser.add_argument("--repeat", type=int, default=2)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--no-reference", dest="reference", action="store_false")
@@ -323,6 +361,8 @@ def main(argv=None):
         args.steps = [50, 250, 1250] if args.full else [50, 250]
     if args.chains is None:
         args.chains = [1, 4, 16] if args.full else [1, 4]
+    if args.sweep_hottest is None:
+        args.sweep_hottest = [0.05, 0.1, 0.15, 0.3, 1.5] if args.full else []
     rows, reference = run(args)
     write(rows, reference, args)
     print((RESULTS / "rotate.md").read_text())

@@ -28,8 +28,14 @@ proportional to the nodes it visits, not ``nodes x height``.
 
 Only nodes whose subtree changed since they last chose "no move" can choose differently
 (the choice at a node that finds no improving move is the same at every temperature),
-so after the first pass a cold pass visits just those nodes and their ancestors:
-work proportional to the moves made, not to the tree.
+so after the first pass a cold pass visits just those nodes and their ancestors. Every
+move appends the nodes it changed to a queue; the next pass walks up from the queued
+nodes to list their ancestors and sorts that list by height. Nothing in a cold pass
+sorts or searches the whole tree, so its work is proportional to the moves made, not to
+(when the queue or the list overflows, the pass visits every node instead).
+
+Several annealing chains run as one *forest* of copies of the tree (ids of copy ``k``
+offset by ``k N``): a pass processes each height of all chains together.
 
 * **Hill climbing** (:func:`hill_climb`): apply the move of least cost if it lowers
   ``C(n)``; repeat passes until one makes no move.
@@ -71,7 +77,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh.cost import extent_scale, half_area
-from jaxbvh.schedule import kensler_temperature
+from jaxbvh.schedule import DEFAULT_HOTTEST, kensler_temperature
 from jaxbvh.tree import BVH, capacity_bucket, pad_to, to_jax, to_numpy
 
 MOVES = ("L<->RL", "L<->RR", "R<->LL", "R<->LR", "LL<->RL", "LL<->RR")
@@ -83,7 +89,8 @@ _CHANGES_L = (False, False, True, True, True, True)
 _CHANGES_R = (True, True, False, False, True, True)
 
 DEFAULT_WINDOWS = (512,)
-DEFAULT_FRONTIER = 16384
+DEFAULT_FRONTIER = 131072  # queue of changed nodes; more in one pass: visit every node
+_SMALL_QUEUE = 4096
 
 
 @jax.tree_util.register_dataclass
@@ -113,9 +120,10 @@ class _State(NamedTuple):
     parent: Any  # [N] int32
     lo: Any      # [N, 3]
     hi: Any      # [N, 3]
-    cost: Any    # [N] C(n), kept current for every real node
-    height: Any  # [N] int32, 0 for leaves; current for every real node
-    dirty: Any   # [N] bool: subtree changed since the node last chose "no move"
+    cost: Any = None    # [N] C(n), kept current for every real node
+    height: Any = None  # [N] int32, 0 for leaves; current for every real node
+    queue: Any = None   # [Q] int32: nodes whose subtree changed this pass (N: none)
+    queued: Any = None  # int32: entries appended to queue this pass (> Q: overflowed)
 
 
 # ----------------------------------------------------------------------------------
@@ -237,7 +245,7 @@ def _score(st, nodes, scale, ct):
     legal = jnp.stack([r_in, r_in, l_in, l_in, l_in & r_in, l_in & r_in], axis=1) & interior[:, None]
 
     return dict(
-        left=left, right=right, interior=interior, cur=cur,
+        left=left, right=right, grand=(ll, lr, rl, rr), interior=interior, cur=cur,
         cand=jnp.stack([c for c, _ in n_after], axis=1),
         n_height=[h for _, h in n_after],
         cur_height=1 + jnp.maximum(L.height, R.height),
@@ -297,8 +305,12 @@ def _choose_annealing(cand, cur, legal, tol, temperature, draws):
     return choice
 
 
-def _process(st, nodes, scale, ct, min_gain, temperature, draws, annealing):
-    """Score ``nodes`` (disjoint subtrees), pick a move for each, apply them all."""
+def _process(st, nodes, scale, ct, min_gain, temperature, draws, annealing, chains):
+    """Score ``nodes`` (disjoint subtrees), pick a move for each, apply them all.
+
+    Returns the new state and the moves made per chain [chains] (a forest of ``chains``
+    equal-capacity trees, node ``k * (N / chains) + i`` being node ``i`` of tree ``k``).
+    """
     cap = st.child.shape[0]
     s = _score(st, nodes, scale, ct)
     cur, cand, legal = s["cur"], s["cand"], s["legal"]
@@ -326,12 +338,14 @@ def _process(st, nodes, scale, ct, min_gain, temperature, draws, annealing):
     b_side = _select(m, [jnp.int32(side) for _, side in _SLOT_B])
     a_node = jnp.where(moved, a_node, cap)
     b_node = jnp.where(moved, b_node, cap)
-    flat = st.child.reshape(-1)
-    a_slot = jnp.where(moved, 2 * a_node + a_side, 2 * cap)
-    b_slot = jnp.where(moved, 2 * b_node + b_side, 2 * cap)
-    a_val = _take(flat, a_slot, -1)
-    b_val = _take(flat, b_slot, -1)
-    flat = flat.at[a_slot].set(b_val, mode="drop").at[b_slot].set(a_val, mode="drop")
+    # the slots' contents are ids the scoring already gathered; reading child again here
+    # (or through a flat view) makes XLA copy the whole array for every window
+    ll, lr, rl, rr = s["grand"]
+    content = {(0, 0): left, (0, 1): right, (1, 0): ll, (1, 1): lr, (2, 0): rl, (2, 1): rr}
+    a_val = jnp.where(moved, _select(m, [content[slot] for slot in _SLOT_A]), -1)
+    b_val = jnp.where(moved, _select(m, [content[slot] for slot in _SLOT_B]), -1)
+    child = (st.child.at[a_node, a_side].set(b_val, mode="drop")
+             .at[b_node, b_side].set(a_val, mode="drop"))
     parent = st.parent.at[jnp.where(moved, b_val, cap)].set(a_node, mode="drop")
     parent = parent.at[jnp.where(moved, a_val, cap)].set(b_node, mode="drop")
 
@@ -353,10 +367,12 @@ def _process(st, nodes, scale, ct, min_gain, temperature, draws, annealing):
     height = (st.height.at[l_at].set(new_l.height, mode="drop")
               .at[r_at].set(new_r.height, mode="drop")
               .at[interior_nodes].set(n_height, mode="drop"))
-    dirty = (st.dirty.at[interior_nodes].set(moved, mode="drop")
-             .at[l_at].set(True, mode="drop").at[r_at].set(True, mode="drop"))
-    new = _State(flat.reshape(cap, 2), parent, lo, hi, cost, height, dirty)
-    return new, jnp.sum(moved, dtype=jnp.int32)
+    queue, queued = _enqueue(st.queue, st.queued, jnp.concatenate(
+        [jnp.where(moved, interior_nodes, cap), l_at, r_at]), cap)
+    new = _State(child, parent, lo, hi, cost, height, queue, queued)
+    per_chain = jnp.zeros(chains, jnp.int32).at[nodes // (cap // chains)].add(
+        moved.astype(jnp.int32), mode="drop")
+    return new, per_chain
 
 
 # ----------------------------------------------------------------------------------
@@ -364,32 +380,99 @@ def _process(st, nodes, scale, ct, min_gain, temperature, draws, annealing):
 # ----------------------------------------------------------------------------------
 
 
-def _active_set(st, interior, everything, frontier):
-    """Nodes to visit: the dirty ones and their ancestors (all interior when ``everything``).
+def _enqueue(queue, queued, ids, cap):
+    """Append the ids ``< cap`` of ``ids`` to ``queue`` (beyond its size: only counted)."""
+    valid = ids < cap
+    at = queued + jnp.cumsum(valid, dtype=jnp.int32) - 1
+    queue = queue.at[jnp.where(valid, at, queue.shape[0])].set(ids, mode="drop")
+    return queue, queued + jnp.sum(valid, dtype=jnp.int32)
 
-    A superset is always safe (a clean node chooses "no move" again), so when more than
-    ``frontier`` nodes are dirty we visit all interior nodes.
+
+def _ancestor_list(st, width, size):
+    """The queued nodes and all their ancestors, each once, as a list [size] (``N``: none).
+
+    A walk up the parent links from the first ``width`` queue entries (all of them must
+    be there); a node reached by several walks continues only one of them. Returns the
+    list, its used length and whether it overflowed ``size`` (then it is incomplete).
     """
     cap = st.child.shape[0]
-    n_dirty = jnp.sum(st.dirty & interior)
+    slots = jnp.arange(1, width + 1, dtype=jnp.int32)
+    mark = jnp.zeros(cap, jnp.int32)  # 0: not listed; else the walk (slot) that listed it
 
-    def walk(_):
-        ids = jnp.nonzero(st.dirty & interior, size=frontier, fill_value=cap)[0]
-        mark = jnp.zeros(cap, bool).at[ids].set(True, mode="drop")
+    def claim(mark, ids):
+        """Each id not listed yet is listed by one of the walks that reach it."""
+        fresh = _take(mark, ids, 1) == 0
+        ids = jnp.where(fresh, ids, cap)
+        mark = mark.at[ids].set(slots, mode="drop")
+        return mark, jnp.where(_take(mark, ids, 0) == slots, ids, cap)
 
-        def cond(carry):
-            return jnp.any(carry[1] < cap)
+    def append(listed, used, ids):
+        return _enqueue(listed, used, ids, cap)
 
-        def body(carry):
-            mark, ids = carry
-            up = _none_to_oob(_take(st.parent, ids, -1), cap)
-            seen = _take(mark, up, True)
-            up = jnp.where(seen, cap, up)
-            return mark.at[up].set(True, mode="drop"), up
+    def cond(carry):
+        return jnp.any(carry[1] < cap) & (carry[3] <= size)
 
-        return jax.lax.while_loop(cond, body, (mark, ids))[0]
+    def body(carry):
+        mark, ids, listed, used = carry
+        up = _none_to_oob(_take(st.parent, ids, -1), cap)
+        mark, up = claim(mark, up)
+        listed, used = append(listed, used, up)
+        return mark, up, listed, used
 
-    return jax.lax.cond(everything | (n_dirty > frontier), lambda _: interior, walk, None)
+    queue = st.queue[:width]
+    mark, ids = claim(mark, jnp.where(queue < cap, queue, cap))
+    listed, used = append(jnp.full(size, cap, jnp.int32), jnp.int32(0), ids)
+    _, _, listed, used = jax.lax.while_loop(cond, body, (mark, ids, listed, used))
+    return listed, jnp.minimum(used, size), used > size
+
+
+def _visit_order(st, interior, everything):
+    """Nodes to visit in a pass, sorted by height: ``(order, heights, count)``, each [N].
+
+    The nodes are the queued ones (subtree changed in the last pass) and their
+    ancestors, or all interior nodes when ``everything`` or when the queue or the
+    ancestor list (four times the queue) overflowed. A superset is always safe: a node whose
+    subtree did not change chooses "no move" again. Entries past ``count`` hold ``N``
+    (no node) and a huge height; holes (``N``) may also sit inside the first ``count``.
+    """
+    cap = st.child.shape[0]
+    big = jnp.int32(2 ** 31 - 1)
+    capacity = st.queue.shape[0]
+
+    def full(_):
+        order, keys = _sorted_by_height(jnp.arange(cap, dtype=jnp.int32), st.height, interior)
+        return (jnp.where(order >= 0, order, cap), keys,
+                jnp.sum(interior, dtype=jnp.int32))
+
+    def listed(width):
+        size = min(4 * width, cap)
+
+        def walk(_):
+            ids, used, overflow = _ancestor_list(st, width, size)
+
+            def from_list(_):
+                valid = ids < cap
+                keys = jnp.where(valid, _take(st.height, ids, 0), big)
+                keys, order = jax.lax.sort((keys, ids), num_keys=1)
+                pad = cap - size
+                return (jnp.concatenate([order, jnp.full(pad, cap, jnp.int32)]),
+                        jnp.concatenate([keys, jnp.full(pad, big, jnp.int32)]), used)
+
+            return jax.lax.cond(overflow, full, from_list, None)
+
+        return walk
+
+    # walks cost (queue size x height) whatever the queue holds, so a short queue walks
+    # in a small size; each size is one more compiled branch
+    small = min(_SMALL_QUEUE, capacity)
+    if small < capacity:
+        branches = [full, listed(small), listed(capacity)]
+        pick = jnp.where(everything | (st.queued > capacity), 0,
+                         jnp.where(st.queued <= small, 1, 2))
+    else:
+        branches = [full, listed(capacity)]
+        pick = jnp.where(everything | (st.queued > capacity), 0, 1)
+    return jax.lax.switch(pick, branches, None)
 
 
 def _sorted_by_height(ids, height, valid):
@@ -421,45 +504,17 @@ def _sorted_by_height(ids, height, valid):
     return jnp.where(ok, ids[pos], -1), jnp.where(ok, height[pos], big)
 
 
-def _schedule_order(active, height, frontier):
-    """Active nodes sorted by height, the sorted heights, and their number.
-
-    Entries past the count hold ``N`` (no node) and a huge height.
-    """
-    cap = active.shape[0]
-    big = jnp.int32(2 ** 31 - 1)
-    count = jnp.sum(active, dtype=jnp.int32)
-
-    def full(_):
-        order, keys = _sorted_by_height(jnp.arange(cap, dtype=jnp.int32), height, active)
-        return jnp.where(order >= 0, order, cap), keys
-
-    def small(_):
-        ids = jnp.nonzero(active, size=frontier, fill_value=cap)[0].astype(jnp.int32)
-        valid = ids < cap
-        h = _take(height, ids, 0)
-        order, keys = _sorted_by_height(ids, h, valid)
-        return (jnp.full(cap, cap, jnp.int32).at[:frontier].set(jnp.where(order >= 0, order, cap)),
-                jnp.full(cap, big, jnp.int32).at[:frontier].set(keys))
-
-    if frontier >= cap:
-        return full(None) + (count,)
-    order, keys = jax.lax.cond(count > frontier, full, small, None)
-    return order, keys, count
-
-
-def _pass(st, interior, scale, ct, min_gain, temperature, draws, *, annealing, windows, frontier):
-    """One pass over the tree; returns the new state and the number of moves.
+def _pass(st, interior, scale, ct, min_gain, temperature, draws, *, annealing, windows, chains=1):
+    """One pass over the tree (or forest); returns the new state and moves per chain [chains].
 
     Heights are processed lowest first; a height's nodes go through windows of the
     largest size in ``windows`` while that many remain, then the next size down.
     """
     cap = st.child.shape[0]
-    frontier = min(frontier, cap)
     windows = tuple(sorted({min(w, cap) for w in windows}, reverse=True))
     everything = temperature > 0 if annealing else jnp.bool_(False)
-    active = _active_set(st, interior, everything, frontier)
-    order, keys, count = _schedule_order(active, st.height, frontier)
+    order, keys, count = _visit_order(st, interior, everything)
+    st = st._replace(queue=jnp.full_like(st.queue, cap), queued=jnp.int32(0))
     order = jnp.concatenate([order, jnp.full(windows[0], cap, jnp.int32)])
 
     def window_loop(carry, width, last):
@@ -472,7 +527,8 @@ def _pass(st, interior, scale, ct, min_gain, temperature, draws, *, annealing, w
             st, start, end, moves = c
             nodes = jax.lax.dynamic_slice(order, (start,), (width,))
             nodes = jnp.where(start + jnp.arange(width) < end, nodes, cap)
-            st, made = _process(st, nodes, scale, ct, min_gain, temperature, draws, annealing)
+            st, made = _process(st, nodes, scale, ct, min_gain, temperature, draws, annealing,
+                                chains)
             return st, start + jnp.minimum(width, end - start), end, moves + made
 
         return jax.lax.while_loop(cond, body, carry)
@@ -489,7 +545,8 @@ def _pass(st, interior, scale, ct, min_gain, temperature, draws, *, annealing, w
         st, start, _, moves = carry
         return st, start, moves
 
-    st, _, moves = jax.lax.while_loop(cond, body, (st, jnp.int32(0), jnp.int32(0)))
+    moves = jnp.zeros(chains, jnp.int32)
+    st, _, moves = jax.lax.while_loop(cond, body, (st, jnp.int32(0), moves))
     return st, moves
 
 
@@ -534,7 +591,7 @@ def _init(tree, ct, ci):
     cost0 = jnp.where(is_leaf, leaf_cost, ct)
     height0 = jnp.zeros(cap, jnp.int32)
     cost, height, _ = jax.lax.while_loop(cond, body, (cost0, height0, jnp.bool_(True)))
-    st = _State(child, tree.parent.astype(jnp.int32), tree.lo, tree.hi, cost, height, interior)
+    st = _State(child, tree.parent.astype(jnp.int32), tree.lo, tree.hi, cost, height)
     return scale, st
 
 
@@ -555,20 +612,64 @@ class _Dynamic(NamedTuple):
     hottest: Any
 
 
-def _optimize(tree, key, dyn: _Dynamic, *, annealing, schedule, history_len, keep_best,
+def _forest(st: _State, chains: int) -> _State:
+    """``chains`` copies of one tree's state as one forest (ids of copy ``k`` offset by ``k N``)."""
+    cap = st.child.shape[0]
+    def shift(ids):  # [N, ...] ids, -1 none -> [chains * N, ...]
+        offset = (jnp.arange(chains, dtype=jnp.int32) * cap).reshape((chains,) + (1,) * ids.ndim)
+        moved = jnp.where(ids[None] >= 0, ids[None] + offset, -1)
+        return moved.reshape((chains * cap,) + ids.shape[1:])
+
+    def tile(a):
+        return jnp.broadcast_to(a[None], (chains,) + a.shape).reshape((chains * cap,) + a.shape[1:])
+
+    return _State(shift(st.child), shift(st.parent), tile(st.lo), tile(st.hi), tile(st.cost),
+                  tile(st.height))
+
+
+def _chain_of(st: _State, k, chains: int) -> _State:
+    """The tree of copy ``k`` of a forest (links and boxes; ids back to ``0 .. N-1``)."""
+    cap = st.child.shape[0] // chains
+
+    def take(a):
+        return jax.lax.dynamic_index_in_dim(a.reshape((chains, cap) + a.shape[1:]), k, 0, False)
+
+    def unshift(ids):
+        ids = take(ids)
+        return jnp.where(ids >= 0, ids - k * cap, -1)
+
+    return _State(unshift(st.child), unshift(st.parent), take(st.lo), take(st.hi))
+
+
+def _optimize(tree, keys, dyn: _Dynamic, *, annealing, schedule, history_len, keep_best,
               windows, frontier, on_pass=None):
-    """The whole run (traceable, vmappable): passes until converged or ``dyn.limit``."""
+    """The whole run (traceable, vmappable): passes until converged or ``dyn.limit``.
+
+    ``keys`` [K]: one chain per key. The K chains run as one forest of K copies of the
+    tree, so every pass processes each height of all chains at once (K chains cost far
+    less than K runs). A chain is done after a pass at ``T = 0`` that makes no move; it
+    then makes no move in later passes either, so each chain's result is exactly what
+    it gives alone. Returns a :class:`RotateResult` with a leading axis K on every field.
+    """
+    chains = keys.shape[0]
     dtype = tree.lo.dtype
     ct = jnp.asarray(dyn.ct, dtype)
     min_gain = jnp.asarray(dyn.min_gain, dtype)
     steps = jnp.asarray(dyn.steps, jnp.int32)
     limit = jnp.minimum(jnp.asarray(dyn.limit, jnp.int32), history_len)
-    scale, st = _init(tree, ct, dyn.ci)
+    scale, one = _init(tree, ct, dyn.ci)
+    cap = one.child.shape[0]
+    st = _forest(one, chains)
+    # the first pass visits every node: a queue that overflowed
+    queue_size = min(frontier, chains * cap)
+    st = st._replace(queue=jnp.full(queue_size, chains * cap, jnp.int32),
+                     queued=jnp.int32(queue_size + 1))
     interior = st.child[:, 0] >= 0
-    cap = st.child.shape[0]
-    root = tree.root
-    start_cost = st.cost[root]
-    history = jnp.full(history_len, jnp.nan, dtype)
+    roots = tree.root + cap * jnp.arange(chains, dtype=jnp.int32)
+    chain_of_node = jnp.arange(chains * cap, dtype=jnp.int32) // cap
+    start_cost = one.cost[tree.root]
+    history = jnp.full((chains, history_len), jnp.nan, dtype)
+    none = jnp.zeros(chains, jnp.int32)
 
     def temperature(i):
         if not annealing:
@@ -580,40 +681,69 @@ def _optimize(tree, key, dyn: _Dynamic, *, annealing, schedule, history_len, kee
         t = jnp.asarray(t, dtype)
         return jnp.where(i < steps, jnp.maximum(t, 0), 0)
 
+    def draws_of(i):
+        rows = jax.vmap(lambda k: annealing_draws(k, i, cap, dtype))(keys)
+        return rows.reshape(chains * cap, 6)
+
     def cond(carry):
-        st, i, last, total, hist, best = carry
-        more = (i == 0) | (last > 0)
-        if annealing:
-            more = more | (i < steps)
-        return (i < limit) & more
+        st, i, done, passes, total, hist, best = carry
+        return (i < limit) & ~jnp.all(done)
 
     def body(carry):
-        st, i, last, total, hist, best = carry
+        st, i, done, passes, total, hist, best = carry
         t = temperature(i)
         if annealing:
-            draws = jax.lax.cond(t > 0, lambda: annealing_draws(key, i, cap, dtype),
-                                 lambda: jnp.ones((cap, 6), dtype))
+            draws = jax.lax.cond(t > 0, lambda: draws_of(i),
+                                 lambda: jnp.ones((chains * cap, 6), dtype))
         else:
             draws = None
         st, moves = _pass(st, interior, scale, ct, min_gain, t, draws, annealing=annealing,
-                          windows=windows, frontier=frontier)
-        c = st.cost[root]
-        hist = hist.at[i].set(c)
+                          windows=windows, chains=chains)
+        c = st.cost[roots]
+        running = ~done
+        hist = hist.at[:, i].set(jnp.where(running, c, jnp.nan))
+        passes = passes + running
+        total = total + moves
+        cold = (i + 1 >= steps) if annealing else jnp.bool_(True)
+        done = done | ((moves == 0) & cold)
         if on_pass is not None:
-            jax.debug.callback(on_pass, i, c, moves, t)
+            jax.debug.callback(on_pass, i, jnp.min(c), jnp.sum(moves), t)
         if keep_best:
-            better = c < best[0]
-            best = jax.lax.cond(better, lambda: (c, st), lambda: best)
-        return st, i + 1, moves, total + moves, hist, best
+            best_cost, best_st = best
+            better = c < best_cost
+            keep = better[chain_of_node]
 
-    best = (start_cost, st) if keep_best else (start_cost, None)
-    carry = (st, jnp.int32(0), jnp.int32(0), jnp.int32(0), history, best)
-    st, passes, _, total, history, best = jax.lax.while_loop(cond, body, carry)
+            def update():
+                def pick(new, old):
+                    return jnp.where(keep.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)
+                return jax.tree_util.tree_map(pick, tree_part(st), best_st)
+
+            best = (jnp.where(better, c, best_cost),
+                    jax.lax.cond(jnp.any(better), update, lambda: best_st))
+        return st, i + 1, done, passes, total, hist, best
+
+    def tree_part(st):  # what keep_best keeps: links and boxes
+        return _State(st.child, st.parent, st.lo, st.hi)
+
+    best = (jnp.full(chains, start_cost), tree_part(st)) if keep_best else None
+    carry = (st, jnp.int32(0), jnp.zeros(chains, bool), none, none, history, best)
+    st, _, _, passes, total, history, best = jax.lax.while_loop(cond, body, carry)
     if keep_best:
         final_cost, st = best
     else:
-        final_cost = st.cost[root]
-    return RotateResult(_to_tree(tree, st), final_cost, start_cost, passes, total, history)
+        final_cost = st.cost[roots]
+
+    def result(k):
+        return RotateResult(_to_tree(tree, _chain_of(st, k, chains)), final_cost[k], start_cost,
+                            passes[k], total[k], history[k])
+
+    return result, final_cost
+
+
+def _optimize_one(tree, key, dyn, **static):
+    """One chain: :func:`_optimize` with a single key, fields without the chain axis."""
+    result, _ = _optimize(tree, key[None], dyn, **static)
+    return result(0)
 
 
 _STATIC = ("annealing", "schedule", "history_len", "keep_best", "windows", "frontier",
@@ -622,26 +752,20 @@ _STATIC = ("annealing", "schedule", "history_len", "keep_best", "windows", "fron
 
 @partial(jax.jit, static_argnames=_STATIC)
 def _run_one(tree, key, dyn, *, split_axes, **static):
-    out = _optimize(tree, key, dyn, **static)
-    return _finish(out, split_axes)
+    return _finish(_optimize_one(tree, key, dyn, **static), split_axes)
 
 
 @partial(jax.jit, static_argnames=_STATIC)
 def _run_chains(tree, keys, dyn, *, split_axes, **static):
-    # chains one after another (lax.map), not vmapped: under vmap every cond runs both
-    # branches and every chain waits for the slowest at each level, which on CPU cost
-    # 15x more than running the chains in turn
-    outs = jax.lax.map(lambda k: _optimize(tree, k, dyn, **static), keys)
-    best = jnp.argmin(outs.sah)
-    one = jax.tree_util.tree_map(lambda a: a[best], outs)
-    one = dataclasses.replace(one, chain_sah=outs.sah)
+    result, chain_sah = _optimize(tree, keys, dyn, **static)
+    one = dataclasses.replace(result(jnp.argmin(chain_sah)), chain_sah=chain_sah)
     return _finish(one, split_axes)
 
 
 @partial(jax.jit, static_argnames=_STATIC)
 def _run_batch(trees, keys, dyn, *, split_axes, **static):
     def one(tree, key):
-        return _finish(_optimize(tree, key, dyn, **static), split_axes)
+        return _finish(_optimize_one(tree, key, dyn, **static), split_axes)
     return jax.vmap(one)(trees, keys)
 
 
@@ -661,8 +785,9 @@ def _check_tree(tree, name="tree"):
         raise ValueError(f"{name} must be a binary jaxbvh.BVH, got {type(tree).__name__}")
 
 
-def _setup(tree, *, ct, ci, min_gain, limit, windows, frontier, steps=0, period=50, hottest=1.5,
-           annealing=False, schedule=None, keep_best=False, split_axes=True, on_pass=None):
+def _setup(tree, *, ct, ci, min_gain, limit, windows, frontier, steps=0, period=50,
+           hottest=DEFAULT_HOTTEST, annealing=False, schedule=None, keep_best=False,
+           split_axes=True, on_pass=None):
     """Checked arguments as (dynamic values, static options)."""
     if not ct >= 0 or not ci >= 0:
         raise ValueError(f"ct and ci must be >= 0, got ct={ct}, ci={ci}")
@@ -716,8 +841,8 @@ def hill_climb(tree, *, ct: float = 1.0, ci: float = 1.0, max_passes: int = 1000
 
 
 def anneal(key, tree, *, schedule: Callable | None = None, steps: int = 1250,
-           hottest: float = 1.5, period: int = 50, chains: int = 1, keep_best: bool = True,
-           max_quench: int = 1000, ct: float = 1.0, ci: float = 1.0,
+           hottest: float = DEFAULT_HOTTEST, period: int = 50, chains: int = 1,
+           keep_best: bool = True, max_quench: int = 1000, ct: float = 1.0, ci: float = 1.0,
            min_gain: float | None = None, split_axes: bool = True,
            windows=DEFAULT_WINDOWS, frontier: int = DEFAULT_FRONTIER,
            on_pass: Callable | None = None) -> RotateResult:
@@ -726,10 +851,15 @@ def anneal(key, tree, *, schedule: Callable | None = None, steps: int = 1250,
     ``key``: a ``jax.random`` key. ``schedule``: optax-style ``step -> temperature``
     (default Kensler's, :func:`jaxbvh.schedule.kensler_schedule` with ``steps``,
     ``period``, ``hottest``); passes ``0 .. steps-1`` use it, then passes at ``T = 0``
-    follow (at most ``max_quench``) until one makes no move. ``keep_best``: return the
-    tree of least SAH seen after any pass (else the last). ``chains``: run that many
-    independent chains (keys split from ``key``, run in turn) and return the best;
-    ``chain_sah`` lists them all. Other arguments as :func:`hill_climb`. Changing
+    follow (at most ``max_quench``) until one makes no move. Temperatures are in units
+    of the node cost ``C(n)``; ``hottest`` defaults to
+    :data:`jaxbvh.schedule.DEFAULT_HOTTEST` (0.15), not the paper's 1.5, which is far
+    too hot on this cost (annealing then ends where hill climbing does).
+    ``keep_best``: return the tree of least SAH seen after any pass (else the last).
+    ``chains``: run that many independent chains (keys ``jax.random.split(key,
+    chains)``) and return the best; ``chain_sah`` lists them all. The chains run as
+    one forest, so K chains take far less than K times one (each chain's result is
+    exactly what it gives alone). Other arguments as :func:`hill_climb`. Changing
     ``steps``, ``period``, ``hottest`` does not recompile (a given ``schedule`` is
     compiled once per function object).
     """
@@ -749,7 +879,7 @@ def anneal(key, tree, *, schedule: Callable | None = None, steps: int = 1250,
 
 
 def optimize_batch(trees, keys=None, *, method: str = "hc", schedule: Callable | None = None,
-                   steps: int = 1250, hottest: float = 1.5, period: int = 50,
+                   steps: int = 1250, hottest: float = DEFAULT_HOTTEST, period: int = 50,
                    keep_best: bool = True, max_passes: int = 1000, ct: float = 1.0,
                    ci: float = 1.0, min_gain: float | None = None, split_axes: bool = True,
                    windows=DEFAULT_WINDOWS, frontier: int = DEFAULT_FRONTIER) -> RotateResult:

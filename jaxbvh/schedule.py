@@ -16,6 +16,15 @@ KENSLER_STEPS = 1250
 KENSLER_PERIOD = 50
 KENSLER_HOTTEST = 1.5
 
+# Peak temperature used by jaxbvh.rotate.anneal unless told otherwise. Temperatures
+# here are in units of the node cost C(n) of jaxbvh.cost (SAH of the subtree relative
+# to the node's own area, ct = ci = 1), and Kensler's h = 1.5 is far too hot on that
+# scale: at h = 1.5 most uphill moves are taken, the tree random-walks, and after the
+# quench annealing ends where hill climbing does (legocar 29.28 for both, N = 250).
+# Measured on the three tinybvh trees of ../shared/data/trees (N = 250, one chain; the
+# table is in bench/results/rotate.md), 0.1 - 0.2 works best; 0.15 is the default.
+DEFAULT_HOTTEST = 0.15
+
 
 @lru_cache(maxsize=64)  # the same parameters give the same function: jit caches hit
 def kensler_schedule(steps: int = KENSLER_STEPS, period: int = KENSLER_PERIOD,

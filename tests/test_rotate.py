@@ -180,14 +180,25 @@ def test_hill_climb_equals_reference_on_a_real_tree():
     assert np.array_equal(np.asarray(result.tree.lo)[leaf], tree.lo[leaf])
 
 
-def test_work_sizes_do_not_change_the_result():
+def test_work_sizes_do_not_change_the_result(monkeypatch):
     tree, plo, phi = random_tree(7, 40, 2)
-    a = rotate.hill_climb(tree, windows=(1,), frontier=1)
+    a = rotate.hill_climb(tree, windows=(1,), frontier=1)   # queue always overflows
     b = rotate.hill_climb(tree, windows=(3,), frontier=4)
-    c = rotate.hill_climb(tree)
+    c = rotate.hill_climb(tree)                             # queue and ancestor list fit
     assert_same_tree(a.tree, c.tree)
     assert_same_tree(b.tree, c.tree)
     check_result(c, plo, phi)
+    # the short-queue walk (normally 4096 wide) next to the full-width one
+    monkeypatch.setattr(rotate, "_SMALL_QUEUE", 3)
+    for frontier in (5, 7):
+        d = rotate.hill_climb(tree, windows=(2, 5), frontier=frontier)
+        assert_same_tree(d.tree, c.tree)
+        assert int(d.passes) == int(c.passes) and int(d.moves) == int(c.moves)
+    key = jax.random.key(5)
+    e = rotate.anneal(key, tree, steps=12, period=6, frontier=7)
+    monkeypatch.setattr(rotate, "_SMALL_QUEUE", 4096)
+    f = rotate.anneal(key, tree, steps=12, period=6, frontier=1)
+    assert_same_tree(e.tree, f.tree)
 
 
 def test_no_retrace_for_trees_of_one_capacity():

@@ -12,6 +12,7 @@ import time
 import jaxbvh
 from jaxbvh.commands import _common
 from jaxbvh.io import Mesh
+from jaxbvh.schedule import DEFAULT_HOTTEST
 
 HELP = "optimize a BVH by tree rotations: hill climbing or simulated annealing (Kensler 2008)"
 
@@ -28,8 +29,10 @@ def add_parser(subparsers):
                         help="annealing passes N of the schedule (Kensler: 1250; default 1250)")
     parser.add_argument("--period", type=_common._int_at_least(1), default=50, metavar="F",
                         help="period of the temperature sine in passes (default: 50)")
-    parser.add_argument("--hottest", type=float, default=1.5, metavar="H",
-                        help="peak temperature h (paper range 0.8-2.2; default 1.5)")
+    parser.add_argument("--hottest", type=float, default=DEFAULT_HOTTEST, metavar="H",
+                        help="peak temperature h, in units of the node cost C(n) "
+                             f"(default: {DEFAULT_HOTTEST}; the paper's 0.8-2.2 are far "
+                             "too hot on this cost, see jaxbvh.schedule.DEFAULT_HOTTEST)")
     parser.add_argument("--chains", type=_common._int_at_least(1), default=1, metavar="K",
                         help="independent annealing chains, the best is kept (default: 1)")
     parser.add_argument("--seed", type=int, default=0, metavar="S",
@@ -86,7 +89,7 @@ def run(args) -> dict:
                                        hottest=args.hottest, period=args.period,
                                        chains=args.chains, max_quench=args.max_passes,
                                        ct=args.ct, ci=args.ci,
-                                       on_pass=on_pass if args.chains == 1 else None)
+                                       on_pass=on_pass)
             result = jax.block_until_ready(result)
             seconds = time.perf_counter() - start
         bar.close()
