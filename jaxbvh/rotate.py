@@ -122,8 +122,8 @@ class _State(NamedTuple):
     hi: Any      # [N, 3]
     cost: Any = None    # [N] C(n), kept current for every real node
     height: Any = None  # [N] int32, 0 for leaves; current for every real node
-    queue: Any = None   # [Q] int32: nodes whose subtree changed this pass (N: none)
-    queued: Any = None  # int32: entries appended to queue this pass (> Q: overflowed)
+    queue: Any = None   # [Q] int32: nodes the last pass changed (moved or new children; N: none)
+    queued: Any = None  # int32: at least their number (> Q: the queue overflowed)
 
 
 # ----------------------------------------------------------------------------------
@@ -308,8 +308,10 @@ def _choose_annealing(cand, cur, legal, tol, temperature, draws):
 def _process(st, nodes, scale, ct, min_gain, temperature, draws, annealing, chains):
     """Score ``nodes`` (disjoint subtrees), pick a move for each, apply them all.
 
-    Returns the new state and the moves made per chain [chains] (a forest of ``chains``
-    equal-capacity trees, node ``k * (N / chains) + i`` being node ``i`` of tree ``k``).
+    Returns the new state, the moves made per chain [chains] (a forest of ``chains``
+    equal-capacity trees, node ``k * (N / chains) + i`` being node ``i`` of tree ``k``)
+    and the nodes each move changed ([W, 3]: the node and its changed children, ``N``
+    where none).
     """
     cap = st.child.shape[0]
     s = _score(st, nodes, scale, ct)
@@ -323,7 +325,9 @@ def _process(st, nodes, scale, ct, min_gain, temperature, draws, annealing, chai
         choice = _choose_annealing(cand, cur, legal, tol, temperature, rows)
     else:
         choice = _choose_greedy(cand, cur, legal, tol)
-    choice = jnp.where(s["interior"], choice, -1)
+    # materialise the choice once: it feeds every scatter below, and XLA would otherwise
+    # recompute the whole choice inside several of them
+    choice = jax.lax.optimization_barrier(jnp.where(s["interior"], choice, -1))
     moved = choice >= 0
     m = jnp.maximum(choice, 0)
     left, right = s["left"], s["right"]
@@ -367,12 +371,14 @@ def _process(st, nodes, scale, ct, min_gain, temperature, draws, annealing, chai
     height = (st.height.at[l_at].set(new_l.height, mode="drop")
               .at[r_at].set(new_r.height, mode="drop")
               .at[interior_nodes].set(n_height, mode="drop"))
-    queue, queued = _enqueue(st.queue, st.queued, jnp.concatenate(
-        [jnp.where(moved, interior_nodes, cap), l_at, r_at]), cap)
-    new = _State(child, parent, lo, hi, cost, height, queue, queued)
-    per_chain = jnp.zeros(chains, jnp.int32).at[nodes // (cap // chains)].add(
-        moved.astype(jnp.int32), mode="drop")
-    return new, per_chain
+    new = st._replace(child=child, parent=parent, lo=lo, hi=hi, cost=cost, height=height)
+    if chains == 1:
+        per_chain = jnp.sum(moved, dtype=jnp.int32)[None]
+    else:  # a one-hot sum: a scatter-add with this many collisions is slow on CPU
+        chain = nodes // (cap // chains)
+        per_chain = jnp.sum((chain[:, None] == jnp.arange(chains)) & moved[:, None], axis=0,
+                            dtype=jnp.int32)
+    return new, per_chain, jnp.stack([jnp.where(moved, nodes, cap), l_at, r_at], axis=1)
 
 
 # ----------------------------------------------------------------------------------
@@ -383,7 +389,9 @@ def _process(st, nodes, scale, ct, min_gain, temperature, draws, annealing, chai
 def _enqueue(queue, queued, ids, cap):
     """Append the ids ``< cap`` of ``ids`` to ``queue`` (beyond its size: only counted)."""
     valid = ids < cap
-    at = queued + jnp.cumsum(valid, dtype=jnp.int32) - 1
+    # not jnp.cumsum: on CPU it is a reduce-window into which XLA fuses the producers
+    # of ``ids``, evaluating them once per window element (quadratic)
+    at = queued + jax.lax.associative_scan(jnp.add, valid.astype(jnp.int32)) - 1
     queue = queue.at[jnp.where(valid, at, queue.shape[0])].set(ids, mode="drop")
     return queue, queued + jnp.sum(valid, dtype=jnp.int32)
 
@@ -396,11 +404,11 @@ def _ancestor_list(st, width, size):
     list, its used length and whether it overflowed ``size`` (then it is incomplete).
     """
     cap = st.child.shape[0]
-    slots = jnp.arange(1, width + 1, dtype=jnp.int32)
     mark = jnp.zeros(cap, jnp.int32)  # 0: not listed; else the walk (slot) that listed it
 
     def claim(mark, ids):
         """Each id not listed yet is listed by one of the walks that reach it."""
+        slots = jnp.arange(1, ids.shape[0] + 1, dtype=jnp.int32)
         fresh = _take(mark, ids, 1) == 0
         ids = jnp.where(fresh, ids, cap)
         mark = mark.at[ids].set(slots, mode="drop")
@@ -419,8 +427,7 @@ def _ancestor_list(st, width, size):
         listed, used = append(listed, used, up)
         return mark, up, listed, used
 
-    queue = st.queue[:width]
-    mark, ids = claim(mark, jnp.where(queue < cap, queue, cap))
+    mark, ids = claim(mark, _none_to_oob(st.queue[:width], cap))
     listed, used = append(jnp.full(size, cap, jnp.int32), jnp.int32(0), ids)
     _, _, listed, used = jax.lax.while_loop(cond, body, (mark, ids, listed, used))
     return listed, jnp.minimum(used, size), used > size
@@ -464,15 +471,38 @@ def _visit_order(st, interior, everything):
 
     # walks cost (queue size x height) whatever the queue holds, so a short queue walks
     # in a small size; each size is one more compiled branch
-    small = min(_SMALL_QUEUE, capacity)
-    if small < capacity:
-        branches = [full, listed(small), listed(capacity)]
-        pick = jnp.where(everything | (st.queued > capacity), 0,
-                         jnp.where(st.queued <= small, 1, 2))
-    else:
-        branches = [full, listed(capacity)]
-        pick = jnp.where(everything | (st.queued > capacity), 0, 1)
+    widths = _walk_widths(capacity)
+    branches = [full] + [listed(w) for w in widths]
+    pick = jnp.where(everything | (st.queued > capacity), 0,
+                     1 + jnp.sum(st.queued > jnp.asarray(widths[:-1]), dtype=jnp.int32))
     return jax.lax.switch(pick, branches, None)
+
+
+def _walk_widths(capacity):
+    """Queue lengths the ancestor walk is compiled for (the last is the whole queue)."""
+    small = min(_SMALL_QUEUE, capacity)
+    return (small, capacity) if small < capacity else (capacity,)
+
+
+def _collect_moved(log, count, capacity, cap):
+    """The ids in ``log`` (``N``: none) as a queue [capacity] (there must be no more).
+
+    Only the first ``count`` entries can hold ids; the scan covers the shortest of a few
+    compiled lengths that reaches ``count`` (the list lengths of the walks, or all), so
+    after a short pass this costs little.
+    """
+    lengths = sorted({min(4 * w, log.shape[0]) for w in _walk_widths(capacity)} | {log.shape[0]})
+
+    def scan(length):
+        def run(_):
+            # a sort puts the ids (< N) first; on CPU much faster than nonzero (a
+            # prefix sum and a scatter)
+            part = jnp.sort(log[:length].reshape(-1))[:capacity]
+            return jnp.concatenate([part, jnp.full(capacity - part.shape[0], cap, jnp.int32)])
+        return run
+
+    pick = jnp.sum(count > jnp.asarray(lengths[:-1]), dtype=jnp.int32)
+    return jax.lax.switch(pick, [scan(n) for n in lengths], None)
 
 
 def _sorted_by_height(ids, height, valid):
@@ -504,8 +534,12 @@ def _sorted_by_height(ids, height, valid):
     return jnp.where(ok, ids[pos], -1), jnp.where(ok, height[pos], big)
 
 
-def _pass(st, interior, scale, ct, min_gain, temperature, draws, *, annealing, windows, chains=1):
+def _pass(st, interior, scale, ct, min_gain, temperature, draws, collect=True, *, annealing,
+          windows, chains=1):
     """One pass over the tree (or forest); returns the new state and moves per chain [chains].
+
+    ``collect`` (traced bool): queue the moved nodes for the next pass (pointless when
+    that pass visits every node anyway).
 
     Heights are processed lowest first; a height's nodes go through windows of the
     largest size in ``windows`` while that many remain, then the next size down.
@@ -514,40 +548,49 @@ def _pass(st, interior, scale, ct, min_gain, temperature, draws, *, annealing, w
     windows = tuple(sorted({min(w, cap) for w in windows}, reverse=True))
     everything = temperature > 0 if annealing else jnp.bool_(False)
     order, keys, count = _visit_order(st, interior, everything)
-    st = st._replace(queue=jnp.full_like(st.queue, cap), queued=jnp.int32(0))
     order = jnp.concatenate([order, jnp.full(windows[0], cap, jnp.int32)])
+    # log[p]: the node at order[p] if it moved and the children its move changed, else N
+    # (written a window at a time; a scatter into a compacted queue per window cost
+    # more than the moves themselves)
+    log = jnp.full(order.shape + (3,), cap, jnp.int32)
 
     def window_loop(carry, width, last):
         """Windows of ``width`` while at least ``width`` (``last``: any) nodes remain."""
         def cond(c):
-            _, start, end, _ = c
+            _, _, start, end, _ = c
             return (end - start >= width) | (last & (start < end))
 
         def body(c):
-            st, start, end, moves = c
+            st, log, start, end, moves = c
             nodes = jax.lax.dynamic_slice(order, (start,), (width,))
             nodes = jnp.where(start + jnp.arange(width) < end, nodes, cap)
-            st, made = _process(st, nodes, scale, ct, min_gain, temperature, draws, annealing,
-                                chains)
-            return st, start + jnp.minimum(width, end - start), end, moves + made
+            st, made, moved = _process(st, nodes, scale, ct, min_gain, temperature, draws,
+                                       annealing, chains)
+            log = jax.lax.dynamic_update_slice(log, moved, (start, 0))
+            return st, log, start + jnp.minimum(width, end - start), end, moves + made
 
         return jax.lax.while_loop(cond, body, carry)
 
     def cond(carry):
-        return carry[1] < count
+        return carry[2] < count
 
     def body(carry):
-        st, start, moves = carry
+        st, log, start, moves = carry
         end = jnp.searchsorted(keys, keys[start], side="right").astype(jnp.int32)
-        carry = (st, start, end, moves)
+        carry = (st, log, start, end, moves)
         for i, width in enumerate(windows):
             carry = window_loop(carry, width, i == len(windows) - 1)
-        st, start, _, moves = carry
-        return st, start, moves
+        st, log, start, _, moves = carry
+        return st, log, start, moves
 
     moves = jnp.zeros(chains, jnp.int32)
-    st, _, moves = jax.lax.while_loop(cond, body, (st, jnp.int32(0), moves))
-    return st, moves
+    st, log, _, moves = jax.lax.while_loop(cond, body, (st, log, jnp.int32(0), moves))
+    capacity = st.queue.shape[0]
+    queued = 3 * jnp.sum(moves)
+    # no queue is needed when it overflows or the next pass visits everything anyway
+    queue = jax.lax.cond(collect & (queued <= capacity),
+                         lambda: _collect_moved(log, count, capacity, cap), lambda: st.queue)
+    return st._replace(queue=queue, queued=jnp.where(collect, queued, capacity + 1)), moves
 
 
 # ----------------------------------------------------------------------------------
@@ -697,8 +740,9 @@ def _optimize(tree, keys, dyn: _Dynamic, *, annealing, schedule, history_len, ke
                                  lambda: jnp.ones((chains * cap, 6), dtype))
         else:
             draws = None
-        st, moves = _pass(st, interior, scale, ct, min_gain, t, draws, annealing=annealing,
-                          windows=windows, chains=chains)
+        collect = temperature(i + 1) <= 0
+        st, moves = _pass(st, interior, scale, ct, min_gain, t, draws, collect,
+                          annealing=annealing, windows=windows, chains=chains)
         c = st.cost[roots]
         running = ~done
         hist = hist.at[:, i].set(jnp.where(running, c, jnp.nan))
@@ -875,6 +919,8 @@ def anneal(key, tree, *, schedule: Callable | None = None, steps: int = 1250,
     tree = to_jax(tree)
     if chains == 1:
         return _run_one(tree, key, dyn, **static)
+    if windows == DEFAULT_WINDOWS:  # a forest has K times the nodes per height
+        static["windows"] = (DEFAULT_WINDOWS[0] * chains,) + DEFAULT_WINDOWS
     return _run_chains(tree, jax.random.split(key, chains), dyn, **static)
 
 
