@@ -420,9 +420,6 @@ def _ancestor_list(st, width, size):
         mark = mark.at[ids].set(slots, mode="drop")
         return mark, jnp.where(_take(mark, ids, 0) == slots, ids, cap)
 
-    def append(listed, used, ids):
-        return _enqueue(listed, used, ids, cap)
-
     def cond(carry):
         return jnp.any(carry[1] < cap) & (carry[3] <= size)
 
@@ -430,11 +427,11 @@ def _ancestor_list(st, width, size):
         mark, ids, listed, used = carry
         up = _none_to_oob(_take(st.parent, ids, -1), cap)
         mark, up = claim(mark, up)
-        listed, used = append(listed, used, up)
+        listed, used = _enqueue(listed, used, up, cap)
         return mark, up, listed, used
 
     mark, ids = claim(mark, _none_to_oob(st.queue[:width], cap))
-    listed, used = append(jnp.full(size, cap, jnp.int32), jnp.int32(0), ids)
+    listed, used = _enqueue(jnp.full(size, cap, jnp.int32), jnp.int32(0), ids, cap)
     _, _, listed, used = jax.lax.while_loop(cond, body, (mark, ids, listed, used))
     return listed, jnp.minimum(used, size), used > size
 

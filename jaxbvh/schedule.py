@@ -34,8 +34,9 @@ def kensler_schedule(steps: int = KENSLER_STEPS, period: int = KENSLER_PERIOD,
 
     ``T(i) = max(0, -sin(2 pi i / period)) * (steps - i) * hottest / steps``, and 0 for
     ``i >= steps``. Defaults are the paper's: N = 1250 passes, f = 50, h = 1.5 (the
-    paper's useful range for ``hottest`` is 0.8 - 2.2). The first half period is cold,
-    so annealing starts as hill climbing.
+    paper's useful range for ``hottest`` is 0.8 - 2.2; on this library's node cost that is
+    far too hot, see :data:`DEFAULT_HOTTEST`). The first half period is cold, so
+    annealing starts as hill climbing.
     """
     if steps < 1:
         raise ValueError(f"kensler_schedule: steps must be >= 1, got {steps}")
