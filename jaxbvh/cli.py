@@ -1,7 +1,7 @@
 """The ``jaxbvh`` command line tool.
 
 Each subcommand is a module ``jaxbvh.commands.<name>`` with ``add_parser(subparsers)``
-and ``run(args) -> dict``; the dict is printed as a table, or as one JSON object with
+and ``run(args) -> dict`` (found by name: adding a module adds the command); the dict is printed as a table, or as one JSON object with
 ``--json``. Errors in the input (missing or malformed files, invalid trees) print one
 line ``jaxbvh: error: ...`` on stderr and exit with status 2.
 
@@ -14,10 +14,21 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import pkgutil
 import sys
 from pathlib import Path
 
-COMMANDS = ["build", "stats", "optimize", "trace"]
+# the order commands are listed in ``--help``; modules of ``jaxbvh.commands`` not named
+# here follow in alphabetical order
+ORDER = ["build", "stats", "optimize", "trace"]
+
+
+def command_names() -> list[str]:
+    """Names of the subcommands: every public module of :mod:`jaxbvh.commands`."""
+    import jaxbvh.commands
+
+    found = [m.name for m in pkgutil.iter_modules(jaxbvh.commands.__path__) if not m.name.startswith("_")]
+    return [n for n in ORDER if n in found] + sorted(n for n in found if n not in ORDER)
 
 # errors that describe bad input, not a bug: reported in one line, exit status 2
 EXIT_USAGE = 2
@@ -48,16 +59,7 @@ def enable_compilation_cache() -> Path | None:
 
 
 def _load_commands() -> dict:
-    modules = {}
-    for name in COMMANDS:
-        try:
-            modules[name] = importlib.import_module(f"jaxbvh.commands.{name}")
-        except ImportError as exc:
-            # a command whose module is not written yet; a broken import inside an
-            # existing module still surfaces
-            if exc.name != f"jaxbvh.commands.{name}":
-                raise
-    return modules
+    return {name: importlib.import_module(f"jaxbvh.commands.{name}") for name in command_names()}
 
 
 def make_parser() -> tuple[argparse.ArgumentParser, dict]:

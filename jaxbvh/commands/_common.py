@@ -62,9 +62,46 @@ def mesh_or_default(path) -> Mesh:
     return load_mesh(bundled_mesh_path() if path is None else path)
 
 
-def load_input(path) -> Mesh | TreeFile:
-    """A mesh, or a tree for ``.npz`` paths; the bundled mesh when ``path`` is None."""
-    return mesh_or_default(None) if path is None else load_any(path)
+def load_input(path, *, check: bool = True) -> Mesh | TreeFile:
+    """A mesh, or a tree for ``.npz`` paths; the bundled mesh when ``path`` is None.
+
+    A tree is checked (:func:`check_tree_file`) unless ``check=False``.
+    """
+    loaded = mesh_or_default(None) if path is None else load_any(path)
+    if check and isinstance(loaded, TreeFile):
+        check_tree_file(loaded)
+    return loaded
+
+
+def load_tree(path, *, binary: bool = False) -> TreeFile:
+    """The tree ``.npz`` at ``path``, checked (:func:`check_tree_file`); a mesh path is an error.
+
+    ``binary=True`` also refuses a wide tree (for commands that need two children).
+    """
+    loaded = load_any(path)
+    if not isinstance(loaded, TreeFile):
+        raise ValueError(f"{path} is not a tree file (.npz); build one with jaxbvh build -o TREE.npz")
+    check_tree_file(loaded)
+    if binary and np.asarray(loaded.tree.child).shape[1] != 2:
+        raise ValueError(f"{path}: a binary tree is needed, but it is "
+                         f"{np.asarray(loaded.tree.child).shape[1]}-wide")
+    return loaded
+
+
+def check_tree_file(loaded: TreeFile) -> TreeFile:
+    """Raise :class:`~jaxbvh.validate.InvalidTreeError` (naming the file) if the tree is broken.
+
+    Every command that reads a tree calls this before any jitted loop: a cycle, a
+    shared child or a NaN box would otherwise make a traversal or an optimizer loop run
+    to its bound or return nonsense. The check is :func:`jaxbvh.check` without primitive
+    boxes (structure, primitive ids, finite boxes that contain their children).
+    """
+    from jaxbvh.validate import InvalidTreeError, check
+
+    problems = check(loaded.tree)
+    if problems:
+        raise InvalidTreeError([f"{loaded.path}: {problems[0]}"] + problems[1:])
+    return loaded
 
 
 # ----------------------------------------------------------------------------------
