@@ -26,6 +26,13 @@ allowed, and a ray whose pushes do not fit keeps the entries that fit and sets
 ``stack_overflow`` — its hit and counts are then not trustworthy. The drivers raise
 unless ``allow_overflow=True``.
 
+Step bound. In a valid tree a ray pops every node at most once and tests every
+primitive slot at most once, so the loop is cut off after ``N + P + 1`` steps (node and
+``prim_index`` capacities, static): no tree file, however broken (a node listed as its
+own child, a cycle), can make it run forever. A ray that reaches the bound sets
+``step_limit``; the drivers raise :class:`~jaxbvh.validate.InvalidTreeError` for it
+(the commands also check every tree they read before tracing it).
+
 Primitive test. :func:`intersect_triangle` is Möller–Trumbore, two-sided, in the tree's
 float dtype. It is not watertight: a ray through a shared edge can in rare cases slip
 between both triangles (or hit both); we accept that for speed and simplicity, and it is
@@ -80,7 +87,7 @@ class Hits:
     ``t`` float (``inf`` for a miss; in any-hit mode the first hit found), ``prim``
     int32 (-1 for a miss), ``u``, ``v`` barycentrics of the hit; counters int32
     ``box_tests``, ``prim_tests``, ``nodes_visited``, ``leaves_visited``;
-    ``stack_overflow`` bool. All-hits mode adds ``hit_count`` int32 [R],
+    ``stack_overflow`` and ``step_limit`` bool (module docstring). All-hits mode adds ``hit_count`` int32 [R],
     ``hit_prims`` int32 [R, H] (-1 past the end), ``hit_t`` float [R, H] and
     ``hits_overflow`` bool [R]; the other modes leave them None.
     """
@@ -94,6 +101,7 @@ class Hits:
     nodes_visited: Any
     leaves_visited: Any
     stack_overflow: Any
+    step_limit: Any
     hit_count: Any = None
     hit_prims: Any = None
     hit_t: Any = None
@@ -175,6 +183,11 @@ def stack_capacity(tree) -> int:
     return (k - 1) * max(height, 0) + 1
 
 
+def max_steps(tree) -> int:
+    """Loop steps one ray may take: ``N + P + 1`` (module docstring; static shapes)."""
+    return int(tree.prim_count.shape[0]) + int(tree.prim_index.shape[0]) + 1
+
+
 def _trace_one(tree, prims, origin, direction, t_min, t_max, *, intersect, mode,
                capacity, max_hits):
     child = tree.child  # [N, k]
@@ -199,17 +212,22 @@ def _trace_one(tree, prims, origin, direction, t_min, t_max, *, intersect, mode,
         leaf_pos=i32(0), leaf_end=i32(0),
         t=t_max, prim=i32(-1), u=jnp.zeros((), dtype), v=jnp.zeros((), dtype),
         box_tests=i32(1), prim_tests=i32(0), nodes_visited=i32(0), leaves_visited=i32(0),
-        stack_overflow=jnp.zeros((), bool), done=jnp.zeros((), bool),
+        stack_overflow=jnp.zeros((), bool), done=jnp.zeros((), bool), steps=i32(0),
     )
+    step_limit = max_steps(tree)
     if mode == "all":
         state.update(best=t_max, hit_count=i32(0), hit_prims=jnp.full(max_hits, -1, i32),
                      hit_t=jnp.full(max_hits, jnp.inf, dtype))
 
-    def cond(s):
+    def working(s):
         return ~s["done"] & ((s["sp"] > 0) | (s["leaf_pos"] < s["leaf_end"]))
+
+    def cond(s):
+        return working(s) & (s["steps"] < step_limit)
 
     def body(s):
         s = dict(s)
+        s["steps"] = s["steps"] + 1
         in_leaf = s["leaf_pos"] < s["leaf_end"]
 
         # primitive step
@@ -288,7 +306,7 @@ def _trace_one(tree, prims, origin, direction, t_min, t_max, *, intersect, mode,
     out = dict(t=jnp.where(hit, best, jnp.inf), prim=s["prim"], u=s["u"], v=s["v"],
                box_tests=s["box_tests"], prim_tests=s["prim_tests"],
                nodes_visited=s["nodes_visited"], leaves_visited=s["leaves_visited"],
-               stack_overflow=s["stack_overflow"])
+               stack_overflow=s["stack_overflow"], step_limit=working(s))
     if mode == "all":
         out.update(hit_count=s["hit_count"], hit_prims=s["hit_prims"], hit_t=s["hit_t"],
                    hits_overflow=s["hit_count"] > max_hits)
@@ -331,7 +349,8 @@ def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t
     batch has the same shape (one compile). Batches are small so that the rays of one
     batch finish at similar steps (a ``vmap``-ed loop runs as long as its longest ray;
     on a 2-core CPU 256 rays per batch traced bunny rays 3x faster than 4096).
-    Raises ``RuntimeError`` on stack overflow unless ``allow_overflow``.
+    Raises ``RuntimeError`` on stack overflow unless ``allow_overflow``, and
+    :class:`~jaxbvh.validate.InvalidTreeError` when a ray reaches the step bound.
     """
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
@@ -370,6 +389,12 @@ def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t
     hits = jax.tree_util.tree_map(
         lambda *parts: np.concatenate([np.asarray(p)[:n] for (n, _), p in zip(pieces, parts)]),
         *[h for _, h in pieces])
+    if hits.step_limit.any():
+        from jaxbvh.validate import InvalidTreeError
+
+        bad = np.flatnonzero(hits.step_limit)
+        raise InvalidTreeError([f"traversal of {bad.size} ray(s) (first: {bad[:5].tolist()}) did not end "
+                                f"within {max_steps(jtree)} steps: the tree has a cycle or a shared node"])
     if not allow_overflow and hits.stack_overflow.any():
         bad = np.flatnonzero(hits.stack_overflow)
         raise RuntimeError(f"traversal stack of {capacity} entries overflowed on {bad.size} "

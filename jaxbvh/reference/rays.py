@@ -84,7 +84,9 @@ def trace_ray(tree, triangles, origin, direction, *, mode="closest", t_min=0.0,
     k = child.shape[1]
     capacity = capacity if capacity is not None else 1 << 30
     out = dict(t=f(np.inf), prim=-1, u=f(0), v=f(0), box_tests=1, prim_tests=0,
-               nodes_visited=0, leaves_visited=0, stack_overflow=False)
+               nodes_visited=0, leaves_visited=0, stack_overflow=False, step_limit=False)
+    # the JAX loop's bound: a node pop or a primitive test is one step
+    steps_left = child.shape[0] + a["prim_index"].shape[0] + 1
     hit_list = []
     hit_count = 0
     best_t = t_max  # the closest hit so far; also the interval's end except in "all" mode
@@ -94,6 +96,10 @@ def trace_ray(tree, triangles, origin, direction, *, mode="closest", t_min=0.0,
     hit, entry = _slab(a["lo"][root], a["hi"][root], origin, inv_dir, t_min, t_max, robust)
     stack = [(root, entry)] if hit else []
     while stack:
+        steps_left -= 1
+        if steps_left < 0:
+            out["step_limit"] = True
+            break
         node, entry = stack.pop()
         if not entry <= interval_end:
             continue  # entered beyond the closest hit found since it was pushed
@@ -102,6 +108,7 @@ def trace_ray(tree, triangles, origin, direction, *, mode="closest", t_min=0.0,
         if count > 0:
             out["leaves_visited"] += 1
             for slot in range(a["start"][node], a["start"][node] + count):
+                steps_left -= 1
                 prim = int(a["prim_index"][slot])
                 tri = triangles[prim]
                 t, u, v = moller_trumbore(tri[0], tri[1], tri[2], origin, direction)
