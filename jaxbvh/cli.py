@@ -1,9 +1,13 @@
 """The ``jaxbvh`` command line tool.
 
 Each subcommand is a module ``jaxbvh.commands.<name>`` with ``add_parser(subparsers)``
-and ``run(args) -> dict`` (found by name: adding a module adds the command); the dict is printed as a table, or as one JSON object with
-``--json``. Errors in the input (missing or malformed files, invalid trees) print one
-line ``jaxbvh: error: ...`` on stderr and exit with status 2.
+and ``run(args) -> dict`` (found by name: adding a module adds the command); the dict is
+printed as a table, or as one JSON object with ``--json``.
+
+Exit status: 0 when done; 1 when the command ran but reports an invalid tree (the result
+says ``"valid": false`` and lists the problems: ``jaxbvh stats``); 2 for bad input
+(missing or malformed files, trees a command cannot work on, bad options), after one line
+``jaxbvh: error: ...`` on stderr.
 
 JAX's persistent compilation cache is on: compiled builders are reused across runs.
 It lives in ``~/.cache/jaxbvh/jax`` unless ``JAXBVH_CACHE_DIR`` names another folder.
@@ -30,7 +34,10 @@ def command_names() -> list[str]:
     found = [m.name for m in pkgutil.iter_modules(jaxbvh.commands.__path__) if not m.name.startswith("_")]
     return [n for n in ORDER if n in found] + sorted(n for n in found if n not in ORDER)
 
-# errors that describe bad input, not a bug: reported in one line, exit status 2
+# exit statuses: 0 done (and any tree checked is valid); 1 the command ran and reports
+# an invalid tree (``"valid": false`` in its result, e.g. ``jaxbvh stats``); 2 bad input or
+# options, reported in one line on stderr
+EXIT_INVALID = 1
 EXIT_USAGE = 2
 
 
@@ -116,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
         print("jaxbvh: interrupted", file=sys.stderr)
         return 130
     _common.print_result(result, as_json=getattr(args, "json", False))
-    return 0
+    return EXIT_INVALID if result.get("valid") is False else 0
 
 
 if __name__ == "__main__":

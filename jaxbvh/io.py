@@ -151,10 +151,20 @@ def _read(path: str):
         raise MeshError(f"{path}: cannot read as .{suffix}: malformed file ({detail})") from None
 
 
-def _describe(geometry) -> str:
+def _obj_line_records(path: str) -> int:
+    """Number of ``l`` (polyline) records in an OBJ file; trimesh drops them."""
+    with open(path, "rb") as f:
+        return sum(1 for line in f if line.lstrip().startswith(b"l "))
+
+
+def _describe(geometry, path: str = "") -> str:
     kind = type(geometry).__name__
     if kind == "PointCloud":
-        return f"a point cloud of {len(geometry.vertices)} points"
+        n = len(geometry.vertices)
+        lines = _obj_line_records(path) if path.lower().endswith(".obj") else 0
+        if lines:
+            return f"{lines} line element(s) ('l' records) over {n} vertices"
+        return f"a point cloud of {n} points"
     if kind in ("Path3D", "Path2D"):
         return f"a line set ({kind}) of {len(geometry.entities)} lines/curves"
     n = len(getattr(geometry, "vertices", ()))
@@ -232,7 +242,7 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
     has_faces = {name: hasattr(g, "faces") and len(np.asarray(g.faces)) > 0
                  for name, g in geometries.items()}
     if not any(has_faces.values()):
-        found = "; ".join(f"'{n}': {_describe(g)}" if len(geometries) > 1 else _describe(g)
+        found = "; ".join(f"'{n}': {_describe(g)}" if len(geometries) > 1 else _describe(g, path)
                           for n, g in geometries.items())
         raise MeshError(f"{path}: no faces: found {found}; a BVH needs triangles")
     skipped = tuple(n for n in names if not hasattr(geometries[n], "faces"))

@@ -687,57 +687,89 @@ def _chain_of(st: _State, k, chains: int) -> _State:
     return _State(unshift(st.child), unshift(st.parent), take(st.lo), take(st.hi))
 
 
-def _optimize(tree, keys, dyn: _Dynamic, *, annealing, schedule, history_len, keep_best,
-              windows, frontier, on_pass=None):
-    """The whole run (traceable, vmappable): passes until converged or ``dyn.limit``.
+class _Carry(NamedTuple):
+    """The state of a run between passes (a pytree: it can leave and re-enter ``jit``)."""
 
-    ``keys`` [K]: one chain per key. The K chains run as one forest of K copies of the
-    tree, so every pass processes each height of all chains at once (K chains cost far
-    less than K runs). A chain is done after a pass at ``T = 0`` that makes no move; it
-    then makes no move in later passes either, so each chain's result is exactly what
-    it gives alone. Returns ``(result, sah)``: ``result(k)`` builds chain ``k``'s
-    :class:`RotateResult` (``k`` may be traced), ``sah`` [K] every chain's final SAH.
-    """
+    st: Any        # _State of the forest
+    i: Any         # passes run so far
+    done: Any      # [K] bool: chain converged
+    passes: Any    # [K] int32
+    total: Any     # [K] int32 moves
+    history: Any   # [K, history_len] SAH after each pass, NaN after a chain's last
+    moves: Any     # [history_len] int32 moves of all chains in each pass
+    temps: Any     # [history_len] temperature of each pass
+    best: Any      # keep_best: ([K] least SAH seen, links and boxes at it); else None
+    start: Any     # SAH of the input tree
+
+
+def _tree_part(st: _State) -> _State:  # what keep_best keeps: links and boxes
+    return _State(st.child, st.parent, st.lo, st.hi)
+
+
+def _temperature(i, dyn: _Dynamic, dtype, *, annealing, schedule):
+    if not annealing:
+        return jnp.zeros((), dtype)
+    steps = jnp.asarray(dyn.steps, jnp.int32)
+    if schedule is None:
+        t = kensler_temperature(i, jnp.maximum(steps, 1), dyn.period, dyn.hottest)
+    else:
+        t = schedule(i)
+    t = jnp.asarray(t, dtype)
+    return jnp.where(i < steps, jnp.maximum(t, 0), 0)
+
+
+def _start(tree, keys, dyn: _Dynamic, *, history_len, keep_best, frontier, **_) -> _Carry:
+    """The carry before the first pass: K = ``keys.shape[0]`` chains as one forest."""
     chains = keys.shape[0]
     dtype = tree.lo.dtype
-    ct = jnp.asarray(dyn.ct, dtype)
-    min_gain = jnp.asarray(dyn.min_gain, dtype)
-    steps = jnp.asarray(dyn.steps, jnp.int32)
-    limit = jnp.minimum(jnp.asarray(dyn.limit, jnp.int32), history_len)
-    scale, one = _init(tree, ct, dyn.ci)
+    _, one = _init(tree, jnp.asarray(dyn.ct, dtype), dyn.ci)
     cap = one.child.shape[0]
     st = _forest(one, chains)
     # the first pass visits every node: a queue that overflowed
     queue_size = min(frontier, chains * cap)
     st = st._replace(queue=jnp.full(queue_size, chains * cap, jnp.int32),
                      queued=jnp.int32(queue_size + 1))
-    interior = st.child[:, 0] >= 0
+    start_cost = one.cost[tree.root]
+    none = jnp.zeros(chains, jnp.int32)
+    best = (jnp.full(chains, start_cost), _tree_part(st)) if keep_best else None
+    return _Carry(st, jnp.int32(0), jnp.zeros(chains, bool), none, none,
+                  jnp.full((chains, history_len), jnp.nan, dtype), jnp.zeros(history_len, jnp.int32),
+                  jnp.zeros(history_len, dtype), best, start_cost)
+
+
+def _advance(tree, keys, dyn: _Dynamic, carry: _Carry, stop, *, annealing, schedule, history_len,
+             keep_best, windows, **_) -> _Carry:
+    """Run passes until ``stop`` passes in all, every chain done, or ``dyn.limit``.
+
+    A chain is done after a pass at ``T = 0`` that makes no move; it then makes no move
+    in later passes either, so each chain's result is exactly what it gives alone. The
+    carry holds everything, so one call up to the limit and many calls of a few passes
+    give the same result (the chunked driver, :func:`_run_chunked`, relies on it).
+    """
+    chains = keys.shape[0]
+    dtype = tree.lo.dtype
+    ct = jnp.asarray(dyn.ct, dtype)
+    min_gain = jnp.asarray(dyn.min_gain, dtype)
+    steps = jnp.asarray(dyn.steps, jnp.int32)
+    limit = jnp.minimum(jnp.minimum(jnp.asarray(dyn.limit, jnp.int32), history_len), stop)
+    cap = tree.left.shape[0]
+    scale = extent_scale(tree.lo[tree.root], tree.hi[tree.root])
+    interior = carry.st.child[:, 0] >= 0
     roots = tree.root + cap * jnp.arange(chains, dtype=jnp.int32)
     chain_of_node = jnp.arange(chains * cap, dtype=jnp.int32) // cap
-    start_cost = one.cost[tree.root]
-    history = jnp.full((chains, history_len), jnp.nan, dtype)
-    none = jnp.zeros(chains, jnp.int32)
 
     def temperature(i):
-        if not annealing:
-            return jnp.zeros((), dtype)
-        if schedule is None:
-            t = kensler_temperature(i, jnp.maximum(steps, 1), dyn.period, dyn.hottest)
-        else:
-            t = schedule(i)
-        t = jnp.asarray(t, dtype)
-        return jnp.where(i < steps, jnp.maximum(t, 0), 0)
+        return _temperature(i, dyn, dtype, annealing=annealing, schedule=schedule)
 
     def draws_of(i):
         rows = jax.vmap(lambda k: annealing_draws(k, i, cap, dtype))(keys)
         return rows.reshape(chains * cap, 6)
 
-    def cond(carry):
-        st, i, done, passes, total, hist, best = carry
-        return (i < limit) & ~jnp.all(done)
+    def cond(c: _Carry):
+        return (c.i < limit) & ~jnp.all(c.done)
 
-    def body(carry):
-        st, i, done, passes, total, hist, best = carry
+    def body(c: _Carry):
+        i = c.i
         t = temperature(i)
         if annealing:
             draws = jax.lax.cond(t > 0, lambda: draws_of(i),
@@ -745,47 +777,59 @@ def _optimize(tree, keys, dyn: _Dynamic, *, annealing, schedule, history_len, ke
         else:
             draws = None
         collect = temperature(i + 1) <= 0
-        st, moves = _pass(st, interior, scale, ct, min_gain, t, draws, collect,
+        st, moves = _pass(c.st, interior, scale, ct, min_gain, t, draws, collect,
                           annealing=annealing, windows=windows, chains=chains)
-        c = st.cost[roots]
-        running = ~done
-        hist = hist.at[:, i].set(jnp.where(running, c, jnp.nan))
-        passes = passes + running
-        total = total + moves
+        cost = st.cost[roots]
+        running = ~c.done
+        history = c.history.at[:, i].set(jnp.where(running, cost, jnp.nan))
         cold = (i + 1 >= steps) if annealing else jnp.bool_(True)
-        done = done | ((moves == 0) & cold)
-        if on_pass is not None:
-            jax.debug.callback(on_pass, i, jnp.min(c), jnp.sum(moves), t)
+        best = c.best
         if keep_best:
             best_cost, best_st = best
-            better = c < best_cost
+            better = cost < best_cost
             keep = better[chain_of_node]
 
             def update():
                 def pick(new, old):
                     return jnp.where(keep.reshape((-1,) + (1,) * (new.ndim - 1)), new, old)
-                return jax.tree_util.tree_map(pick, tree_part(st), best_st)
+                return jax.tree_util.tree_map(pick, _tree_part(st), best_st)
 
-            best = (jnp.where(better, c, best_cost),
+            best = (jnp.where(better, cost, best_cost),
                     jax.lax.cond(jnp.any(better), update, lambda: best_st))
-        return st, i + 1, done, passes, total, hist, best
+        return _Carry(st, i + 1, c.done | ((moves == 0) & cold), c.passes + running, c.total + moves,
+                      history, c.moves.at[i].set(jnp.sum(moves)), c.temps.at[i].set(t), best, c.start)
 
-    def tree_part(st):  # what keep_best keeps: links and boxes
-        return _State(st.child, st.parent, st.lo, st.hi)
+    return jax.lax.while_loop(cond, body, carry)
 
-    best = (jnp.full(chains, start_cost), tree_part(st)) if keep_best else None
-    carry = (st, jnp.int32(0), jnp.zeros(chains, bool), none, none, history, best)
-    st, _, _, passes, total, history, best = jax.lax.while_loop(cond, body, carry)
+
+def _results(tree, carry: _Carry, *, keep_best, **_):
+    """``(result, sah)`` of a finished carry: ``result(k)`` builds chain ``k``'s
+    :class:`RotateResult` (``k`` may be traced), ``sah`` [K] every chain's final SAH."""
+    chains = carry.done.shape[0]
+    cap = tree.left.shape[0]
     if keep_best:
-        final_cost, st = best
+        final_cost, st = carry.best
     else:
-        final_cost = st.cost[roots]
+        st = carry.st
+        final_cost = st.cost[tree.root + cap * jnp.arange(chains, dtype=jnp.int32)]
 
     def result(k):
-        return RotateResult(_to_tree(tree, _chain_of(st, k, chains)), final_cost[k], start_cost,
-                            passes[k], total[k], history[k])
+        return RotateResult(_to_tree(tree, _chain_of(st, k, chains)), final_cost[k], carry.start,
+                            carry.passes[k], carry.total[k], carry.history[k])
 
     return result, final_cost
+
+
+def _optimize(tree, keys, dyn: _Dynamic, **static):
+    """The whole run (traceable, vmappable): passes until converged or ``dyn.limit``.
+
+    ``keys`` [K]: one chain per key. The K chains run as one forest of K copies of the
+    tree, so every pass processes each height of all chains at once (K chains cost far
+    less than K runs). Returns :func:`_results`.
+    """
+    carry = _start(tree, keys, dyn, **static)
+    carry = _advance(tree, keys, dyn, carry, jnp.int32(np.iinfo(np.int32).max), **static)
+    return _results(tree, carry, **static)
 
 
 def _optimize_one(tree, key, dyn, **static):
@@ -795,7 +839,7 @@ def _optimize_one(tree, key, dyn, **static):
 
 
 _STATIC = ("annealing", "schedule", "history_len", "keep_best", "windows", "frontier",
-           "split_axes", "on_pass")
+           "split_axes")
 
 
 @partial(jax.jit, static_argnames=_STATIC)
@@ -815,6 +859,53 @@ def _run_batch(trees, keys, dyn, *, split_axes, **static):
     def one(tree, key):
         return _finish(_optimize_one(tree, key, dyn, **static), split_axes)
     return jax.vmap(one)(trees, keys)
+
+
+# The chunked driver: the same run as _run_one / _run_chains, in pieces of a few passes
+# so the host can report progress between them. No host callback runs inside a compiled
+# program (JAX does not write programs with host callbacks to its persistent cache, and
+# a new callback object would be a new static argument), so every piece is cached.
+_start_jit = jax.jit(_start, static_argnames=_STATIC)
+_advance_jit = jax.jit(_advance, static_argnames=_STATIC)
+
+
+@partial(jax.jit, static_argnames=_STATIC)
+def _finish_chunked(tree, carry, *, split_axes, **static):
+    result, chain_sah = _results(tree, carry, **static)
+    one = result(jnp.argmin(chain_sah))
+    if chain_sah.shape[0] > 1:
+        one = dataclasses.replace(one, chain_sah=chain_sah)
+    return _finish(one, split_axes)
+
+
+#: a chunk of passes grows (doubling, up to this many) while one takes under 0.1 s
+MAX_CHUNK = 256
+
+
+def _run_chunked(tree, keys, dyn, on_pass, static) -> RotateResult:
+    """Run in chunks of passes, calling ``on_pass(i, sah, moves, temperature)`` on the
+    host for every pass (``sah``: least over the chains; ``moves``: all chains')."""
+    import time
+
+    carry = _start_jit(tree, keys, dyn, **static)
+    limit = min(int(dyn.limit), static["history_len"])
+    done_passes, chunk = 0, 1
+    while done_passes < limit:
+        clock = time.perf_counter()
+        carry = _advance_jit(tree, keys, dyn, carry, jnp.int32(done_passes + chunk), **static)
+        # whole (small) arrays to the host: slicing on the device would compile a
+        # program per slice shape
+        now, done, history, moves, temps = jax.device_get((carry.i, carry.done, carry.history,
+                                                           carry.moves, carry.temps))
+        now = int(now)
+        for j in range(done_passes, now):
+            on_pass(j, np.nanmin(history[:, j]), moves[j], temps[j])
+        if now < done_passes + chunk or done.all():
+            break  # converged (or at the limit)
+        done_passes = now
+        if time.perf_counter() - clock < 0.1:
+            chunk = min(2 * chunk, MAX_CHUNK)
+    return _finish_chunked(tree, carry, **static)
 
 
 def _finish(out: RotateResult, split_axes: bool) -> RotateResult:
@@ -862,7 +953,9 @@ def _setup(tree, *, ct, ci, min_gain, limit, windows, frontier, steps=0, period=
                    np.int32(limit), np.float32(period), np.float32(hottest))
     static = dict(annealing=annealing, schedule=schedule, history_len=capacity_bucket(int(limit)),
                   keep_best=bool(keep_best), windows=tuple(int(w) for w in windows),
-                  frontier=int(frontier), split_axes=bool(split_axes), on_pass=on_pass)
+                  frontier=int(frontier), split_axes=bool(split_axes))
+    if on_pass is not None and not callable(on_pass):
+        raise ValueError(f"on_pass must be a function (pass, sah, moves, temperature), got {on_pass!r}")
     return dyn, static
 
 
@@ -877,15 +970,20 @@ def hill_climb(tree, *, ct: float = 1.0, ci: float = 1.0, max_passes: int = 1000
     max_passes`` and the last one moved). ``min_gain``: relative margin a move must beat
     (module docstring). ``split_axes``: run :func:`assign_split_axes` at the end.
     ``windows``, ``frontier``: work sizes (speed only, never the result).
-    ``on_pass(pass_index, sah, moves, temperature)``: host callback after every pass
-    (progress bars); a new function object compiles anew.
+    ``on_pass(pass_index, sah, moves, temperature)``: called on the host for every pass
+    (progress bars). With it the run goes in chunks of passes (:func:`_run_chunked`:
+    the same tree, the compiled pieces cached like every other program); without it,
+    in one compiled call.
     The result's tree has the same capacity; it is identical, pass by pass, to
     :func:`jaxbvh.reference.rotate.hill_climb`.
     """
     _check_tree(tree)
     dyn, static = _setup(tree, ct=ct, ci=ci, min_gain=min_gain, limit=max_passes, windows=windows,
                          frontier=frontier, split_axes=split_axes, on_pass=on_pass)
-    return _run_one(to_jax(tree), jax.random.key(0), dyn, **static)
+    key = jax.random.key(0)
+    if on_pass is not None:
+        return _run_chunked(to_jax(tree), key[None], dyn, on_pass, static)
+    return _run_one(to_jax(tree), key, dyn, **static)
 
 
 def anneal(key, tree, *, schedule: Callable | None = None, steps: int = 1250,
@@ -926,9 +1024,12 @@ def anneal(key, tree, *, schedule: Callable | None = None, steps: int = 1250,
                          hottest=hottest, annealing=True, schedule=schedule,
                          keep_best=keep_best, split_axes=split_axes, on_pass=on_pass)
     tree = to_jax(tree)
+    keys = key[None] if chains == 1 else jax.random.split(key, chains)
+    if on_pass is not None:
+        return _run_chunked(tree, keys, dyn, on_pass, static)
     if chains == 1:
         return _run_one(tree, key, dyn, **static)
-    return _run_chains(tree, jax.random.split(key, chains), dyn, **static)
+    return _run_chains(tree, keys, dyn, **static)
 
 
 def optimize_batch(trees, keys=None, *, method: str = "hc", schedule: Callable | None = None,

@@ -222,6 +222,26 @@ def concat_ranges(starts, counts) -> np.ndarray:
     return np.arange(int(counts.sum()), dtype=np.int64) + np.repeat(starts - offsets, counts)
 
 
+def compact(tree):
+    """``tree`` (as NumPy) trimmed to the capacity bucket of its real node count.
+
+    A loaded tree gets that capacity, so a tree and its saved copy then have the same
+    shape (and compile the same programs). Node ids are kept when the real nodes are a
+    prefix of the ids (our builders number them so); otherwise the tree goes through the
+    interchange form (ids renumbered densely, split axes dropped).
+    """
+    t = to_numpy(tree)
+    real = real_nodes(t)
+    n = int(real.sum())
+    nodes = max(capacity_bucket(n), 1)
+    if real[:n].all():
+        keep = slice(0, min(nodes, real.shape[0]))
+        fields = {f.name: getattr(t, f.name) for f in dataclasses.fields(t)}
+        trimmed = {k: (v if k in ("prim_index", "root") else v[keep]) for k, v in fields.items()}
+        return type(t)(**trimmed)
+    return from_interchange(to_interchange(t))
+
+
 def _pad_rows(a: np.ndarray, rows: int, fill) -> np.ndarray:
     out = np.full((rows,) + a.shape[1:], fill, dtype=a.dtype)
     out[: a.shape[0]] = a
@@ -342,13 +362,21 @@ def load(path: str | os.PathLike, *, pad: bool = True):
 
     ``frame`` is the identity when the file stores none (boxes in world space).
     """
+    import zipfile
+
     path = os.fspath(path)
     if not os.path.exists(path):
         raise FileNotFoundError(f"tree file not found: {path}")
+    if os.path.isdir(path):
+        raise ValueError(f"{path}: is a directory, expected a tree file (.npz)")
+    if not zipfile.is_zipfile(path):
+        # np.load would read it as a pickle or a lone .npy array and say so, confusingly
+        raise ValueError(f"{path}: not a tree file: an .npz tree is a zip archive of arrays "
+                         f"({', '.join(INTERCHANGE_KEYS)}), and this file is not one")
     try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {k: data[k] for k in data.files}
-    except Exception as exc:  # zipfile / format errors from np.load
+    except Exception as exc:  # a damaged archive, or an array of objects inside
         raise ValueError(f"{path}: not a readable .npz tree file ({exc})") from None
     try:
         tree = from_interchange(arrays, pad=pad)

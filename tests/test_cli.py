@@ -17,24 +17,10 @@ from jaxbvh.commands import _common
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
-@pytest.fixture(autouse=True, scope="module")
-def cache_dir(tmp_path_factory):
-    """Keep the compilation cache of the tests out of the user's home."""
-    path = tmp_path_factory.mktemp("jax-cache")
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setenv("JAXBVH_CACHE_DIR", str(path))
-        yield path
-
-
-def _build_works() -> bool:
-    try:
-        jaxbvh.build(np.zeros((2, 3), np.float32), np.ones((2, 3), np.float32))
-    except NotImplementedError:
-        return False
-    return True
-
-
-needs_build = pytest.mark.skipif(not _build_works(), reason="jaxbvh.build is not implemented yet")
+@pytest.fixture
+def cache_dir(_compilation_cache_out_of_home):
+    """The suite's compilation-cache folder (tests/conftest.py)."""
+    return _compilation_cache_out_of_home
 
 
 def run_cli(capsys, *argv):
@@ -44,9 +30,10 @@ def run_cli(capsys, *argv):
     return status, out, err
 
 
-def run_json(capsys, *argv) -> dict:
-    status, out, err = run_cli(capsys, *argv, "--json")
-    assert status == 0, err
+def run_json(capsys, *argv, status: int = 0) -> dict:
+    """The JSON result of ``jaxbvh ARGV --json``, which must exit with ``status``."""
+    got, out, err = run_cli(capsys, *argv, "--json")
+    assert got == status, err
     lines = out.strip().splitlines()
     assert len(lines) == 1, out  # one JSON object, nothing else on stdout
     return json.loads(lines[0])
@@ -190,7 +177,6 @@ def test_build_refuses_a_tree(capsys, tmp_path):
     assert_one_line_error(*run_cli(capsys, "build", tree), "tree file", "two.npz")
 
 
-@needs_build
 def test_unwritable_output(capsys, tmp_path):
     mesh = grid_obj(tmp_path / "grid.obj", 1)
     target = tmp_path / "no" / "such" / "dir" / "tree.npz"
@@ -241,14 +227,14 @@ def test_stats_of_a_tree(capsys, tmp_path):
 def test_stats_finds_a_box_that_misses_its_triangle(capsys, tmp_path):
     mesh, tree = two_triangle_files(tmp_path, box_hi_x=0.5)
     assert run_json(capsys, "stats", tree)["valid"] is True  # structure alone is fine
-    result = run_json(capsys, "stats", tree, "--mesh", mesh)
-    assert result["valid"] is False
+    result = run_json(capsys, "stats", tree, "--mesh", mesh, status=1)
+    assert result["valid"] is False and result["sah"] > 0  # costs still reported
     assert any("do not contain" in p for p in result["problems"])
 
 
 def test_stats_with_the_wrong_mesh(capsys, tmp_path):
     _, tree = two_triangle_files(tmp_path)
-    result = run_json(capsys, "stats", tree, "--mesh", grid_obj(tmp_path / "grid.obj", 2))
+    result = run_json(capsys, "stats", tree, "--mesh", grid_obj(tmp_path / "grid.obj", 2), status=1)
     assert result["valid"] is False
     assert "8 triangles" in result["problems"][0]
 
@@ -274,7 +260,6 @@ def test_stats_of_a_foreign_tree_against_its_mesh(capsys):
 # ----------------------------------------------------------------------------------
 
 
-@needs_build
 def test_build_bundled_mesh(capsys, tmp_path):
     out = tmp_path / "spot.npz"
     result = run_json(capsys, "build", "-o", out)
@@ -291,7 +276,6 @@ def test_build_bundled_mesh(capsys, tmp_path):
     assert stats["nodes"] == result["nodes"] and stats["depth"] == result["depth"]
 
 
-@needs_build
 @pytest.mark.parametrize("builder", ["sweep", "binned", "median"])
 def test_build_options(capsys, tmp_path, builder):
     mesh = grid_obj(tmp_path / "grid.obj", 3)
@@ -302,7 +286,6 @@ def test_build_options(capsys, tmp_path, builder):
     assert ("bins" in result) == (builder == "binned")
 
 
-@needs_build
 def test_build_table_and_saved_tree(capsys, tmp_path):
     mesh = grid_obj(tmp_path / "grid.obj", 2)
     out = tmp_path / "grid.npz"
@@ -313,13 +296,11 @@ def test_build_table_and_saved_tree(capsys, tmp_path):
     assert run_json(capsys, "stats", out, "--mesh", mesh)["valid"] is True
 
 
-@needs_build
 def test_stats_of_a_mesh(capsys, tmp_path):
     result = run_json(capsys, "stats", grid_obj(tmp_path / "grid.obj", 2))
     assert result["kind"] == "mesh" and result["valid"] is True and result["triangles"] == 8
 
 
-@needs_build
 @settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(n=st.integers(1, 3), seed=st.integers(0, 2**16), max_leaf=st.sampled_from([1, 3]))
 def test_build_then_stats_agree(capsys, tmp_path, n, seed, max_leaf):
@@ -330,3 +311,197 @@ def test_build_then_stats_agree(capsys, tmp_path, n, seed, max_leaf):
     assert built["valid"] and stats["valid"]
     assert stats["sah"] == pytest.approx(built["sah"], rel=1e-6)
     assert built["leaf_size_max"] <= max_leaf
+
+
+# ----------------------------------------------------------------------------------
+# Broken tree files: every command that reads a tree checks it before any jitted loop
+# ----------------------------------------------------------------------------------
+
+
+def three_triangle_files(tmp_path):
+    """An OBJ of three triangles and a valid world-space tree over them.
+
+    Nodes: 0 root (1, 2); 1 interior (3, 4); leaves 2, 3, 4 hold triangles 2, 0, 1.
+    Returns ``(mesh path, interchange arrays)``.
+    """
+    mesh = tmp_path / "three.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 2 0 0\nv 2 1 0\nv 4 0 0\nv 4 1 1\n"
+                    "f 1 2 3\nf 2 4 5\nf 4 6 7\n")
+    tri_lo = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0]], np.float32)
+    tri_hi = np.array([[1, 1, 0], [2, 1, 0], [4, 1, 1]], np.float32)
+    arrays = {
+        "child": np.array([[1, 2], [3, 4], [-1, -1], [-1, -1], [-1, -1]], np.int32),
+        "prim_start": np.array([0, 0, 0, 1, 2], np.int32),
+        "prim_count": np.array([0, 0, 1, 1, 1], np.int32),
+        "prim_index": np.array([2, 0, 1], np.int32),
+        "lo": np.stack([tri_lo.min(0), tri_lo[:2].min(0), tri_lo[2], tri_lo[0], tri_lo[1]]),
+        "hi": np.stack([tri_hi.max(0), tri_hi[:2].max(0), tri_hi[2], tri_hi[0], tri_hi[1]]),
+        "root": np.int32(0),
+    }
+    return mesh, arrays
+
+
+def _broken(arrays, **changes):
+    out = {k: np.array(v) for k, v in arrays.items()}
+    for key, (index, value) in changes.items():
+        out[key][index] = value
+    return out
+
+
+BROKEN = {
+    "self-loop": dict(child=((0,), [0, 2])),           # the root lists itself as a child
+    "cycle": dict(child=((1,), [3, 0])),               # node 1 lists the root
+    "shared-child": dict(child=((1,), [3, 2])),        # leaf 2 under the root and under 1
+    "nan-box": dict(lo=((0,), [np.nan, 0, 0])),        # NaN in the root box
+}
+
+
+def broken_tree_file(tmp_path, kind):
+    mesh, arrays = three_triangle_files(tmp_path)
+    path = tmp_path / f"{kind}.npz"
+    np.savez(path, **_broken(arrays, **BROKEN[kind]))
+    return mesh, path
+
+
+def test_the_unbroken_tree_is_valid(capsys, tmp_path):
+    mesh, arrays = three_triangle_files(tmp_path)
+    path = tmp_path / "good.npz"
+    np.savez(path, **arrays)
+    assert run_json(capsys, "stats", path, "--mesh", mesh)["valid"] is True
+    result = run_json(capsys, "trace", path, mesh, "--rays", 50, "--image", tmp_path / "view.png")
+    assert result["rays"] == 50
+    # the picture is a separate camera pass, and the result says so
+    assert "separate" in result["image_rays"] and "random" in result["image_rays"]
+    assert (tmp_path / "view.png").stat().st_size > 0
+    assert run_json(capsys, "optimize", path)["valid"] is True
+
+
+# (command, argv after the tree file); commands that read a tree must refuse broken ones
+TREE_READERS = {
+    "optimize hc": lambda tree, mesh: ["optimize", tree],
+    "optimize sa": lambda tree, mesh: ["optimize", tree, "--method", "sa", "--iterations", 4],
+    "trace": lambda tree, mesh: ["trace", tree, mesh, "--rays", 20],
+}
+
+
+@pytest.mark.parametrize("kind", sorted(BROKEN))
+@pytest.mark.parametrize("command", sorted(TREE_READERS))
+def test_tree_readers_refuse_broken_trees(capsys, tmp_path, command, kind):
+    mesh, path = broken_tree_file(tmp_path, kind)
+    assert_one_line_error(*run_cli(capsys, *TREE_READERS[command](path, mesh)), "invalid BVH", path.name)
+
+
+@pytest.mark.parametrize("kind", sorted(BROKEN))
+def test_stats_reports_broken_trees_with_status_1(capsys, tmp_path, kind):
+    mesh, path = broken_tree_file(tmp_path, kind)
+    for extra in ([], ["--mesh", mesh]):
+        result = run_json(capsys, "stats", path, *extra, status=1)
+        assert result["valid"] is False and result["problems"]
+        assert "sah" not in result  # the costs of a broken structure mean nothing
+    status, out, _ = run_cli(capsys, "stats", path)
+    assert status == 1 and "valid" in out and "no" in out
+
+
+def test_traversal_is_bounded_on_a_broken_tree(tmp_path):
+    """Bypassing every check, a cycle still cannot hang a ray: the step bound stops it."""
+    from jaxbvh import rays
+
+    mesh, arrays = three_triangle_files(tmp_path)
+    tri = jaxbvh.load_mesh(mesh).triangles.astype(np.float32)
+    origin = np.array([[0.3, 0.3, -1.0], [3.0, 0.5, -1.0]], np.float32)
+    direction = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]], np.float32)
+    good = jaxbvh.from_interchange(arrays)
+    assert rays.closest_hit(good, tri, origin, direction).prim.tolist() == [0, 2]
+    for kind in ("self-loop", "cycle"):
+        tree = jaxbvh.from_interchange(_broken(arrays, **BROKEN[kind]))
+        with pytest.raises(jaxbvh.InvalidTreeError, match="did not end"):
+            rays.closest_hit(tree, tri, origin, direction)
+
+
+def test_not_a_tree_file(capsys, tmp_path):
+    text = tmp_path / "notes.npz"
+    text.write_text("a text file, renamed\n")
+    array = tmp_path / "array.npz"
+    with open(array, "wb") as f:
+        np.save(f, np.zeros(3))
+    for path in (text, array):
+        status, out, err = run_cli(capsys, "stats", path)
+        assert_one_line_error(status, out, err, "not a tree file", path.name)
+        assert "pickle" not in err
+
+
+def test_line_segments_are_not_called_a_point_cloud(capsys, tmp_path):
+    path = tmp_path / "lines.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nl 1 2\nl 2 3\n")
+    assert_one_line_error(*run_cli(capsys, "build", path), "2 line element", "no faces")
+
+
+def test_build_and_stats_report_the_same_capacity(capsys, tmp_path):
+    mesh = grid_obj(tmp_path / "grid.obj", 4)
+    out = tmp_path / "grid.npz"
+    built = run_json(capsys, "build", mesh, "--max-leaf", 4, "-o", out)
+    assert built["nodes"] < built["triangles"]  # leaves of several triangles: fewer nodes
+    stats = run_json(capsys, "stats", out, "--mesh", mesh)
+    assert built["capacity"] == stats["capacity"] == jaxbvh.capacity_bucket(built["nodes"])
+
+
+def test_image_without_matplotlib_is_a_one_line_error(capsys, tmp_path, monkeypatch):
+    import importlib.util
+
+    mesh, arrays = three_triangle_files(tmp_path)
+    path = tmp_path / "good.npz"
+    np.savez(path, **arrays)
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name == "matplotlib" else find_spec(name, *a))
+    assert_one_line_error(*run_cli(capsys, "trace", path, mesh, "--image", tmp_path / "x.png"),
+                          "matplotlib", "jaxbvh[plot]")
+    assert not (tmp_path / "x.png").exists()
+
+
+# ----------------------------------------------------------------------------------
+# The persistent compilation cache: a second run compiles nothing
+# ----------------------------------------------------------------------------------
+
+_COUNT_COMPILES = """
+import json, sys
+import jax.monitoring
+hits, compiles = [], []
+jax.monitoring.register_event_listener(
+    lambda event, **kw: hits.append(1) if event == "/jax/compilation_cache/cache_hits" else None)
+jax.monitoring.register_event_duration_secs_listener(  # JAX records this for cache hits too
+    lambda event, duration, **kw: compiles.append(1)
+    if event == "/jax/core/compile/backend_compile_duration" else None)
+from jaxbvh import cli
+for argv in json.loads(sys.argv[1]):
+    assert cli.main(argv) == 0, argv
+print("COMPILES", len(compiles) - len(hits), "HITS", len(hits))
+"""
+
+
+def test_second_run_compiles_nothing(tmp_path):
+    """Every command, run again in a fresh process, takes every program from the cache."""
+    import subprocess
+    import sys
+
+    mesh, arrays = three_triangle_files(tmp_path)
+    tree = tmp_path / "tree.npz"
+    np.savez(tree, **arrays)
+    commands = [["build", str(mesh), "--json"],
+                ["optimize", str(tree), "--json"],
+                ["optimize", str(tree), "--method", "sa", "--iterations", "6", "--chains", "2", "--json"],
+                ["trace", str(tree), str(mesh), "--rays", "64", "--json"]]
+    env = {**__import__("os").environ, "JAXBVH_CACHE_DIR": str(tmp_path / "cache"),
+           "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+
+    def run():
+        proc = subprocess.run([sys.executable, "-c", _COUNT_COMPILES, json.dumps(commands)], env=env,
+                              capture_output=True, text=True, timeout=600)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+        words = proc.stdout.split("COMPILES")[-1].split()
+        return int(words[0]), int(words[2])
+
+    first_compiles, first_hits = run()
+    assert first_compiles > 10  # a cold cache: everything compiles
+    second_compiles, second_hits = run()
+    assert second_compiles == 0 and second_hits >= first_compiles

@@ -104,6 +104,15 @@ def check_tree_file(loaded: TreeFile) -> TreeFile:
     return loaded
 
 
+def require_matplotlib(option: str) -> None:
+    """Raise a one-line error naming the extra to install when matplotlib is missing."""
+    import importlib.util
+
+    if importlib.util.find_spec("matplotlib") is None:
+        raise ValueError(f"{option} needs matplotlib, which is not installed: "
+                         "pip install 'jaxbvh[plot]' (or pip install matplotlib)")
+
+
 # ----------------------------------------------------------------------------------
 # Progress and timing
 # ----------------------------------------------------------------------------------
@@ -157,18 +166,22 @@ class Stages:
 def build_mesh_tree(mesh: Mesh, args, stages: Stages):
     """Build over ``mesh.local_boxes()`` with the builder options in ``args``; validated.
 
-    Returns ``(tree, lo, hi)``; ``stages`` records "build" (compile + build, until the
-    arrays are ready) and "validate" seconds.
+    Returns ``(tree, lo, hi)``, the tree as NumPy arrays trimmed to the capacity of its
+    node count (:func:`jaxbvh.tree.compact`); ``stages`` records "build" (compile + build,
+    until the arrays are ready) and "validate" seconds.
     """
     import jax
 
     import jaxbvh
 
+    from jaxbvh.tree import compact
+
     lo, hi = mesh.local_boxes()
     with stages("build"):
         tree = jaxbvh.build(lo, hi, method=args.builder, max_leaf=args.max_leaf, bins=args.bins,
                             ct=args.ct, ci=args.ci)
-        tree = jax.block_until_ready(tree)
+        # the capacity a saved copy loads with: same shape, same compiled programs
+        tree = compact(jax.block_until_ready(tree))
     with stages("validate"):
         jaxbvh.validate(tree, lo, hi)
     return tree, lo, hi

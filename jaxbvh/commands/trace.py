@@ -9,18 +9,6 @@ from jaxbvh.commands import _common
 HELP = "trace rays through a tree (.npz) over its mesh; report box and primitive tests per ray"
 
 
-def _positive_int(text: str) -> int:
-    import argparse
-
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
-
-
 def add_parser(subparsers):
     from jaxbvh.rays import KINDS
 
@@ -28,7 +16,7 @@ def add_parser(subparsers):
     parser.add_argument("tree", metavar="TREE", help="a tree .npz (jaxbvh build -o, or another "
                                                     "library's export) over MESH's triangles")
     parser.add_argument("mesh", metavar="MESH", help="the mesh the tree was built over")
-    parser.add_argument("--rays", type=_positive_int, default=100_000, metavar="N",
+    parser.add_argument("--rays", type=_common._int_at_least(1), default=100_000, metavar="N",
                         help="number of rays (camera: about N pixels, 4:3) (default: 100000)")
     parser.add_argument("--kind", choices=KINDS, default="random",
                         help="random: origins in the root box, uniform directions; camera: "
@@ -37,14 +25,15 @@ def add_parser(subparsers):
     parser.add_argument("--mode", choices=("closest", "any", "all"), default="closest",
                         help="closest hit, any hit (shadow rays) or all hits (default: closest)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
-    parser.add_argument("--batch", type=_positive_int, default=256, metavar="B",
+    parser.add_argument("--batch", type=_common._int_at_least(1), default=256, metavar="B",
                         help="rays per jitted batch (default: 256)")
     parser.add_argument("--save", metavar="HITS.npz", default=None,
                         help="write origin, direction (world space), t and prim (-1: miss) "
                              "and the per-ray counters")
     parser.add_argument("--image", metavar="OUT.png", default=None,
                         help="render camera rays: shaded normals, depth and a heat map of box "
-                             "tests per pixel")
+                             "tests per pixel (the measured rays with --kind camera, else a "
+                             "separate 320 x 240 camera view); needs matplotlib")
     parser.add_argument("--ct", type=float, default=1.0, help="SAH traversal cost (default: 1)")
     parser.add_argument("--ci", type=float, default=1.0, help="SAH intersection cost (default: 1)")
     _common.add_json(parser)
@@ -60,15 +49,15 @@ def triangles_in_frame(mesh, frame, dtype) -> np.ndarray:
 def run(args) -> dict:
     import jax
 
+    import jaxbvh
     from jaxbvh import rays, traverse
-    from jaxbvh.io import TreeFile, load_any, load_mesh
+    from jaxbvh.io import load_mesh
 
+    if args.image:
+        _common.require_matplotlib("--image")
     with _common.Stages(args, ["load", "trace", "write"]) as stages:
         with stages("load"):
-            loaded = load_any(args.tree)
-            if not isinstance(loaded, TreeFile):
-                raise ValueError(f"{args.tree} is not a tree file (.npz); build one with "
-                                 "jaxbvh build -o TREE.npz")
+            loaded = _common.load_tree(args.tree)
             mesh = load_mesh(args.mesh)
             tree, frame = loaded.tree, loaded.frame
             referenced = int(np.asarray(tree.prim_count).sum())
@@ -77,6 +66,8 @@ def run(args) -> dict:
                                  f"{args.mesh} has {mesh.n_triangles} triangles")
             dtype = np.asarray(tree.lo).dtype
             triangles = triangles_in_frame(mesh, frame, dtype)
+            # a leaf box that misses its triangle would lose hits silently
+            jaxbvh.validate(tree, triangles.min(axis=1), triangles.max(axis=1))
             key = jax.random.key(args.seed)
             origin, direction = rays.make_rays(key, args.kind, tree, triangles, args.rays)
         with stages("trace"):
@@ -97,18 +88,26 @@ def run(args) -> dict:
             if args.image:
                 if args.kind == "camera":
                     image_hits, image_dir, size = hits, direction, rays.camera_size(args.rays)
+                    note = "the measured camera rays"
                 else:  # render a separate 320 x 240 camera view
                     size = (320, 240)
                     root = int(tree.root)
                     o, image_dir = rays.camera_rays(tree.lo[root], tree.hi[root], *size, dtype=dtype)
                     image_hits = rays.closest_hit(tree, triangles, o, image_dir, batch=args.batch)
-                render(args.image, image_hits, triangles, image_dir, *size)
+                    note = (f"a separate {size[0]} x {size[1]} camera view, closest hits; the table "
+                            f"measures the {args.kind} rays")
+                render(args.image, image_hits, triangles, image_dir, *size, note=note)
                 result["image"] = args.image
+                result["image_rays"] = note
+                result["image_box_tests"] = float(np.mean(image_hits.box_tests))
     return result
 
 
-def render(path, hits, triangles, direction, width: int, height: int) -> None:
-    """Write a PNG: shaded normals, depth and box tests per pixel of camera rays."""
+def render(path, hits, triangles, direction, width: int, height: int, note: str = "") -> None:
+    """Write a PNG: shaded normals, depth and box tests per pixel of camera rays.
+
+    ``note`` (which rays the picture shows) becomes the figure's title.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -135,5 +134,7 @@ def render(path, hits, triangles, direction, width: int, height: int) -> None:
     fig.colorbar(im, ax=axes[2], shrink=0.8)
     for ax in axes:
         ax.set_axis_off()
+    if note:
+        fig.suptitle(note)
     fig.savefig(path, dpi=100)
     plt.close(fig)
