@@ -9,8 +9,9 @@ says ``"valid": false`` and lists the problems: ``jaxbvh stats``); 2 for bad inp
 (missing or malformed files, trees a command cannot work on, bad options), after one line
 ``jaxbvh: error: ...`` on stderr.
 
-JAX's persistent compilation cache is on: compiled builders are reused across runs.
-It lives in ``~/.cache/jaxbvh/jax`` unless ``JAXBVH_CACHE_DIR`` names another folder.
+JAX's persistent compilation cache is on: compiled programs are reused across runs.
+It lives in ``~/.cache/jaxbvh/jax`` unless ``JAXBVH_CACHE_DIR`` names another folder;
+parsed meshes are kept in its ``meshes/`` folder (:func:`jaxbvh.io.use_mesh_cache`).
 """
 
 from __future__ import annotations
@@ -62,6 +63,10 @@ def enable_compilation_cache() -> Path | None:
     # our builders compile in well under a second on small meshes; cache them anyway
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    # parsed meshes too: parsing (and importing trimesh) costs more than the arrays
+    from jaxbvh.io import use_mesh_cache
+
+    use_mesh_cache(path / "meshes")
     return path
 
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 import os
 import warnings
 from importlib import resources
@@ -34,7 +35,7 @@ from jaxbvh.frame import Frame
 from jaxbvh.validate import few_ids
 
 __all__ = ["Mesh", "MeshError", "TreeFile", "load_mesh", "load_any", "bundled_mesh_path",
-           "boxes_in_frame"]
+           "boxes_in_frame", "use_mesh_cache"]
 
 TREE_SUFFIXES = (".npz",)
 
@@ -207,19 +208,105 @@ def _degenerate_count(triangles: np.ndarray) -> int:
     return int(np.sum(~np.any(np.cross(edge1, edge2) != 0, axis=1)))
 
 
+# ----------------------------------------------------------------------------------
+# Cache of parsed meshes (the command line tool's; off for library use)
+# ----------------------------------------------------------------------------------
+
+_mesh_cache: Path | None = None
+_CACHE_FORMAT = "1"
+
+
+def use_mesh_cache(folder: str | os.PathLike | None) -> None:
+    """Keep every mesh :func:`load_mesh` parses in ``folder`` (``None``: no cache, the default).
+
+    Parsing a mesh file costs far more than reading back its arrays (and trimesh's
+    import alone takes a third of a second), so the ``jaxbvh`` tool turns this on next
+    to JAX's compilation cache. An entry is keyed by the file's absolute path, size
+    and modification time (for a glTF, also those of the other files in its folder:
+    its buffers), so an edited file is parsed again. Only meshes that loaded without
+    error are kept; a damaged entry is ignored and parsed anew.
+    """
+    global _mesh_cache
+    _mesh_cache = None if folder is None else Path(folder)
+
+
+def _cache_entry(path: str) -> Path | None:
+    if _mesh_cache is None:
+        return None
+    files = [path]
+    if path.lower().endswith(".gltf"):
+        folder = os.path.dirname(os.path.abspath(path))
+        files += sorted(os.path.join(folder, f) for f in os.listdir(folder))
+    parts = [_CACHE_FORMAT]
+    for f in files:
+        st = os.stat(f)
+        parts += [os.path.abspath(f), str(st.st_size), str(st.st_mtime_ns)]
+    return _mesh_cache / (hashlib.sha256("\0".join(parts).encode()).hexdigest()[:32] + ".npz")
+
+
+def _write_cached(entry: Path, mesh: "Mesh") -> None:
+    arrays = {"vertices": mesh.vertices, "faces": mesh.faces, "name": np.str_(mesh.name),
+              "degenerate": np.int64(mesh.degenerate), "skipped": np.array(mesh.skipped, dtype=str),
+              "instance_object": np.array([i for i, _ in mesh.instances], np.int64),
+              "instance_transform": np.array([t for _, t in mesh.instances], np.float64).reshape(-1, 4, 4)}
+    for i, (vertices, faces) in enumerate(mesh.objects):
+        arrays[f"object{i}_vertices"], arrays[f"object{i}_faces"] = vertices, faces
+    try:
+        entry.parent.mkdir(parents=True, exist_ok=True)
+        tmp = entry.with_suffix(f".{os.getpid()}.tmp")
+        with open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+        os.replace(tmp, entry)
+    except OSError:
+        pass  # a read-only cache folder: parse every time
+
+
+def _read_cached(entry: Path, path: str) -> "Mesh | None":
+    try:
+        with np.load(entry, allow_pickle=False) as data:
+            objects, i = [], 0
+            while f"object{i}_vertices" in data.files:
+                objects.append((data[f"object{i}_vertices"], data[f"object{i}_faces"]))
+                i += 1
+            instances = [(int(o), t) for o, t in zip(data["instance_object"], data["instance_transform"])]
+            skipped = tuple(str(x) for x in data["skipped"])
+            mesh = Mesh(vertices=data["vertices"], faces=data["faces"], name=str(data["name"]),
+                        degenerate=int(data["degenerate"]), objects=objects, instances=instances,
+                        skipped=skipped, path=path)
+    except Exception:  # a damaged or foreign entry: parse the file again
+        return None
+    if skipped:
+        warnings.warn(f"{path}: left out {len(skipped)} object(s) without triangles: "
+                      f"{', '.join(skipped[:5])}", stacklevel=3)
+    return mesh
+
+
 def load_mesh(path: str | os.PathLike) -> Mesh:
     """Read any file trimesh reads into a world-space :class:`Mesh` (module docstring).
 
     Raises ``FileNotFoundError`` for a missing file and :class:`MeshError` for a file
-    that cannot be read or has no usable triangles.
+    that cannot be read or has no usable triangles. With :func:`use_mesh_cache` on, a
+    file parsed before is read back from the cache.
     """
-    import trimesh
-
     path = os.fspath(path)
     if not os.path.exists(path):
         raise FileNotFoundError(f"mesh file not found: {path}")
     if os.path.isdir(path):
         raise MeshError(f"{path}: is a directory, expected a mesh file")
+    entry = _cache_entry(path)
+    if entry is not None and entry.exists():
+        mesh = _read_cached(entry, path)
+        if mesh is not None:
+            return mesh
+    mesh = _parse(path)
+    if entry is not None:
+        _write_cached(entry, mesh)
+    return mesh
+
+
+def _parse(path: str) -> Mesh:
+    import trimesh
+
     loaded = _read(path)
     stem = Path(path).stem
 

@@ -110,7 +110,7 @@ def test_point_cloud_obj(tmp_path):
 
 def test_line_set_obj(tmp_path):
     path = write(tmp_path / "lines.obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nl 1 2\nl 2 3\n")
-    with pytest.raises(MeshError, match=r"lines\.obj.*no faces"):
+    with pytest.raises(MeshError, match=r"lines\.obj.*no faces.*2 line element"):
         load_mesh(path)
 
 
@@ -308,6 +308,70 @@ def test_scene_geometry_without_triangles_is_reported(tmp_path):
         mesh = load_mesh(path)
     assert mesh.skipped == ("dots",)
     assert mesh.n_triangles == 12
+
+
+# ----------------------------------------------------------------------------------
+# The cache of parsed meshes
+# ----------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def mesh_cache(tmp_path):
+    from jaxbvh import io
+
+    folder = tmp_path / "mesh-cache"
+    io.use_mesh_cache(folder)
+    yield folder
+    io.use_mesh_cache(None)
+
+
+def assert_same_mesh(a: Mesh, b: Mesh):
+    assert np.array_equal(a.vertices, b.vertices) and np.array_equal(a.faces, b.faces)
+    assert (a.name, a.degenerate, a.skipped, a.path) == (b.name, b.degenerate, b.skipped, b.path)
+    assert len(a.objects) == len(b.objects) and len(a.instances) == len(b.instances)
+    for (va, fa), (vb, fb) in zip(a.objects, b.objects):
+        assert np.array_equal(va, vb) and np.array_equal(fa, fb)
+    for (oa, ta), (ob, tb) in zip(a.instances, b.instances):
+        assert oa == ob and np.array_equal(ta, tb)
+
+
+def test_cached_mesh_equals_the_parsed_one(tmp_path, mesh_cache, monkeypatch):
+    from jaxbvh import io
+
+    scene = trimesh.Scene()
+    scene.add_geometry(trimesh.creation.box(), node_name="a", geom_name="box")
+    scene.add_geometry(trimesh.creation.box(), node_name="b", geom_name="box",
+                       transform=trimesh.transformations.rotation_matrix(0.4, [0, 1, 1]))
+    scene.add_geometry(trimesh.PointCloud(np.ones((3, 3))), geom_name="dots")
+    path = tmp_path / "scene.glb"
+    scene.export(path)
+    with pytest.warns(UserWarning, match="dots"):
+        parsed = load_mesh(path)
+    assert len(list(mesh_cache.glob("*.npz"))) == 1
+
+    def no_parsing(path):
+        raise AssertionError("parsed again")
+
+    monkeypatch.setattr(io, "_parse", no_parsing)
+    with pytest.warns(UserWarning, match="dots"):  # the warning comes back with the entry
+        cached = load_mesh(path)
+    assert_same_mesh(cached, parsed)
+    assert len(cached.instances) == 2 and cached.n_triangles == 24
+
+
+def test_mesh_cache_notices_an_edited_file_and_ignores_damage(tmp_path, mesh_cache):
+    path = write(tmp_path / "tri.obj", obj_text([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]]))
+    first = load_mesh(path)
+    write(path, obj_text([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], [[0, 1, 2], [0, 1, 3]]))
+    assert load_mesh(path).n_triangles == 2 == first.n_triangles + 1
+    for entry in mesh_cache.glob("*.npz"):
+        entry.write_bytes(b"damaged")
+    assert load_mesh(path).n_triangles == 2
+    # bad files are not cached: the error comes every time
+    bad = write(tmp_path / "bad.obj", "v 0 0 0\nv nan 0 0\nv 0 1 0\nf 1 2 3\n")
+    for _ in range(2):
+        with pytest.raises(MeshError, match="NaN"):
+            load_mesh(bad)
 
 
 # ----------------------------------------------------------------------------------
