@@ -882,11 +882,20 @@ def _finish_chunked(tree, carry, *, split_axes, **static):
 MAX_CHUNK = 256
 
 
-def _run_chunked(tree, keys, dyn, on_pass, static) -> RotateResult:
+def _run_chunked(tree, keys, dyn, on_pass, static, time_budget=None) -> RotateResult:
     """Run in chunks of passes, calling ``on_pass(i, sah, moves, temperature)`` on the
-    host for every pass (``sah``: least over the chains; ``moves``: all chains')."""
+    host for every pass (``sah``: least over the chains; ``moves``: all chains').
+
+    ``time_budget`` (seconds, or None): stop after the first chunk that ends past it
+    (chunks grow only while one takes under 0.1 s, so the overshoot stays small); the
+    result is then the best tree so far (the last tree for hill climbing, which only
+    improves; the kept best for annealing with ``keep_best``). The clock starts after
+    the first chunk (one pass), which also compiles, so compiling is not counted.
+    """
     import time
 
+    deadline = None
+    on_pass = on_pass or (lambda *_: None)
     carry = _start_jit(tree, keys, dyn, **static)
     limit = min(int(dyn.limit), static["history_len"])
     done_passes, chunk = 0, 1
@@ -902,6 +911,11 @@ def _run_chunked(tree, keys, dyn, on_pass, static) -> RotateResult:
             on_pass(j, np.nanmin(history[:, j]), moves[j], temps[j])
         if now < done_passes + chunk or done.all():
             break  # converged (or at the limit)
+        if time_budget is not None:
+            if deadline is None:  # the first chunk compiled: start the clock
+                deadline = time.perf_counter() + time_budget
+            elif time.perf_counter() > deadline:
+                break
         done_passes = now
         if time.perf_counter() - clock < 0.1:
             chunk = min(2 * chunk, MAX_CHUNK)
@@ -926,8 +940,10 @@ def _check_tree(tree, name="tree"):
 
 def _setup(tree, *, ct, ci, min_gain, limit, windows, frontier, steps=0, period=50,
            hottest=DEFAULT_HOTTEST, annealing=False, schedule=None, keep_best=False,
-           split_axes=True, on_pass=None):
+           split_axes=True, on_pass=None, time_budget=None):
     """Checked arguments as (dynamic values, static options)."""
+    if time_budget is not None and not time_budget > 0:
+        raise ValueError(f"time_budget must be > 0 seconds, got {time_budget}")
     if not ct >= 0 or not ci >= 0:
         raise ValueError(f"ct and ci must be >= 0, got ct={ct}, ci={ci}")
     if limit < 1:
@@ -962,7 +978,7 @@ def _setup(tree, *, ct, ci, min_gain, limit, windows, frontier, steps=0, period=
 def hill_climb(tree, *, ct: float = 1.0, ci: float = 1.0, max_passes: int = 1000,
                min_gain: float | None = None, split_axes: bool = True,
                windows=DEFAULT_WINDOWS, frontier: int = DEFAULT_FRONTIER,
-               on_pass: Callable | None = None) -> RotateResult:
+               on_pass: Callable | None = None, time_budget: float | None = None) -> RotateResult:
     """Kensler's hill climbing: passes of the best improving move per node until none.
 
     ``tree``: a :class:`~jaxbvh.tree.BVH` (NumPy or JAX arrays, any capacity).
@@ -973,16 +989,18 @@ def hill_climb(tree, *, ct: float = 1.0, ci: float = 1.0, max_passes: int = 1000
     ``on_pass(pass_index, sah, moves, temperature)``: called on the host for every pass
     (progress bars). With it the run goes in chunks of passes (:func:`_run_chunked`:
     the same tree, the compiled pieces cached like every other program); without it,
-    in one compiled call.
+    in one compiled call. ``time_budget``: seconds after which to stop (at the end of a
+    chunk of passes) with the tree so far; it implies the chunked run.
     The result's tree has the same capacity; it is identical, pass by pass, to
     :func:`jaxbvh.reference.rotate.hill_climb`.
     """
     _check_tree(tree)
     dyn, static = _setup(tree, ct=ct, ci=ci, min_gain=min_gain, limit=max_passes, windows=windows,
-                         frontier=frontier, split_axes=split_axes, on_pass=on_pass)
+                         frontier=frontier, split_axes=split_axes, on_pass=on_pass,
+                         time_budget=time_budget)
     key = jax.random.key(0)
-    if on_pass is not None:
-        return _run_chunked(to_jax(tree), key[None], dyn, on_pass, static)
+    if on_pass is not None or time_budget is not None:
+        return _run_chunked(to_jax(tree), key[None], dyn, on_pass, static, time_budget)
     return _run_one(to_jax(tree), key, dyn, **static)
 
 
@@ -991,7 +1009,7 @@ def anneal(key, tree, *, schedule: Callable | None = None, steps: int = 1250,
            keep_best: bool = True, max_quench: int = 1000, ct: float = 1.0, ci: float = 1.0,
            min_gain: float | None = None, split_axes: bool = True,
            windows=None, frontier: int = DEFAULT_FRONTIER,
-           on_pass: Callable | None = None) -> RotateResult:
+           on_pass: Callable | None = None, time_budget: float | None = None) -> RotateResult:
     """Kensler's simulated annealing of tree rotations.
 
     ``key``: a ``jax.random`` key. ``schedule``: optax-style ``step -> temperature``
@@ -1007,7 +1025,8 @@ def anneal(key, tree, *, schedule: Callable | None = None, steps: int = 1250,
     one forest, so K chains take far less than K times one (each chain's result is
     exactly what it gives alone). ``windows=None`` picks :data:`ANNEAL_WINDOWS` (one
     chain) or a K times wider first window (a forest). Other arguments as
-    :func:`hill_climb`. Changing
+    :func:`hill_climb` (a ``time_budget`` stops the schedule early: pair it with
+    ``keep_best``). Changing
     ``steps``, ``period``, ``hottest`` does not recompile (a given ``schedule`` is
     compiled once per function object).
     """
@@ -1022,11 +1041,12 @@ def anneal(key, tree, *, schedule: Callable | None = None, steps: int = 1250,
     dyn, static = _setup(tree, ct=ct, ci=ci, min_gain=min_gain, limit=steps + max_quench,
                          windows=windows, frontier=frontier, steps=steps, period=period,
                          hottest=hottest, annealing=True, schedule=schedule,
-                         keep_best=keep_best, split_axes=split_axes, on_pass=on_pass)
+                         keep_best=keep_best, split_axes=split_axes, on_pass=on_pass,
+                         time_budget=time_budget)
     tree = to_jax(tree)
     keys = key[None] if chains == 1 else jax.random.split(key, chains)
-    if on_pass is not None:
-        return _run_chunked(tree, keys, dyn, on_pass, static)
+    if on_pass is not None or time_budget is not None:
+        return _run_chunked(tree, keys, dyn, on_pass, static, time_budget)
     if chains == 1:
         return _run_one(tree, key, dyn, **static)
     return _run_chains(tree, keys, dyn, **static)

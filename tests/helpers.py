@@ -2,9 +2,15 @@
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 
 import jaxbvh
+
+# canonical() recurses once per level; set at import, not inside a test, so hypothesis
+# does not warn that the limit changed under it
+sys.setrecursionlimit(max(10000, sys.getrecursionlimit()))
 
 
 def canonical(tree, with_axis: bool = True):
@@ -21,6 +27,4 @@ def canonical(tree, with_axis: bool = True):
             return ("leaf", tuple(sorted(t.prim_index[s:s + c].tolist())), box)
         return (int(t.axis[n]) if with_axis else None, rec(int(t.left[n])), rec(int(t.right[n])), box)
 
-    import sys
-    sys.setrecursionlimit(max(10000, sys.getrecursionlimit()))
     return rec(int(t.root))

@@ -232,6 +232,19 @@ def test_progress_reports_every_pass_and_chunks_change_nothing(monkeypatch):
             assert all(t == 0 for *_, t in log[10:]) and (name == "hc" or any(t > 0 for *_, t in log))
 
 
+def test_time_budget_stops_early_with_a_valid_tree():
+    tree, plo, phi = random_tree(12, 60, 1)
+    full = rotate.anneal(jax.random.key(1), tree, steps=400, period=20)
+    short = rotate.anneal(jax.random.key(1), tree, steps=400, period=20, time_budget=1e-9)
+    check_result(short, plo, phi)
+    assert 1 <= int(short.passes) < int(full.passes)  # the first chunk (one pass), then the budget
+    assert float(short.sah) <= float(short.sah_start) * (1 + 1e-6)  # keep_best: never worse
+    hc = rotate.hill_climb(tree, time_budget=60.0)  # a budget it does not reach: the same tree
+    assert_same_tree(hc.tree, rotate.hill_climb(tree).tree)
+    with pytest.raises(ValueError, match="time_budget"):
+        rotate.hill_climb(tree, time_budget=0)
+
+
 def test_no_retrace_for_trees_of_one_capacity():
     rotate.hill_climb(random_tree(1, 20)[0])
     before = rotate._run_one._cache_size()

@@ -40,6 +40,9 @@ def add_parser(subparsers):
     parser.add_argument("--max-passes", type=_common._int_at_least(1), default=1000, metavar="P",
                         help="most hill-climbing passes, or quench passes after annealing "
                              "(default: 1000)")
+    parser.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
+                        help="stop after about this many seconds (compiling apart) with the best "
+                             "tree so far (default: run to convergence)")
     parser.add_argument("-o", "--output", metavar="OUT.npz", default=None,
                         help="save the optimized tree (interchange .npz with its frame)")
     _common.add_builder_args(parser)
@@ -54,6 +57,8 @@ def run(args) -> dict:
 
     if not args.hottest >= 0:
         raise ValueError(f"--hottest must be >= 0, got {args.hottest}")
+    if args.time_budget is not None and not args.time_budget > 0:
+        raise ValueError(f"--time-budget must be > 0 seconds, got {args.time_budget}")
     names = ["load", "build", "validate", "optimize", "check"] + (["save"] if args.output else [])
     with _common.Stages(args, names) as stages:
         with stages("load"):
@@ -83,13 +88,13 @@ def run(args) -> dict:
             start = time.perf_counter()
             if args.method == "hc":
                 result = rotate.hill_climb(tree, ct=args.ct, ci=args.ci, max_passes=args.max_passes,
-                                           on_pass=on_pass)
+                                           on_pass=on_pass, time_budget=args.time_budget)
             else:
                 result = rotate.anneal(jax.random.key(args.seed), tree, steps=args.iterations,
                                        hottest=args.hottest, period=args.period,
                                        chains=args.chains, max_quench=args.max_passes,
                                        ct=args.ct, ci=args.ci,
-                                       on_pass=on_pass)
+                                       on_pass=on_pass, time_budget=args.time_budget)
             result = jax.block_until_ready(result)
             seconds = time.perf_counter() - start
         bar.close()
@@ -114,7 +119,7 @@ def run(args) -> dict:
            "seconds": seconds,  # includes compiling (cached across runs by the CLI)
            "before": before, "after": after,
            "sah_change_percent": 100.0 * (after["sah"] / before["sah"] - 1.0) if before["sah"] else 0.0,
-           "valid": True, "output": args.output}
+           "valid": True, "output": args.output, "time_budget": args.time_budget}
     if args.method == "sa":
         out.update({"iterations": args.iterations, "period": args.period, "hottest": args.hottest,
                     "chains": args.chains, "seed": args.seed})
