@@ -73,32 +73,35 @@ def load_input(path, *, check: bool = True) -> Mesh | TreeFile:
     return loaded
 
 
-def load_tree(path, *, binary: bool = False) -> TreeFile:
+def load_tree(path, *, binary: bool = False, check: bool = True) -> TreeFile:
     """The tree ``.npz`` at ``path``, checked (:func:`check_tree_file`); a mesh path is an error.
 
-    ``binary=True`` also refuses a wide tree (for commands that need two children).
+    ``binary=True`` also refuses a wide tree (for commands that need two children);
+    ``check=False`` leaves the check to the caller (who has primitive boxes for it).
     """
     loaded = load_any(path)
     if not isinstance(loaded, TreeFile):
         raise ValueError(f"{path} is not a tree file (.npz); build one with jaxbvh build -o TREE.npz")
-    check_tree_file(loaded)
+    if check:
+        check_tree_file(loaded)
     if binary and np.asarray(loaded.tree.child).shape[1] != 2:
         raise ValueError(f"{path}: a binary tree is needed, but it is "
                          f"{np.asarray(loaded.tree.child).shape[1]}-wide")
     return loaded
 
 
-def check_tree_file(loaded: TreeFile) -> TreeFile:
+def check_tree_file(loaded: TreeFile, prim_lo=None, prim_hi=None) -> TreeFile:
     """Raise :class:`~jaxbvh.validate.InvalidTreeError` (naming the file) if the tree is broken.
 
     Every command that reads a tree calls this before any jitted loop: a cycle, a
     shared child or a NaN box would otherwise make a traversal or an optimizer loop run
-    to its bound or return nonsense. The check is :func:`jaxbvh.check` without primitive
-    boxes (structure, primitive ids, finite boxes that contain their children).
+    to its bound or return nonsense. The check is :func:`jaxbvh.check`: structure,
+    primitive ids, finite boxes that contain their children, and with ``prim_lo``,
+    ``prim_hi`` [n, 3] (in the tree's frame) leaves that contain their primitives.
     """
     from jaxbvh.validate import InvalidTreeError, check
 
-    problems = check(loaded.tree)
+    problems = check(loaded.tree, prim_lo, prim_hi)
     if problems:
         raise InvalidTreeError([f"{loaded.path}: {problems[0]}"] + problems[1:])
     return loaded

@@ -10,7 +10,7 @@ HELP = "trace rays through a tree (.npz) over its mesh; report box and primitive
 
 
 def add_parser(subparsers):
-    from jaxbvh.rays import KINDS
+    from jaxbvh.rays import KINDS, MODES
 
     parser = subparsers.add_parser("trace", help=HELP, description=HELP + ".")
     parser.add_argument("tree", metavar="TREE", help="a tree .npz (jaxbvh build -o, or another "
@@ -22,7 +22,7 @@ def add_parser(subparsers):
                         help="random: origins in the root box, uniform directions; camera: "
                              "pinhole framing the scene; bounce: diffuse rays off the surface "
                              "(default: random)")
-    parser.add_argument("--mode", choices=("closest", "any", "all"), default="closest",
+    parser.add_argument("--mode", choices=MODES, default="closest",
                         help="closest hit, any hit (shadow rays) or all hits (default: closest)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     parser.add_argument("--batch", type=_common._int_at_least(1), default=256, metavar="B",
@@ -49,7 +49,6 @@ def triangles_in_frame(mesh, frame, dtype) -> np.ndarray:
 def run(args) -> dict:
     import jax
 
-    import jaxbvh
     from jaxbvh import rays, traverse
     from jaxbvh.io import load_mesh
 
@@ -57,7 +56,7 @@ def run(args) -> dict:
         _common.require_matplotlib("--image")
     with _common.Stages(args, ["load", "trace", "write"]) as stages:
         with stages("load"):
-            loaded = _common.load_tree(args.tree)
+            loaded = _common.load_tree(args.tree, check=False)  # checked below, with the mesh
             mesh = load_mesh(args.mesh)
             tree, frame = loaded.tree, loaded.frame
             referenced = int(np.asarray(tree.prim_count).sum())
@@ -66,8 +65,8 @@ def run(args) -> dict:
                                  f"{args.mesh} has {mesh.n_triangles} triangles")
             dtype = np.asarray(tree.lo).dtype
             triangles = triangles_in_frame(mesh, frame, dtype)
-            # a leaf box that misses its triangle would lose hits silently
-            jaxbvh.validate(tree, triangles.min(axis=1), triangles.max(axis=1))
+            # before any jitted loop; a leaf box that misses its triangle would lose hits
+            _common.check_tree_file(loaded, triangles.min(axis=1), triangles.max(axis=1))
             key = jax.random.key(args.seed)
             origin, direction = rays.make_rays(key, args.kind, tree, triangles, args.rays)
         with stages("trace"):
