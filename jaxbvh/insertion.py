@@ -185,19 +185,20 @@ def tree_at(trees, i: int) -> WideBVH:
 # slower on a population of 50).
 
 
+_UP_LIST = 16  # boxes grown per insertion without a loop that carries the table (speed only)
+
+# Columns of the node table [B * N, 8]: box lo (3), box hi (3), area, child count.
+_AREA, _COUNT = 6, 7
+
+
+def _row(box_lo, box_hi, count, scale):
+    """Node table rows [..., 8] for boxes [..., 3] and child counts [...]."""
+    area = half_area(box_lo, box_hi, scale)
+    return jnp.concatenate([box_lo, box_hi, area[..., None], count[..., None].astype(box_lo.dtype)], axis=-1)
+
+
 def _holds(box_lo, box_hi, b_lo, b_hi):
     return jnp.all(box_lo <= b_lo, axis=-1) & jnp.all(box_hi >= b_hi, axis=-1)
-
-
-def _growth(box_lo, box_hi, b_lo, b_hi, scale):
-    """``(A(x+b), dA(x))`` for boxes [..., 3]; ``dA`` is exactly 0 when the box holds ``b``."""
-    u_lo, u_hi = jnp.minimum(box_lo, b_lo), jnp.maximum(box_hi, b_hi)
-    grown = half_area(u_lo, u_hi, scale)
-    same = jnp.all(u_lo == box_lo, axis=-1) & jnp.all(u_hi == box_hi, axis=-1)
-    return grown, jnp.where(same, jnp.zeros_like(grown), grown - half_area(box_lo, box_hi, scale))
-
-
-_UP_LIST = 16  # boxes grown per insertion without a loop that carries the boxes (speed only)
 
 
 def _insert(t, s, lo, hi, orders, scale, max_children, nodes):
@@ -207,10 +208,10 @@ def _insert(t, s, lo, hi, orders, scale, max_children, nodes):
     before every write to it by data dependence; otherwise it copies the arrays at
     every insertion (10x slower). So the walk down only reads (and returns all that
     the insertion needs: the parent and slot of the winning node come from the walk
-    itself), the insertion only writes, and the walk up lists the boxes to grow
-    before they are grown.
+    itself), the insertion only writes, and the walk up lists the grown boxes before
+    they are written.
     """
-    child, nchild, parent, box_lo, box_hi, root, next_id = s
+    child, parent, table, root, next_id = s
     batch = orders.shape[0]
     dtype = lo.dtype
     near = jnp.asarray(1 + TIE_TOLERANCE, dtype)
@@ -221,6 +222,14 @@ def _insert(t, s, lo, hi, orders, scale, max_children, nodes):
     b_lo, b_hi = lo[p], hi[p]  # [B, 3]
     b_centre = b_lo + b_hi
 
+    def grow(rows, b_lo, b_hi):
+        """``(box + b lo, hi, A(x+b), dA(x))`` of table rows [..., 8]; dA is 0 when x holds b."""
+        x_lo, x_hi = rows[..., :3], rows[..., 3:6]
+        u_lo, u_hi = jnp.minimum(x_lo, b_lo), jnp.maximum(x_hi, b_hi)
+        grown = half_area(u_lo, u_hi, scale)
+        holds = _holds(x_lo, x_hi, b_lo, b_hi)
+        return u_lo, u_hi, grown, jnp.where(holds, jnp.zeros_like(grown), grown - rows[..., _AREA])
+
     # --- walk down, per tree: node x, its parent and slot there, the inherited cost,
     # and the cheapest candidate so far (its node, parent, slot, child count, box + b)
     def down_cond(w):
@@ -230,32 +239,29 @@ def _insert(t, s, lo, hi, orders, scale, max_children, nodes):
         w = dict(w)
         x, done = w["x"], w["done"]
         r = row0 + x
-        x_lo, x_hi = box_lo[r], box_hi[r]
-        grown, delta = _growth(x_lo, x_hi, b_lo, b_hi, scale)
-        k = nchild[r]
+        rows = table[r]
+        u_lo, u_hi, grown, delta = grow(rows, b_lo, b_hi)
+        kf = rows[:, _COUNT]
+        k = kf.astype(jnp.int32)
         leaf = k == 0
-        own = k.astype(dtype) * delta
+        own = kf * delta
         inherited = w["inherited"]
         candidate = jnp.where(leaf, inherited + 2 * grown, (inherited + own) + grown)
         better = ~done & (leaf | (k < max_children)) & (candidate * near < w["best"])
         for name, value in (("best", candidate), ("m", x), ("m_parent", w["x_parent"]),
-                            ("m_slot", w["x_slot"]), ("m_count", k)):
+                            ("m_slot", w["x_slot"]), ("m_count", k), ("m_area", grown)):
             w[name] = jnp.where(better, value, w[name])
-        for name, value in (("m_lo", jnp.minimum(x_lo, b_lo)), ("m_hi", jnp.maximum(x_hi, b_hi))):
+        for name, value in (("m_lo", u_lo), ("m_hi", u_hi)):
             w[name] = jnp.where(better[:, None], value, w[name])
-        # the child whose term rises least
+        # the child whose term rises least; then the nearest centre; then the lowest slot
         kids = child[r]  # [B, K]
-        real = kids >= 0
-        kid_rows = row0[:, None] + jnp.maximum(kids, 0)
-        c_lo, c_hi = box_lo[kid_rows], box_hi[kid_rows]
-        c_grown, c_delta = _growth(c_lo, c_hi, b_lo[:, None], b_hi[:, None], scale)
-        ck = nchild[kid_rows]
-        rise = jnp.where(ck == 0, 2 * c_grown, ck.astype(dtype) * c_delta)
-        rise = jnp.where(real, rise, inf)
+        kid_rows = table[row0[:, None] + jnp.maximum(kids, 0)]  # [B, K, 8]
+        _, _, c_grown, c_delta = grow(kid_rows, b_lo[:, None], b_hi[:, None])
+        ck = kid_rows[..., _COUNT]
+        rise = jnp.where(kids < 0, inf, jnp.where(ck == 0, 2 * c_grown, ck * c_delta))
         tied = rise <= jnp.min(rise, axis=1, keepdims=True) * near
-        d = jnp.abs((c_lo + c_hi) - b_centre[:, None])
-        distance = jnp.where(tied, (d[..., 0] + d[..., 1]) + d[..., 2], inf)
-        slot = jnp.argmax(tied & (distance == jnp.min(distance, axis=1, keepdims=True)), axis=1).astype(jnp.int32)
+        d = jnp.abs((kid_rows[..., :3] + kid_rows[..., 3:6]) - b_centre[:, None])
+        slot = jnp.argmin(jnp.where(tied, (d[..., 0] + d[..., 1]) + d[..., 2], inf), axis=1).astype(jnp.int32)
         inherited = jnp.where(done, inherited, inherited + own)
         go = ~done & ~leaf
         w["x_parent"] = jnp.where(go, x, w["x_parent"])
@@ -267,70 +273,77 @@ def _insert(t, s, lo, hi, orders, scale, max_children, nodes):
         return w
 
     minus = jnp.full(batch, -1, jnp.int32)
+    zero_i = jnp.zeros(batch, jnp.int32)
     empty = jnp.zeros((batch, 3), dtype)
-    walk = dict(x=root, x_parent=minus, x_slot=jnp.zeros(batch, jnp.int32), inherited=jnp.zeros(batch, dtype),
-                best=jnp.full(batch, jnp.inf, dtype), m=root, m_parent=minus, m_slot=jnp.zeros(batch, jnp.int32),
-                m_count=jnp.zeros(batch, jnp.int32), m_lo=empty, m_hi=empty, done=jnp.zeros(batch, bool),
-                steps=jnp.int32(0))
+    walk = dict(x=root, x_parent=minus, x_slot=zero_i, inherited=jnp.zeros(batch, dtype),
+                best=jnp.full(batch, jnp.inf, dtype), m=root, m_parent=minus, m_slot=zero_i,
+                m_count=zero_i, m_area=jnp.zeros(batch, dtype), m_lo=empty, m_hi=empty,
+                done=jnp.zeros(batch, bool), steps=jnp.int32(0))
     w = jax.lax.while_loop(down_cond, down_body, walk)
-    m, pm = w["m"], w["m_parent"]
+    m, pm, count = w["m"], w["m_parent"], w["m_count"]
 
     # --- insert at m: a pair (m was a leaf) or one more child of m; writes only
     rm = row0 + m
-    pair = w["m_count"] == 0
+    pair = count == 0
     v = next_id
     rv = jnp.where(pair, row0 + v, flat)
-    has_parent = pm >= 0
     child = child.at[rv, 0].set(m, mode="drop")
     child = child.at[rv, 1].set(p, mode="drop")
-    child = child.at[jnp.where(pair & has_parent, row0 + pm, flat), w["m_slot"]].set(v, mode="drop")
-    child = child.at[jnp.where(pair, flat, rm), w["m_count"]].set(p, mode="drop")
-    nchild = nchild.at[jnp.where(pair, row0 + v, rm)].set(w["m_count"] + jnp.where(pair, 2, 1))
+    child = child.at[jnp.where(pair & (pm >= 0), row0 + pm, flat), w["m_slot"]].set(v, mode="drop")
+    child = child.at[jnp.where(pair, flat, rm), count].set(p, mode="drop")
     parent = parent.at[row0 + p].set(jnp.where(pair, v, m))
     parent = parent.at[rv].set(pm, mode="drop")
     parent = parent.at[jnp.where(pair, rm, flat)].set(v, mode="drop")
-    box_lo = box_lo.at[rv].set(w["m_lo"], mode="drop")
-    box_hi = box_hi.at[rv].set(w["m_hi"], mode="drop")
+    # the new node of a pair gets m's box grown by b; an m that takes b as a child
+    # gets one more child (its box grows on the walk up)
+    new_count = jnp.where(pair, 2, count + 1).astype(dtype)
+    table = table.at[jnp.where(pair, rv, rm), _COUNT].set(new_count)
+    table = table.at[rv, :_AREA].set(jnp.concatenate([w["m_lo"], w["m_hi"]], axis=1), mode="drop")
+    table = table.at[rv, _AREA].set(w["m_area"], mode="drop")
     root = jnp.where(pair & (m == root), v, root)
     next_id = next_id + pair.astype(jnp.int32)
 
     # --- walk up: grow boxes until one already holds b. The first loop only reads:
-    # it lists up to _UP_LIST nodes per tree, grown after it; the second grows any
-    # further ones (rare), carrying the boxes.
+    # it lists up to _UP_LIST grown rows per tree, written after it; the second grows
+    # any further ones (rare), carrying the table.
     start = jnp.where(pair, pm, m)
 
-    def needs_growing(a, blo, bhi):
-        r = row0 + jnp.maximum(a, 0)
-        return (a >= 0) & ~_holds(blo[r], bhi[r], b_lo, b_hi)
+    def needs_growing(a, table):
+        rows = table[row0 + jnp.maximum(a, 0)]
+        return (a >= 0) & ~_holds(rows[:, :3], rows[:, 3:6], b_lo, b_hi)
+
+    def grown_rows(a, table):
+        rows = table[row0 + jnp.maximum(a, 0)]
+        u_lo, u_hi = jnp.minimum(rows[:, :3], b_lo), jnp.maximum(rows[:, 3:6], b_hi)
+        return _row(u_lo, u_hi, rows[:, _COUNT], scale)
 
     def list_cond(u):
-        return jnp.any(u[3]) & (u[2] < _UP_LIST)
+        return jnp.any(u[4]) & (u[3] < _UP_LIST)
 
     def list_body(u):
-        a, listed, steps, active = u
+        a, listed, rows, steps, active = u
         listed = listed.at[:, steps].set(jnp.where(active, row0 + a, flat))
+        rows = rows.at[:, steps].set(grown_rows(a, table))
         a = jnp.where(active, parent[row0 + jnp.maximum(a, 0)], a)
-        return a, listed, steps + 1, active & needs_growing(a, box_lo, box_hi)
+        return a, listed, rows, steps + 1, active & needs_growing(a, table)
 
     listed = jnp.full((batch, _UP_LIST), flat, jnp.int32)
-    active = needs_growing(start, box_lo, box_hi)
-    a, listed, _, active = jax.lax.while_loop(list_cond, list_body, (start, listed, jnp.int32(0), active))
-    box_lo = box_lo.at[listed].min(b_lo[:, None], mode="drop")
-    box_hi = box_hi.at[listed].max(b_hi[:, None], mode="drop")
+    rows = jnp.zeros((batch, _UP_LIST, 8), dtype)
+    active = needs_growing(start, table)
+    a, listed, rows, _, active = jax.lax.while_loop(list_cond, list_body, (start, listed, rows, jnp.int32(0), active))
+    table = table.at[listed].set(rows, mode="drop")
 
-    def grow_cond(u):
-        return jnp.any(u[4]) & (u[3] < nodes)
+    def more_cond(u):
+        return jnp.any(u[3]) & (u[2] < nodes)
 
-    def grow_body(u):
-        a, blo, bhi, steps, active = u
-        r = jnp.where(active, row0 + a, flat)
-        blo = blo.at[r].min(b_lo, mode="drop")
-        bhi = bhi.at[r].max(b_hi, mode="drop")
+    def more_body(u):
+        a, table, steps, active = u
+        table = table.at[jnp.where(active, row0 + a, flat)].set(grown_rows(a, table), mode="drop")
         a = jnp.where(active, parent[row0 + jnp.maximum(a, 0)], a)
-        return a, blo, bhi, steps + 1, active & needs_growing(a, blo, bhi)
+        return a, table, steps + 1, active & needs_growing(a, table)
 
-    _, box_lo, box_hi, _, _ = jax.lax.while_loop(grow_cond, grow_body, (a, box_lo, box_hi, jnp.int32(0), active))
-    return child, nchild, parent, box_lo, box_hi, root, next_id
+    _, table, _, _ = jax.lax.while_loop(more_cond, more_body, (a, table, jnp.int32(0), active))
+    return child, parent, table, root, next_id
 
 
 @partial(jax.jit, static_argnames=("max_children",))
@@ -346,14 +359,14 @@ def insert_batch(lo, hi, orders, n, scale, *, max_children: int = DEFAULT_MAX_CH
     dtype = lo.dtype
     one_lo = jnp.full((nodes, 3), jnp.inf, dtype).at[:cap].set(lo)
     one_hi = jnp.full((nodes, 3), -jnp.inf, dtype).at[:cap].set(hi)
-    state = (jnp.full((batch * nodes, max_children), -1, jnp.int32), jnp.zeros(batch * nodes, jnp.int32),
-             jnp.full(batch * nodes, -1, jnp.int32), jnp.tile(one_lo, (batch, 1)), jnp.tile(one_hi, (batch, 1)),
-             orders[:, 0], jnp.full(batch, n, jnp.int32))
+    one = _row(one_lo, one_hi, jnp.zeros(nodes, jnp.int32), scale)
+    state = (jnp.full((batch * nodes, max_children), -1, jnp.int32), jnp.full(batch * nodes, -1, jnp.int32),
+             jnp.tile(one, (batch, 1)), orders[:, 0], jnp.full(batch, n, jnp.int32))
 
     def body(t, s):
         return _insert(t, s, lo, hi, orders, scale, max_children, nodes)
 
-    child, _, parent, box_lo, box_hi, root, _ = jax.lax.fori_loop(1, n, body, state)
+    child, parent, table, root, _ = jax.lax.fori_loop(1, n, body, state)
     ids = jnp.arange(nodes, dtype=jnp.int32)
     is_leaf = ids < n
     prim_ids = jnp.arange(cap, dtype=jnp.int32)
@@ -361,8 +374,9 @@ def insert_batch(lo, hi, orders, n, scale, *, max_children: int = DEFAULT_MAX_CH
     def per_tree(a):
         return jnp.broadcast_to(a, (batch,) + a.shape)
 
+    table = table.reshape(batch, nodes, 8)
     trees = WideBVH(child=child.reshape(batch, nodes, max_children), parent=parent.reshape(batch, nodes),
-                    lo=box_lo.reshape(batch, nodes, 3), hi=box_hi.reshape(batch, nodes, 3),
+                    lo=table[..., :3], hi=table[..., 3:6],
                     prim_start=per_tree(jnp.where(is_leaf, ids, 0)), prim_count=per_tree(is_leaf.astype(jnp.int32)),
                     prim_index=per_tree(jnp.where(prim_ids < n, prim_ids, -1)), root=root)
     return trees, jax.vmap(goldsmith_salmon_cost)(trees)
