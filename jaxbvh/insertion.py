@@ -102,17 +102,21 @@ def _check_max_children(max_children) -> int:
     return k
 
 
-def prepare(prim_lo, prim_hi, *, pad: bool = True, dtype=None):
+def prepare(prim_lo, prim_hi, *, pad: bool = True, capacity: int | None = None, dtype=None):
     """Checked, padded device inputs for :func:`insert_batch`: ``(lo, hi, n, scale)``.
 
     ``lo``, ``hi``: [capacity, 3] with empty boxes (``+inf``, ``-inf``) past ``n``;
-    ``scale``: the scene's power-of-two area scale (module docstring).
+    ``scale``: the scene's power-of-two area scale (module docstring). The capacity is
+    ``capacity`` if given (>= n; one compile for inputs of many sizes), else the
+    capacity bucket of ``n`` (``pad=True``) or ``n``.
     """
     lo, hi = check_prim_boxes(prim_lo, prim_hi)
     dt = _working_dtype(dtype, lo.dtype)
     lo, hi = lo.astype(dt), hi.astype(dt)
     n = lo.shape[0]
-    cap = capacity_bucket(n) if pad else n
+    cap = int(capacity) if capacity is not None else (capacity_bucket(n) if pad else n)
+    if cap < n:
+        raise ValueError(f"capacity {cap} is below the {n} primitives")
     lo_p = np.full((cap, 3), np.inf, dt)
     hi_p = np.full((cap, 3), -np.inf, dt)
     lo_p[:n], hi_p[:n] = lo, hi
@@ -128,7 +132,7 @@ def pad_order(order, capacity: int) -> np.ndarray:
 
 
 def build(prim_lo, prim_hi, order=None, *, max_children: int = DEFAULT_MAX_CHILDREN,
-          pad: bool = True, dtype=None) -> WideBVH:
+          pad: bool = True, capacity: int | None = None, dtype=None) -> WideBVH:
     """Goldsmith–Salmon tree over primitive boxes, inserted in ``order``.
 
     Args:
@@ -137,6 +141,7 @@ def build(prim_lo, prim_hi, order=None, *, max_children: int = DEFAULT_MAX_CHILD
       order: permutation of ``0 .. n-1``, the insertion order (default: ``0 .. n-1``).
       max_children: most children of a node (module docstring), >= 2.
       pad: pad to a capacity bucket (fewer recompiles) or size the arrays exactly.
+      capacity: pad to exactly this many primitive slots instead (>= n).
       dtype: float32 (default) or float64 (needs x64).
 
     Returns:
@@ -144,7 +149,7 @@ def build(prim_lo, prim_hi, order=None, *, max_children: int = DEFAULT_MAX_CHILD
       (layout: module docstring); its cost is :func:`jaxbvh.goldsmith_salmon_cost`.
     """
     k = _check_max_children(max_children)
-    lo, hi, n, scale = prepare(prim_lo, prim_hi, pad=pad, dtype=dtype)
+    lo, hi, n, scale = prepare(prim_lo, prim_hi, pad=pad, capacity=capacity, dtype=dtype)
     count = int(n)
     order = np.arange(count, dtype=np.int32) if order is None else check_order(order, count)
     trees, _ = insert_batch(lo, hi, jnp.asarray(pad_order(order[None], lo.shape[0])), n, scale, max_children=k)
@@ -152,19 +157,20 @@ def build(prim_lo, prim_hi, order=None, *, max_children: int = DEFAULT_MAX_CHILD
 
 
 def build_batch(prim_lo, prim_hi, orders, *, max_children: int = DEFAULT_MAX_CHILDREN,
-                pad: bool = True, dtype=None):
-    """One tree per order, in one ``vmap``-ed call: ``(trees, costs)``.
+                pad: bool = True, capacity: int | None = None, dtype=None):
+    """One tree per order, all in one call: ``(trees, costs)``.
 
-    ``orders``: [B, n] permutations. Returns a :class:`~jaxbvh.tree.WideBVH` whose
-    arrays have a leading batch axis [B, ...] and the costs [B]
+    ``orders``: [B, n] permutations (B >= 1); other arguments as :func:`build`.
+    Returns a :class:`~jaxbvh.tree.WideBVH` whose arrays have a leading batch axis
+    [B, ...] (:func:`tree_at` picks one) and the costs [B]
     (:func:`jaxbvh.goldsmith_salmon_cost` of each tree).
     """
     k = _check_max_children(max_children)
-    lo, hi, n, scale = prepare(prim_lo, prim_hi, pad=pad, dtype=dtype)
+    lo, hi, n, scale = prepare(prim_lo, prim_hi, pad=pad, capacity=capacity, dtype=dtype)
     orders = np.asarray(orders)
-    if orders.ndim != 2:
-        raise ValueError(f"orders must be [B, n], got shape {orders.shape}")
-    checked = np.stack([check_order(o, int(n)) for o in orders]) if orders.shape[0] else orders
+    if orders.ndim != 2 or orders.shape[0] < 1:
+        raise ValueError(f"orders must be [B, n] with B >= 1, got shape {orders.shape}")
+    checked = np.stack([check_order(o, int(n)) for o in orders])
     return insert_batch(lo, hi, jnp.asarray(pad_order(checked, lo.shape[0])), n, scale, max_children=k)
 
 
