@@ -19,9 +19,10 @@ algorithm on permutations (operators after Cassen, Michalewicz & Subramanian 199
   parent's order, the second child the same with the parents' roles swapped, and the
   children replace their parents;
 * **mutation** (swap mutation, rate ``mutation = F``, default 1/500): every individual
-  but the elite makes up to ``S = max(1, ceil(4 F n))`` swaps of two distinct
-  positions, each one with probability ``F n / S``, in order — on average ``F n``
-  swaps, the paper's "about 1/500th of the length".
+  but the elite makes up to ``S`` swaps of two distinct positions drawn uniformly, each
+  one with probability ``F n / S``, in order — on average ``F n`` swaps, the paper's
+  "about 1/500th of the length" (``S = max(1, ceil(4 F capacity))``,
+  :func:`max_swaps`).
 
 A generation applies selection, crossover and mutation to the current population and
 prices the new one. Ties between costs use the relative ``TIE_TOLERANCE`` of
@@ -123,9 +124,14 @@ def check_options(population: int, generations: int, crossover: float, mutation:
         raise ValueError(f"mutation rate must be in [0, 1] (expected swaps / length), got {mutation}")
 
 
-def max_swaps(n: int, mutation: float) -> int:
-    """``S``: the swap slots per individual and generation (module docstring)."""
-    return max(1, math.ceil(4 * mutation * n))
+def max_swaps(capacity: int, mutation: float) -> int:
+    """``S``: swap slots per individual and generation for orders padded to ``capacity``.
+
+    ``S = max(1, ceil(4 F capacity))``; each slot swaps with probability ``F n / S``
+    (module docstring). Depending on the capacity, not on ``n``, it keeps the shapes
+    (and so the compiled code) the same for all meshes of one capacity bucket.
+    """
+    return max(1, math.ceil(4 * mutation * capacity))
 
 
 def generation_key(key, generation: int):
@@ -133,26 +139,35 @@ def generation_key(key, generation: int):
     return jax.random.fold_in(key, generation)
 
 
-@partial(jax.jit, static_argnames=("population", "n", "capacity"))
-def initial_population(key, population: int, n: int, capacity: int):
-    """``population`` uniformly random orders of ``0 .. n-1``, padded: int32 [P, capacity]."""
-    keys = jax.random.split(key, population)
-    orders = jax.vmap(lambda k: jax.random.permutation(k, n).astype(jnp.int32))(keys)
-    tail = jnp.broadcast_to(jnp.arange(n, capacity, dtype=jnp.int32), (population, capacity - n))
-    return jnp.concatenate([orders, tail], axis=1)
+@partial(jax.jit, static_argnames=("population", "capacity"))
+def initial_population(key, population: int, n, capacity: int):
+    """``population`` uniformly random orders of ``0 .. n-1``, padded: int32 [P, capacity].
+
+    Each order sorts the ids by 31 random bits (ties, about ``n^2 / 2^32`` of them, by
+    id); the padding ids sort last, in order.
+    """
+    ids = jnp.arange(capacity, dtype=jnp.uint32)
+
+    def one(k):
+        bits = jax.random.bits(k, (capacity,), jnp.uint32) >> 1
+        return jnp.argsort(jnp.where(ids < n, bits, jnp.uint32(2**31)), stable=True).astype(jnp.int32)
+
+    return jax.vmap(one)(jax.random.split(key, population))
 
 
-@partial(jax.jit, static_argnames=("population", "n", "swaps"))
-def generation_draws(key, population: int, n: int, swaps: int, crossover, mutation) -> Draws:
-    """The random numbers of one generation (:class:`Draws`); ``swaps`` is :func:`max_swaps`."""
+@partial(jax.jit, static_argnames=("population", "swaps"))
+def generation_draws(key, population: int, n, swaps: int, crossover, mutation) -> Draws:
+    """The random numbers of one generation (:class:`Draws`) for orders of ``n`` objects;
+    ``swaps`` is :func:`max_swaps`."""
     k_first, k_second, k_cross, k_cut, k_swap, k_a, k_b = jax.random.split(key, 7)
     others = population - 1
     pairs = others // 2
-    cut = jax.random.randint(k_cut, (pairs,), 1, max(n, 2), jnp.int32)
+    n = jnp.asarray(n, jnp.int32)
+    cut = jax.random.randint(k_cut, (pairs,), 1, jnp.maximum(n, 2), jnp.int32)
     a = jax.random.randint(k_a, (others, swaps), 0, n, jnp.int32)
-    b = jax.random.randint(k_b, (others, swaps), 0, max(n - 1, 1), jnp.int32)
+    b = jax.random.randint(k_b, (others, swaps), 0, jnp.maximum(n - 1, 1), jnp.int32)
     b = b + (b >= a)  # distinct from a
-    probability = jnp.asarray(mutation, jnp.float32) * n / swaps
+    probability = jnp.asarray(mutation, jnp.float32) * n.astype(jnp.float32) / swaps
     swap = (jax.random.uniform(k_swap, (others, swaps)) < probability) & (n >= 2)
     return Draws(first=jax.random.randint(k_first, (others,), 0, population, jnp.int32),
                  second=jax.random.randint(k_second, (others,), 0, population, jnp.int32),
@@ -227,23 +242,44 @@ def _mesh(devices, population: int):
     return jax.sharding.Mesh(np.array(devices), ("population",))
 
 
+@partial(jax.jit, static_argnames=("max_children",))
+def _costs_and_elite(lo, hi, orders, n, scale, *, max_children: int):
+    trees, costs = insertion.insert_batch(lo, hi, orders, n, scale, max_children=max_children)
+    elite = elite_index(costs)
+    return costs, insertion.tree_at(trees, elite), elite
+
+
 @functools.lru_cache(maxsize=None)
-def _sharded_costs(mesh, max_children: int):
+def _sharded_costs_and_elites(mesh, max_children: int):
     spec, whole = jax.sharding.PartitionSpec("population"), jax.sharding.PartitionSpec()
 
-    def costs(lo, hi, orders, n, scale):
-        return insertion.insert_batch(lo, hi, orders, n, scale, max_children=max_children)[1]
+    def local(lo, hi, orders, n, scale):
+        costs, tree, elite = _costs_and_elite(lo, hi, orders, n, scale, max_children=max_children)
+        return costs, jax.tree_util.tree_map(lambda a: a[None], tree), elite[None]
 
-    return jax.jit(jax.shard_map(costs, mesh=mesh, in_specs=(whole, whole, spec, whole, whole), out_specs=spec,
-                                 check_vma=False))
+    return jax.jit(jax.shard_map(local, mesh=mesh, in_specs=(whole, whole, spec, whole, whole),
+                                 out_specs=spec, check_vma=False))
 
 
 def population_costs(lo, hi, orders, n, scale, *, max_children: int, mesh=None):
-    """G&S costs [P] of the trees of ``orders`` [P, capacity] (prepared boxes:
-    :func:`jaxbvh.insertion.prepare`), one batched build, split over ``mesh`` if given."""
+    """``(costs, elite tree)``: the G&S costs [P] of the trees of ``orders`` [P, capacity]
+    (boxes prepared by :func:`jaxbvh.insertion.prepare`), built in one batched call
+    (split over ``mesh`` if given), and the tree of :func:`elite_index` ``(costs)``.
+
+    Split over devices, each device returns its own elite; the global elite is one of
+    them unless a tie within the tolerance straddles two devices, and then (None) the
+    caller builds it again.
+    """
     if mesh is None:
-        return insertion.insert_batch(lo, hi, orders, n, scale, max_children=max_children)[1]
-    return _sharded_costs(mesh, max_children)(lo, hi, orders, n, scale)
+        costs, tree, _ = _costs_and_elite(lo, hi, orders, n, scale, max_children=max_children)
+        return costs, tree
+    costs, trees, local = _sharded_costs_and_elites(mesh, max_children)(lo, hi, orders, n, scale)
+    size = orders.shape[0] // mesh.size
+    elite = int(elite_index(costs))
+    device = elite // size
+    if device * size + int(local[device]) != elite:
+        return costs, None
+    return costs, insertion.tree_at(trees, device)
 
 
 # ----------------------------------------------------------------------------------
@@ -283,10 +319,10 @@ def evolve(key, prim_lo, prim_hi, *, population: int = DEFAULT_POPULATION,
     def fitness(orders):
         return population_costs(lo, hi, orders, n_dev, scale, max_children=k, mesh=mesh)
 
-    swaps = max_swaps(n, mutation)
+    swaps = max_swaps(capacity, mutation)
 
     pop = initial_population(generation_key(key, 0), population, n, capacity)
-    costs = fitness(pop)
+    costs, elite_tree = fitness(pop)
     history = [float(jnp.min(costs))]
     random_median = float(np.median(np.asarray(costs)))
     if on_generation is not None:
@@ -294,16 +330,17 @@ def evolve(key, prim_lo, prim_hi, *, population: int = DEFAULT_POPULATION,
     for g in range(1, generations + 1):
         draws = generation_draws(generation_key(key, g), population, n, swaps, crossover, mutation)
         pop = next_population(pop, costs, draws)
-        costs = fitness(pop)
+        costs, elite_tree = fitness(pop)
         history.append(float(jnp.min(costs)))
         if on_generation is not None:
             on_generation(g, history[-1])
     best_slot = int(elite_index(costs))
     order = np.asarray(pop[best_slot, :n])
-    trees, best = insertion.insert_batch(lo, hi, pop[best_slot][None], n_dev, scale, max_children=k)
-    tree = insertion.tree_at(trees, 0)
-    jax.block_until_ready(tree)
-    return EvolveResult(order=order, tree=tree, best=float(best[0]), initial_best=history[0],
+    if elite_tree is None:  # a tie across devices: build it again
+        trees, _ = insertion.insert_batch(lo, hi, pop[best_slot][None], n_dev, scale, max_children=k)
+        elite_tree = insertion.tree_at(trees, 0)
+    jax.block_until_ready(elite_tree)
+    return EvolveResult(order=order, tree=elite_tree, best=float(costs[best_slot]), initial_best=history[0],
                         random_median=random_median, history=np.asarray(history),
                         population=np.asarray(pop)[:, :n], costs=np.asarray(costs),
                         seconds=time.perf_counter() - start)
@@ -322,12 +359,13 @@ def ray_costs(key, trees, triangles, *, rays: int = 10000, mode: str = "any", ba
     ``key``; ``mode``: ``"any"`` (shadow rays, as in the paper) or ``"closest"``.
     Returns float64 [len(trees)].
     """
-    from jaxbvh.rays import make_rays, trace
+    from jaxbvh.rays import make_rays, stack_capacity, trace
 
     trees = list(trees)
     origin, direction = make_rays(key, "random", trees[0], triangles, rays)
+    capacity = max(stack_capacity(tree) for tree in trees)  # one compile for all trees
     out = []
     for tree in trees:
-        hits = trace(tree, triangles, origin, direction, mode=mode, batch=batch)
+        hits = trace(tree, triangles, origin, direction, mode=mode, batch=batch, capacity=capacity)
         out.append(float(np.mean(hits.box_tests.astype(np.float64) + hits.prim_tests)))
     return np.asarray(out)
