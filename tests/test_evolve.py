@@ -59,11 +59,10 @@ def test_run_equals_reference_generation_by_generation(seed, n, crossover, mutat
     key = jax.random.key(seed)
     generations = 3
     result = evolve.evolve(key, lo, hi, population=P, generations=generations, crossover=crossover,
-                           mutation=mutation, max_children=4)
+                           mutation=mutation)
     capacity = insertion.capacity_bucket(n)
     start = np.asarray(evolve.initial_population(evolve.generation_key(key, 0), P, n, capacity))[:, :n]
-    populations, costs = ref.evolve(lo, hi, start, draws_of(key, n, generations, crossover, mutation),
-                                    max_children=4)
+    populations, costs = ref.evolve(lo, hi, start, draws_of(key, n, generations, crossover, mutation))
     np.testing.assert_array_equal(np.asarray(populations[-1]), result.population)
     np.testing.assert_allclose(costs[-1], result.costs, rtol=1e-5)
     np.testing.assert_allclose([min(c) for c in costs], result.history, rtol=1e-5)
@@ -220,6 +219,8 @@ def test_ray_costs_use_the_same_rays_for_every_tree():
     orders = np.stack([np.random.default_rng(s).permutation(200) for s in range(2)])
     trees, costs = insertion.build_batch(lo, hi, orders)
     trees = [insertion.tree_at(trees, i) for i in range(2)]
+    for tree in trees:  # a piece of a real mesh (wide traversal itself: tests/test_rays.py)
+        jaxbvh.validate(tree, lo, hi)
     key = jax.random.key(1)
     measured = evolve.ray_costs(key, trees + trees[:1], tri, rays=300)
     assert measured[0] == measured[2]  # same tree, same rays

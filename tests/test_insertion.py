@@ -50,7 +50,7 @@ def order_of(seed, n):
 
 
 @settings(max_examples=40, **SETTINGS)
-@given(data=box_sets(max_size=CAP), seed=st.integers(0, 2**31), max_children=st.sampled_from([2, 3, 16]))
+@given(data=box_sets(max_size=CAP), seed=st.integers(0, 2**31), max_children=st.sampled_from([2, 3, 8]))
 def test_jax_build_equals_reference_node_by_node(data, seed, max_children):
     lo, hi = data
     order = order_of(seed, lo.shape[0])
@@ -78,7 +78,7 @@ def test_extreme_and_degenerate_soups(tri, seed):
 
 
 @settings(max_examples=20, **SETTINGS)
-@given(data=box_sets(min_size=2, max_size=30), seed=st.integers(0, 2**31), max_children=st.sampled_from([2, 16]))
+@given(data=box_sets(min_size=2, max_size=30), seed=st.integers(0, 2**31), max_children=st.sampled_from([2, 8]))
 def test_insertion_costs_add_up_to_the_tree_cost(data, seed, max_children):
     """The candidate costs are exact: the increases chosen sum to sum(area x children)."""
     lo, hi = (a.astype(np.float64) for a in data)
@@ -125,8 +125,9 @@ def test_arity_cap_two_makes_a_binary_tree():
     jaxbvh.validate(tree, lo, lo + 1)
     arity = (np.asarray(tree.child) >= 0).sum(axis=1)
     assert set(arity[arity > 0].tolist()) == {2}
-    wide = insertion.build(lo, lo + 1, rng.permutation(20), max_children=16, capacity=CAP)
-    assert (np.asarray(wide.child) >= 0).sum(axis=1).max() == 16  # the cap binds
+    wide = insertion.build(lo, lo + 1, rng.permutation(20), max_children=3, capacity=CAP)
+    arity = (np.asarray(wide.child) >= 0).sum(axis=1)
+    assert arity.max() == 3 and (arity == 3).sum() > 3  # the cap binds, again and again
 
 
 def test_one_and_two_primitives():
@@ -173,29 +174,6 @@ def test_one_compile_per_capacity_bucket():
         lo = rng.uniform(0, 1, (n, 3)).astype(np.float32)
         insertion.build(lo, lo + 0.1, rng.permutation(n))
     assert insertion.insert_batch._cache_size() - before <= 1
-
-
-def test_mesh_piece_is_valid_and_wide_traversal_finds_every_closest_hit():
-    from jaxbvh.io import bundled_mesh_path, load_mesh
-    from jaxbvh.rays import closest_hit, moller_trumbore, random_rays
-
-    mesh = load_mesh(bundled_mesh_path())
-    lo, hi = mesh.local_boxes()
-    keep = np.argsort(((lo + hi) / 2)[:, 0])[:300]  # a slice of the cow
-    lo, hi, tri = lo[keep], hi[keep], mesh.local_triangles()[keep]
-    tree = insertion.build(lo, hi, np.random.default_rng(3).permutation(300))
-    jaxbvh.validate(tree, lo, hi)
-    origin, direction = (np.asarray(a) for a in random_rays(jax.random.key(0), lo.min(0), hi.max(0), 256))
-    hits = closest_hit(tree, tri, origin, direction)
-    # brute force: every ray against every triangle
-    t, _, _ = moller_trumbore(tri[None, :, 0], tri[None, :, 1], tri[None, :, 2], origin[:, None], direction[:, None])
-    t = np.where(np.asarray(t) > 0, np.asarray(t), np.inf)
-    best = t.min(axis=1)
-    np.testing.assert_array_equal(np.isfinite(hits.t), np.isfinite(best))
-    found = np.isfinite(best)
-    assert found.sum() > 10  # a slice of a surface: most random rays miss it
-    np.testing.assert_allclose(hits.t[found], best[found], rtol=1e-5)  # one ulp: fused multiply-adds
-    np.testing.assert_allclose(t[found, hits.prim[found]], best[found], rtol=1e-5)
 
 
 def test_bad_input_is_refused_with_a_clear_error():
