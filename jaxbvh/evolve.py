@@ -98,7 +98,8 @@ class EvolveResult:
     ``random_median``: the median cost of generation 0 (P uniformly random orders);
     ``history`` [G + 1]: the best cost of every generation (0 .. G);
     ``population`` [P, n], ``costs`` [P]: the last generation; ``seconds``: wall time
-    of the whole run (compiling included).
+    of the whole run (compiling included); ``elites`` [G + 1, n]: the best order of
+    every generation (``keep_elites=True``), else None.
     """
 
     order: np.ndarray
@@ -110,6 +111,7 @@ class EvolveResult:
     population: np.ndarray
     costs: np.ndarray
     seconds: float
+    elites: np.ndarray | None = None
 
 
 def check_options(population: int, generations: int, crossover: float, mutation: float) -> None:
@@ -291,7 +293,8 @@ def evolve(key, prim_lo, prim_hi, *, population: int = DEFAULT_POPULATION,
            generations: int = DEFAULT_GENERATIONS, crossover: float = DEFAULT_CROSSOVER,
            mutation: float = DEFAULT_MUTATION, max_children: int = insertion.DEFAULT_MAX_CHILDREN,
            devices=None, dtype=None,
-           on_generation: Callable[[int, float], None] | None = None) -> EvolveResult:
+           on_generation: Callable[[int, float], None] | None = None,
+           keep_elites: bool = False) -> EvolveResult:
     """Search insertion orders of ``prim_lo``, ``prim_hi`` [n, 3] with the genetic algorithm.
 
     Args:
@@ -305,6 +308,7 @@ def evolve(key, prim_lo, prim_hi, *, population: int = DEFAULT_POPULATION,
       dtype: float32 (default) or float64 (needs x64).
       on_generation: called as ``on_generation(g, best_cost)`` after each generation
         (g = 0 .. G), e.g. for a progress bar.
+      keep_elites: also return the best order of every generation (``elites``).
 
     Returns:
       :class:`EvolveResult`.
@@ -324,6 +328,7 @@ def evolve(key, prim_lo, prim_hi, *, population: int = DEFAULT_POPULATION,
     pop = initial_population(generation_key(key, 0), population, n, capacity)
     costs, elite_tree = fitness(pop)
     history = [float(jnp.min(costs))]
+    elites = [np.asarray(pop[elite_index(costs), :n])] if keep_elites else None
     random_median = float(np.median(np.asarray(costs)))
     if on_generation is not None:
         on_generation(0, history[0])
@@ -332,6 +337,8 @@ def evolve(key, prim_lo, prim_hi, *, population: int = DEFAULT_POPULATION,
         pop = next_population(pop, costs, draws)
         costs, elite_tree = fitness(pop)
         history.append(float(jnp.min(costs)))
+        if keep_elites:
+            elites.append(np.asarray(pop[elite_index(costs), :n]))
         if on_generation is not None:
             on_generation(g, history[-1])
     best_slot = int(elite_index(costs))
@@ -343,6 +350,7 @@ def evolve(key, prim_lo, prim_hi, *, population: int = DEFAULT_POPULATION,
     return EvolveResult(order=order, tree=elite_tree, best=float(costs[best_slot]), initial_best=history[0],
                         random_median=random_median, history=np.asarray(history),
                         population=np.asarray(pop)[:, :n], costs=np.asarray(costs),
+                        elites=np.stack(elites) if keep_elites else None,
                         seconds=time.perf_counter() - start)
 
 

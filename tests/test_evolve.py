@@ -138,13 +138,15 @@ def test_run_bookkeeping_and_reproducibility():
     lo, hi = boxes(4, 20)
     seen = []
     result = evolve.evolve(jax.random.key(3), lo, hi, population=P, generations=6, mutation=0.1,
-                           on_generation=lambda g, best: seen.append((g, best)))
+                           on_generation=lambda g, best: seen.append((g, best)), keep_elites=True)
     assert [g for g, _ in seen] == list(range(7))
     assert np.allclose([b for _, b in seen], result.history)
     assert (np.diff(result.history) <= 0).all()  # the elite survives
     assert result.best == result.history[-1] == pytest.approx(result.costs.min())
     assert result.initial_best == result.history[0] and result.best <= result.random_median
     assert sorted(result.order.tolist()) == list(range(20))
+    assert result.elites.shape == (7, 20) and (result.elites[-1] == result.order).all()
+    np.testing.assert_allclose([ref.fitness(lo, hi, e) for e in result.elites], result.history, rtol=1e-5)
     jaxbvh.validate(result.tree, lo, hi)
     assert float(jaxbvh.goldsmith_salmon_cost(result.tree)) == pytest.approx(result.best, rel=1e-6)
     rebuilt = ref_insertion.build(lo, hi, result.order, max_children=insertion.DEFAULT_MAX_CHILDREN)
