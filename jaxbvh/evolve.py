@@ -314,7 +314,7 @@ def evolve(key, prim_lo, prim_hi, *, population: int = DEFAULT_POPULATION,
       :class:`EvolveResult`.
     """
     check_options(population, generations, crossover, mutation)
-    k = insertion._check_max_children(max_children)
+    k = insertion.check_max_children(max_children)
     start = time.perf_counter()
     lo, hi, n_dev, scale = insertion.prepare(prim_lo, prim_hi, dtype=dtype)
     n, capacity = int(n_dev), int(lo.shape[0])

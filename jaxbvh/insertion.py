@@ -3,6 +3,19 @@
 Goldsmith & Salmon (1987), as Ng & Trifonov (2003, §4) use it to price an insertion
 order. The tree is not binary: an interior node has 2 to ``max_children`` children.
 
+Sources. The 1987 paper itself was not at hand; the algorithm below follows Ng and
+Trifonov's description ("searched top down without backtracking, every time choosing a
+subtree ... that will have a minimal increase in cost ... [which] depends on the
+surface area, increase in surface area in case of addition, and number of children, for
+the node and its ancestors"), Ericson's account (*Real-Time Collision Detection* §6.2.3.1:
+an object becomes a new child of a node, ``d = k (A' - A) + A'``; or is paired with a
+node under a new parent, ``d = 2 A'``; or goes lower, ``d = k (A' - A)``; the least
+expensive option wins; ties by the nearest centre or at random) and Haines's 1988
+summary (Ray Tracing News). Where they leave room we chose: pairing is offered with the
+leaf the walk ends at (not with interior nodes on the way), the child to descend into is
+the one whose own cost term grows least (``rise`` below), and Haines's later
+improvement (trying both options at every child) is not used.
+
 Cost
 ====
 A ray that hits a node's box tests all of the node's children, and it hits a box with
@@ -94,7 +107,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxbvh.build import TIE_TOLERANCE, _working_dtype, check_prim_boxes, scene_scale
+from jaxbvh.build import TIE_TOLERANCE, check_prim_boxes, scene_scale
 from jaxbvh.cost import goldsmith_salmon_cost, half_area
 from jaxbvh.tree import WideBVH, capacity_bucket
 
@@ -111,7 +124,20 @@ def check_order(order, n: int) -> np.ndarray:
     return a.astype(np.int32)
 
 
-def _check_max_children(max_children) -> int:
+def _working_dtype(dtype, given) -> np.dtype:
+    """float32, or float64 when asked for (or given float64 boxes) and x64 is on."""
+    x64 = jax.config.jax_enable_x64
+    if dtype is None:
+        return np.dtype(np.float64) if (given == np.float64 and x64) else np.dtype(np.float32)
+    dtype = np.dtype(dtype)
+    if dtype not in (np.float32, np.float64):
+        raise ValueError(f"dtype must be float32 or float64, got {dtype}")
+    if dtype == np.float64 and not x64:
+        raise ValueError("dtype float64 needs JAX's x64 mode: jax.config.update('jax_enable_x64', True)")
+    return dtype
+
+
+def check_max_children(max_children) -> int:
     k = int(max_children)
     if k < 2:
         raise ValueError(f"max_children must be >= 2, got {max_children}")
@@ -164,7 +190,7 @@ def build(prim_lo, prim_hi, order=None, *, max_children: int = DEFAULT_MAX_CHILD
       A :class:`~jaxbvh.tree.WideBVH` of JAX arrays, child [2 * capacity, max_children]
       (layout: module docstring); its cost is :func:`jaxbvh.goldsmith_salmon_cost`.
     """
-    k = _check_max_children(max_children)
+    k = check_max_children(max_children)
     lo, hi, n, scale = prepare(prim_lo, prim_hi, pad=pad, capacity=capacity, dtype=dtype)
     count = int(n)
     order = np.arange(count, dtype=np.int32) if order is None else check_order(order, count)
@@ -181,7 +207,7 @@ def build_batch(prim_lo, prim_hi, orders, *, max_children: int = DEFAULT_MAX_CHI
     [B, ...] (:func:`tree_at` picks one) and the costs [B]
     (:func:`jaxbvh.goldsmith_salmon_cost` of each tree).
     """
-    k = _check_max_children(max_children)
+    k = check_max_children(max_children)
     lo, hi, n, scale = prepare(prim_lo, prim_hi, pad=pad, capacity=capacity, dtype=dtype)
     orders = np.asarray(orders)
     if orders.ndim != 2 or orders.shape[0] < 1:
