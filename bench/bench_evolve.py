@@ -94,20 +94,42 @@ def insertion_rows(args):
     return rows
 
 
-def generation_row(args):
-    """Seconds per GA generation (selection + operators + pricing P orders), warm."""
-    lo, hi = piece(*load("stanford-bunny.obj"), args.piece_small)
+def generation_seconds(count, population, generations):
+    """``(wall, CPU)`` median seconds per warm GA generation on the bunny piece of ``count``."""
+    lo, hi = piece(*load("stanford-bunny.obj"), count)
     ticks = []
-
-    def tick(g, best):
-        ticks.append((time.perf_counter(), time.process_time()))
-
-    evolve.evolve(jax.random.key(0), lo, hi, population=args.population, generations=args.repeat + 2,
-                  on_generation=tick)
+    evolve.evolve(jax.random.key(0), lo, hi, population=population, generations=generations + 2,
+                  on_generation=lambda g, best: ticks.append((time.perf_counter(), time.process_time())))
     walls = np.diff([w for w, _ in ticks])[2:]  # generations 3 .. : compiled, warm
     cpus = np.diff([c for _, c in ticks])[2:]
-    row = {"input": f"bunny piece {lo.shape[0]:,}", "population": args.population,
-           "seconds_per_generation": float(np.median(walls)), "cpu_seconds_per_generation": float(np.median(cpus))}
+    return float(np.median(walls)), float(np.median(cpus))
+
+
+_PINNED = """
+import os, sys, json
+os.sched_setaffinity(0, {{min(os.sched_getaffinity(0))}})  # before JAX starts its threads
+sys.path.insert(0, {bench!r})
+import bench_evolve
+print("RESULT" + json.dumps(bench_evolve.generation_seconds({count}, {population}, {generations})))
+"""
+
+
+def generation_row(args):
+    """Seconds per GA generation (selection + operators + pricing P orders), warm; also in a
+    process confined to one core, where XLA's second thread does not compete with others."""
+    import subprocess
+
+    wall, cpu = generation_seconds(args.piece_small, args.population, args.repeat)
+    row = {"input": f"bunny piece {args.piece_small:,}", "population": args.population,
+           "seconds_per_generation": wall, "cpu_seconds_per_generation": cpu}
+    if hasattr(os, "sched_setaffinity"):
+        code = _PINNED.format(bench=str(ROOT / "bench"), count=args.piece_small, population=args.population,
+                              generations=args.repeat)
+        proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=1200)
+        lines = [line for line in proc.stdout.splitlines() if line.startswith("RESULT")]
+        if proc.returncode == 0 and lines:
+            row["one_core_seconds_per_generation"], row["one_core_cpu_seconds_per_generation"] = \
+                json.loads(lines[-1][6:])
     print(json.dumps(row), flush=True)
     return row
 
@@ -156,7 +178,10 @@ def write(meta, inserts, generation, runs):
     g = generation
     lines += ["", "## One GA generation", "",
               f"{g['input']}, population {g['population']}: {g['seconds_per_generation']:.3f} s per generation "
-              f"({g['cpu_seconds_per_generation']:.3f} CPU s).", "",
+              f"({g['cpu_seconds_per_generation']:.3f} CPU s)"
+              + (f"; in a process confined to one core: {g['one_core_seconds_per_generation']:.3f} s "
+                 f"({g['one_core_cpu_seconds_per_generation']:.3f} CPU s)" if "one_core_seconds_per_generation" in g
+                 else "") + ".", "",
               "## GA: best cost vs generations x population", "",
               "Seconds from the priced first generation; the sweep builder's binary tree is priced by the same "
               "G&S cost.", "",
