@@ -169,7 +169,8 @@ def write(meta, inserts, generation, runs):
              f"{meta['args']['repeat']}; CPU s is the process's CPU time over the same calls. "
              f"max_children = {insertion.DEFAULT_MAX_CHILDREN}.", "",
              "## Insertion build (one random order)", "",
-             "| input | triangles | seconds | CPU s | compile s | NumPy reference s | G&S cost | sweep builder G&S cost |",
+             "| input | triangles | seconds | CPU s | compile s | NumPy reference s | G&S cost "
+             "| sweep builder G&S cost |",
              "|---|---|---|---|---|---|---|---|"]
     for r in inserts:
         ref = f"{r['reference_seconds']:.1f}" if "reference_seconds" in r else "-"
