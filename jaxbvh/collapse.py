@@ -87,7 +87,7 @@ from jaxbvh.tree import BVH, WideBVH, to_jax
 METHODS = ("greedy", "dp", "qbvh")
 DEFAULT_MAX_CHILDREN = 8
 MAX_CHILDREN_LIMIT = 64  # choices are stored as int8; tables are [nodes, K + 1]
-WIDTHS = (4096, 128)     # window sizes of the level sweeps (speed only)
+WIDTHS = (4096,)  # window size of the level sweeps (speed only; each size is one more compiled step)
 
 
 def node_test_cost(simd_width: int = 0) -> Callable:
@@ -202,15 +202,8 @@ def _links(tree):
 
 
 def _schedule(tree):
-    left, right, interior, real = _links(tree)
-    depth = lv.depths(tree.parent, real)
-    return lv.level_order(depth, interior, WIDTHS), depth
-
-
-def _window(levels, start, valid):
-    n = levels.position.shape[0]
-    nodes = jax.lax.dynamic_slice(levels.order, (start,), (valid.shape[0],))
-    return jnp.where(valid, nodes, n)
+    left, right, interior, _ = _links(tree)
+    return lv.level_order(left, right, tree.root, interior, WIDTHS)
 
 
 def _layout(tree, levels, kept):
@@ -224,7 +217,7 @@ def _layout(tree, levels, kept):
     left, right, _, _ = _links(tree)
 
     def count_up(e, start, valid):
-        x = _window(levels, start, valid)
+        x = levels.window(start, valid)
         total = _take(e, left[jnp.minimum(x, n - 1)], 0) + _take(e, right[jnp.minimum(x, n - 1)], 0)
         return e.at[x].set(jnp.where(_take(kept, x, True), 1, total), mode="drop")
 
@@ -232,7 +225,7 @@ def _layout(tree, levels, kept):
 
     def place_down(state, start, valid):
         anchor, slot = state
-        x = _window(levels, start, valid)
+        x = levels.window(start, valid)
         xs = jnp.minimum(x, n - 1)
         keep_x = kept[xs]
         base = jnp.where(keep_x, 0, slot[xs])
@@ -297,9 +290,9 @@ def _check_k(max_children, what="max_children") -> int:
 
 @jax.jit
 def _qbvh_decide(tree):
-    levels, depth = _schedule(tree)
+    levels = _schedule(tree)
     _, _, interior, real = _links(tree)
-    kept = real & ~(interior & (depth % 2 == 1))
+    kept = real & ~(interior & (lv.depth_of(levels) % 2 == 1))
     anchor, slot = _layout(tree, levels, kept)
     return kept, anchor, slot
 
@@ -314,7 +307,7 @@ def qbvh(tree, test_cost: Callable | None = None) -> CollapseResult:
 @partial(jax.jit, static_argnames=("max_children",))
 def _greedy_decide(tree, *, max_children):
     n = tree.left.shape[0]
-    levels, _ = _schedule(tree)
+    levels = _schedule(tree)
     left, right, interior, real = _links(tree)
     a = relative_areas(tree.lo, tree.hi, tree.root)
     one = jnp.asarray(1 - TIE_TOLERANCE, a.dtype)
@@ -325,7 +318,7 @@ def _greedy_decide(tree, *, max_children):
     if max_children is None:
         def step(state, start, valid):
             kept, anchor = state
-            x = _window(levels, start, valid)
+            x = levels.window(start, valid)
             xs = jnp.minimum(x, n - 1)
             owner = jnp.where(kept[xs], xs, anchor[xs])
             for c in (jnp.where(x < n, left[xs], n), jnp.where(x < n, right[xs], n)):
@@ -339,7 +332,7 @@ def _greedy_decide(tree, *, max_children):
         q_len = 2 * k - 2  # pops of one pushup: 2 + 2 per collapse, at most k - 2 collapses
 
         def step(kept, start, valid):
-            x = _window(levels, start, valid)
+            x = levels.window(start, valid)
             xs = jnp.minimum(x, n - 1)
             w = x.shape[0]
             active = (x < n) & kept[xs]
@@ -376,13 +369,14 @@ def _greedy_decide(tree, *, max_children):
 def greedy(tree, *, max_children: int | None = None, test_cost: Callable | None = None) -> CollapseResult:
     """Pinto's greedy top-down pushup (Algorithm 2); see the module docstring.
 
-    ``max_children``: None (the paper: no limit; the output is as wide as the widest
-    node) or ``K`` in [2, 64]. ``test_cost`` only prices the result (``rcost``).
+    ``max_children``: None (the paper: no limit; ``child`` is then [N, k] with ``k`` the
+    widest node's children rounded up to a power of two, at least 4) or ``K`` in [2, 64]. ``test_cost`` only prices the result (``rcost``).
     """
     t = _binary_input(tree)
     k = None if max_children is None else _check_k(max_children)
     kept, anchor, slot, width = _greedy_decide(t, max_children=k)
-    arity = k if k is not None else max(2, int(width))
+    # no limit: as wide as the widest node, rounded up to a power of two (fewer compiles)
+    arity = k if k is not None else 1 << max(2, (int(width) - 1).bit_length())
     return _finish(t, kept, anchor, slot, arity, cost_table(test_cost, arity))
 
 
@@ -391,24 +385,34 @@ def greedy(tree, *, max_children: int | None = None, test_cost: Callable | None 
 # ----------------------------------------------------------------------------------
 
 
-def _first_near_min(values):
-    """First index along the last axis within ``TIE_TOLERANCE`` of the minimum, and its value."""
-    best = jnp.min(values, axis=-1, keepdims=True)
-    near = values <= best * (1 + TIE_TOLERANCE)
-    idx = jnp.argmax(near, axis=-1)
-    return idx, jnp.take_along_axis(values, idx[..., None], axis=-1)[..., 0]
+def _first_near_min(candidates):
+    """Tie rule over a list of candidate arrays: ``(index, value)`` of the first within
+    ``TIE_TOLERANCE`` of the least (elementwise; unrolled, so XLA fuses it into one loop)."""
+    best = candidates[0]
+    for c in candidates[1:]:
+        best = jnp.minimum(best, c)
+    near = best * (1 + TIE_TOLERANCE)
+    index = jnp.zeros(best.shape, jnp.int32)
+    value = candidates[-1]
+    for i in range(len(candidates) - 1, -1, -1):  # the last assignment is the first candidate
+        take = candidates[i] <= near
+        index = jnp.where(take, i, index)
+        value = jnp.where(take, candidates[i], value)
+    return index, value
 
 
 def _min_plus(gl, gr):
-    """``h[t] = g_L[i] + g_R[t - i]`` at the first near-least ``i``; ``(h, i)`` [W, K+1]."""
-    w, k1 = gl.shape
-    inf = jnp.full((w, 1), jnp.inf, gl.dtype)
-    rows = []
-    for i in range(1, k1 - 1):  # g[0] = inf, so t - i >= 1 wherever a sum is finite
-        shifted = jnp.concatenate([jnp.broadcast_to(inf, (w, i)), gr[:, :k1 - i]], axis=1)
-        rows.append(gl[:, i:i + 1] + shifted)
-    cand = jnp.stack(rows, axis=-1)  # [W, K+1 (t), K-1 (i - 1)]
-    idx, h = _first_near_min(cand)
+    """``h[t] = g_L[i] + g_R[t - i]`` at the first near-least ``i``: ``(h, i)`` [K+1, W].
+
+    Tables are [K+1, W] (one row per ``t``), so shifting ``g_R`` by ``i`` is a slice of
+    whole rows; ``g[0] = inf`` makes every sum with ``t - i < 1`` infinite.
+    """
+    k1, w = gl.shape
+    cands = []
+    for i in range(1, k1 - 1):
+        shifted = jnp.concatenate([jnp.full((i, w), jnp.inf, gl.dtype), gr[:k1 - i]], axis=0)
+        cands.append(gl[i][None, :] + shifted)
+    idx, h = _first_near_min(cands)
     return h, (idx + 1).astype(jnp.int8)
 
 
@@ -416,7 +420,7 @@ def _min_plus(gl, gr):
 def _optimal_decide(tree, table, ci, max_leaf, *, max_children, merge):
     n = tree.left.shape[0]
     k = max_children
-    levels, _ = _schedule(tree)
+    levels = _schedule(tree)
     left, right, interior, real = _links(tree)
     a = relative_areas(tree.lo, tree.hi, tree.root)
     dtype = a.dtype
@@ -425,59 +429,58 @@ def _optimal_decide(tree, table, ci, max_leaf, *, max_children, merge):
     rows_total = levels.order.shape[0]
     is_leaf = tree.prim_count > 0
     leaf_value = (a * ci * tree.prim_count.astype(dtype)) if merge else jnp.zeros(n, dtype)
+    t_index = jnp.arange(k + 1)[:, None]
 
     def child_table(g, prims, c):
-        """Rows of the children ``c`` [W]: a leaf's from its cost, others from ``g``."""
+        """Tables [K+1, W] of the children ``c`` [W]: a leaf's from its cost, others from ``g``."""
         pos = _take(levels.position, c, rows_total)
         leaf = _take(is_leaf, c, False)
-        stored = _take(g, pos, jnp.inf)
-        leaf_row = jnp.full_like(stored, jnp.inf).at[:, 1].set(_take(leaf_value, c, 0))
+        stored = jnp.take(g, pos, axis=1, mode="fill", fill_value=jnp.inf)
+        leaf_table = jnp.where(t_index == 1, _take(leaf_value, c, 0)[None, :], jnp.inf)
         count = jnp.where(leaf, _take(tree.prim_count, c, 0), _take(prims, pos, 0))
-        return jnp.where(leaf[:, None], leaf_row, stored), count
+        return jnp.where(leaf[None, :], leaf_table, stored), count
 
     def solve(state, start, valid):
         g, choice, split, prims = state
-        x = _window(levels, start, valid)
+        x = levels.window(start, valid)
         xs = jnp.minimum(x, n - 1)
         gl, pl = child_table(g, prims, left[xs])
         gr, pr = child_table(g, prims, right[xs])
         h, i_best = _min_plus(gl, gr)
-        kept_cost = a[xs][:, None] * table[None, :] + h
-        kept_cost = jnp.where(jnp.arange(k + 1) >= 2, kept_cost, jnp.inf)
-        t_best, value = _first_near_min(kept_cost)
+        t_best, value = _first_near_min([a[xs] * table[t] + h[t] for t in range(2, k + 1)])
+        t_best = t_best + 2
         count = pl + pr
         if merge:
             as_leaf = jnp.where(count <= max_leaf, a[xs] * ci * count.astype(dtype), jnp.inf)
             make_leaf = value > as_leaf * (1 + TIE_TOLERANCE)
             t_best = jnp.where(make_leaf, 0, t_best)
             value = jnp.where(make_leaf, as_leaf, value)
-        row = h.at[:, 1].set(value)
-        g = jax.lax.dynamic_update_slice(g, row, (start, 0))
+        g = jax.lax.dynamic_update_slice(g, h.at[1].set(value), (jnp.int32(0), start))
         choice = jax.lax.dynamic_update_slice(choice, t_best.astype(jnp.int8), (start,))
-        split = jax.lax.dynamic_update_slice(split, i_best, (start, 0))
+        split = jax.lax.dynamic_update_slice(split, i_best, (jnp.int32(0), start))
         prims = jax.lax.dynamic_update_slice(prims, count, (start,))
         return g, choice, split, prims
 
-    state = (jnp.full((rows_total, k + 1), jnp.inf, dtype), jnp.zeros(rows_total, jnp.int8),
-             jnp.zeros((rows_total, k + 1), jnp.int8), jnp.zeros(rows_total, jnp.int32))
+    state = (jnp.full((k + 1, rows_total), jnp.inf, dtype), jnp.zeros(rows_total, jnp.int8),
+             jnp.zeros((k + 1, rows_total), jnp.int8), jnp.zeros(rows_total, jnp.int32))
     g, choice, split, prims = lv.sweep_up(levels, solve, state)
     root_pos = levels.position[tree.root]
-    objective = jnp.where(interior[tree.root], _take(g, root_pos, jnp.inf)[1], leaf_value[tree.root])
+    objective = jnp.where(interior[tree.root], _take(g[1], root_pos, jnp.inf), leaf_value[tree.root])
 
     # back-tracking: tau[n] = entry points n gives its anchor (1: kept, 0: inside a new leaf)
     def back(state, start, valid):
         tau, anchor, slot, owner = state
-        x = _window(levels, start, valid)
+        x = levels.window(start, valid)
         xs = jnp.minimum(x, n - 1)
         live = x < n
         tau_x = tau[xs]
         keep_x = tau_x == 1
         ch = jax.lax.dynamic_slice(choice, (start,), (x.shape[0],)).astype(jnp.int32)
-        sp = jax.lax.dynamic_slice(split, (start, 0), (x.shape[0], k + 1)).astype(jnp.int32)
+        sp = jax.lax.dynamic_slice(split, (jnp.int32(0), start), (k + 1, x.shape[0])).astype(jnp.int32)
         becomes_leaf = keep_x & (ch == 0)
         inside = tau_x == 0
         entries = jnp.where(keep_x, ch, tau_x)
-        i = jnp.take_along_axis(sp, jnp.clip(entries, 0, k)[:, None], axis=1)[:, 0]
+        i = jnp.take_along_axis(sp, jnp.clip(entries, 0, k)[None, :], axis=0)[0]
         gone = inside | becomes_leaf
         l, r = jnp.where(live, left[xs], n), jnp.where(live, right[xs], n)
         tau = tau.at[l].set(jnp.where(gone, 0, i), mode="drop").at[r].set(jnp.where(gone, 0, entries - i), mode="drop")

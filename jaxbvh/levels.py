@@ -1,27 +1,32 @@
-"""Level-by-level sweeps over a tree: nodes grouped by depth, processed in windows (jitted).
+"""Level-by-level sweeps over a binary tree: nodes in breadth-first order, processed in windows.
 
 Many tree algorithms are one recurrence over parents and children: a node's value from
-its children's (bottom-up), or a node's value from its parent's (top-down). Nodes of
-equal depth never depend on each other, so a sweep can process a whole depth at once.
-This module provides that schedule for any tree of the layout in :mod:`jaxbvh.tree`:
+its children's (bottom-up), or from its parent's (top-down). Nodes of equal depth never
+depend on each other, so a sweep can process a whole depth (a *level*) at once. This
+module provides that schedule for any binary tree of the layout in :mod:`jaxbvh.tree`
+(any node order, any root), for the nodes of interest: the interior nodes.
 
-1. :func:`depths` — the depth of every node by pointer jumping over ``parent``
-   (``ceil(log2(height)) + 1`` rounds of one gather each, never more than
-   ``bit_length(N) + 1``, whatever the node order).
-2. :func:`level_order` — the chosen nodes (usually the interior ones) sorted deepest
-   first: ``order`` [N + width] int32 (node ids, ``N`` past the end) and ``keys``
-   [N + width] (``max_depth - depth``, ascending; huge past the end). A node's
-   children always sit at earlier positions than the node.
-3. :func:`sweep_up` / :func:`sweep_down` — call ``step(carry, start, valid)`` on windows
-   ``[start, start + W)`` of positions, deepest level first (up) or shallowest first
-   (down). A window never mixes two levels: ``valid`` [W] bool masks positions outside
-   the current level. Levels with many nodes go through windows of the largest size in
-   ``widths`` while that many remain, then the next size down, so the work is about the
-   number of nodes plus (levels x smallest width), not nodes x levels.
+Schedule (:func:`level_order`). The interior nodes in breadth-first order: the root's
+level first, each level's nodes followed by their interior children, left child before
+right, in the order of their parents. ``order`` holds them at *positions*
+``[pad, pad + count)`` (``pad`` = the largest window; ``N`` = no node elsewhere) and
+``starts[d]`` is the first position of level ``d`` (``starts[levels]`` the end). It is
+built by a top-down sweep of its own: a window of a level's nodes places their interior
+children after the children already placed, with a prefix count. No sort: the work is
+a few gathers and scatters per node, whatever the node ids are.
 
-Arrays a step writes by *position* (``jax.lax.dynamic_update_slice`` at ``start``) need
-``N + max(widths)`` rows (``levels.order.shape[0]``): a window at the end of a level may reach past it (masked), and
-in a bottom-up sweep the positions it overwrites belong to levels not processed yet.
+Sweeps (:func:`sweep_down`, :func:`sweep_up`) call ``step(carry, start, valid)`` on
+windows ``[start, start + W)`` of positions of one level (``valid`` [W] bool masks the
+positions outside it), root level first or deepest level first. A level with many
+nodes goes through windows of the largest size in ``widths`` while that many remain,
+then the next size down; so the work is about the number of nodes plus
+(levels x smallest width), not nodes x levels.
+
+Arrays that a step writes by position (``jax.lax.dynamic_update_slice`` at ``start``)
+have ``levels.order.shape[0]`` rows. In a bottom-up sweep a level's last window is
+placed to end at the level's first unprocessed position, so what it writes outside the
+level (masked entries) lands on shallower levels, which are processed, and overwritten,
+later; it never touches a level already done.
 """
 
 from __future__ import annotations
@@ -31,167 +36,150 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
-BIG_KEY = 2 ** 31 - 1
-
 
 class Levels(NamedTuple):
-    """A level schedule (:func:`level_order`).
+    """A level schedule (:func:`level_order`); positions are indices into ``order``.
 
-    ``order`` [N + pad] int32: node ids deepest first, ``N`` past ``count``;
-    ``keys`` [N + pad] int32: ``max_depth - depth`` of each entry (ascending), huge past
-    ``count``; ``count`` int32: number of scheduled nodes; ``position`` [N] int32: the
-    position of each scheduled node in ``order`` (``N + pad`` for the others);
-    ``widths``: the window sizes (static ints, largest first; ``pad`` is the largest).
+    ``order`` [pad + N + pad] int32: node id at each position, ``N`` for none;
+    ``starts`` [N + 2] int32: ``starts[d]`` first position of level ``d``, for
+    ``d <= levels`` (``starts[levels]`` is the end); ``levels`` int32: number of levels;
+    ``position`` [N] int32: position of each scheduled node (``pad + N + pad`` for the
+    others); ``widths``: window sizes (static ints, largest first; ``pad`` = the largest).
     """
 
     order: Any
-    keys: Any
-    count: Any
+    starts: Any
+    levels: Any
     position: Any
     widths: tuple
 
+    @property
+    def pad(self) -> int:
+        return self.widths[0]
 
-def depths(parent, real):
-    """Depth of every node [N] int32 (root 0); -1 for padding.
+    def window(self, start, valid):
+        """Node ids [W] at positions ``[start, start + W)``, ``N`` where not ``valid``."""
+        n = self.position.shape[0]
+        nodes = jax.lax.dynamic_slice(self.order, (start,), (valid.shape[0],))
+        return jnp.where(valid, nodes, n)
 
-    ``parent`` [N] int32 (-1 for the root and padding), ``real`` [N] bool. Pointer
-    jumping: ``up[i]`` is an ancestor of ``i`` at distance ``dist[i]``; each round adds
-    the distance of ``up[i]`` and jumps to ``up[up[i]]``, doubling the span. The loop is
-    bounded (``bit_length(N) + 1`` rounds), so a broken tree cannot hang it.
+
+def _prefix(x):
+    """Exclusive prefix sum of ``x`` [W] (associative_scan: faster than cumsum on CPU)."""
+    return jax.lax.associative_scan(jnp.add, x) - x
+
+
+def level_order(left, right, root, interior, widths=(4096, 128)) -> Levels:
+    """Breadth-first schedule of the ``interior`` [N] bool nodes (module docstring).
+
+    ``left``, ``right`` [N] int32 children (``-1`` or ``N`` for none), ``root`` int32.
+    ``widths`` (static) are clipped to ``N``. Bounded: each level adds at least one node.
     """
-    n = parent.shape[0]
-    has_up = real & (parent >= 0)
-    up = jnp.where(has_up, parent, n).astype(jnp.int32)
-    dist = has_up.astype(jnp.int32)
-    rounds = int(n).bit_length() + 1
-
-    def cond(state):
-        up, _, i = state
-        return jnp.any(up < n) & (i < rounds)
-
-    def body(state):
-        up, dist, i = state
-        live = up < n
-        dist = dist + jnp.where(live, jnp.take(dist, up, mode="fill", fill_value=0), 0)
-        up = jnp.where(live, jnp.take(up, up, mode="fill", fill_value=n), n)
-        return up, dist, i + 1
-
-    _, dist, _ = jax.lax.while_loop(cond, body, (up, dist, jnp.int32(0)))
-    return jnp.where(real, dist, -1)
-
-
-def level_order(depth, chosen, widths=(4096, 128)) -> Levels:
-    """The ``chosen`` [N] bool nodes sorted deepest first, for windows of ``widths``.
-
-    ``depth`` [N] int32 from :func:`depths`; ``widths``: window sizes of the sweeps
-    (static; clipped to ``N``). Within a level nodes are in id order.
-    One sort of a packed ``key << bits | id`` when the keys fit 32 bits (depth below
-    ``2^(32 - bits)``, ``bits = bit_length(N)``), else a stable two-key sort.
-    """
-    n = depth.shape[0]
+    n = left.shape[0]
     widths = tuple(sorted({max(1, min(int(w), n)) for w in widths}, reverse=True))
     pad = widths[0]
-    max_depth = jnp.max(jnp.where(chosen, depth, 0))
-    key = jnp.where(chosen, max_depth - depth, BIG_KEY).astype(jnp.int32)
-    ids = jnp.arange(n, dtype=jnp.int32)
-    bits = max(1, int(n).bit_length())
+    rows = pad + n + pad
+    left = jnp.where(left >= 0, left, n)
+    right = jnp.where(right >= 0, right, n)
+    has_root = interior[root]
+    order = jnp.full(rows, n, jnp.int32).at[pad].set(jnp.where(has_root, root, n))
+    starts = jnp.full(n + 2, pad + n, jnp.int32).at[0].set(pad).at[1].set(pad + has_root.astype(jnp.int32))
 
-    def two_keys(_):
-        k, i = jax.lax.sort((key, ids), num_keys=1, is_stable=True)
-        return k, i
+    def inner(c):
+        return jnp.take(interior, c, mode="fill", fill_value=False)
 
-    if bits >= 31:
-        keys, order = two_keys(None)
-    else:
-        top = (1 << (32 - bits)) - 1
-
-        def packed(_):
-            k = jnp.where(chosen, key, top).astype(jnp.uint32)
-            s = jnp.sort((k << bits) | ids.astype(jnp.uint32))
-            order = (s & ((1 << bits) - 1)).astype(jnp.int32)
-            return jnp.take(key, order), order
-
-        keys, order = jax.lax.cond(max_depth < top, packed, two_keys, None)
-    count = jnp.sum(chosen, dtype=jnp.int32)
-    valid = jnp.arange(n) < count
-    order = jnp.where(valid, order, n)
-    keys = jnp.where(valid, keys, BIG_KEY)
-    order = jnp.concatenate([order, jnp.full(pad, n, jnp.int32)])
-    keys = jnp.concatenate([keys, jnp.full(pad, BIG_KEY, jnp.int32)])
-    position = jnp.full(n, n + pad, jnp.int32).at[order].set(
-        jnp.arange(n + pad, dtype=jnp.int32), mode="drop")
-    return Levels(order, keys, count, position, widths)
-
-
-def sweep_up(levels: Levels, step: Callable, carry):
-    """``step(carry, start, valid) -> carry`` over all levels, deepest first.
-
-    Each call covers positions ``[start, start + W)`` of one level (``valid`` [W] bool
-    says which of them are in it). Bounded: every call advances at least one position.
-    """
-    sizes = levels.widths
-
-    def windows(carry, width, last):
-        def cond(c):
-            _, start, end = c
-            return (end - start >= width) | (last & (start < end))
-
-        def body(c):
-            inner, start, end = c
-            valid = start + jnp.arange(width) < end
-            inner = step(inner, start, valid)
-            return inner, start + jnp.minimum(width, end - start), end
-
-        return jax.lax.while_loop(cond, body, carry)
+    def place(state, start, valid):
+        order, end = state
+        x = jnp.where(valid, jax.lax.dynamic_slice(order, (start,), (valid.shape[0],)), n)
+        l, r = jnp.take(left, x, mode="fill", fill_value=n), jnp.take(right, x, mode="fill", fill_value=n)
+        il, ir = inner(l), inner(r)
+        count = il.astype(jnp.int32) + ir.astype(jnp.int32)
+        at = end + _prefix(count)
+        order = order.at[jnp.where(il, at, rows)].set(l, mode="drop")
+        order = order.at[jnp.where(ir, at + il, rows)].set(r, mode="drop")
+        return order, end + jnp.sum(count, dtype=jnp.int32)
 
     def cond(c):
-        return c[1] < levels.count
+        _, starts, d = c
+        return (starts[d + 1] > starts[d]) & (d < n)
 
     def body(c):
-        inner, start = c
-        end = jnp.searchsorted(levels.keys, levels.keys[start], side="right").astype(jnp.int32)
-        state = (inner, start, end)
-        for i, width in enumerate(sizes):
-            state = windows(state, width, i == len(sizes) - 1)
-        return state[0], state[1]
+        order, starts, d = c
+        begin, end = starts[d], starts[d + 1]
+        order, next_end = _forward(place, (order, end), begin, end, widths)
+        return order, starts.at[d + 2].set(next_end), d + 1
 
-    carry, _ = jax.lax.while_loop(cond, body, (carry, jnp.int32(0)))
-    return carry
+    order, starts, levels = jax.lax.while_loop(cond, body, (order, starts, jnp.int32(0)))
+    position = jnp.full(n, rows, jnp.int32).at[order].set(jnp.arange(rows, dtype=jnp.int32), mode="drop")
+    return Levels(order, starts, levels, position, widths)
+
+
+def _forward(step, carry, begin, end, widths):
+    """Windows over ``[begin, end)`` front to back; the last one masks what lies past ``end``."""
+
+    def run(state, width, last):
+        def cond(s):
+            _, start = s
+            return (end - start >= width) | (last & (start < end))
+
+        def body(s):
+            carry, start = s
+            valid = start + jnp.arange(width) < end
+            return step(carry, start, valid), start + jnp.minimum(width, end - start)
+
+        return jax.lax.while_loop(cond, body, state)
+
+    state = (carry, begin)
+    for i, width in enumerate(widths):
+        state = run(state, width, i == len(widths) - 1)
+    return state[0]
+
+
+def _backward(step, carry, begin, end, widths):
+    """Windows over ``[begin, end)`` back to front; the last one masks what lies before ``begin``."""
+
+    def run(state, width, last):
+        def cond(s):
+            _, stop = s
+            return (stop - begin >= width) | (last & (stop > begin))
+
+        def body(s):
+            carry, stop = s
+            start = stop - width
+            valid = start + jnp.arange(width) >= begin
+            return step(carry, start, valid), jnp.maximum(start, begin)
+
+        return jax.lax.while_loop(cond, body, state)
+
+    state = (carry, end)
+    for i, width in enumerate(widths):
+        state = run(state, width, i == len(widths) - 1)
+    return state[0]
 
 
 def sweep_down(levels: Levels, step: Callable, carry):
-    """``step(carry, start, valid) -> carry`` over all levels, shallowest (root) first.
+    """``step(carry, start, valid) -> carry`` on every level, the root's first."""
 
-    The same windows as :func:`sweep_up` in reverse: within a level, the last positions
-    first; a level's last, partial window starts at the level's first position and
-    masks what lies beyond the part not yet done.
-    """
-    sizes = levels.widths
+    def body(d, carry):
+        return _forward(step, carry, levels.starts[d], levels.starts[d + 1], levels.widths)
 
-    def windows(carry, width, last):
-        def cond(c):
-            _, begin, end = c
-            return (end - begin >= width) | (last & (end > begin))
+    return jax.lax.fori_loop(0, levels.levels, body, carry)
 
-        def body(c):
-            inner, begin, end = c
-            start = jnp.maximum(begin, end - width)
-            pos = start + jnp.arange(width)
-            inner = step(inner, start, pos < end)
-            return inner, begin, start
 
-        return jax.lax.while_loop(cond, body, carry)
+def sweep_up(levels: Levels, step: Callable, carry):
+    """``step(carry, start, valid) -> carry`` on every level, the deepest first."""
 
-    def cond(c):
-        return c[1] > 0
+    def body(i, carry):
+        d = levels.levels - 1 - i
+        return _backward(step, carry, levels.starts[d], levels.starts[d + 1], levels.widths)
 
-    def body(c):
-        inner, end = c
-        begin = jnp.searchsorted(levels.keys, levels.keys[end - 1], side="left").astype(jnp.int32)
-        state = (inner, begin, end)
-        for i, width in enumerate(sizes):
-            state = windows(state, width, i == len(sizes) - 1)
-        return state[0], begin
+    return jax.lax.fori_loop(0, levels.levels, body, carry)
 
-    carry, _ = jax.lax.while_loop(cond, body, (carry, levels.count))
-    return carry
+
+def depth_of(levels: Levels):
+    """Depth [N] int32 of every scheduled node (its level); -1 for the others."""
+    n = levels.position.shape[0]
+    pos = levels.position
+    scheduled = pos < levels.order.shape[0]
+    d = jnp.searchsorted(levels.starts, pos, side="right").astype(jnp.int32) - 1
+    return jnp.where(scheduled, jnp.clip(d, 0, n), -1)
