@@ -47,12 +47,15 @@ Methods
 * :func:`qbvh` — the paper's baseline: every interior node at odd depth removed (4-wide).
 
 Tie rule (the NumPy twin :mod:`jaxbvh.reference.collapse` keeps the same one). XLA on
-CPU fuses multiply-adds, so a cost can come out an ulp apart here and in NumPy; costs
-within a relative ``TIE_TOLERANCE`` (2^-20, as :mod:`jaxbvh.build`) count as equal and
-the first candidate wins: the lowest ``i`` of a split, the lowest ``t`` of a kept node,
-keeping the node before making it a leaf. A table entry holds the value of the choice
-made (not the minimum), so the DP's ``R`` is the cost of the tree it emits. Greedy
-collapses when ``2 a(c) >= a(n) (1 - TIE_TOLERANCE)``.
+CPU fuses multiply-adds, so a cost can come out a few ulps apart here and in NumPy; and
+splits in the middle of a box (binned builders) make candidates that are equal in exact
+arithmetic but differ by up to ~10 ulps in float32. Costs within a relative
+:func:`tie_tolerance` (``64 eps``: 7.6e-6 in float32, as :mod:`jaxbvh.rotate`'s margin)
+count as equal and the first candidate wins: the lowest ``i`` of a split, the lowest
+``t`` of a kept node, keeping the node before making it a leaf. A table entry holds the
+value of the choice made (not the minimum), so the DP's ``R`` is the cost of the tree it
+emits (and within ``(1 + tol)^depth`` of the least). Greedy collapses when
+``2 a(c) >= a(n) (1 - tol)``.
 
 Outputs
 =======
@@ -80,14 +83,26 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh import levels as lv
-from jaxbvh.build import TIE_TOLERANCE
 from jaxbvh.cost import extent_scale, half_area
 from jaxbvh.tree import BVH, WideBVH, to_jax
 
 METHODS = ("greedy", "dp", "qbvh")
 DEFAULT_MAX_CHILDREN = 8
 MAX_CHILDREN_LIMIT = 64  # choices are stored as int8; tables are [nodes, K + 1]
-WIDTHS = (4096,)  # window size of the level sweeps (speed only; each size is one more compiled step)
+
+def tie_tolerance(dtype) -> float:
+    """Relative margin within which two costs count as equal: ``64 eps`` of ``dtype``."""
+    return float(64 * np.finfo(np.dtype(dtype)).eps)
+
+
+def _window_width(n: int) -> int:
+    """Window of the level sweeps for ``n`` nodes (speed only; one size, one compiled step).
+
+    About ``n / 64``, a power of two in [64, 4096]: wide enough for the big levels, narrow
+    enough that the nearly empty levels near the root and the deepest leaves, each one
+    window, cost little.
+    """
+    return int(min(4096, max(64, 1 << max(0, (n // 64 - 1)).bit_length())))
 
 
 def node_test_cost(simd_width: int = 0) -> Callable:
@@ -201,13 +216,18 @@ def _links(tree):
     return left, right, interior, real
 
 
+@jax.jit
 def _schedule(tree):
+    """The interior nodes level by level (:mod:`jaxbvh.levels`); one compile per capacity,
+    shared by the three methods."""
     left, right, interior, _ = _links(tree)
-    return lv.level_order(left, right, tree.root, interior, WIDTHS)
+    return lv.level_order(left, right, tree.root, interior, (_window_width(tree.left.shape[0]),))
 
 
+@jax.jit
 def _layout(tree, levels, kept):
-    """Anchor (nearest kept proper ancestor) and child slot of every node, from ``kept``.
+    """Anchor (nearest kept proper ancestor) and child slot of every node, from ``kept``;
+    and the most children of a node.
 
     Bottom-up: ``e(n)`` entry points ``n`` gives its anchor (1 if kept, else the sum of
     its children's). Top-down: a kept node's children start at slot 0, a removed node's
@@ -235,7 +255,9 @@ def _layout(tree, levels, kept):
         slot = slot.at[l].set(base, mode="drop").at[r].set(base + _take(e, l, 0), mode="drop")
         return anchor, slot
 
-    return lv.sweep_down(levels, place_down, (jnp.full(n, -1, jnp.int32), jnp.zeros(n, jnp.int32)))
+    anchor, slot = lv.sweep_down(levels, place_down, (jnp.full(n, -1, jnp.int32), jnp.zeros(n, jnp.int32)))
+    width = jnp.max(jnp.where(kept & (jnp.arange(n) != tree.root), slot, 0)) + 1
+    return anchor, slot, width
 
 
 @partial(jax.jit, static_argnames=("arity",))
@@ -289,28 +311,27 @@ def _check_k(max_children, what="max_children") -> int:
 
 
 @jax.jit
-def _qbvh_decide(tree):
-    levels = _schedule(tree)
+def _qbvh_decide(tree, levels):
     _, _, interior, real = _links(tree)
-    kept = real & ~(interior & (lv.depth_of(levels) % 2 == 1))
-    anchor, slot = _layout(tree, levels, kept)
-    return kept, anchor, slot
+    return real & ~(interior & (lv.depth_of(levels) % 2 == 1))
 
 
 def qbvh(tree, test_cost: Callable | None = None) -> CollapseResult:
     """The paper's QBVH baseline: remove every interior node at odd depth (4-wide)."""
     t = _binary_input(tree)
-    kept, anchor, slot = _qbvh_decide(t)
+    levels = _schedule(t)
+    kept = _qbvh_decide(t, levels)
+    anchor, slot, _ = _layout(t, levels, kept)
     return _finish(t, kept, anchor, slot, 4, cost_table(test_cost, 4))
 
 
 @partial(jax.jit, static_argnames=("max_children",))
-def _greedy_decide(tree, *, max_children):
+def _greedy_decide(tree, levels, *, max_children):
+    """The kept nodes [N] bool of the greedy pushup."""
     n = tree.left.shape[0]
-    levels = _schedule(tree)
     left, right, interior, real = _links(tree)
     a = relative_areas(tree.lo, tree.hi, tree.root)
-    one = jnp.asarray(1 - TIE_TOLERANCE, a.dtype)
+    one = jnp.asarray(1 - tie_tolerance(a.dtype), a.dtype)
 
     def collapsible(c, a_anchor):
         return _take(interior, c, False) & (2 * _take(a, c, 0) >= a_anchor * one)
@@ -361,20 +382,21 @@ def _greedy_decide(tree, *, max_children):
             return kept.at[removed.reshape(-1)].set(False, mode="drop")
 
         kept = lv.sweep_down(levels, step, real)
-    anchor, slot = _layout(tree, levels, kept)
-    width = jnp.max(jnp.where(kept & (jnp.arange(n) != tree.root), slot, 0)) + 1
-    return kept, anchor, slot, width
+    return kept
 
 
 def greedy(tree, *, max_children: int | None = None, test_cost: Callable | None = None) -> CollapseResult:
     """Pinto's greedy top-down pushup (Algorithm 2); see the module docstring.
 
     ``max_children``: None (the paper: no limit; ``child`` is then [N, k] with ``k`` the
-    widest node's children rounded up to a power of two, at least 4) or ``K`` in [2, 64]. ``test_cost`` only prices the result (``rcost``).
+    widest node's children rounded up to a power of two, at least 4) or ``K`` in [2, 64].
+    ``test_cost`` only prices the result (``rcost``).
     """
     t = _binary_input(tree)
     k = None if max_children is None else _check_k(max_children)
-    kept, anchor, slot, width = _greedy_decide(t, max_children=k)
+    levels = _schedule(t)
+    kept = _greedy_decide(t, levels, max_children=k)
+    anchor, slot, width = _layout(t, levels, kept)
     # no limit: as wide as the widest node, rounded up to a power of two (fewer compiles)
     arity = k if k is not None else 1 << max(2, (int(width) - 1).bit_length())
     return _finish(t, kept, anchor, slot, arity, cost_table(test_cost, arity))
@@ -387,11 +409,11 @@ def greedy(tree, *, max_children: int | None = None, test_cost: Callable | None 
 
 def _first_near_min(candidates):
     """Tie rule over a list of candidate arrays: ``(index, value)`` of the first within
-    ``TIE_TOLERANCE`` of the least (elementwise; unrolled, so XLA fuses it into one loop)."""
+    :func:`tie_tolerance` of the least (elementwise; unrolled, so XLA fuses it into one loop)."""
     best = candidates[0]
     for c in candidates[1:]:
         best = jnp.minimum(best, c)
-    near = best * (1 + TIE_TOLERANCE)
+    near = best * (1 + tie_tolerance(best.dtype))
     index = jnp.zeros(best.shape, jnp.int32)
     value = candidates[-1]
     for i in range(len(candidates) - 1, -1, -1):  # the last assignment is the first candidate
@@ -417,10 +439,9 @@ def _min_plus(gl, gr):
 
 
 @partial(jax.jit, static_argnames=("max_children", "merge"))
-def _optimal_decide(tree, table, ci, max_leaf, *, max_children, merge):
+def _optimal_decide(tree, levels, table, ci, max_leaf, *, max_children, merge):
     n = tree.left.shape[0]
     k = max_children
-    levels = _schedule(tree)
     left, right, interior, real = _links(tree)
     a = relative_areas(tree.lo, tree.hi, tree.root)
     dtype = a.dtype
@@ -452,7 +473,7 @@ def _optimal_decide(tree, table, ci, max_leaf, *, max_children, merge):
         count = pl + pr
         if merge:
             as_leaf = jnp.where(count <= max_leaf, a[xs] * ci * count.astype(dtype), jnp.inf)
-            make_leaf = value > as_leaf * (1 + TIE_TOLERANCE)
+            make_leaf = value > as_leaf * (1 + tie_tolerance(dtype))
             t_best = jnp.where(make_leaf, 0, t_best)
             value = jnp.where(make_leaf, as_leaf, value)
         g = jax.lax.dynamic_update_slice(g, h.at[1].set(value), (jnp.int32(0), start))
@@ -549,7 +570,7 @@ def optimal(tree, *, max_children: int = DEFAULT_MAX_CHILDREN, test_cost: Callab
     table = cost_table(test_cost, k)
     merge = int(max_leaf) > 1
     kept, anchor, slot, objective, made_leaf, owner, count = _optimal_decide(
-        t, table, ci, jnp.int32(max_leaf), max_children=k, merge=merge)
+        t, _schedule(t), table, ci, jnp.int32(max_leaf), max_children=k, merge=merge)
     extra = {}
     if merge:
         start, prim_index = _regroup_prims(t, owner, count)

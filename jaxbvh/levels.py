@@ -31,13 +31,16 @@ later; it never touches a level already done.
 
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple
+import dataclasses
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
 
 
-class Levels(NamedTuple):
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Levels:
     """A level schedule (:func:`level_order`); positions are indices into ``order``.
 
     ``order`` [pad + N + pad] int32: node id at each position, ``N`` for none;
@@ -51,7 +54,7 @@ class Levels(NamedTuple):
     starts: Any
     levels: Any
     position: Any
-    widths: tuple
+    widths: tuple = dataclasses.field(metadata=dict(static=True))
 
     @property
     def pad(self) -> int:

@@ -253,7 +253,9 @@ def test_dp_is_the_least_of_all_collapses(seed, n, k, cost_name, kind):
     cost = COSTS[cost_name]
     result = collapse.optimal(tree, max_children=k, test_cost=cost)
     best = brute_force(tree, k, cost)
-    assert float(result.objective) == pytest.approx(best, rel=1e-5, abs=1e-6)
+    # least up to float32 rounding, and the tie rule: each choice within 64 eps of its best
+    assert float(result.objective) == pytest.approx(best, rel=1e-4, abs=1e-6)
+    assert float(result.objective) >= best * (1 - 1e-5) - 1e-6  # never below the least
 
 
 @settings(max_examples=20, **SETTINGS)

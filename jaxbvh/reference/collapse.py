@@ -8,7 +8,7 @@
 * :func:`qbvh` — every interior node at odd depth removed.
 
 Same cost model, the same float type as the tree, the same area formula and the same tie
-rule (``TIE_TOLERANCE``, first candidate wins) as the JAX module, so both choose the same
+rule (:func:`jaxbvh.collapse.tie_tolerance`, first candidate wins) as the JAX module, so both choose the same
 tree. Results are plain Python: ``{node: [children]}`` for the kept interior nodes, in
 the order the algorithm lists them (left to right for ``optimal`` and ``qbvh``; the
 order of the queue for ``greedy``), turned into a :class:`~jaxbvh.tree.WideBVH` on the
@@ -22,7 +22,7 @@ from collections import deque
 
 import numpy as np
 
-from jaxbvh.build import TIE_TOLERANCE
+from jaxbvh.collapse import cost_table, tie_tolerance
 from jaxbvh.tree import WideBVH, to_numpy
 
 
@@ -68,15 +68,13 @@ class _Binary:
 
 
 def _table(test_cost, k, f):
-    from jaxbvh.collapse import cost_table
-
     return [f(x) for x in cost_table(test_cost, k)]
 
 
 def _first_near_min(values, f):
     best = min(values)
     for i, v in enumerate(values):
-        if v <= best * f(1 + TIE_TOLERANCE):
+        if v <= best * f(1 + tie_tolerance(f)):
             return i, v
     return 0, values[0]
 
@@ -118,7 +116,7 @@ def optimal(tree, *, max_children=8, test_cost=None, max_leaf=1, ci=1.0):
         prims = left[3] + right[3]
         if merge and prims <= max_leaf:
             as_leaf = b.area[node] * ci * f(prims)
-            if value > as_leaf * f(1 + TIE_TOLERANCE):
+            if value > as_leaf * f(1 + tie_tolerance(f)):
                 choice, value = 0, as_leaf
         cost[1] = value
         memo[node] = (cost, split, choice, prims)
@@ -167,7 +165,7 @@ def greedy(tree, *, max_children=None):
             fits = max_children is None or width - 1 + subchilds <= max_children
             # 1 + P(child|node) * subchilds >= subchilds, with P = a(child) / a(node)
             if (subchilds > 0 and fits and b.area[child] * f(subchilds)
-                    >= b.area[node] * f(subchilds - 1) * f(1 - TIE_TOLERANCE)):
+                    >= b.area[node] * f(subchilds - 1) * f(1 - tie_tolerance(f))):
                 q.extend(b.kids(child))
             else:
                 if not b.is_leaf(child):
