@@ -27,7 +27,8 @@ HELP = "collapse a binary BVH into a wide one: optimal DP, greedy pushup or QBVH
 def add_parser(subparsers):
     from jaxbvh.collapse import METHODS
 
-    parser = subparsers.add_parser("collapse", help=HELP, description=__doc__.split("\n\n", 1)[1].strip())
+    description = __doc__.split("\n\n", 1)[1].strip().replace("``", "")
+    parser = subparsers.add_parser("collapse", help=HELP, description=description)
     parser.add_argument("input", metavar="INPUT",
                         help="a binary tree .npz or a mesh/scene file (built first)")
     parser.add_argument("--method", choices=METHODS, default="dp",
