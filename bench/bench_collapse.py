@@ -268,7 +268,8 @@ def write(data):
                   "| input | nodes | JAX warm | NumPy | speed-up | identical tree |", "|---|---:|---:|---:|---:|---|"]
         for r in refs:
             if "skipped" in r:
-                lines.append(f"| {r['input']} | {r['nodes']:,} | {r['jax_seconds'] * 1e3:.1f} ms | {r['skipped']} | | |")
+                lines.append(f"| {r['input']} | {r['nodes']:,} | {r['jax_seconds'] * 1e3:.1f} ms | "
+                             f"{r['skipped']} | | |")
             else:
                 lines.append(f"| {r['input']} | {r['nodes']:,} | {r['jax_seconds'] * 1e3:.1f} ms | "
                              f"{r['numpy_seconds']:.1f} s | {r['speedup']:.0f}x | {r['identical']} |")
@@ -290,7 +291,8 @@ def write(data):
                   "| input | P | leaves | R_cost | leaf cost | total | binary total | SAH | binary SAH |",
                   "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
         for r in data["leaves"]:
-            lines.append(f"| {r['input']} | {r['max_leaf']} | {r['leaves']:,} | {r['rcost']:.3f} | {r['leaf_cost']:.3f} | "
+            lines.append(f"| {r['input']} | {r['max_leaf']} | {r['leaves']:,} | {r['rcost']:.3f} | "
+                         f"{r['leaf_cost']:.3f} | "
                          f"{r['total']:.3f} | {r['binary_total']:.3f} | {r['sah']:.3f} | {r['binary_sah']:.3f} |")
         lines.append("")
     (RESULTS / "collapse.md").write_text("\n".join(lines))

@@ -88,7 +88,8 @@ from jaxbvh.tree import BVH, WideBVH, to_jax
 
 METHODS = ("greedy", "dp", "qbvh")
 DEFAULT_MAX_CHILDREN = 8
-MAX_CHILDREN_LIMIT = 64  # choices are stored as int8; tables are [nodes, K + 1]
+MAX_CHILDREN_LIMIT = 64  # choices are stored as int8; tables are [K + 1, nodes]
+
 
 def tie_tolerance(dtype) -> float:
     """Relative margin within which two costs count as equal: ``64 eps`` of ``dtype``."""
@@ -184,7 +185,11 @@ def _rcost(child, lo, hi, prim_count, root, table, ci):
 
 
 def rcost(tree, test_cost: Callable | None = None):
-    """Pinto's ``R`` of a binary or wide tree under ``T = test_cost`` (default ``k``)."""
+    """Pinto's ``R`` of a binary or wide tree under ``T = test_cost`` (default ``T(k) = k``).
+
+    A scalar in the tree's float dtype (module docstring; the root's own test is not
+    counted, leaves add nothing).
+    """
     t = to_jax(tree)
     table = cost_table(test_cost, int(t.child.shape[1]))
     return _rcost(t.child, t.lo, t.hi, t.prim_count, t.root, table, 1.0)[0]

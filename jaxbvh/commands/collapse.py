@@ -117,7 +117,8 @@ def run(args) -> dict:
            if float(result.rcost_before) else 0.0,
            "leaf_cost_before": float(result.leaf_cost_before), "leaf_cost": float(result.leaf_cost),
            "nodes_before": jaxbvh.tree.node_count(tree), "nodes": jaxbvh.tree.node_count(wide),
-           "widest": int(widths.max()), "mean_children": float(widths[widths > 0].mean()) if (widths > 0).any() else 0.0,
+           "widest": int(widths.max()),
+           "mean_children": float(widths[widths > 0].mean()) if (widths > 0).any() else 0.0,
            "seconds": seconds, "compile_seconds": max(first - seconds, 0.0),
            "valid": True, "output": args.output}
     if result.objective is not None:
