@@ -221,6 +221,7 @@ def big(args):
 
 
 def write(data):
+    data["meta"]["load_average_at_end"] = os.getloadavg()
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "collapse.json").write_text(json.dumps(data, indent=1))
     meta = data["meta"]
@@ -230,7 +231,9 @@ def write(data):
              "root-normalised areas (box tests of a ray that hits the root box and finds every hit). "
              f"Box tests per ray: {meta.get('rays', '?')} bounce rays per mesh (the paper's secondary rays), "
              "all-hits and closest-hit. Times: median warm seconds; compile apart. "
-             "The CPU was shared with other jobs while these ran.", ""]
+             "The CPU was shared with other jobs while these ran (load average "
+             f"{meta['load_average_at_start'][0]:.1f} at the start, {meta['load_average_at_end'][0]:.1f} "
+             "at the end, on 2 cores).", ""]
     if data.get("comparison"):
         lines += ["## The paper's comparison (T(k) = k unless said)", "",
                   "| mesh | tree | nodes | widest | R_cost | R_cost, T = ceil(k/4) | box tests/ray all-hits | "
@@ -317,7 +320,7 @@ def main(argv=None):
     data = json.loads(path.read_text()) if path.exists() else {}
     data["meta"] = {"machine": platform.platform(), "processor": platform.processor(), "cpus": os.cpu_count(),
                     "jax": jax.__version__, "backend": jax.default_backend(), "rays": args.rays,
-                    "repeat": args.repeat}
+                    "repeat": args.repeat, "load_average_at_start": os.getloadavg()}
     if args.big:
         data["big"] = [big(args)]
         write(data)
