@@ -35,7 +35,7 @@ def add_parser(subparsers):
                         help="dp: optimal collapse; greedy: top-down pushup; qbvh: 4-wide "
                              "baseline (default: dp)")
     parser.add_argument("--max-children", type=int, default=None, metavar="K",
-                        help="most children per node, 2..64 (default: 8 for dp, no limit for "
+                        help="most children per node, 2..32 (default: 8 for dp, no limit for "
                              "greedy; qbvh is 4-wide)")
     parser.add_argument("--simd-width", type=int, default=0, metavar="W",
                         help="cost of testing k child boxes: ceil(k / W), or k for W = 0 (default: 0)")
