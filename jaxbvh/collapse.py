@@ -251,8 +251,9 @@ def _layout(tree, levels, kept):
         base = jnp.where(keep_x, 0, slot[xs])
         owner = jnp.where(keep_x, xs, anchor[xs])
         l, r = jnp.where(x < n, left[xs], n), jnp.where(x < n, right[xs], n)
-        anchor = anchor.at[l].set(owner, mode="drop").at[r].set(owner, mode="drop")
-        slot = slot.at[l].set(base, mode="drop").at[r].set(base + _take(e, l, 0), mode="drop")
+        kids = jnp.concatenate([l, r])
+        anchor = anchor.at[kids].set(jnp.concatenate([owner, owner]), mode="drop")
+        slot = slot.at[kids].set(jnp.concatenate([base, base + _take(e, l, 0)]), mode="drop")
         return anchor, slot
 
     anchor, slot = lv.sweep_down(levels, place_down, (jnp.full(n, -1, jnp.int32), jnp.zeros(n, jnp.int32)))
@@ -400,7 +401,7 @@ def greedy(tree, *, max_children: int | None = None, test_cost: Callable | None 
     """Pinto's greedy top-down pushup (Algorithm 2); see the module docstring.
 
     ``max_children``: None (the paper: no limit; ``child`` is then [N, k] with ``k`` the
-    widest node's children rounded up to a power of two, at least 4) or ``K`` in [2, 32].
+    widest node's children rounded up to 4 or a multiple of 8) or ``K`` in [2, 32].
     ``test_cost`` only prices the result (``rcost``).
     """
     t = _binary_input(tree)
@@ -408,8 +409,8 @@ def greedy(tree, *, max_children: int | None = None, test_cost: Callable | None 
     levels = _schedule(t)
     kept = _greedy_decide(t, levels, max_children=k)
     anchor, slot, width = _layout(t, levels, kept)
-    # no limit: as wide as the widest node, rounded up to a power of two (fewer compiles)
-    arity = k if k is not None else 1 << max(2, (int(width) - 1).bit_length())
+    # no limit: as wide as the widest node, rounded up to 4 or a multiple of 8 (fewer compiles)
+    arity = k if k is not None else (4 if int(width) <= 4 else -(-int(width) // 8) * 8)
     return _finish(t, kept, anchor, slot, arity, cost_table(test_cost, arity))
 
 
@@ -478,8 +479,9 @@ def _optimal_decide(tree, levels, table, ci, max_leaf, *, max_children, merge):
         g, choice, split, prims = state
         x = levels.window(start, valid)
         xs = jnp.minimum(x, n - 1)
-        gl, pl = child_table(g, prims, left[xs])
-        gr, pr = child_table(g, prims, right[xs])
+        w = x.shape[0]
+        both, counts = child_table(g, prims, jnp.concatenate([left[xs], right[xs]]))  # one gather
+        gl, gr, pl, pr = both[:, :w], both[:, w:], counts[:w], counts[w:]
         h, i_best = _min_plus(gl, gr)
         t_best, value = _first_near_min([a[xs] * table[t] + h[t] for t in range(2, k + 1)])
         t_best = t_best + 2
@@ -516,14 +518,18 @@ def _optimal_decide(tree, levels, table, ci, max_leaf, *, max_children, merge):
         entries = jnp.where(keep_x, ch, tau_x)
         i = jnp.take_along_axis(sp, jnp.clip(entries, 0, k)[None, :], axis=0)[0]
         gone = inside | becomes_leaf
-        l, r = jnp.where(live, left[xs], n), jnp.where(live, right[xs], n)
-        tau = tau.at[l].set(jnp.where(gone, 0, i), mode="drop").at[r].set(jnp.where(gone, 0, entries - i), mode="drop")
+        kids = jnp.concatenate([jnp.where(live, left[xs], n), jnp.where(live, right[xs], n)])
         base = jnp.where(keep_x, 0, slot[xs])
         up = jnp.where(keep_x, xs, anchor[xs])
-        anchor = anchor.at[l].set(up, mode="drop").at[r].set(up, mode="drop")
-        slot = slot.at[l].set(base, mode="drop").at[r].set(base + i, mode="drop")
         new_owner = jnp.where(becomes_leaf, xs, jnp.where(inside, owner[xs], n))
-        owner = owner.at[l].set(new_owner, mode="drop").at[r].set(new_owner, mode="drop")
+
+        def both(l_value, r_value):
+            return jnp.concatenate([l_value, r_value])
+
+        tau = tau.at[kids].set(both(jnp.where(gone, 0, i), jnp.where(gone, 0, entries - i)), mode="drop")
+        anchor = anchor.at[kids].set(both(up, up), mode="drop")
+        slot = slot.at[kids].set(both(base, base + i), mode="drop")
+        owner = owner.at[kids].set(both(new_owner, new_owner), mode="drop")
         return tau, anchor, slot, owner
 
     tau0 = jnp.zeros(n, jnp.int32).at[tree.root].set(1)
