@@ -576,9 +576,16 @@ def test_cli_collapse_a_mesh(capsys, tmp_path):
     v = rng.random((3 * 64, 3))
     mesh.write_text("".join(f"v {x} {y} {z}\n" for x, y, z in v) +
                     "".join(f"f {3 * i + 1} {3 * i + 2} {3 * i + 3}\n" for i in range(64)))
-    got = run_json(capsys, "collapse", mesh, "--method", "dp", "--max-children", 4, "--max-leaf", 4)
+    out_path = tmp_path / "wide.npz"
+    got = run_json(capsys, "collapse", mesh, "--method", "dp", "--max-children", 4, "--max-leaf", 4,
+                   "-o", out_path)
     assert got["kind"] == "mesh" and got["triangles"] == 64 and got["max_leaf"] == 4
     assert got["rcost"] + got["leaf_cost"] <= got["rcost_before"] + got["leaf_cost_before"] + 1e-6
+    # the wide tree (saved with its frame) is read by the other commands
+    stats = run_json(capsys, "stats", out_path, "--mesh", mesh)
+    assert stats["valid"] and stats["nodes"] == got["nodes"]
+    traced = run_json(capsys, "trace", out_path, mesh, "--rays", 64, "--batch", 64)
+    assert traced["rays"] == 64 and traced["box_tests"] > 0
 
 
 def test_cli_bad_input(capsys, tmp_path):
