@@ -5,8 +5,8 @@
 For each shared mesh (../shared/data) and ray kind, traces the same closest-hit rays
 through: the tinybvh reference tree (binary, distance order), our own build (binary,
 split-axis order; skipped while ``jaxbvh.build`` is not implemented) and 4- and 8-wide
-trees collapsed from the reference tree; and through Embree (embreex, its own BVH, one
-``run`` call). Times are the median of ``--repeat`` runs after a warm-up that compiles.
+trees collapsed from the reference tree by Pinto's optimal DP (``jaxbvh.collapse``); and
+through Embree (embreex, its own BVH, one ``run`` call). Times are the median of ``--repeat`` runs after a warm-up that compiles.
 Writes ``bench/results/bench_rays.json`` and ``.md``.
 """
 
@@ -23,46 +23,12 @@ import jax
 import numpy as np
 
 import jaxbvh
-from jaxbvh import rays
-from jaxbvh.tree import from_interchange, to_interchange
+from jaxbvh import collapse, rays
 
 ROOT = Path(__file__).resolve().parent
 DATA = ROOT.parents[1] / "shared" / "data"
 MESHES = {"bunny": "meshes/stanford-bunny.obj", "legocar": "meshes/legocar.obj",
           "drone": "scenes/drone/scene.gltf"}
-
-
-def widen(tree, k):
-    """k-wide tree from a binary one: open the largest interior child until k children."""
-    a = to_interchange(tree)
-    child, lo, hi, count = a["child"], a["lo"], a["hi"], a["prim_count"]
-    ext = np.maximum(hi - lo, 0).astype(np.float64)
-    area = ext[:, 0] * ext[:, 1] + ext[:, 1] * ext[:, 2] + ext[:, 2] * ext[:, 0]
-    new_child, keep = [], []
-    stack = [(int(a["root"]), -1, 0)]
-    while stack:  # iterative: real trees are deep
-        old, parent, slot = stack.pop()
-        me = len(keep)
-        keep.append(old)
-        new_child.append([-1] * k)
-        if parent >= 0:
-            new_child[parent][slot] = me
-        if count[old] > 0:
-            continue
-        kids = list(child[old])
-        while len(kids) < k:
-            interior = [c for c in kids if count[c] == 0]
-            if not interior:
-                break
-            biggest = max(interior, key=lambda c: area[c])
-            at = kids.index(biggest)
-            kids[at:at + 1] = list(child[biggest])
-        for s, c in enumerate(kids):
-            stack.append((int(c), me, s))
-    keep = np.array(keep)
-    return from_interchange(dict(child=np.array(new_child, np.int32), prim_start=a["prim_start"][keep],
-                                 prim_count=count[keep], prim_index=a["prim_index"], lo=lo[keep],
-                                 hi=hi[keep], root=np.int32(0)))
 
 
 def load_triangles(name):
@@ -82,8 +48,8 @@ def trees_for(name, tri, max_leaf):
         out["binary (jaxbvh.build binned, axis order)"] = jaxbvh.to_numpy(built)
     except NotImplementedError:
         pass
-    out["4-wide (collapsed tinybvh)"] = widen(ref_tree, 4)
-    out["8-wide (collapsed tinybvh)"] = widen(ref_tree, 8)
+    out["4-wide (DP collapse of tinybvh)"] = collapse.optimal(ref_tree, max_children=4).tree
+    out["8-wide (DP collapse of tinybvh)"] = collapse.optimal(ref_tree, max_children=8).tree
     return out
 
 

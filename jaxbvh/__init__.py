@@ -12,9 +12,16 @@ from jaxbvh.build import BUILDERS, build
 
 __version__ = "0.1.0"
 
-_LAZY = {"load_mesh": ("jaxbvh.io", "load_mesh"), "io": ("jaxbvh.io", None), "rays": ("jaxbvh.rays", None),
-         "rotate": ("jaxbvh.rotate", None), "insertion": ("jaxbvh.insertion", None),
-         "evolve": ("jaxbvh.evolve", None)}
+# attribute -> (module, attribute in it, or None for the module itself)
+_LAZY = {
+    "load_mesh": ("jaxbvh.io", "load_mesh"),
+    "io": ("jaxbvh.io", None),
+    "rays": ("jaxbvh.rays", None),
+    "rotate": ("jaxbvh.rotate", None),
+    "insertion": ("jaxbvh.insertion", None),
+    "evolve": ("jaxbvh.evolve", None),
+    "collapse": ("jaxbvh.collapse", None),
+}
 
 
 def __getattr__(name):

@@ -47,6 +47,15 @@ order. Any hit: stops at the first hit (counters then depend on the order). All 
 every hit is counted; the first ``max_hits`` in visiting order are listed, and
 ``hits_overflow`` says the list was too short.
 
+Skip flags (Susano Pinto 2010, section 4.3). ``skip`` [N] bool, optional: a flagged
+node's box is not tested, it is assumed hit (entered where its parent was). The node is
+pushed and popped like any other but counts neither as a box test nor as a visited
+node, so a binary tree with the nodes a collapse removed flagged
+(:attr:`jaxbvh.collapse.CollapseResult.skip`) makes exactly the box tests, primitive
+tests and visits of the wide tree, ray by ray, for all-hits queries (closest and any
+hit visit in another order, so their counts may differ; their hits do not). The root's
+box is always tested.
+
 Plugging in other primitives. The traversal never looks at triangles itself: it calls
 ``intersect(prims, prim_id, origin, direction) -> (t, u, v)`` (``t = inf`` for a miss)
 with ``prims`` any pytree passed through ``jit``. A two-level tree will pass the
@@ -188,7 +197,7 @@ def max_steps(tree) -> int:
     return int(tree.prim_count.shape[0]) + int(tree.prim_index.shape[0]) + 1
 
 
-def _trace_one(tree, prims, origin, direction, t_min, t_max, *, intersect, mode,
+def _trace_one(tree, prims, skip, origin, direction, t_min, t_max, *, intersect, mode,
                capacity, max_hits):
     child = tree.child  # [N, k]
     k = child.shape[1]
@@ -266,7 +275,8 @@ def _trace_one(tree, prims, origin, direction, t_min, t_max, *, intersect, mode,
         visit = pop & (s["stack_entry"][top] <= s["t"])
         count = tree.prim_count[node]
         is_leaf = count > 0
-        s["nodes_visited"] = s["nodes_visited"] + visit.astype(i32)
+        counted = visit if skip is None else visit & ~skip[node]
+        s["nodes_visited"] = s["nodes_visited"] + counted.astype(i32)
         open_leaf = visit & is_leaf
         s["leaves_visited"] = s["leaves_visited"] + open_leaf.astype(i32)
         s["leaf_pos"] = jnp.where(open_leaf, tree.prim_start[node], s["leaf_pos"])
@@ -278,8 +288,14 @@ def _trace_one(tree, prims, origin, direction, t_min, t_max, *, intersect, mode,
         kid_hit, kid_entry = slab(tree.lo[safe], tree.hi[safe], origin, inv_dir[None, :],
                                   t_min, s["t"])
         expand = visit & ~is_leaf
+        tested = real
+        if skip is not None:  # assumed hit, entered where this node was
+            skipped = real & skip[safe]
+            kid_hit = kid_hit | skipped
+            kid_entry = jnp.where(skipped, s["stack_entry"][top], kid_entry)
+            tested = real & ~skipped
         kid_hit = kid_hit & real & expand
-        s["box_tests"] = s["box_tests"] + jnp.where(expand, jnp.sum(real), 0).astype(i32)
+        s["box_tests"] = s["box_tests"] + jnp.where(expand, jnp.sum(tested), 0).astype(i32)
         if axis is not None:
             split = axis[node]
             lower_first = direction[jnp.maximum(split, 0)] >= 0
@@ -314,19 +330,20 @@ def _trace_one(tree, prims, origin, direction, t_min, t_max, *, intersect, mode,
 
 
 @partial(jax.jit, static_argnames=("intersect", "mode", "capacity", "max_hits"))
-def trace_batch(tree, prims, origin, direction, t_min, t_max, *, intersect=intersect_triangle,
-                mode="closest", capacity=64, max_hits=16):
+def trace_batch(tree, prims, origin, direction, t_min, t_max, skip=None, *,
+                intersect=intersect_triangle, mode="closest", capacity=64, max_hits=16):
     """Trace rays ``origin``, ``direction`` [R, 3] (tree frame) through ``tree``; jitted.
 
     ``prims``: what ``intersect`` reads (``triangles`` [T, 3, 3] for the default);
     ``t_min``, ``t_max``: scalars or [R]; ``mode``: one of :data:`MODES`;
-    ``capacity``: static stack size; ``max_hits``: list length for ``mode="all"``.
-    Returns :class:`Hits` with arrays [R]. The drivers below batch, pad and check.
+    ``capacity``: static stack size; ``max_hits``: list length for ``mode="all"``;
+    ``skip``: optional [N] bool flags (module docstring). Returns :class:`Hits` with
+    arrays [R]. The drivers below batch, pad and check.
     """
     r = origin.shape[0]
     t_min = jnp.broadcast_to(jnp.asarray(t_min, tree.lo.dtype), (r,))
     t_max = jnp.broadcast_to(jnp.asarray(t_max, tree.lo.dtype), (r,))
-    one = partial(_trace_one, tree, prims, intersect=intersect, mode=mode,
+    one = partial(_trace_one, tree, prims, skip, intersect=intersect, mode=mode,
                   capacity=capacity, max_hits=max_hits)
     return jax.vmap(one)(origin, direction, t_min, t_max)
 
@@ -338,14 +355,15 @@ def trace_batch(tree, prims, origin, direction, t_min, t_max, *, intersect=inter
 
 def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t_max=np.inf,
           intersect: Callable = intersect_triangle, capacity: int | None = None,
-          max_hits: int = 16, batch: int = 256, allow_overflow: bool = False) -> Hits:
+          max_hits: int = 16, batch: int = 256, allow_overflow: bool = False, skip=None) -> Hits:
     """Trace any number of rays in batches of ``batch``; returns :class:`Hits` (NumPy).
 
     ``tree``: :class:`~jaxbvh.tree.BVH` or :class:`~jaxbvh.tree.WideBVH`;
     ``prims``: the primitives ``intersect`` reads (triangles [T, 3, 3] in the tree's
     frame for the default); ``origin``, ``direction``: [R, 3] in the tree's frame
     (directions need not be unit; ``t`` is in units of ``|direction|``).
-    ``capacity`` defaults to :func:`stack_capacity`. The last batch is padded so every
+    ``capacity`` defaults to :func:`stack_capacity`; ``skip``: optional [N] bool per-node
+    "assume hit" flags (module docstring, "Skip flags"). The last batch is padded so every
     batch has the same shape (one compile). Batches are small so that the rays of one
     batch finish at similar steps (a ``vmap``-ed loop runs as long as its longest ray;
     on a 2-core CPU 256 rays per batch traced bunny rays 3x faster than 4096).
@@ -363,6 +381,12 @@ def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t
         capacity = stack_capacity(tree)
     jtree = to_jax(tree)
     dtype = np.dtype(jtree.lo.dtype)
+    if skip is not None:
+        skip = np.asarray(skip, bool)
+        if skip.shape != (jtree.prim_count.shape[0],):
+            raise ValueError(f"skip must be bool [{jtree.prim_count.shape[0]}] (one flag per node), "
+                             f"got shape {skip.shape}")
+        skip = jnp.asarray(skip)
     jprims = jax.tree_util.tree_map(jnp.asarray, prims)
     r = origin.shape[0]
     batch = max(1, min(batch, r))
@@ -379,11 +403,11 @@ def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t
         hi_t = np.full(batch, -1, dtype)  # padding rays: empty interval, they stop at once
         o[:n], d[:n], lo_t[:n], hi_t[:n] = origin[start:stop], direction[start:stop], \
             t_min[start:stop], t_max[start:stop]
-        pieces.append((n, trace_batch(jtree, jprims, o, d, lo_t, hi_t, intersect=intersect,
+        pieces.append((n, trace_batch(jtree, jprims, o, d, lo_t, hi_t, skip, intersect=intersect,
                                       mode=mode, capacity=capacity, max_hits=max_hits)))
     if not pieces:
         empty = trace_batch(jtree, jprims, np.zeros((1, 3), dtype), np.ones((1, 3), dtype),
-                            np.zeros(1, dtype), np.full(1, -1, dtype), intersect=intersect,
+                            np.zeros(1, dtype), np.full(1, -1, dtype), skip, intersect=intersect,
                             mode=mode, capacity=capacity, max_hits=max_hits)
         pieces = [(0, empty)]
     hits = jax.tree_util.tree_map(

@@ -381,6 +381,8 @@ TREE_READERS = {
     "optimize hc": lambda tree, mesh: ["optimize", tree],
     "optimize sa": lambda tree, mesh: ["optimize", tree, "--method", "sa", "--iterations", 4],
     "trace": lambda tree, mesh: ["trace", tree, mesh, "--rays", 20],
+    "collapse dp": lambda tree, mesh: ["collapse", tree],
+    "collapse greedy": lambda tree, mesh: ["collapse", tree, "--method", "greedy"],
 }
 
 
@@ -490,7 +492,10 @@ def test_second_run_compiles_nothing(tmp_path):
     commands = [["build", str(mesh), "--json"],
                 ["optimize", str(tree), "--json"],
                 ["optimize", str(tree), "--method", "sa", "--iterations", "6", "--chains", "2", "--json"],
-                ["trace", str(tree), str(mesh), "--rays", "64", "--json"]]
+                ["trace", str(tree), str(mesh), "--rays", "64", "--json"],
+                ["evolve", str(mesh), "--population", "4", "--generations", "2", "--json"],
+                ["collapse", str(tree), "--json"],
+                ["collapse", str(mesh), "--method", "greedy", "--json"]]
     env = {**__import__("os").environ, "JAXBVH_CACHE_DIR": str(tmp_path / "cache"),
            "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
 

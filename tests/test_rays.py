@@ -16,9 +16,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from jaxbvh import rays, traverse
+from jaxbvh import collapse, rays, traverse
 from jaxbvh.reference import rays as ref
-from jaxbvh.tree import BVH, depth, from_interchange, to_interchange
+from jaxbvh.tree import BVH, depth, from_interchange
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 COUNTERS = ("box_tests", "prim_tests", "nodes_visited", "leaves_visited")
@@ -94,38 +94,6 @@ def median_tree(triangles, max_leaf=1):
     return tree.replace(axis=full_axis)
 
 
-def widen(tree, k):
-    """k-wide tree from a binary one: open the largest interior child until k children."""
-    a = to_interchange(tree)
-    child, lo, hi = a["child"], a["lo"], a["hi"]
-    area = np.prod(np.maximum(hi - lo, 0)[:, [0, 1, 2]] + 1e-12, axis=1)
-    new_child, keep = [], []
-
-    def node(old):
-        me = len(keep)
-        keep.append(old)
-        new_child.append([-1] * k)
-        if a["prim_count"][old] > 0:
-            return me
-        kids = list(child[old])
-        while len(kids) < k:
-            interior = [c for c in kids if a["prim_count"][c] == 0]
-            if not interior:
-                break
-            biggest = max(interior, key=lambda c: area[c])
-            at = kids.index(biggest)
-            kids[at:at + 1] = list(child[biggest])
-        new_child[me] = [node(c) for c in kids] + [-1] * (k - len(kids))
-        return me
-
-    node(int(a["root"]))
-    keep = np.array(keep)
-    return from_interchange(dict(child=np.array(new_child, np.int32),
-                                 prim_start=a["prim_start"][keep], prim_count=a["prim_count"][keep],
-                                 prim_index=a["prim_index"], lo=lo[keep], hi=hi[keep],
-                                 root=np.int32(0)))
-
-
 # Every test traces with the same array shapes, so each (mode, arity) compiles once:
 # trees padded to NODES / PRIMS entries, triangles to PRIMS, batches of BATCH rays, a
 # stack of CAP entries (more than any test tree needs).
@@ -156,6 +124,14 @@ def fixed(tree):
     else:
         fields.update(child=pad(tree.child, -1))
     return tree.replace(**fields)
+
+
+def widen(tree, k):
+    """A k-wide tree: the optimal collapse (jaxbvh.collapse) with at most k children.
+
+    Collapsed at the fixed capacity (see NODES), so each k compiles once.
+    """
+    return collapse.optimal(fixed(tree), max_children=k).tree
 
 
 def run(kind, tree, tri, origin, direction, **kwargs):

@@ -61,18 +61,24 @@ def moller_trumbore(v0, v1, v2, origin, direction):
     return np.inf, u, v
 
 
-def _tree_arrays(tree):
+def _tree_arrays(tree, skip=None):
     child = np.asarray(tree.child)
     axis = np.asarray(tree.axis) if hasattr(tree, "axis") else None
     return dict(child=child, axis=axis, lo=np.asarray(tree.lo), hi=np.asarray(tree.hi),
                 start=np.asarray(tree.prim_start), count=np.asarray(tree.prim_count),
-                prim_index=np.asarray(tree.prim_index), root=int(np.asarray(tree.root)))
+                prim_index=np.asarray(tree.prim_index), root=int(np.asarray(tree.root)),
+                skip=None if skip is None else np.asarray(skip, bool))
 
 
 def trace_ray(tree, triangles, origin, direction, *, mode="closest", t_min=0.0,
-              t_max=np.inf, capacity=None, max_hits=16) -> dict:
-    """Trace one ray; returns the same fields as :class:`jaxbvh.traverse.Hits` (scalars)."""
-    a = tree if isinstance(tree, dict) else _tree_arrays(tree)
+              t_max=np.inf, capacity=None, max_hits=16, skip=None) -> dict:
+    """Trace one ray; returns the same fields as :class:`jaxbvh.traverse.Hits` (scalars).
+
+    ``skip``: optional [N] bool, nodes whose box is not tested but assumed hit (entered
+    where the node that lists them was); they are not counted as visited.
+    """
+    a = tree if isinstance(tree, dict) else _tree_arrays(tree, skip)
+    skip = a["skip"]
     dtype = a["lo"].dtype
     f = dtype.type
     origin = np.asarray(origin, dtype)
@@ -103,7 +109,8 @@ def trace_ray(tree, triangles, origin, direction, *, mode="closest", t_min=0.0,
         node, entry = stack.pop()
         if not entry <= interval_end:
             continue  # entered beyond the closest hit found since it was pushed
-        out["nodes_visited"] += 1
+        if skip is None or not skip[node]:
+            out["nodes_visited"] += 1
         count = a["count"][node]
         if count > 0:
             out["leaves_visited"] += 1
@@ -133,9 +140,12 @@ def trace_ray(tree, triangles, origin, direction, *, mode="closest", t_min=0.0,
             c = int(child[node, slot])
             if c < 0:
                 continue
-            out["box_tests"] += 1
-            hit, entry_c = _slab(a["lo"][c], a["hi"][c], origin, inv_dir, t_min,
-                                 interval_end, robust)
+            if skip is not None and skip[c]:
+                hit, entry_c = True, entry  # not tested: assumed hit where this node was
+            else:
+                out["box_tests"] += 1
+                hit, entry_c = _slab(a["lo"][c], a["hi"][c], origin, inv_dir, t_min,
+                                     interval_end, robust)
             if not hit:
                 continue
             if axis is not None and axis[node] >= 0:
@@ -162,9 +172,9 @@ def _finish(out, mode, hit_list, hit_count, max_hits):
     return out
 
 
-def trace(tree, triangles, origin, direction, **kwargs) -> list[dict]:
+def trace(tree, triangles, origin, direction, *, skip=None, **kwargs) -> list[dict]:
     """:func:`trace_ray` for every ray of ``origin``, ``direction`` [R, 3]."""
-    a = _tree_arrays(tree)
+    a = _tree_arrays(tree, skip)
     triangles = np.asarray(triangles, a["lo"].dtype)
     return [trace_ray(a, triangles, o, d, **kwargs) for o, d in zip(origin, direction)]
 
