@@ -43,6 +43,24 @@ leaf); the median builder makes such nodes leaves unconditionally.
 
 Areas are half-areas of extents times a power of two fixed by the scene box, so no
 float32 overflow at 1e30 or underflow at 1e-30 (:mod:`jaxbvh.cost`).
+
+Randomized split choice (the hook :mod:`jaxbvh.grasp` uses). With ``rcl`` set, the sweep
+rule becomes Ng & Trifonov's randomized one: a node first finds the greedy split above
+(so ``noise = 0`` is exactly the sweep builder); then, when its first uniform ``u0 <
+noise``, it *deviates* to an alternative picked by its second uniform ``u1``:
+
+* ``rcl="axes"``: the best split of one of the two other axes (per-axis best: least
+  cost, ties by the tie rule above restricted to the axis), ``u1 < 1/2`` the next axis
+  ``(a + 1) % 3``, else ``(a + 2) % 3``, where ``a`` is the greedy split's axis;
+* ``rcl="list"`` with ``k``: the split of rank ``r = 1 + floor(u1 (m - 1))`` (clipped to
+  ``m - 1``) of the node's ``m = min(k, 3 (N - 1))`` best, where rank 0 is the greedy
+  split and rank ``j`` the greedy split among the candidates left after ranks ``< j``
+  (so a tie within ``TIE_TOLERANCE`` ranks by the tie rule); ``k = 1`` never deviates.
+
+The two uniforms of a node come from :func:`split_uniforms` and name the node by its run
+of positions ``[start, start + count)`` (root ``[0, n)``, left child ``[start, start +
+N_L)``, right ``[start + N_L, start + N)``), which does not depend on the order nodes are
+visited in, so a recursive builder that keeps the same arithmetic draws the same numbers.
 """
 
 from __future__ import annotations
@@ -131,10 +149,23 @@ def build(prim_lo, prim_hi, *, method: str = "sweep", max_leaf: int = 1, bins: i
         raise ValueError(f"max_leaf must be >= 1, got {max_leaf}")
     if method == "binned" and int(bins) < 2:
         raise ValueError(f"bins must be >= 2, got {bins}")
-    lo, hi = check_prim_boxes(prim_lo, prim_hi)
-    if method == "binned" and capacity_bucket(lo.shape[0]) * int(bins) >= 2**31:
-        raise ValueError(f"binned build of {lo.shape[0]} primitives with {bins} bins needs keys past int32; "
+    lo_p, hi_p, n, scale = engine_inputs(prim_lo, prim_hi, pad=pad, dtype=dtype)
+    if method == "binned" and capacity_bucket(int(n)) * int(bins) >= 2**31:
+        raise ValueError(f"binned build of {int(n)} primitives with {bins} bins needs keys past int32; "
                          "use fewer bins")
+    dt = lo_p.dtype
+    return _build(lo_p, hi_p, n, jnp.int32(max_leaf), jnp.asarray(ct, dt), jnp.asarray(ci, dt), scale,
+                  method=method, bins=int(bins) if method == "binned" else 0)
+
+
+def engine_inputs(prim_lo, prim_hi, *, pad: bool = True, dtype=None):
+    """Checked, cast and padded engine inputs ``(lo, hi, n, scale)`` for ``_build``.
+
+    ``lo``, ``hi``: [capacity, 3] JAX arrays (padding: the empty box); ``n``: int32
+    primitive count; ``scale``: the scene's power-of-two area scale. Arguments and errors
+    as :func:`build`.
+    """
+    lo, hi = check_prim_boxes(prim_lo, prim_hi)
     dt = _working_dtype(dtype, lo.dtype)
     lo, hi = lo.astype(dt), hi.astype(dt)
     n = lo.shape[0]
@@ -142,14 +173,89 @@ def build(prim_lo, prim_hi, *, method: str = "sweep", max_leaf: int = 1, bins: i
     lo_p = np.full((cap, 3), np.inf, dt)
     hi_p = np.full((cap, 3), -np.inf, dt)
     lo_p[:n], hi_p[:n] = lo, hi
-    return _build(jnp.asarray(lo_p), jnp.asarray(hi_p), jnp.int32(n), jnp.int32(max_leaf),
-                  jnp.asarray(ct, dt), jnp.asarray(ci, dt), jnp.asarray(scene_scale(lo, hi), dt),
-                  method=method, bins=int(bins) if method == "binned" else 0)
+    return jnp.asarray(lo_p), jnp.asarray(hi_p), jnp.int32(n), jnp.asarray(scene_scale(lo, hi), dt)
 
 
 # ----------------------------------------------------------------------------------
 # the engine
 # ----------------------------------------------------------------------------------
+
+_NO_CODE = np.iinfo(np.int32).max  # tie-rule code of "no candidate"
+SPLIT_CHOICES = ("axes", "list")  # randomized split rules (module docstring)
+
+
+def split_uniforms(key, start, count):
+    """The two uniforms (float32, [..., 2]) of the node whose run is ``[start, start + count)``.
+
+    ``uniform(fold_in(fold_in(key, start), count), (2,))`` for each entry of the int
+    arrays ``start``, ``count`` (equal shapes). Runs of two nodes are disjoint or nested,
+    and a child's is shorter than its parent's, so the pair names one node whatever order
+    the nodes are visited in (module docstring). ``key``: one trial's ``jax.random`` key.
+    """
+    start = jnp.asarray(start, jnp.int32)
+    count = jnp.asarray(count, jnp.int32)
+
+    def one(s, c):
+        return jax.random.uniform(jax.random.fold_in(jax.random.fold_in(key, s), c), (2,), jnp.float32)
+
+    flat = jax.vmap(one)(start.ravel(), count.ravel())
+    return flat.reshape(start.shape + (2,))
+
+
+def _sweep_split_of(code, count):
+    """(axis, N_L) of the sweep split with tie-rule code ``code`` in a node of ``count``."""
+    gap, upper = (code // 3) // 2, (code // 3) % 2
+    return code % 3, jnp.where(upper == 1, count + gap, count - gap) // 2
+
+
+def _least_code(cost, code, seg, num_segments):
+    """Tie-rule winner per segment: least cost, then least ``code`` within TIE_TOLERANCE.
+
+    ``cost``, ``code``, ``seg``: equal shapes (``inf`` cost = not a candidate). Returns
+    the winner's code [num_segments], ``_NO_CODE`` for a segment without candidates.
+    """
+    best = jax.ops.segment_min(cost.ravel(), seg.ravel(), num_segments=num_segments)
+    near = (best * (1 + TIE_TOLERANCE)).at[seg].get(mode="fill", fill_value=jnp.inf)
+    ok = (cost <= near) & (cost < jnp.inf)
+    return jax.ops.segment_min(jnp.where(ok, code, _NO_CODE).ravel(), seg.ravel(),
+                               num_segments=num_segments)
+
+
+def _randomized_split(rcl, cost3, code3, seg3, greedy_code, count, open_node, uniforms, noise, k):
+    """Split (axis, N_L) [nodes] of every node under the randomized rule (module docstring).
+
+    ``cost3``, ``code3``, ``seg3``: [3, P] candidate costs (inf: none), tie-rule codes and
+    node ids (``nodes`` = none); ``greedy_code``: [nodes] the greedy split's code;
+    ``open_node``: [nodes] nodes split on this level; ``uniforms``: [nodes, 2].
+    """
+    nodes = count.shape[0]
+    greedy_axis, greedy_left = _sweep_split_of(greedy_code, count)
+    deviate = open_node & (count >= 2) & (uniforms[:, 0] < noise)
+    u1 = uniforms[:, 1]
+    if rcl == "axes":
+        axis_seg = seg3 + (nodes + 1) * jnp.arange(3, dtype=jnp.int32)[:, None]
+        per_axis = _least_code(cost3, code3, axis_seg, 3 * (nodes + 1)).reshape(3, nodes + 1)[:, :nodes]
+        alt_axis = (greedy_axis + jnp.where(u1 < 0.5, 1, 2)) % 3
+        alt_code = jnp.take_along_axis(per_axis, alt_axis[None, :], axis=0)[0]
+    else:
+        size = jnp.minimum(k, 3 * (count - 1))  # the list: the node's best min(k, 3 (N - 1))
+        others = jnp.maximum(size - 1, 0)
+        pick = jnp.minimum(jnp.floor(u1 * others.astype(jnp.float32)).astype(jnp.int32), others - 1)
+        rank = jnp.where(deviate & (others > 0), 1 + pick, 0)
+        deviate = rank > 0
+
+        def next_rank(state):  # rank j: the greedy split among those not yet ranked
+            j, taken, chosen = state
+            code_j = _least_code(jnp.where(taken, jnp.inf, cost3), code3, seg3, nodes + 1)[:nodes]
+            taken = taken | (code3 == code_j.at[seg3].get(mode="fill", fill_value=_NO_CODE))
+            return j + 1, taken, jnp.where(rank == j, code_j, chosen)
+
+        taken = code3 == greedy_code.at[seg3].get(mode="fill", fill_value=_NO_CODE)
+        last = jnp.max(rank)  # at most k - 1: the loop's bound
+        _, _, alt_code = jax.lax.while_loop(lambda s: s[0] <= last, next_rank,
+                                            (jnp.int32(1), taken, greedy_code))
+    alt_axis, alt_left = _sweep_split_of(alt_code, count)
+    return jnp.where(deviate, alt_axis, greedy_axis), jnp.where(deviate, alt_left, greedy_left)
 
 
 def _segmented_box_scan(lo, hi, starts):
@@ -193,8 +299,11 @@ def _split_costs(lo_pos, hi_pos, first, last, n_left, n_right, scale):
             + half_area(right_lo, right_hi, scale) * n_right.astype(dtype))
 
 
-@partial(jax.jit, static_argnames=("method", "bins"))
-def _build(lo, hi, n, max_leaf, ct, ci, scale, *, method, bins):
+@partial(jax.jit, static_argnames=("method", "bins", "rcl"))
+def _build(lo, hi, n, max_leaf, ct, ci, scale, key=None, noise=None, k=None, *, method, bins, rcl=None):
+    """The engine. ``rcl`` (None: greedy, or one of SPLIT_CHOICES) with ``method="sweep"``
+    turns on the randomized split choice (module docstring): ``key`` is the trial's key,
+    ``noise`` the float32 probability of deviating, ``k`` the int32 list length."""
     cap = lo.shape[0]
     nodes = 2 * cap
     none = nodes  # out-of-range node id: scatters to it are dropped
@@ -251,6 +360,7 @@ def _build(lo, hi, n, max_leaf, ct, ci, scale, *, method, bins):
             cost3 = jnp.where(active & (n_right_p > 0), cost3, jnp.inf)  # [3, P]
             two_k = 2 * n_left_p
             key3 = (jnp.abs(two_k - count_p) * 2 + (two_k > count_p))[None, :] * 3 + jnp.arange(3, dtype=jnp.int32)[:, None]
+            cost3_all, code3 = cost3, key3  # before the greedy choice masks key3
         else:  # binned
             # the per-axis orders are sorted by centre, so bins never decrease along a run:
             # the planes between occupied bins are the positions where the bin changes
@@ -280,6 +390,13 @@ def _build(lo, hi, n, max_leaf, ct, ci, scale, *, method, bins):
                 split_axis = best_key % 3
                 gap, upper = (best_key // 3) // 2, (best_key // 3) % 2
                 n_left = jnp.where(upper == 1, count + gap, count - gap) // 2
+                if rcl is not None:
+                    at_first = jnp.where(first & active, pos_node, none)
+                    uniforms = jnp.zeros((nodes, 2), jnp.float32).at[at_first].set(
+                        split_uniforms(key, start_p, count_p), mode="drop")
+                    split_axis, n_left = _randomized_split(
+                        rcl, cost3_all, code3, seg3, best_key, count, s["frontier"] & (count >= 2),
+                        uniforms, noise, k)
             else:
                 split_axis = jnp.where(found, best_key // bins, 0)
                 at_best = is_best & (key3 == best_key.at[seg3].get(mode="fill", fill_value=-1))
