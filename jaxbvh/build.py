@@ -158,6 +158,19 @@ def build(prim_lo, prim_hi, *, method: str = "sweep", max_leaf: int = 1, bins: i
                   method=method, bins=int(bins) if method == "binned" else 0)
 
 
+def randomized_sweep(lo, hi, n, scale, key, noise, k, *, rcl: str):
+    """One randomized full-sweep build (module docstring), one primitive per leaf.
+
+    ``lo``, ``hi``, ``n``, ``scale``: from :func:`engine_inputs`; ``key``: the trial's
+    key; ``noise``: float32 probability of deviating; ``k``: int32 list length (used by
+    ``rcl="list"``); ``rcl``: ``"axes"`` or ``"list"``. Traceable: jit and vmap it.
+    """
+    if rcl not in SPLIT_CHOICES:
+        raise ValueError(f"rcl must be one of {', '.join(SPLIT_CHOICES)}, got {rcl!r}")
+    one = jnp.ones((), lo.dtype)
+    return _build(lo, hi, n, jnp.int32(1), one, one, scale, key, noise, k, method="sweep", bins=0, rcl=rcl)
+
+
 def engine_inputs(prim_lo, prim_hi, *, pad: bool = True, dtype=None):
     """Checked, cast and padded engine inputs ``(lo, hi, n, scale)`` for ``_build``.
 
