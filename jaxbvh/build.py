@@ -44,10 +44,11 @@ leaf); the median builder makes such nodes leaves unconditionally.
 Areas are half-areas of extents times a power of two fixed by the scene box, so no
 float32 overflow at 1e30 or underflow at 1e-30 (:mod:`jaxbvh.cost`).
 
-Randomized split choice (the hook :mod:`jaxbvh.grasp` uses). With ``rcl`` set, the sweep
-rule becomes Ng & Trifonov's randomized one: a node first finds the greedy split above
-(so ``noise = 0`` is exactly the sweep builder); then, when its first uniform ``u0 <
-noise``, it *deviates* to an alternative picked by its second uniform ``u1``:
+Randomized split choice (the hook :mod:`jaxbvh.grasp` uses, :func:`randomized_forest`).
+With ``rcl`` set, the sweep rule becomes Ng & Trifonov's randomized one: a node first
+finds the greedy split above (so ``noise = 0`` is exactly the sweep builder); then, when
+its first uniform ``u0 < noise``, it *deviates* to an alternative picked by its second
+uniform ``u1``:
 
 * ``rcl="axes"``: the best split of one of the two other axes (per-axis best: least
   cost, ties by the tie rule above restricted to the axis), ``u1 < 1/2`` the next axis
@@ -57,15 +58,20 @@ noise``, it *deviates* to an alternative picked by its second uniform ``u1``:
   split and rank ``j`` the greedy split among the candidates left after ranks ``< j``
   (so a tie within ``TIE_TOLERANCE`` ranks by the tie rule); ``k = 1`` never deviates.
 
-The two uniforms of a node come from :func:`split_uniforms` and name the node by its run
-of positions ``[start, start + count)`` (root ``[0, n)``, left child ``[start, start +
-N_L)``, right ``[start + N_L, start + N)``), which does not depend on the order nodes are
-visited in, so a recursive builder that keeps the same arithmetic draws the same numbers.
+A node's two uniforms come from :func:`split_uniforms` for its trial and its run of
+positions ``[start, start + count)`` (root ``[0, n)``, left child ``[start, start +
+N_L)``, right ``[start + N_L, start + N)``): a name that does not depend on the order
+nodes are visited in, so a recursive builder keeping the same arithmetic draws the same
+numbers. The randomized engine builds a *forest*: primitives come in groups ``0 .. G -
+1``, each grown into its own tree (roots are nodes ``0 .. G - 1``), with its own trial
+number and a ``shift`` added to every run start it names, so that a group can be a
+subtree of a trial's tree, named as in the whole tree.
 """
 
 from __future__ import annotations
 
 from functools import partial
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -158,17 +164,37 @@ def build(prim_lo, prim_hi, *, method: str = "sweep", max_leaf: int = 1, bins: i
                   method=method, bins=int(bins) if method == "binned" else 0)
 
 
-def randomized_sweep(lo, hi, n, scale, key, noise, k, *, rcl: str):
-    """One randomized full-sweep build (module docstring), one primitive per leaf.
+class RandomSplits(NamedTuple):
+    """Inputs of the randomized split choice (module docstring); a pytree, traced under jit.
 
-    ``lo``, ``hi``, ``n``, ``scale``: from :func:`engine_inputs`; ``key``: the trial's
-    key; ``noise``: float32 probability of deviating; ``k``: int32 list length (used by
-    ``rcl="list"``); ``rcl``: ``"axes"`` or ``"list"``. Traceable: jit and vmap it.
+    ``key``: the run's ``jax.random`` key. ``group`` [capacity] int32: the tree each
+    primitive slot grows into, ``0 .. G - 1``, every one used (padding slots: any).
+    ``trial``, ``shift`` [capacity] int32, indexed by group: the trial number of the tree,
+    and what to add to its run starts to name its nodes. ``noise``: float32 probability
+    of deviating. ``k``: int32 list length (``rcl="list"``).
+    """
+
+    key: Any
+    group: Any
+    trial: Any
+    shift: Any
+    noise: Any
+    k: Any
+
+
+def randomized_forest(lo, hi, n, scale, splits: RandomSplits, *, rcl: str):
+    """Randomized full-sweep forest (module docstring), one primitive per leaf.
+
+    ``lo``, ``hi``, ``n``, ``scale``: as from :func:`engine_inputs`; ``scale`` must be
+    the whole scene's (areas of every tree on one scale). ``rcl``: ``"axes"`` or
+    ``"list"``. Returns ``(forest, tree_of)``: a :class:`BVH` whose nodes ``0 .. G - 1``
+    are the roots (``root`` is 0, ``prim_index`` holds slots of ``lo``), and ``tree_of``
+    [2 capacity] int32, each node's group (-1 for unused slots). Traceable (jit, vmap).
     """
     if rcl not in SPLIT_CHOICES:
         raise ValueError(f"rcl must be one of {', '.join(SPLIT_CHOICES)}, got {rcl!r}")
     one = jnp.ones((), lo.dtype)
-    return _build(lo, hi, n, jnp.int32(1), one, one, scale, key, noise, k, method="sweep", bins=0, rcl=rcl)
+    return _build(lo, hi, n, jnp.int32(1), one, one, scale, splits, method="sweep", bins=0, rcl=rcl)
 
 
 def engine_inputs(prim_lo, prim_hi, *, pad: bool = True, dtype=None):
@@ -197,21 +223,22 @@ _NO_CODE = np.iinfo(np.int32).max  # tie-rule code of "no candidate"
 SPLIT_CHOICES = ("axes", "list")  # randomized split rules (module docstring)
 
 
-def split_uniforms(key, start, count):
-    """The two uniforms (float32, [..., 2]) of the node whose run is ``[start, start + count)``.
+def split_uniforms(key, trial, start, count):
+    """The two uniforms (float32, [..., 2]) of trial ``trial``'s node with run ``[start, start + count)``.
 
-    ``uniform(fold_in(fold_in(key, start), count), (2,))`` for each entry of the int
-    arrays ``start``, ``count`` (equal shapes). Runs of two nodes are disjoint or nested,
-    and a child's is shorter than its parent's, so the pair names one node whatever order
-    the nodes are visited in (module docstring). ``key``: one trial's ``jax.random`` key.
+    ``uniform(fold_in(fold_in(fold_in(key, trial), start), count), (2,))`` for each entry
+    of the int arrays ``trial``, ``start``, ``count`` (equal shapes); ``key``: the run's
+    ``jax.random`` key. Runs of two nodes of a tree are disjoint or nested, and a child's
+    is shorter than its parent's, so the pair names one node whatever order the nodes are
+    visited in (module docstring).
     """
-    start = jnp.asarray(start, jnp.int32)
-    count = jnp.asarray(count, jnp.int32)
+    trial, start, count = (jnp.asarray(a, jnp.int32) for a in (trial, start, count))
 
-    def one(s, c):
-        return jax.random.uniform(jax.random.fold_in(jax.random.fold_in(key, s), c), (2,), jnp.float32)
+    def one(t, s, c):
+        node_key = jax.random.fold_in(jax.random.fold_in(jax.random.fold_in(key, t), s), c)
+        return jax.random.uniform(node_key, (2,), jnp.float32)
 
-    flat = jax.vmap(one)(start.ravel(), count.ravel())
+    flat = jax.vmap(one)(trial.ravel(), start.ravel(), count.ravel())
     return flat.reshape(start.shape + (2,))
 
 
@@ -313,10 +340,10 @@ def _split_costs(lo_pos, hi_pos, first, last, n_left, n_right, scale):
 
 
 @partial(jax.jit, static_argnames=("method", "bins", "rcl"))
-def _build(lo, hi, n, max_leaf, ct, ci, scale, key=None, noise=None, k=None, *, method, bins, rcl=None):
+def _build(lo, hi, n, max_leaf, ct, ci, scale, splits=None, *, method, bins, rcl=None):
     """The engine. ``rcl`` (None: greedy, or one of SPLIT_CHOICES) with ``method="sweep"``
-    turns on the randomized split choice (module docstring): ``key`` is the trial's key,
-    ``noise`` the float32 probability of deviating, ``k`` the int32 list length."""
+    and ``splits`` (:class:`RandomSplits`) builds the randomized forest and returns
+    ``(BVH, tree_of)`` (:func:`randomized_forest`); otherwise one tree, a ``BVH``."""
     cap = lo.shape[0]
     nodes = 2 * cap
     none = nodes  # out-of-range node id: scatters to it are dropped
@@ -339,6 +366,23 @@ def _build(lo, hi, n, max_leaf, ct, ci, scale, key=None, noise=None, k=None, *, 
         lo=jnp.full((nodes, 3), jnp.inf, dtype), hi=jnp.full((nodes, 3), -jnp.inf, dtype),
         next_free=jnp.int32(1),
     )
+    if rcl is not None:
+        # a forest: group g's primitives take the run [offset_g, offset_g + count_g) of
+        # every axis order, sorted by centre inside it (stable sorts keep ids in order)
+        group = jnp.where(is_prim, splits.group, cap)
+        orders = jnp.stack([o[jnp.argsort(group[o], stable=True)] for o in orders])
+        size = jax.ops.segment_sum(is_prim.astype(jnp.int32), group, num_segments=cap + 1)[:cap]
+        trees = jnp.sum(size > 0, dtype=jnp.int32)
+        root = jnp.arange(cap, dtype=jnp.int32)
+        state.update(
+            orders=orders,
+            pos_node=jnp.where(is_prim, group[orders[0]], none).astype(jnp.int32),
+            start=jnp.zeros(nodes, jnp.int32).at[root].set(jnp.cumsum(size) - size),
+            count=jnp.zeros(nodes, jnp.int32).at[root].set(size),
+            frontier=jnp.zeros(nodes, bool).at[root].set(size > 0),
+            next_free=trees,
+            tree_of=jnp.full(nodes, -1, jnp.int32).at[root].set(jnp.where(size > 0, root, -1)),
+        )
     node_ids = jnp.arange(nodes, dtype=jnp.int32)
 
     def level(s):
@@ -404,12 +448,14 @@ def _build(lo, hi, n, max_leaf, ct, ci, scale, key=None, noise=None, k=None, *, 
                 gap, upper = (best_key // 3) // 2, (best_key // 3) % 2
                 n_left = jnp.where(upper == 1, count + gap, count - gap) // 2
                 if rcl is not None:
+                    tree_p = jnp.maximum(s["tree_of"].at[pos_node].get(mode="fill", fill_value=0), 0)
+                    drawn = split_uniforms(splits.key, splits.trial[tree_p], start_p + splits.shift[tree_p],
+                                           count_p)
                     at_first = jnp.where(first & active, pos_node, none)
-                    uniforms = jnp.zeros((nodes, 2), jnp.float32).at[at_first].set(
-                        split_uniforms(key, start_p, count_p), mode="drop")
+                    uniforms = jnp.zeros((nodes, 2), jnp.float32).at[at_first].set(drawn, mode="drop")
                     split_axis, n_left = _randomized_split(
                         rcl, cost3_all, code3, seg3, best_key, count, s["frontier"] & (count >= 2),
-                        uniforms, noise, k)
+                        uniforms, splits.noise, splits.k)
             else:
                 split_axis = jnp.where(found, best_key // bins, 0)
                 at_best = is_best & (key3 == best_key.at[seg3].get(mode="fill", fill_value=-1))
@@ -458,7 +504,12 @@ def _build(lo, hi, n, max_leaf, ct, ci, scale, key=None, noise=None, k=None, *, 
         new_count = cnt.at[left_id].set(n_left, mode="drop").at[right_id].set(cnt - n_left, mode="drop")
         parent = s["parent"].at[left_id].set(node_ids, mode="drop").at[right_id].set(node_ids, mode="drop")
         new_frontier = jnp.zeros(nodes, bool).at[left_id].set(True, mode="drop").at[right_id].set(True, mode="drop")
+        more = {}
+        if rcl is not None:  # children belong to their parent's tree
+            tree_of = s["tree_of"]
+            more["tree_of"] = tree_of.at[left_id].set(tree_of, mode="drop").at[right_id].set(tree_of, mode="drop")
         return dict(
+            **more,
             orders=new_orders, pos_node=new_pos_node, start=new_start, count=new_count,
             frontier=new_frontier,
             left=jnp.where(split, left_id, s["left"]), right=jnp.where(split, right_id, s["right"]),
@@ -470,6 +521,7 @@ def _build(lo, hi, n, max_leaf, ct, ci, scale, key=None, noise=None, k=None, *, 
         )
 
     s = jax.lax.while_loop(lambda s: jnp.any(s["frontier"]), level, state)
-    return BVH(left=s["left"], right=s["right"], parent=s["parent"], lo=s["lo"], hi=s["hi"],
+    tree = BVH(left=s["left"], right=s["right"], parent=s["parent"], lo=s["lo"], hi=s["hi"],
                prim_start=s["prim_start"], prim_count=s["prim_count"], axis=s["axis"],
                prim_index=jnp.where(is_prim, s["orders"][0], -1), root=jnp.int32(0))
+    return tree if rcl is None else (tree, s["tree_of"])

@@ -4,9 +4,9 @@ The algorithm
 =============
 Ng & Trifonov treat the full-sweep SAH builder (Müller & Fellner; ``jaxbvh.build(method=
 "sweep")``, one primitive per leaf) as a greedy constructive search and randomize it the
-GRASP way: at every node the split is drawn from a *restricted candidate list* (RCL)
-instead of always taking the best one, many trees are built, and the one with the
-lowest objective is kept. A trial builds one tree:
+GRASP way: at some nodes the split is drawn from a *restricted candidate list* (RCL)
+instead of always being the best one; many trees are built and the one with the lowest
+objective is kept. A trial builds one tree:
 
 * every node first finds the greedy split (least ``A_L N_L + A_R N_R``, the sweep
   builder's tie rule), then with probability ``noise`` *deviates* from it;
@@ -24,7 +24,7 @@ value"), so a tree of ``n`` primitives (``n - 1`` interior nodes) deviates ``noi
 reading "pick uniformly among the ``k`` best, the best included, with probability ``p``"
 for the cardinality RCL gives ``noise = p (k - 1) / k`` here. The exact rule, ties
 included, is in :mod:`jaxbvh.build` (randomized split choice), whose level-synchronous
-engine builds the trials (nothing is copied here).
+engine builds every tree here (nothing is copied).
 
 The objective (``objective="nt"``, the paper's) is the total surface area of the interior
 boxes over the root's (:func:`jaxbvh.cost.ng_trifonov_cost`); ``objective="sah"`` keeps
@@ -33,19 +33,32 @@ number wins.
 
 Randomness
 ==========
-Trial ``t`` uses the key ``fold_in(key, t)`` (:func:`trial_key`), so a trial's tree does
-not depend on how many trials run or how they are chunked, and the best of the first 10
-trials of a 100-trial run is the best of a 10-trial run with the same key. Inside a
-trial every node draws its two uniforms from :func:`jaxbvh.build.split_uniforms`, keyed by
-the node's run of primitive positions ``[start, start + count)`` (root ``[0, n)``, left
-child ``[start, start + N_L)``, right child the rest); draws are not sequential, so the
-level-synchronous build equals the recursive one in :mod:`jaxbvh.reference.grasp` fed the
-same key, node for node. The first uniform decides the deviation (``u0 < noise``), the
-second the alternative.
+Node ``[start, start + count)`` of trial ``t`` draws its two uniforms from
+:func:`jaxbvh.build.split_uniforms` ``(key, t, start, count)``: keyed by the node's run of
+primitive positions (root ``[0, n)``, left child ``[start, start + N_L)``, right child
+the rest), not drawn in sequence. So a trial's tree does not depend on how many trials
+run or in which order nodes are built: the level-synchronous engine equals the recursive
+:mod:`jaxbvh.reference.grasp` node for node, and the best of the first 10 trials of a
+100-trial run is the best of a 10-trial run with the same key. The first uniform decides
+the deviation (``u0 < noise``), the second the alternative.
 
-Trials run as one vmapped call per chunk of trials (chunk size bounded by memory,
-:data:`CHUNK_BYTES`); only each chunk's best tree leaves the device. ``noise = 0`` gives
-the sweep builder's tree in every trial.
+Only deviating subtrees are built
+=================================
+Until a node deviates, a trial builds exactly the greedy tree: a node whose ancestors all
+took the greedy split holds the same primitives, has the same run (so the same draws) and
+finds the same greedy split. A trial's tree is therefore the greedy tree with the
+subtrees under its *topmost deviating nodes* (deviating, no deviating ancestor) rebuilt.
+:func:`grasp` builds the greedy tree once, draws ``u0`` for all of its interior nodes in
+every trial, and builds only those subtrees, each as one tree of a forest
+(:func:`jaxbvh.build.randomized_forest`: its own trial number, its nodes named as in the
+whole tree). Trees of many trials are packed into one forest, up to
+:data:`CHUNK_PRIMS` primitives per call (memory bound). A trial's objective is the greedy
+tree's with the rebuilt subtrees' contributions swapped in (in float64 on the host; both
+objectives are sums over nodes: the interior areas for ``"nt"``, each subtree's SAH
+weighted by the area ratios down to it for ``"sah"``). With ``deviations`` per tree the
+rebuilt subtrees hold about ``deviations x depth`` primitives, so a trial costs a small
+fraction of a build; at high noise the root deviates and the whole tree is rebuilt. The
+best trial's tree is built whole at the end (:func:`randomized_build`).
 """
 
 from __future__ import annotations
@@ -59,8 +72,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxbvh.build import build, engine_inputs, randomized_sweep
-from jaxbvh.cost import ng_trifonov_cost, sah
+from jaxbvh.build import RandomSplits, build, engine_inputs, randomized_forest, split_uniforms
+from jaxbvh.tree import capacity_bucket, concat_ranges, to_numpy
 
 OBJECTIVES = ("nt", "sah")
 
@@ -68,10 +81,10 @@ OBJECTIVES = ("nt", "sah")
 # Placeholder until the sweep in bench/bench_stochastic.py is run.
 DEFAULT_DEVIATIONS = 10.0
 
-# Memory one chunk of trials may use (bytes); a trial needs about _BYTES_PER_SLOT per
-# primitive slot of the padded capacity (measured: peak resident memory of one chunk).
-CHUNK_BYTES = 1 << 30
-_BYTES_PER_SLOT = 1024
+# Most primitives in one forest call (the memory bound: about 2 KB of working memory per
+# primitive slot, so 2^19 slots ~ 1 GB).
+CHUNK_PRIMS = 1 << 19
+_DRAWS_PER_CALL = 1 << 22  # u0 draws per call when screening the greedy tree's nodes
 
 
 @dataclasses.dataclass(frozen=True)
@@ -82,7 +95,8 @@ class GraspResult:
     leaf); ``objective``: its objective; ``objectives``: float64 NumPy [trials], every
     trial's objective in trial order; ``best_trial``: its trial number; ``base``: the
     objective of the greedy sweep tree (``noise = 0``); ``noise``: the noise used;
-    ``rcl``: ``"axes"`` or ``k``; ``name``: the objective's name.
+    ``rcl``: ``"axes"`` or ``k``; ``name``: the objective's name; ``rebuilt``: int64
+    [trials], primitives under each trial's rebuilt subtrees (the work it cost).
     """
 
     tree: Any
@@ -93,18 +107,11 @@ class GraspResult:
     noise: float
     rcl: Any
     name: str
+    rebuilt: np.ndarray
 
     def best_of(self, trials: int) -> float:
         """Best objective among the first ``trials`` trials (what a shorter run finds)."""
         return float(np.min(self.objectives[:trials]))
-
-
-def trial_key(key, trial):
-    """The key of trial number ``trial``: ``fold_in(key, trial)`` (int, or int array [T] -> [T] keys)."""
-    trial = jnp.asarray(trial, jnp.uint32)
-    if trial.ndim == 0:
-        return jax.random.fold_in(key, trial)
-    return jax.vmap(lambda t: jax.random.fold_in(key, t))(trial)
 
 
 def check_rcl(rcl):
@@ -144,58 +151,172 @@ def _mode(rcl):
     return ("axes", 0) if rcl == "axes" else ("list", int(rcl))
 
 
-def _objective(tree, name):
-    return ng_trifonov_cost(tree) if name == "nt" else sah(tree)
+def _check_int(name, value, minimum=1):
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
 
 
-def randomized_build(key, prim_lo, prim_hi, *, noise: float, rcl="axes", pad: bool = True, dtype=None):
-    """One GRASP trial: the randomized full-sweep tree for the trial key ``key``.
+_forest = jax.jit(randomized_forest, static_argnames=("rcl",))
+
+
+def randomized_build(key, prim_lo, prim_hi, *, trial: int = 0, noise: float, rcl="axes", pad: bool = True,
+                     dtype=None):
+    """Trial ``trial`` of a GRASP run keyed ``key``: its whole randomized full-sweep tree.
 
     Args:
-      key: the trial's ``jax.random`` key (:func:`trial_key` of the run's key).
+      key: the run's ``jax.random`` key.
       prim_lo, prim_hi: [n, 3] primitive boxes (as for :func:`jaxbvh.build`).
+      trial: the trial number, >= 0.
       noise: probability in [0, 1] that a node deviates from the greedy split.
       rcl: ``"axes"`` or a list length ``k >= 1`` (module docstring).
       pad, dtype: as for :func:`jaxbvh.build`.
 
     Returns:
-      A :class:`~jaxbvh.tree.BVH` (one primitive per leaf, nodes level by level).
+      A :class:`~jaxbvh.tree.BVH` (one primitive per leaf, nodes level by level, root 0).
     """
     mode, k = _mode(check_rcl(rcl))
+    trial = _check_int("trial", trial, 0)
     noise = resolve_noise(2, noise=noise)  # checks it
     lo, hi, n, scale = engine_inputs(prim_lo, prim_hi, pad=pad, dtype=dtype)
-    return _one_trial(lo, hi, n, scale, key, jnp.float32(noise), jnp.int32(k), rcl=mode)
+    cap = lo.shape[0]
+    zeros = jnp.zeros(cap, jnp.int32)
+    splits = RandomSplits(key, zeros, zeros.at[0].set(trial), zeros, jnp.float32(noise), jnp.int32(k))
+    tree, _ = _forest(lo, hi, n, scale, splits, rcl=mode)
+    return tree
 
 
-_one_trial = jax.jit(randomized_sweep, static_argnames=("rcl",))
+# ----------------------------------------------------------------------------------
+# Host-side bookkeeping over a tree: runs, subtree sums, SAH weights (float64)
+# ----------------------------------------------------------------------------------
 
 
-@partial(jax.jit, static_argnames=("mode", "objective"))
-def _chunk(keys, real, lo, hi, n, scale, noise, k, *, mode, objective):
-    """Build ``keys`` [C] trials at once; returns (the best real trial's tree, objectives [C])."""
-    def trial(key):
-        tree = randomized_sweep(lo, hi, n, scale, key, noise, k, rcl=mode)
-        return tree, _objective(tree, objective)
+def _levels(left, right, roots):
+    """Node ids by depth from ``roots``: list of int arrays (each loop step one level)."""
+    out, frontier = [], np.asarray(roots, np.int64)
+    for _ in range(left.shape[0] + 1):  # bound: a level per node at most
+        if frontier.size == 0:
+            break
+        out.append(frontier)
+        kids = np.concatenate([left[frontier], right[frontier]])
+        frontier = kids[kids >= 0]
+    return out
 
-    trees, values = jax.vmap(trial)(keys)
-    best = jnp.argmin(jnp.where(real, values, jnp.inf))  # first of equal values
-    return jax.tree_util.tree_map(lambda x: x[best], trees), values
+
+def _areas(lo, hi):
+    d = np.maximum(np.asarray(hi, np.float64) - np.asarray(lo, np.float64), 0.0)
+    return d[:, 0] * d[:, 1] + d[:, 1] * d[:, 2] + d[:, 2] * d[:, 0]
 
 
-def chunk_size(capacity: int, trials: int) -> int:
-    """Trials per vmapped call: as many as :data:`CHUNK_BYTES` allows, spread evenly."""
-    most = max(1, CHUNK_BYTES // (_BYTES_PER_SLOT * max(capacity, 1)))
-    chunks = -(-trials // most)
-    return -(-trials // chunks)
+def _subtree_sums(t, levels, area):
+    """Per node: primitives under it, interior area below and at it, SAH ``C`` (float64)."""
+    left, right = t.left.astype(np.int64), t.right.astype(np.int64)
+    count = np.where(t.prim_count > 0, t.prim_count, 0).astype(np.int64)
+    interior_area = np.zeros(left.shape[0])
+    cost = np.where(t.prim_count > 0, t.prim_count.astype(np.float64), 0.0)  # Ci N, Ci = 1
+    for ids in reversed(levels):
+        inner = ids[left[ids] >= 0]
+        a, b = left[inner], right[inner]
+        count[inner] = count[a] + count[b]
+        interior_area[inner] = area[inner] + interior_area[a] + interior_area[b]
+        own = area[inner]
+        weighted = (area[a] * cost[a] + area[b] * cost[b]) / np.where(own > 0, own, 1.0)
+        cost[inner] = 1.0 + np.where(own > 0, weighted, cost[a] + cost[b])  # Ct = 1
+    return count, interior_area, cost
+
+
+@dataclasses.dataclass(frozen=True)
+class _Greedy:
+    """The greedy tree as seen by the trials: its interior nodes' runs and contributions."""
+
+    prim_index: np.ndarray  # [n] primitive of each position
+    start: np.ndarray       # [m] run of each interior node, sorted by (start, -count)
+    count: np.ndarray
+    contribution: np.ndarray  # [m] what the node's subtree adds to the objective
+    weight: np.ndarray        # [m] its weight in the objective (sah: area ratios down to it)
+    base: float               # the objective
+    root_area: float
+
+
+def _greedy(tree, objective) -> _Greedy:
+    t = to_numpy(tree)
+    root = int(t.root)
+    levels = _levels(t.left.astype(np.int64), t.right.astype(np.int64), [root])
+    area = _areas(t.lo, t.hi)
+    count, interior_area, cost = _subtree_sums(t, levels, area)
+    start = np.zeros_like(count)
+    weight = np.zeros(count.shape[0])
+    weight[root] = 1.0
+    for ids in levels:
+        inner = ids[t.left[ids] >= 0]
+        a, b = t.left[inner], t.right[inner]
+        start[a], start[b] = start[inner], start[inner] + count[a]
+        own = area[inner]
+        for c in (a, b):
+            weight[c] = weight[inner] * np.where(own > 0, area[c] / np.where(own > 0, own, 1.0), 1.0)
+    inner = np.flatnonzero(t.left >= 0)
+    inner = inner[np.lexsort((-count[inner], start[inner]))]
+    if objective == "nt":
+        root_area = area[root]
+        # zero root area: the objective counts interior nodes, the same for every tree
+        scale = 1.0 / root_area if root_area > 0 else 0.0
+        contribution, base = interior_area[inner] * scale, interior_area[root] * scale
+        if root_area <= 0:
+            base = float(inner.size)
+        weight_inner = np.ones(inner.size)
+    else:
+        contribution, base, weight_inner = cost[inner], cost[root], weight[inner]
+    return _Greedy(prim_index=np.asarray(t.prim_index), start=start[inner], count=count[inner],
+                   contribution=contribution, weight=weight_inner, base=float(base), root_area=float(area[root]))
+
+
+@partial(jax.jit, static_argnames=())
+def _first_uniforms(key, trials, start, count):
+    """u0 [T, m] of the greedy tree's interior nodes in trials ``trials`` [T]."""
+    t = jnp.broadcast_to(trials[:, None], (trials.shape[0], start.shape[0]))
+    return split_uniforms(key, t, jnp.broadcast_to(start, t.shape), jnp.broadcast_to(count, t.shape))[..., 0]
+
+
+def _topmost(deviate, start, count):
+    """Indices of the topmost deviating nodes (runs sorted by (start, -count), laminar)."""
+    idx = np.flatnonzero(deviate)
+    if idx.size == 0:
+        return idx
+    end = start[idx] + count[idx]
+    covered = np.concatenate([[-1], np.maximum.accumulate(end)[:-1]])  # furthest end so far
+    return idx[start[idx] >= covered]
+
+
+def _forest_values(forest, tree_of, groups, objective, root_area):
+    """Per tree of the forest: its contribution to the objective (float64 [groups])."""
+    t = to_numpy(forest)
+    area = _areas(t.lo, t.hi)
+    tree_of = np.asarray(tree_of)
+    if objective == "nt":
+        inner = t.left >= 0
+        sums = np.bincount(tree_of[inner], weights=area[inner], minlength=groups)[:groups]
+        return sums / root_area if root_area > 0 else np.zeros(groups)
+    levels = _levels(t.left.astype(np.int64), t.right.astype(np.int64), np.arange(groups))
+    _, _, cost = _subtree_sums(t, levels, area)
+    return cost[:groups]
+
+
+def _forest_capacity(total: int, base: int) -> int:
+    """Capacity of a forest of ``total`` primitives: ``base`` (the scene's) times a power of two.
+
+    Few shapes (compiles) per scene, at most half of the slots padding; the smallest is
+    also the capacity of :func:`randomized_build`.
+    """
+    return base << max(0, math.ceil(math.log2(total / base))) if total > base else base
 
 
 def grasp(key, prim_lo, prim_hi, *, trials: int = 100, noise=None, deviations=None, rcl="axes",
-          objective: str = "nt", chunk: int | None = None, pad: bool = True, dtype=None,
+          objective: str = "nt", chunk_prims: int | None = None, pad: bool = True, dtype=None,
           on_chunk: Callable[[int, float], None] | None = None) -> GraspResult:
     """Best of ``trials`` randomized full-sweep builds (module docstring).
 
     Args:
-      key: ``jax.random`` key of the run; trial ``t`` uses :func:`trial_key` ``(key, t)``.
+      key: ``jax.random`` key of the run.
       prim_lo, prim_hi: [n, 3] primitive boxes (as for :func:`jaxbvh.build`).
       trials: number of trees built, >= 1.
       noise: per-node probability of deviating, in [0, 1]; or
@@ -203,43 +324,88 @@ def grasp(key, prim_lo, prim_hi, *, trials: int = 100, noise=None, deviations=No
         neither, :data:`DEFAULT_DEVIATIONS`.
       rcl: ``"axes"`` (default, the paper's first method) or a list length ``k >= 1``.
       objective: ``"nt"`` (Ng & Trifonov's interior area, default) or ``"sah"``.
-      chunk: trials per vmapped call (default: :func:`chunk_size`, bounded by memory).
+      chunk_prims: most primitives per forest call (default :data:`CHUNK_PRIMS`); a
+        subtree larger than that gets a call of its own.
       pad, dtype: as for :func:`jaxbvh.build`.
-      on_chunk: called after each chunk with (trials done, best objective so far).
+      on_chunk: called after each forest call with (trials done, best objective so far).
 
     Returns:
       A :class:`GraspResult`; its tree is the best trial's (lowest objective, then lowest
-      trial number).
+      trial number), built whole.
     """
-    if isinstance(trials, bool) or not isinstance(trials, (int, np.integer)) or trials < 1:
-        raise ValueError(f"trials must be an integer >= 1, got {trials!r}")
+    trials = _check_int("trials", trials)
     if objective not in OBJECTIVES:
         raise ValueError(f"objective must be one of {', '.join(OBJECTIVES)}, got {objective!r}")
     rcl = check_rcl(rcl)
     mode, k = _mode(rcl)
+    chunk_prims = CHUNK_PRIMS if chunk_prims is None else _check_int("chunk_prims", chunk_prims)
     lo, hi, n, scale = engine_inputs(prim_lo, prim_hi, pad=pad, dtype=dtype)
-    noise = resolve_noise(int(n), noise, deviations)
-    if chunk is None:
-        chunk = chunk_size(lo.shape[0], trials)
-    elif isinstance(chunk, bool) or not isinstance(chunk, (int, np.integer)) or chunk < 1:
-        raise ValueError(f"chunk must be an integer >= 1, got {chunk!r}")
-    chunk = min(int(chunk), trials)
+    n = int(n)
+    noise = resolve_noise(n, noise, deviations)
+    lo_np, hi_np = np.asarray(lo)[:n], np.asarray(hi)[:n]
+    dt = lo_np.dtype
 
-    base_tree = build(prim_lo, prim_hi, method="sweep", pad=pad, dtype=dtype)
-    base = float(_objective(base_tree, objective))
+    greedy = _greedy(build(prim_lo, prim_hi, method="sweep", pad=pad, dtype=dtype), objective)
+    objectives = np.full(trials, greedy.base)
+    rebuilt = np.zeros(trials, np.int64)
 
-    objectives = np.empty(trials, np.float64)
-    best_tree, best_value, best_trial = None, math.inf, -1
-    for first in range(0, trials, chunk):
-        numbers = np.arange(first, first + chunk)
-        tree, values = _chunk(trial_key(key, numbers), jnp.asarray(numbers < trials), lo, hi, n, scale,
-                              jnp.float32(noise), jnp.int32(k), mode=mode, objective=objective)
-        values = np.asarray(values, np.float64)[: trials - first]
-        objectives[first: first + values.size] = values
-        i = int(np.argmin(values))
-        if values[i] < best_value:
-            best_tree, best_value, best_trial = tree, float(values[i]), first + i
-        if on_chunk is not None:
-            on_chunk(first + values.size, best_value)
-    return GraspResult(tree=best_tree, objective=best_value, objectives=objectives, best_trial=best_trial,
-                       base=base, noise=noise, rcl=rcl, name=objective)
+    # the topmost deviating nodes of every trial: (trial, index into greedy's interior nodes)
+    can_deviate = greedy.start.size > 0 and noise > 0 and (mode == "axes" or k >= 2)
+    subs = []
+    # draw in blocks of a few shapes: trials and nodes padded to capacity buckets
+    m = greedy.start.size
+    padded = capacity_bucket(m)
+    per_call = capacity_bucket(min(trials, max(1, _DRAWS_PER_CALL // padded)))
+    start = jnp.zeros(padded, jnp.int32).at[:m].set(jnp.asarray(greedy.start, jnp.int32))
+    count = jnp.zeros(padded, jnp.int32).at[:m].set(jnp.asarray(greedy.count, jnp.int32))
+    for first in range(0, trials if can_deviate else 0, per_call):
+        numbers = np.arange(first, first + per_call)
+        u0 = np.asarray(_first_uniforms(key, jnp.asarray(numbers, jnp.int32), start, count))[:, :m]
+        deviate = u0 < np.float32(noise)
+        for row, t in enumerate(numbers[numbers < trials]):
+            subs += [(int(t), int(i)) for i in _topmost(deviate[row], greedy.start, greedy.count)]
+
+    def run(batch):
+        """Build one forest of subtrees [(trial, node)]; add their effect to the objectives."""
+        nodes = np.array([i for _, i in batch])
+        owner = np.array([t for t, _ in batch])
+        starts, counts = greedy.start[nodes], greedy.count[nodes]
+        groups = np.repeat(np.arange(len(batch)), counts)
+        ids = greedy.prim_index[concat_ranges(starts, counts)]
+        ids = ids[np.lexsort((ids, groups))]  # each group's primitives by id: the tie order
+        total = ids.size
+        cap = _forest_capacity(total, lo.shape[0]) if pad else total
+        lo_f = np.full((cap, 3), np.inf, dt)
+        hi_f = np.full((cap, 3), -np.inf, dt)
+        lo_f[:total], hi_f[:total] = lo_np[ids], hi_np[ids]
+        per_group = np.zeros(cap, np.int32)
+        trial_of, shift = per_group.copy(), per_group.copy()
+        group = np.full(cap, 0, np.int32)
+        group[:total] = groups
+        trial_of[: len(batch)] = owner
+        shift[: len(batch)] = starts - (np.cumsum(counts) - counts)
+        splits = RandomSplits(key, jnp.asarray(group), jnp.asarray(trial_of), jnp.asarray(shift),
+                              jnp.float32(noise), jnp.int32(k))
+        forest, tree_of = _forest(jnp.asarray(lo_f), jnp.asarray(hi_f), jnp.int32(total), scale, splits, rcl=mode)
+        values = _forest_values(forest, tree_of, len(batch), objective, greedy.root_area)
+        np.add.at(objectives, owner, greedy.weight[nodes] * (values - greedy.contribution[nodes]))
+        np.add.at(rebuilt, owner, counts)
+
+    batch, size = [], 0
+    for done, (t, i) in enumerate(subs):
+        c = int(greedy.count[i])
+        if batch and size + c > chunk_prims:
+            run(batch)
+            if on_chunk is not None:
+                on_chunk(batch[-1][0], float(np.min(objectives[: batch[-1][0]], initial=greedy.base)))
+            batch, size = [], 0
+        batch.append((t, i))
+        size += c
+    if batch:
+        run(batch)
+    best = int(np.argmin(objectives))
+    if on_chunk is not None:
+        on_chunk(trials, float(objectives[best]))
+    tree = randomized_build(key, prim_lo, prim_hi, trial=best, noise=noise, rcl=rcl, pad=pad, dtype=dtype)
+    return GraspResult(tree=tree, objective=float(objectives[best]), objectives=objectives, best_trial=best,
+                       base=greedy.base, noise=noise, rcl=rcl, name=objective, rebuilt=rebuilt)

@@ -24,6 +24,7 @@ from test_cli import assert_one_line_error, cache_dir, grid_obj, run_cli, run_js
 
 SETTINGS = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow])
 RCLS = st.sampled_from(["axes", 1, 2, 3, 5, 20])
+CHUNK = 96  # forests of at most 96 primitives: capacities 24, 48, 96 only (few compiles)
 
 
 def local_boxes(tri, dtype=np.float32):
@@ -46,16 +47,16 @@ def random_boxes(seed: int, n: int):
 
 @settings(max_examples=30, **SETTINGS)
 @given(data=box_sets(min_size=17, max_size=24), rcl=RCLS, noise=st.sampled_from([0.2, 0.5, 1.0]),
-       seed=st.integers(0, 2**31 - 1))
-@example(data=random_boxes(3, 24), rcl=20, noise=1.0, seed=0)  # deep ranks of big lists
-def test_trial_equals_reference_fed_the_same_draws(data, rcl, noise, seed):
+       seed=st.integers(0, 2**31 - 1), trial=st.integers(0, 10**6))
+@example(data=random_boxes(3, 24), rcl=20, noise=1.0, seed=0, trial=0)  # deep ranks of big lists
+def test_trial_equals_reference_fed_the_same_draws(data, rcl, noise, seed, trial):
     lo, hi = data
     key = jax.random.key(seed)
-    got = grasp.randomized_build(key, lo, hi, noise=noise, rcl=rcl)
+    got = grasp.randomized_build(key, lo, hi, trial=trial, noise=noise, rcl=rcl)
     jaxbvh.validate(got, lo, hi)
     t = jaxbvh.to_numpy(got)
     assert t.prim_count.max() == 1  # one primitive per leaf, as the paper builds
-    want = ref.randomized_build(key, lo, hi, noise=noise, rcl=rcl)
+    want = ref.randomized_build(key, lo, hi, trial=trial, noise=noise, rcl=rcl)
     jaxbvh.validate(want, lo, hi)
     assert canonical(got) == canonical(want)
 
@@ -117,8 +118,7 @@ def test_deviation_rate_is_the_noise(rcl):
     noise, trials = 0.25, 30
     deviations = []
     for t in range(trials):
-        tree = jaxbvh.to_numpy(grasp.randomized_build(grasp.trial_key(jax.random.key(3), t), lo, hi,
-                                                      noise=noise, rcl=rcl))
+        tree = jaxbvh.to_numpy(grasp.randomized_build(jax.random.key(3), lo, hi, trial=t, noise=noise, rcl=rcl))
         prims = _prims_under(tree)
         count = 0
         for node in np.flatnonzero(tree.left >= 0):
@@ -154,10 +154,10 @@ def _prims_under(t):
 def test_best_of_trials_is_the_best_trial(objective):
     lo, hi = random_boxes(7, 24)
     key = jax.random.key(4)
-    result = grasp.grasp(key, lo, hi, trials=7, noise=0.3, rcl="axes", objective=objective, chunk=3)
+    result = grasp.grasp(key, lo, hi, trials=7, noise=0.3, rcl="axes", objective=objective, chunk_prims=CHUNK)
     jaxbvh.validate(result.tree, lo, hi)
     measure = jaxbvh.ng_trifonov_cost if objective == "nt" else jaxbvh.sah
-    trees = [grasp.randomized_build(grasp.trial_key(key, t), lo, hi, noise=0.3) for t in range(7)]
+    trees = [grasp.randomized_build(key, lo, hi, trial=t, noise=0.3) for t in range(7)]
     values = np.array([float(measure(t)) for t in trees])
     np.testing.assert_allclose(result.objectives, values, rtol=1e-6)
     assert result.best_trial == int(np.argmin(result.objectives))
@@ -173,7 +173,7 @@ def test_best_of_trials_is_the_best_trial(objective):
 def test_chunking_and_trial_count_do_not_change_trials():
     lo, hi = random_boxes(8, 21)
     key = jax.random.key(5)
-    runs = [grasp.grasp(key, lo, hi, trials=t, noise=0.4, rcl=3, chunk=c) for t, c in ((6, 3), (6, 2), (3, None))]
+    runs = [grasp.grasp(key, lo, hi, trials=t, noise=0.4, rcl=3, chunk_prims=c) for t, c in ((6, CHUNK), (6, 10), (3, 1))]
     np.testing.assert_array_equal(runs[1].objectives, runs[0].objectives)
     assert canonical(runs[1].tree) == canonical(runs[0].tree)
     np.testing.assert_array_equal(runs[2].objectives, runs[0].objectives[:3])
@@ -182,12 +182,61 @@ def test_chunking_and_trial_count_do_not_change_trials():
 
 def test_same_key_same_tree_bit_for_bit():
     lo, hi = random_boxes(9, 24)
-    a = grasp.grasp(jax.random.key(6), lo, hi, trials=3, noise=0.2)
-    b = grasp.grasp(jax.random.key(6), lo, hi, trials=3, noise=0.2)
+    a = grasp.grasp(jax.random.key(6), lo, hi, trials=3, noise=0.2, chunk_prims=CHUNK)
+    b = grasp.grasp(jax.random.key(6), lo, hi, trials=3, noise=0.2, chunk_prims=CHUNK)
     for x, y in zip(jax.tree_util.tree_leaves(a.tree), jax.tree_util.tree_leaves(b.tree)):
         np.testing.assert_array_equal(x, y)
-    c = grasp.grasp(jax.random.key(7), lo, hi, trials=3, noise=0.2)
+    c = grasp.grasp(jax.random.key(7), lo, hi, trials=3, noise=0.2, chunk_prims=CHUNK)
     assert not np.array_equal(a.objectives, c.objectives)
+
+
+@pytest.mark.parametrize("objective", grasp.OBJECTIVES)
+@pytest.mark.parametrize("noise, rcl", [(0.05, "axes"), (0.3, 4), (1.0, "axes")])
+def test_rebuilding_deviating_subtrees_gives_the_whole_trees_objectives(objective, noise, rcl):
+    """Objectives from swapping in rebuilt subtrees = those of the whole trials' trees."""
+    lo, hi = random_boxes(14, 24)
+    key = jax.random.key(8)
+    result = grasp.grasp(key, lo, hi, trials=12, noise=noise, rcl=rcl, objective=objective, chunk_prims=CHUNK)
+    measure = jaxbvh.ng_trifonov_cost if objective == "nt" else jaxbvh.sah
+    whole = [float(measure(grasp.randomized_build(key, lo, hi, trial=t, noise=noise, rcl=rcl))) for t in range(12)]
+    np.testing.assert_allclose(result.objectives, whole, rtol=2e-6)
+    if noise == 1.0:
+        assert np.all(result.rebuilt == 24)  # the root deviates: every trial is built whole
+    else:
+        assert np.all(result.rebuilt < 24 * 12)
+
+
+def test_forest_trees_equal_whole_trials():
+    """A forest of copies of the scene, each its own trial: every tree is that trial's."""
+    import importlib
+
+    engine = importlib.import_module("jaxbvh.build")
+    lo, hi = random_boxes(15, 10)
+    trials = np.array([4, 0, 9], np.int32)
+    copies = len(trials)
+    cap = 48  # a capacity grasp's forests use too (24 x 2)
+    lo_f = np.full((cap, 3), np.inf, np.float32)
+    hi_f = np.full((cap, 3), -np.inf, np.float32)
+    lo_f[:30], hi_f[:30] = np.tile(lo, (copies, 1)), np.tile(hi, (copies, 1))
+    group = np.zeros(cap, np.int32)
+    group[:30] = np.repeat(np.arange(copies), 10)
+    per_group = np.zeros(cap, np.int32)
+    trial, shift = per_group.copy(), per_group.copy()
+    trial[:copies] = trials
+    shift[:copies] = -10 * np.arange(copies)  # name every tree's runs from 0
+    key = jax.random.key(11)
+    splits = engine.RandomSplits(key, jnp.asarray(group), jnp.asarray(trial), jnp.asarray(shift),
+                                 jnp.float32(0.5), jnp.int32(3))
+    scale = jnp.float32(engine.scene_scale(lo, hi))
+    forest, tree_of = engine.randomized_forest(jnp.asarray(lo_f), jnp.asarray(hi_f), jnp.int32(30), scale,
+                                               splits, rcl="list")
+    forest, tree_of = jaxbvh.to_numpy(forest), np.asarray(tree_of)
+    for g, t in enumerate(trials):
+        one = forest.replace(root=np.int32(g), prim_index=np.where(forest.prim_index >= 0, forest.prim_index % 10, -1))
+        assert canonical(one) == canonical(grasp.randomized_build(key, lo, hi, trial=int(t), noise=0.5, rcl=3))
+        assert np.all(tree_of[jaxbvh.tree.depth(one) >= 0] == g)
+    assert np.all(tree_of[np.asarray(forest.left) < 0][np.asarray(forest.prim_count)[np.asarray(forest.left) < 0] == 0]
+                  == -1)  # unused slots
 
 
 def test_noise_zero_trials_all_equal_the_base():
@@ -197,13 +246,14 @@ def test_noise_zero_trials_all_equal_the_base():
     assert result.best_trial == 0
 
 
-def test_noise_and_list_length_do_not_recompile():
+def test_noise_list_length_and_trial_do_not_recompile():
     lo, hi = random_boxes(12, 23)
-    grasp.grasp(jax.random.key(0), lo, hi, trials=2, noise=0.1, rcl=3)
-    start = grasp._chunk._cache_size()
-    grasp.grasp(jax.random.key(1), lo, hi, trials=2, noise=0.7, rcl=9)
-    grasp.grasp(jax.random.key(2), *random_boxes(13, 18), trials=2, deviations=3.0, rcl=2)
-    assert grasp._chunk._cache_size() == start
+    grasp.grasp(jax.random.key(0), lo, hi, trials=2, noise=1.0, rcl=3, chunk_prims=CHUNK)
+    start = grasp._forest._cache_size()
+    grasp.grasp(jax.random.key(1), lo, hi, trials=2, noise=1.0, rcl=9, chunk_prims=CHUNK)
+    grasp.grasp(jax.random.key(2), *random_boxes(13, 18), trials=2, deviations=100.0, rcl=2, chunk_prims=CHUNK)
+    grasp.randomized_build(jax.random.key(3), lo, hi, trial=5, noise=0.2, rcl=4)
+    assert grasp._forest._cache_size() == start
 
 
 def test_deviations_set_the_noise():
@@ -233,7 +283,7 @@ def test_one_primitive():
     (dict(rcl=0), "rcl"),
     (dict(rcl=2.0), "rcl"),
     (dict(objective="volume"), "objective"),
-    (dict(chunk=0), "chunk"),
+    (dict(chunk_prims=0), "chunk_prims"),
 ])
 def test_bad_options_get_clear_errors(kwargs, message):
     lo, hi = random_boxes(0, 4)

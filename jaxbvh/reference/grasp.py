@@ -5,9 +5,9 @@ axis, sweep forward and backward for every split's cost, find the greedy split, 
 probability ``noise`` deviate to an alternative from the restricted candidate list. The
 split rules, tie rule and cost expressions are those of :mod:`jaxbvh.build` (and of
 :mod:`jaxbvh.reference.build`), computed in the boxes' own dtype; a node's two uniforms
-come from :func:`jaxbvh.build.split_uniforms` keyed by its run ``[start, start + count)``
-(left child ``[start, start + N_L)``, right child the rest), exactly as the engine keys
-them, so both give the same tree for the same trial key. Nodes come out in depth-first
+come from :func:`jaxbvh.build.split_uniforms` keyed by its trial and its run ``[start,
+start + count)`` (left child ``[start, start + N_L)``, right child the rest), exactly as
+the engine keys them, so both give the same tree for the same key and trial. Nodes come out in depth-first
 order, root 0, unpadded.
 """
 
@@ -40,9 +40,9 @@ def _uniforms_fn():
     return jax.jit(split_uniforms)
 
 
-def node_uniforms(key, start: int, count: int) -> np.ndarray:
+def node_uniforms(key, trial: int, start: int, count: int) -> np.ndarray:
     """The node's two float32 uniforms (the engine's, :func:`jaxbvh.build.split_uniforms`)."""
-    return np.asarray(_uniforms_fn()(key, np.int32(start), np.int32(count)))
+    return np.asarray(_uniforms_fn()(key, np.int32(trial), np.int32(start), np.int32(count)))
 
 
 def _candidates(ids, lo, hi, centre, scale):
@@ -107,8 +107,8 @@ def choose_split(candidates, u0, u1, noise, rcl):
     return pick
 
 
-def randomized_build(key, prim_lo, prim_hi, *, noise: float, rcl="axes") -> BVH:
-    """Reference GRASP trial for the trial key ``key`` (as :func:`jaxbvh.grasp.randomized_build`).
+def randomized_build(key, prim_lo, prim_hi, *, trial: int = 0, noise: float, rcl="axes") -> BVH:
+    """Reference GRASP trial ``trial`` of the run keyed ``key`` (as :func:`jaxbvh.grasp.randomized_build`).
 
     Boxes are used in their own dtype; returns an unpadded NumPy :class:`~jaxbvh.tree.BVH`
     in depth-first order, one primitive per leaf.
@@ -140,7 +140,7 @@ def randomized_build(key, prim_lo, prim_hi, *, noise: float, rcl="axes") -> BVH:
             prim_start[node], prim_count[node] = len(prim_index), 1
             prim_index.append(int(ids[0]))
             continue
-        u0, u1 = node_uniforms(key, start, count)
+        u0, u1 = node_uniforms(key, trial, start, count)
         _, _, axis, left_ids, right_ids = choose_split(_candidates(ids, lo, hi, centre, scale), u0, u1, noise, rcl)
         axis_of[node] = axis
         l_id, r_id = new_node(node), new_node(node)
@@ -158,14 +158,13 @@ def randomized_build(key, prim_lo, prim_hi, *, noise: float, rcl="axes") -> BVH:
 def grasp(key, prim_lo, prim_hi, *, trials: int, noise: float, rcl="axes", objective: str = "nt"):
     """Best of ``trials`` reference trials: ``(tree, objectives [trials] float64, best trial)``.
 
-    Trial ``t`` uses :func:`jaxbvh.grasp.trial_key` ``(key, t)``; objectives in float64
-    (:mod:`jaxbvh.reference.cost`); the first of equal objectives wins.
+    Every trial built whole; objectives in float64 (:mod:`jaxbvh.reference.cost`); the
+    first of equal objectives wins.
     """
-    from jaxbvh.grasp import trial_key
     from jaxbvh.reference import cost
 
     measure = cost.ng_trifonov_cost if objective == "nt" else cost.sah
-    trees = [randomized_build(trial_key(key, t), prim_lo, prim_hi, noise=noise, rcl=rcl) for t in range(trials)]
+    trees = [randomized_build(key, prim_lo, prim_hi, trial=t, noise=noise, rcl=rcl) for t in range(trials)]
     values = np.array([measure(t) for t in trees], np.float64)
     best = int(np.argmin(values))
     return trees[best], values, best
