@@ -52,7 +52,8 @@ subtrees under its *topmost deviating nodes* (deviating, no deviating ancestor) 
 every trial, and builds only those subtrees, each as one tree of a forest
 (:func:`jaxbvh.build.randomized_forest`: its own trial number, its nodes named as in the
 whole tree). Trees of many trials are packed into one forest, up to
-:data:`CHUNK_PRIMS` primitives per call (memory bound). A trial's objective is the greedy
+:data:`CHUNK_PRIMS` primitives per call (memory bound), every call of a run padded to one
+capacity (one compile). A trial's objective is the greedy
 tree's with the rebuilt subtrees' contributions swapped in (in float64 on the host; both
 objectives are sums over nodes: the interior areas for ``"nt"``, each subtree's SAH
 weighted by the area ratios down to it for ``"sah"``). With ``deviations`` per tree the
@@ -374,7 +375,7 @@ def grasp(key, prim_lo, prim_hi, *, trials: int = 100, noise=None, deviations=No
         ids = greedy.prim_index[concat_ranges(starts, counts)]
         ids = ids[np.lexsort((ids, groups))]  # each group's primitives by id: the tie order
         total = ids.size
-        cap = _forest_capacity(total, lo.shape[0]) if pad else total
+        cap = max(capacity, _forest_capacity(total, lo.shape[0])) if pad else total
         lo_f = np.full((cap, 3), np.inf, dt)
         hi_f = np.full((cap, 3), -np.inf, dt)
         lo_f[:total], hi_f[:total] = lo_np[ids], hi_np[ids]
@@ -391,8 +392,11 @@ def grasp(key, prim_lo, prim_hi, *, trials: int = 100, noise=None, deviations=No
         np.add.at(objectives, owner, greedy.weight[nodes] * (values - greedy.contribution[nodes]))
         np.add.at(rebuilt, owner, counts)
 
+    # one forest capacity for the whole run (one compile): room for a full chunk
+    sizes = greedy.count[[i for _, i in subs]] if subs else np.zeros(1, np.int64)
+    capacity = _forest_capacity(min(int(sizes.sum()), max(chunk_prims, int(sizes.max()))), lo.shape[0])
     batch, size = [], 0
-    for done, (t, i) in enumerate(subs):
+    for t, i in subs:
         c = int(greedy.count[i])
         if batch and size + c > chunk_prims:
             run(batch)
