@@ -81,6 +81,12 @@ def test_float64_trial_equals_reference(data, rcl, seed):
         assert got.lo.dtype == np.float64
         jaxbvh.validate(got, lo, hi)
         assert canonical(got) == canonical(ref.randomized_build(key, lo, hi, noise=0.5, rcl=rcl))
+        # the best of a few trials, forests of at most one tree's capacity (no new compile)
+        result = grasp.grasp(key, lo, hi, trials=3, noise=0.5, rcl=rcl, dtype=np.float64, chunk_prims=16)
+        assert result.tree.lo.dtype == np.float64
+        whole = [float(jaxbvh.ng_trifonov_cost(grasp.randomized_build(key, lo, hi, trial=t, noise=0.5, rcl=rcl,
+                                                                      dtype=np.float64))) for t in range(3)]
+        np.testing.assert_allclose(result.objectives, whole, rtol=1e-12)
 
 
 @settings(max_examples=15, **SETTINGS)
