@@ -54,7 +54,7 @@ MESHES = {
 }
 NOISES = [0.001, 0.003, 0.01, 0.03, 0.1, 0.33, 1.0]
 RCLS = ["axes", "1", "5", "20"]
-DEVIATIONS = [1.0, 3.0, 10.0, 30.0, 100.0]
+DEVIATIONS = [1.0, 2.0, 3.0, 5.0, 10.0, 20.0, 30.0]
 
 
 def timed(fn):
@@ -111,12 +111,14 @@ def run_mesh(name, path, args):
             r = out["sweep"][-1]
             print(f"  rcl {rcl} noise {noise}: best10 {r['best_of_10']:.5f} best {r['best']:.5f} "
                   f"({r['improvement_percent']:+.4f}%), {r['better']} better, {seconds:.1f} s", flush=True)
-    for deviations in args.deviations:
-        result, seconds = timed(lambda: grasp.grasp(key, lo, hi, trials=100, deviations=deviations))
-        out["sweep"].append({**row_of(result, seconds, n), "by_deviations": True})
-        r = out["sweep"][-1]
-        print(f"  deviations {deviations}: best {r['best']:.5f} ({r['improvement_percent']:+.4f}%), "
-              f"{r['better']} better, {seconds:.1f} s", flush=True)
+    for seed in [args.seed] + args.more_seeds:
+        for deviations in args.deviations:
+            result, seconds = timed(lambda: grasp.grasp(jax.random.key(seed), lo, hi, trials=100,
+                                                        deviations=deviations))
+            out["sweep"].append({**row_of(result, seconds, n), "by_deviations": True, "seed": seed})
+            r = out["sweep"][-1]
+            print(f"  seed {seed} deviations {deviations}: best {r['best']:.5f} ({r['improvement_percent']:+.4f}%), "
+                  f"{r['better']} better, {seconds:.1f} s", flush=True)
     out["load_after"] = os.getloadavg()[0]
     return out
 
@@ -154,12 +156,38 @@ def write(rows, args):
               "better | rebuilt/trial | s |",
               "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for m in rows:
-        for r in m["sweep"]:
+        for r in (r for r in m["sweep"] if not r.get("by_deviations")):
             lines.append(f"| {m['mesh']} | {r['rcl']} | {r['noise']:.3g} | {r['deviations']:.3g} | {r['base']:.5f} | "
                          f"{fmt(r['best_of_10'])} | {r['best']:.5f} | {r['median']:.5f} | "
                          f"{-r['improvement_percent']:+.4f}% | {r['better']} | {r['rebuilt_per_trial']:.0f} | "
                          f"{r['seconds']:.1f} |")
+    lines += deviation_table(rows)
     (RESULTS / "stochastic.md").write_text("\n".join(lines) + "\n")
+
+
+def deviation_table(rows):
+    """Best of 100 vs greedy per mesh, seed and deviations per tree (rcl axes)."""
+    runs = [(m["mesh"], r) for m in rows for r in m["sweep"] if r.get("by_deviations")]
+    if not runs:
+        return []
+    ds = sorted({round(r["deviations"], 6) for _, r in runs})
+    keys = sorted({(mesh, r["seed"]) for mesh, r in runs}, key=lambda k: ([m["mesh"] for m in rows].index(k[0]), k[1]))
+    cell = {(mesh, r["seed"], round(r["deviations"], 6)): r for mesh, r in runs}
+    lines = ["", "## Deviations per tree (rcl axes, 100 trials): best of 100 vs greedy (trials below greedy)", "",
+             "| mesh | seed | " + " | ".join(f"D = {d:g}" for d in ds) + " |", "|---|---|" + "---|" * len(ds)]
+    for mesh, seed in keys:
+        cells = []
+        for d in ds:
+            r = cell.get((mesh, seed, d))
+            cells.append("-" if r is None else f"{-r['improvement_percent']:+.4f}% ({r['better']})")
+        lines.append(f"| {mesh} | {seed} | " + " | ".join(cells) + " |")
+    below = []
+    for d in ds:
+        found = [cell[k + (d,)] for k in keys if k + (d,) in cell]
+        below.append(f"{sum(r['best'] < r['base'] for r in found)}/{len(found)}, "
+                     f"mean {np.mean([r['better'] for r in found]):.1f} trials below")
+    lines += ["| runs with best < greedy | | " + " | ".join(below) + " |"]
+    return lines
 
 
 def main(argv=None):
@@ -170,6 +198,8 @@ def main(argv=None):
     parser.add_argument("--rcls", nargs="+", default=RCLS)
     parser.add_argument("--deviations", nargs="+", type=float, default=DEVIATIONS)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--more-seeds", nargs="*", type=int, default=[1, 2],
+                        help="extra seeds for the deviations sweep (how robust the default is)")
     parser.add_argument("--quick", action="store_true", help="spot and teapot, 10/100 trials, three noises")
     parser.add_argument("--out", default=None, help="write results here instead (JSON only)")
     args = parser.parse_args(argv)
