@@ -83,15 +83,16 @@ OBJECTIVES = ("nt", "sah")
 # (bunny, 69k triangles: best of 100 at noise 0.01 is 0.06% above greedy, every trial
 # worse; the paper's 0.1 is 0.4-0.7% worse on 6k-triangle meshes). Measured (rcl "axes",
 # 100 trials, seed 0, D = 1, 2, 3, 5, 10, 20, 30 deviations per tree, eight shared
-# meshes of 5.8k-69k triangles; bench/results/stochastic.md): only D = 5 and D = 10 put
-# the best of 100 below greedy on every mesh, D = 10 with the most trials below greedy on
-# average (6.5 of 100; 2-16 per mesh) and the larger gains on teapot and drone; at D >=
-# 20 spot and fandisk find nothing better. Gains are small: +0.002% (spot) to +0.13%
-# (fandisk) at D = 10, up to 1.2% (legocar, D ~ 110).
+# meshes of 5.8k-69k triangles; bench/results/stochastic.md): D = 1 ... 10 all put the
+# best of 100 below greedy on every mesh, D = 10 with the most trials below greedy on
+# average (6.5 of 100; 2-16 per mesh) and larger gains than D <= 3; at D >= 20 spot and
+# fandisk find nothing better. Gains are small: 0.002% (spot) to 0.13% (fandisk) at
+# D = 10, up to 1.2% (legocar, D ~ 110).
 DEFAULT_DEVIATIONS = 10.0
 
-# Most primitives in one forest call (the memory bound: about 2 KB of working memory per
-# primitive slot, so 2^19 slots ~ 1 GB).
+# Most primitives in one forest call: the memory bound. Measured 1.4 KB of peak memory per
+# forest slot (spot, noise 1: 44 trials in 262,144 slots, +350 MB), and a forest pads to
+# at most twice its primitives, so a call stays under ~1.5 GB.
 CHUNK_PRIMS = 1 << 19
 _DRAWS_PER_CALL = 1 << 22  # u0 draws per call when screening the greedy tree's nodes
 
