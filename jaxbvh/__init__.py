@@ -21,6 +21,7 @@ _LAZY = {
     "insertion": ("jaxbvh.insertion", None),
     "evolve": ("jaxbvh.evolve", None),
     "collapse": ("jaxbvh.collapse", None),
+    "grasp": ("jaxbvh.grasp", None),
 }
 
 

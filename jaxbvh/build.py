@@ -43,11 +43,35 @@ leaf); the median builder makes such nodes leaves unconditionally.
 
 Areas are half-areas of extents times a power of two fixed by the scene box, so no
 float32 overflow at 1e30 or underflow at 1e-30 (:mod:`jaxbvh.cost`).
+
+Randomized split choice (the hook :mod:`jaxbvh.grasp` uses, :func:`randomized_forest`).
+With ``rcl`` set, the sweep rule becomes Ng & Trifonov's randomized one: a node first
+finds the greedy split above (so ``noise = 0`` is exactly the sweep builder); then, when
+its first uniform ``u0 < noise``, it *deviates* to an alternative picked by its second
+uniform ``u1``:
+
+* ``rcl="axes"``: the best split of one of the two other axes (per-axis best: least
+  cost, ties by the tie rule above restricted to the axis), ``u1 < 1/2`` the next axis
+  ``(a + 1) % 3``, else ``(a + 2) % 3``, where ``a`` is the greedy split's axis;
+* ``rcl="list"`` with ``k``: the split of rank ``r = 1 + floor(u1 (m - 1))`` (clipped to
+  ``m - 1``) of the node's ``m = min(k, 3 (N - 1))`` best, where rank 0 is the greedy
+  split and rank ``j`` the greedy split among the candidates left after ranks ``< j``
+  (so a tie within ``TIE_TOLERANCE`` ranks by the tie rule); ``k = 1`` never deviates.
+
+A node's two uniforms come from :func:`split_uniforms` for its trial and its run of
+positions ``[start, start + count)`` (root ``[0, n)``, left child ``[start, start +
+N_L)``, right ``[start + N_L, start + N)``): a name that does not depend on the order
+nodes are visited in, so a recursive builder keeping the same arithmetic draws the same
+numbers. The randomized engine builds a *forest*: primitives come in groups ``0 .. G -
+1``, each grown into its own tree (roots are nodes ``0 .. G - 1``), with its own trial
+number and a ``shift`` added to every run start it names, so that a group can be a
+subtree of a trial's tree, named as in the whole tree.
 """
 
 from __future__ import annotations
 
 from functools import partial
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -131,10 +155,56 @@ def build(prim_lo, prim_hi, *, method: str = "sweep", max_leaf: int = 1, bins: i
         raise ValueError(f"max_leaf must be >= 1, got {max_leaf}")
     if method == "binned" and int(bins) < 2:
         raise ValueError(f"bins must be >= 2, got {bins}")
-    lo, hi = check_prim_boxes(prim_lo, prim_hi)
-    if method == "binned" and capacity_bucket(lo.shape[0]) * int(bins) >= 2**31:
-        raise ValueError(f"binned build of {lo.shape[0]} primitives with {bins} bins needs keys past int32; "
+    lo_p, hi_p, n, scale = engine_inputs(prim_lo, prim_hi, pad=pad, dtype=dtype)
+    if method == "binned" and capacity_bucket(int(n)) * int(bins) >= 2**31:
+        raise ValueError(f"binned build of {int(n)} primitives with {bins} bins needs keys past int32; "
                          "use fewer bins")
+    dt = lo_p.dtype
+    return _build(lo_p, hi_p, n, jnp.int32(max_leaf), jnp.asarray(ct, dt), jnp.asarray(ci, dt), scale,
+                  method=method, bins=int(bins) if method == "binned" else 0)
+
+
+class RandomSplits(NamedTuple):
+    """Inputs of the randomized split choice (module docstring); a pytree, traced under jit.
+
+    ``key``: the run's ``jax.random`` key. ``group`` [capacity] int32: the tree each
+    primitive slot grows into, ``0 .. G - 1``, every one used (padding slots: any).
+    ``trial``, ``shift`` [capacity] int32, indexed by group: the trial number of the tree,
+    and what to add to its run starts to name its nodes. ``noise``: float32 probability
+    of deviating. ``k``: int32 list length (``rcl="list"``).
+    """
+
+    key: Any
+    group: Any
+    trial: Any
+    shift: Any
+    noise: Any
+    k: Any
+
+
+def randomized_forest(lo, hi, n, scale, splits: RandomSplits, *, rcl: str):
+    """Randomized full-sweep forest (module docstring), one primitive per leaf.
+
+    ``lo``, ``hi``, ``n``, ``scale``: as from :func:`engine_inputs`; ``scale`` must be
+    the whole scene's (areas of every tree on one scale). ``rcl``: ``"axes"`` or
+    ``"list"``. Returns ``(forest, tree_of)``: a :class:`BVH` whose nodes ``0 .. G - 1``
+    are the roots (``root`` is 0, ``prim_index`` holds slots of ``lo``), and ``tree_of``
+    [2 capacity] int32, each node's group (-1 for unused slots). Traceable (jit, vmap).
+    """
+    if rcl not in SPLIT_CHOICES:
+        raise ValueError(f"rcl must be one of {', '.join(SPLIT_CHOICES)}, got {rcl!r}")
+    one = jnp.ones((), lo.dtype)
+    return _build(lo, hi, n, jnp.int32(1), one, one, scale, splits, method="sweep", bins=0, rcl=rcl)
+
+
+def engine_inputs(prim_lo, prim_hi, *, pad: bool = True, dtype=None):
+    """Checked, cast and padded engine inputs ``(lo, hi, n, scale)`` for ``_build``.
+
+    ``lo``, ``hi``: [capacity, 3] JAX arrays (padding: the empty box); ``n``: int32
+    primitive count; ``scale``: the scene's power-of-two area scale. Arguments and errors
+    as :func:`build`.
+    """
+    lo, hi = check_prim_boxes(prim_lo, prim_hi)
     dt = _working_dtype(dtype, lo.dtype)
     lo, hi = lo.astype(dt), hi.astype(dt)
     n = lo.shape[0]
@@ -142,14 +212,90 @@ def build(prim_lo, prim_hi, *, method: str = "sweep", max_leaf: int = 1, bins: i
     lo_p = np.full((cap, 3), np.inf, dt)
     hi_p = np.full((cap, 3), -np.inf, dt)
     lo_p[:n], hi_p[:n] = lo, hi
-    return _build(jnp.asarray(lo_p), jnp.asarray(hi_p), jnp.int32(n), jnp.int32(max_leaf),
-                  jnp.asarray(ct, dt), jnp.asarray(ci, dt), jnp.asarray(scene_scale(lo, hi), dt),
-                  method=method, bins=int(bins) if method == "binned" else 0)
+    return jnp.asarray(lo_p), jnp.asarray(hi_p), jnp.int32(n), jnp.asarray(scene_scale(lo, hi), dt)
 
 
 # ----------------------------------------------------------------------------------
 # the engine
 # ----------------------------------------------------------------------------------
+
+_NO_CODE = np.iinfo(np.int32).max  # tie-rule code of "no candidate"
+SPLIT_CHOICES = ("axes", "list")  # randomized split rules (module docstring)
+
+
+def split_uniforms(key, trial, start, count):
+    """The two uniforms (float32, [..., 2]) of trial ``trial``'s node with run ``[start, start + count)``.
+
+    ``uniform(fold_in(fold_in(fold_in(key, trial), start), count), (2,))`` for each entry
+    of the int arrays ``trial``, ``start``, ``count`` (equal shapes); ``key``: the run's
+    ``jax.random`` key. Runs of two nodes of a tree are disjoint or nested, and a child's
+    is shorter than its parent's, so the pair names one node whatever order the nodes are
+    visited in (module docstring).
+    """
+    trial, start, count = (jnp.asarray(a, jnp.int32) for a in (trial, start, count))
+
+    def one(t, s, c):
+        node_key = jax.random.fold_in(jax.random.fold_in(jax.random.fold_in(key, t), s), c)
+        return jax.random.uniform(node_key, (2,), jnp.float32)
+
+    flat = jax.vmap(one)(trial.ravel(), start.ravel(), count.ravel())
+    return flat.reshape(start.shape + (2,))
+
+
+def _sweep_split_of(code, count):
+    """(axis, N_L) of the sweep split with tie-rule code ``code`` in a node of ``count``."""
+    gap, upper = (code // 3) // 2, (code // 3) % 2
+    return code % 3, jnp.where(upper == 1, count + gap, count - gap) // 2
+
+
+def _least_code(cost, code, seg, num_segments):
+    """Tie-rule winner per segment: least cost, then least ``code`` within TIE_TOLERANCE.
+
+    ``cost``, ``code``, ``seg``: equal shapes (``inf`` cost = not a candidate). Returns
+    the winner's code [num_segments], ``_NO_CODE`` for a segment without candidates.
+    """
+    best = jax.ops.segment_min(cost.ravel(), seg.ravel(), num_segments=num_segments)
+    near = (best * (1 + TIE_TOLERANCE)).at[seg].get(mode="fill", fill_value=jnp.inf)
+    ok = (cost <= near) & (cost < jnp.inf)
+    return jax.ops.segment_min(jnp.where(ok, code, _NO_CODE).ravel(), seg.ravel(),
+                               num_segments=num_segments)
+
+
+def _randomized_split(rcl, cost3, code3, seg3, greedy_code, count, open_node, uniforms, noise, k):
+    """Split (axis, N_L) [nodes] of every node under the randomized rule (module docstring).
+
+    ``cost3``, ``code3``, ``seg3``: [3, P] candidate costs (inf: none), tie-rule codes and
+    node ids (``nodes`` = none); ``greedy_code``: [nodes] the greedy split's code;
+    ``open_node``: [nodes] nodes split on this level; ``uniforms``: [nodes, 2].
+    """
+    nodes = count.shape[0]
+    greedy_axis, greedy_left = _sweep_split_of(greedy_code, count)
+    deviate = open_node & (count >= 2) & (uniforms[:, 0] < noise)
+    u1 = uniforms[:, 1]
+    if rcl == "axes":
+        axis_seg = seg3 + (nodes + 1) * jnp.arange(3, dtype=jnp.int32)[:, None]
+        per_axis = _least_code(cost3, code3, axis_seg, 3 * (nodes + 1)).reshape(3, nodes + 1)[:, :nodes]
+        alt_axis = (greedy_axis + jnp.where(u1 < 0.5, 1, 2)) % 3
+        alt_code = jnp.take_along_axis(per_axis, alt_axis[None, :], axis=0)[0]
+    else:
+        size = jnp.minimum(k, 3 * (count - 1))  # the list: the node's best min(k, 3 (N - 1))
+        others = jnp.maximum(size - 1, 0)
+        pick = jnp.minimum(jnp.floor(u1 * others.astype(jnp.float32)).astype(jnp.int32), others - 1)
+        rank = jnp.where(deviate & (others > 0), 1 + pick, 0)
+        deviate = rank > 0
+
+        def next_rank(state):  # rank j: the greedy split among those not yet ranked
+            j, taken, chosen = state
+            code_j = _least_code(jnp.where(taken, jnp.inf, cost3), code3, seg3, nodes + 1)[:nodes]
+            taken = taken | (code3 == code_j.at[seg3].get(mode="fill", fill_value=_NO_CODE))
+            return j + 1, taken, jnp.where(rank == j, code_j, chosen)
+
+        taken = code3 == greedy_code.at[seg3].get(mode="fill", fill_value=_NO_CODE)
+        last = jnp.max(rank)  # at most k - 1: the loop's bound
+        _, _, alt_code = jax.lax.while_loop(lambda s: s[0] <= last, next_rank,
+                                            (jnp.int32(1), taken, greedy_code))
+    alt_axis, alt_left = _sweep_split_of(alt_code, count)
+    return jnp.where(deviate, alt_axis, greedy_axis), jnp.where(deviate, alt_left, greedy_left)
 
 
 def _segmented_box_scan(lo, hi, starts):
@@ -193,8 +339,11 @@ def _split_costs(lo_pos, hi_pos, first, last, n_left, n_right, scale):
             + half_area(right_lo, right_hi, scale) * n_right.astype(dtype))
 
 
-@partial(jax.jit, static_argnames=("method", "bins"))
-def _build(lo, hi, n, max_leaf, ct, ci, scale, *, method, bins):
+@partial(jax.jit, static_argnames=("method", "bins", "rcl"))
+def _build(lo, hi, n, max_leaf, ct, ci, scale, splits=None, *, method, bins, rcl=None):
+    """The engine. ``rcl`` (None: greedy, or one of SPLIT_CHOICES) with ``method="sweep"``
+    and ``splits`` (:class:`RandomSplits`) builds the randomized forest and returns
+    ``(BVH, tree_of)`` (:func:`randomized_forest`); otherwise one tree, a ``BVH``."""
     cap = lo.shape[0]
     nodes = 2 * cap
     none = nodes  # out-of-range node id: scatters to it are dropped
@@ -217,6 +366,23 @@ def _build(lo, hi, n, max_leaf, ct, ci, scale, *, method, bins):
         lo=jnp.full((nodes, 3), jnp.inf, dtype), hi=jnp.full((nodes, 3), -jnp.inf, dtype),
         next_free=jnp.int32(1),
     )
+    if rcl is not None:
+        # a forest: group g's primitives take the run [offset_g, offset_g + count_g) of
+        # every axis order, sorted by centre inside it (stable sorts keep ids in order)
+        group = jnp.where(is_prim, splits.group, cap)
+        orders = jnp.stack([o[jnp.argsort(group[o], stable=True)] for o in orders])
+        size = jax.ops.segment_sum(is_prim.astype(jnp.int32), group, num_segments=cap + 1)[:cap]
+        trees = jnp.sum(size > 0, dtype=jnp.int32)
+        root = jnp.arange(cap, dtype=jnp.int32)
+        state.update(
+            orders=orders,
+            pos_node=jnp.where(is_prim, group[orders[0]], none).astype(jnp.int32),
+            start=jnp.zeros(nodes, jnp.int32).at[root].set(jnp.cumsum(size) - size),
+            count=jnp.zeros(nodes, jnp.int32).at[root].set(size),
+            frontier=jnp.zeros(nodes, bool).at[root].set(size > 0),
+            next_free=trees,
+            tree_of=jnp.full(nodes, -1, jnp.int32).at[root].set(jnp.where(size > 0, root, -1)),
+        )
     node_ids = jnp.arange(nodes, dtype=jnp.int32)
 
     def level(s):
@@ -251,6 +417,7 @@ def _build(lo, hi, n, max_leaf, ct, ci, scale, *, method, bins):
             cost3 = jnp.where(active & (n_right_p > 0), cost3, jnp.inf)  # [3, P]
             two_k = 2 * n_left_p
             key3 = (jnp.abs(two_k - count_p) * 2 + (two_k > count_p))[None, :] * 3 + jnp.arange(3, dtype=jnp.int32)[:, None]
+            cost3_all, code3 = cost3, key3  # before the greedy choice masks key3
         else:  # binned
             # the per-axis orders are sorted by centre, so bins never decrease along a run:
             # the planes between occupied bins are the positions where the bin changes
@@ -280,6 +447,15 @@ def _build(lo, hi, n, max_leaf, ct, ci, scale, *, method, bins):
                 split_axis = best_key % 3
                 gap, upper = (best_key // 3) // 2, (best_key // 3) % 2
                 n_left = jnp.where(upper == 1, count + gap, count - gap) // 2
+                if rcl is not None:
+                    tree_p = jnp.maximum(s["tree_of"].at[pos_node].get(mode="fill", fill_value=0), 0)
+                    drawn = split_uniforms(splits.key, splits.trial[tree_p], start_p + splits.shift[tree_p],
+                                           count_p)
+                    at_first = jnp.where(first & active, pos_node, none)
+                    uniforms = jnp.zeros((nodes, 2), jnp.float32).at[at_first].set(drawn, mode="drop")
+                    split_axis, n_left = _randomized_split(
+                        rcl, cost3_all, code3, seg3, best_key, count, s["frontier"] & (count >= 2),
+                        uniforms, splits.noise, splits.k)
             else:
                 split_axis = jnp.where(found, best_key // bins, 0)
                 at_best = is_best & (key3 == best_key.at[seg3].get(mode="fill", fill_value=-1))
@@ -328,7 +504,12 @@ def _build(lo, hi, n, max_leaf, ct, ci, scale, *, method, bins):
         new_count = cnt.at[left_id].set(n_left, mode="drop").at[right_id].set(cnt - n_left, mode="drop")
         parent = s["parent"].at[left_id].set(node_ids, mode="drop").at[right_id].set(node_ids, mode="drop")
         new_frontier = jnp.zeros(nodes, bool).at[left_id].set(True, mode="drop").at[right_id].set(True, mode="drop")
+        more = {}
+        if rcl is not None:  # children belong to their parent's tree
+            tree_of = s["tree_of"]
+            more["tree_of"] = tree_of.at[left_id].set(tree_of, mode="drop").at[right_id].set(tree_of, mode="drop")
         return dict(
+            **more,
             orders=new_orders, pos_node=new_pos_node, start=new_start, count=new_count,
             frontier=new_frontier,
             left=jnp.where(split, left_id, s["left"]), right=jnp.where(split, right_id, s["right"]),
@@ -340,6 +521,7 @@ def _build(lo, hi, n, max_leaf, ct, ci, scale, *, method, bins):
         )
 
     s = jax.lax.while_loop(lambda s: jnp.any(s["frontier"]), level, state)
-    return BVH(left=s["left"], right=s["right"], parent=s["parent"], lo=s["lo"], hi=s["hi"],
+    tree = BVH(left=s["left"], right=s["right"], parent=s["parent"], lo=s["lo"], hi=s["hi"],
                prim_start=s["prim_start"], prim_count=s["prim_count"], axis=s["axis"],
                prim_index=jnp.where(is_prim, s["orders"][0], -1), root=jnp.int32(0))
+    return tree if rcl is None else (tree, s["tree_of"])

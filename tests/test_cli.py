@@ -495,7 +495,8 @@ def test_second_run_compiles_nothing(tmp_path):
                 ["trace", str(tree), str(mesh), "--rays", "64", "--json"],
                 ["evolve", str(mesh), "--population", "4", "--generations", "2", "--json"],
                 ["collapse", str(tree), "--json"],
-                ["collapse", str(mesh), "--method", "greedy", "--json"]]
+                ["collapse", str(mesh), "--method", "greedy", "--json"],
+                ["grasp", str(mesh), "--trials", "4", "--json"]]
     env = {**__import__("os").environ, "JAXBVH_CACHE_DIR": str(tmp_path / "cache"),
            "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
 

@@ -1,0 +1,170 @@
+"""Sequential NumPy twin of :mod:`jaxbvh.grasp`: recursive randomized full-sweep builds.
+
+One node at a time, as Ng & Trifonov describe it: sort the node's primitives along each
+axis, sweep forward and backward for every split's cost, find the greedy split, and with
+probability ``noise`` deviate to an alternative from the restricted candidate list. The
+split rules, tie rule and cost expressions are those of :mod:`jaxbvh.build` (and of
+:mod:`jaxbvh.reference.build`), computed in the boxes' own dtype; a node's two uniforms
+come from :func:`jaxbvh.build.split_uniforms` keyed by its trial and its run ``[start,
+start + count)`` (left child ``[start, start + N_L)``, right child the rest), exactly as
+the engine keys them, so both give the same tree for the same key and trial. Nodes come out in depth-first
+order, root 0, unpadded.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+
+from jaxbvh.reference.build import TIE_TOLERANCE
+from jaxbvh.tree import BVH
+
+
+def _half_area(lo, hi, scale):
+    d = np.maximum((hi - lo) * scale, 0)
+    return d[0] * d[1] + d[1] * d[2] + d[2] * d[0]
+
+
+def _scene_scale(lo, hi):
+    m = float(np.max(hi.max(0).astype(np.float64) - lo.min(0).astype(np.float64)))
+    return float(np.ldexp(1.0, -int(np.frexp(m)[1]))) if m > 0 else 1.0
+
+
+@lru_cache(maxsize=1)
+def _uniforms_fn():
+    import jax
+
+    from jaxbvh.build import split_uniforms
+
+    return jax.jit(split_uniforms)
+
+
+def node_uniforms(key, trial: int, start: int, count: int) -> np.ndarray:
+    """The node's two float32 uniforms (the engine's, :func:`jaxbvh.build.split_uniforms`)."""
+    return np.asarray(_uniforms_fn()(key, np.int32(trial), np.int32(start), np.int32(count)))
+
+
+def _candidates(ids, lo, hi, centre, scale):
+    """Every split of ``ids``: list of (cost, tie code, axis, left ids, right ids).
+
+    Code ``(|2 N_L - N| * 2 + (2 N_L > N)) * 3 + axis``: the sweep builder's tie rule
+    (split nearest the middle, the smaller left side first, then the lowest axis).
+    """
+    dtype = lo.dtype
+    n = len(ids)
+    out = []
+    for axis in range(3):
+        order = ids[np.lexsort((ids, centre[ids, axis]))]
+        left_area = np.empty(n, dtype)
+        box_lo, box_hi = lo[order[0]].copy(), hi[order[0]].copy()
+        for i in range(n):
+            box_lo = np.minimum(box_lo, lo[order[i]])
+            box_hi = np.maximum(box_hi, hi[order[i]])
+            left_area[i] = _half_area(box_lo, box_hi, scale)
+        right_area = np.empty(n, dtype)
+        box_lo, box_hi = lo[order[-1]].copy(), hi[order[-1]].copy()
+        for i in range(n - 1, -1, -1):
+            box_lo = np.minimum(box_lo, lo[order[i]])
+            box_hi = np.maximum(box_hi, hi[order[i]])
+            right_area[i] = _half_area(box_lo, box_hi, scale)
+        for k in range(1, n):
+            cost = left_area[k - 1] * dtype.type(k) + right_area[k] * dtype.type(n - k)
+            code = (abs(2 * k - n) * 2 + (2 * k > n)) * 3 + axis
+            out.append((cost, code, axis, order[:k], order[k:]))
+    return out
+
+
+def _greedy(candidates):
+    """The tie-rule winner: least cost, then the least code among costs within tolerance."""
+    best = min(c[0] for c in candidates)
+    near = best * type(best)(1 + TIE_TOLERANCE)
+    return min((c for c in candidates if c[0] <= near), key=lambda c: c[1])
+
+
+def choose_split(candidates, u0, u1, noise, rcl):
+    """The split a node takes: the greedy one, or with ``u0 < noise`` an alternative.
+
+    ``rcl="axes"``: the greedy split among the candidates of axis ``(a + 1) % 3`` when
+    ``u1 < 1/2``, else of ``(a + 2) % 3`` (``a`` the greedy axis). ``rcl=k``: rank
+    ``1 + min(floor(u1 (m - 1)), m - 2)`` of the ``m = min(k, len(candidates))`` best,
+    ranks given by taking the greedy split of what is left, one after another.
+    """
+    greedy = _greedy(candidates)
+    if not np.float32(u0) < np.float32(noise):
+        return greedy
+    if rcl == "axes":
+        axis = (greedy[2] + (1 if u1 < np.float32(0.5) else 2)) % 3
+        return _greedy([c for c in candidates if c[2] == axis])
+    size = min(int(rcl), len(candidates))
+    if size < 2:
+        return greedy
+    rank = 1 + min(int(np.floor(np.float32(u1) * np.float32(size - 1))), size - 2)
+    left = [c for c in candidates if c[1] != greedy[1]]
+    for _ in range(rank):
+        pick = _greedy(left)
+        left = [c for c in left if c[1] != pick[1]]
+    return pick
+
+
+def randomized_build(key, prim_lo, prim_hi, *, trial: int = 0, noise: float, rcl="axes") -> BVH:
+    """Reference GRASP trial ``trial`` of the run keyed ``key`` (as :func:`jaxbvh.grasp.randomized_build`).
+
+    Boxes are used in their own dtype; returns an unpadded NumPy :class:`~jaxbvh.tree.BVH`
+    in depth-first order, one primitive per leaf.
+    """
+    lo = np.asarray(prim_lo)
+    hi = np.asarray(prim_hi)
+    dtype = lo.dtype
+    n = lo.shape[0]
+    scale = dtype.type(_scene_scale(lo, hi))
+    centre = dtype.type(0.5) * lo + dtype.type(0.5) * hi
+
+    left, right, parent, axis_of = [], [], [], []
+    node_lo, node_hi, prim_start, prim_count = [], [], [], []
+    prim_index: list[int] = []
+
+    def new_node(par):
+        for arr, v in ((left, -1), (right, -1), (parent, par), (axis_of, -1), (prim_start, 0), (prim_count, 0)):
+            arr.append(v)
+        node_lo.append(None)
+        node_hi.append(None)
+        return len(left) - 1
+
+    stack = [(new_node(-1), np.arange(n), 0)]  # (node, primitive ids, first position of its run)
+    while stack:
+        node, ids, start = stack.pop()
+        node_lo[node], node_hi[node] = lo[ids].min(0), hi[ids].max(0)
+        count = len(ids)
+        if count == 1:
+            prim_start[node], prim_count[node] = len(prim_index), 1
+            prim_index.append(int(ids[0]))
+            continue
+        u0, u1 = node_uniforms(key, trial, start, count)
+        _, _, axis, left_ids, right_ids = choose_split(_candidates(ids, lo, hi, centre, scale), u0, u1, noise, rcl)
+        axis_of[node] = axis
+        l_id, r_id = new_node(node), new_node(node)
+        left[node], right[node] = l_id, r_id
+        stack.append((r_id, right_ids, start + len(left_ids)))
+        stack.append((l_id, left_ids, start))
+
+    i32 = lambda a: np.asarray(a, np.int32)  # noqa: E731
+    return BVH(left=i32(left), right=i32(right), parent=i32(parent),
+               lo=np.stack(node_lo).astype(dtype), hi=np.stack(node_hi).astype(dtype),
+               prim_start=i32(prim_start), prim_count=i32(prim_count), axis=i32(axis_of),
+               prim_index=i32(prim_index), root=np.int32(0))
+
+
+def grasp(key, prim_lo, prim_hi, *, trials: int, noise: float, rcl="axes", objective: str = "nt"):
+    """Best of ``trials`` reference trials: ``(tree, objectives [trials] float64, best trial)``.
+
+    Every trial built whole; objectives in float64 (:mod:`jaxbvh.reference.cost`); the
+    first of equal objectives wins.
+    """
+    from jaxbvh.reference import cost
+
+    measure = cost.ng_trifonov_cost if objective == "nt" else cost.sah
+    trees = [randomized_build(key, prim_lo, prim_hi, trial=t, noise=noise, rcl=rcl) for t in range(trials)]
+    values = np.array([measure(t) for t in trees], np.float64)
+    best = int(np.argmin(values))
+    return trees[best], values, best
