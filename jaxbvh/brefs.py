@@ -138,21 +138,23 @@ def brefs_capacity(n_instances: int, threshold: float, budget: float,
 def build_top_level(forest, instances, n_instances: int, *, threshold: float = DEFAULT_THRESHOLD,
                     budget: float = DEFAULT_BUDGET, capacity: int | None = None,
                     bins: int = DEFAULT_BINS, overlap: float = DEFAULT_OVERLAP,
-                    estimate: bool = False) -> TopLevel:
+                    estimate: bool = False, array_size: int | None = None) -> TopLevel:
     """Re-braiding top-level build over the first ``n_instances`` instances (module docstring).
 
     ``forest``, ``instances``: :func:`jaxbvh.forest.pack` output (NumPy or JAX arrays);
     ``threshold``: opening threshold, a fraction of the segment's largest extent (inf:
     plain two-level); ``budget``: BRef slots per instance (or ``capacity`` slots in all);
     ``bins``: SAH bins per axis; ``overlap``: "barely overlapping" tolerance of the
-    <= 4-BRef termination test; ``estimate``: the paper's estimated primitive counts.
-    Returns a :class:`TopLevel` of JAX arrays (arrays sized by the capacity bucket).
+    <= 4-BRef termination test; ``estimate``: the paper's estimated primitive counts;
+    ``array_size``: size of the arrays (default: the capacity bucket of the slots; a
+    larger one changes nothing but the shapes, e.g. to compile once for many scenes).
+    Returns a :class:`TopLevel` of JAX arrays.
     """
     check_options(threshold, budget, bins, overlap)
     if n_instances < 1:
         raise ValueError("a top level needs at least one instance")
     slots = brefs_capacity(n_instances, threshold, budget, capacity)
-    cap = capacity_bucket(slots)
+    cap = max(capacity_bucket(slots), array_size or 0)
     dtype = np.asarray(forest.lo).dtype
     return _build(jax.tree_util.tree_map(jnp.asarray, forest),
                   jax.tree_util.tree_map(jnp.asarray, instances), jnp.int32(n_instances),

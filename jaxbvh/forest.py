@@ -26,12 +26,16 @@ world-space boxes live), its inverse ``to_object`` (rays go this way), the relat
 
 Frames
 ======
-An object that some instance places with the identity transform is built in the scene
-frame itself (it is "built in world space", as the paper's dynamic objects are): its
-boxes are then exactly the boxes a single BVH over the scene uses, its map is the
-identity and its world boxes need no margin. Any other object is built in its own frame
-(``Frame.fit`` of its boxes), which keeps float32 precise whatever the transforms; the
-map ``to_scene = scene^-1 * transform * object`` is composed in float64 and then cast.
+An object is *built in world space*, in the scene frame itself, when some instance
+places it with the identity transform, or (``world_space=True``, the default) when
+exactly one instance places it: its triangles are then moved to world space first, as
+:meth:`Mesh.triangles` moves them, so its boxes are exactly the boxes a single BVH over
+the scene uses, its map is the identity and its world boxes need no margin. (The paper
+builds the objects of non-instanced scenes in world space too; an object-space tree of a
+rotated object would only reach the top level through inflated boxes.) Any other object,
+one that several instances share, is built once in its own frame (``Frame.fit`` of its
+boxes), which keeps float32 precise whatever the transforms; the map ``to_scene =
+scene^-1 * transform * object`` is composed in float64 and then cast.
 
 Conservative world boxes
 ========================
@@ -149,33 +153,55 @@ def margin_for(dtype) -> float:
 
 
 @dataclasses.dataclass(frozen=True)
+class Placement:
+    """Where an object is built: in ``frame``, after moving it by ``baked`` (None: as it is)."""
+
+    frame: Frame
+    baked: np.ndarray | None = None
+
+    def same(self, other: "Placement") -> bool:
+        return (np.array_equal(self.frame.origin, other.frame.origin) and self.frame.scale == other.frame.scale
+                and (self.baked is None) == (other.baked is None)
+                and (self.baked is None or np.array_equal(self.baked, other.baked)))
+
+
+@dataclasses.dataclass(frozen=True)
 class ObjectTree:
-    """One object's BVH (NumPy, padding stripped) in ``frame``, with its triangles."""
+    """One object's BVH (NumPy, padding stripped), built as ``placement`` says, with its triangles."""
 
     tree: Any
-    frame: Frame
-    triangles: np.ndarray  # [f, 3, 3] in ``frame``, the tree's dtype
+    placement: Placement
+    triangles: np.ndarray  # [f, 3, 3] in the placement's frame, the tree's dtype
 
 
-def object_frames(mesh) -> list[Frame]:
-    """The frame every object of ``mesh`` is built in (module docstring)."""
-    in_scene = {obj for obj, transform in mesh.instances if np.array_equal(transform, np.eye(4))}
-    frames = []
+def placements(mesh, world_space: bool = True) -> list[Placement]:
+    """Where every object of ``mesh`` is built (module docstring, "Frames")."""
+    users: dict[int, list] = {}
+    for obj, transform in mesh.instances:
+        users.setdefault(obj, []).append(np.asarray(transform, np.float64))
+    out = []
     for obj, (vertices, faces) in enumerate(mesh.objects):
-        if obj in in_scene or faces.shape[0] == 0:
-            frames.append(mesh.frame)
+        placed = users.get(obj, [])
+        if any(np.array_equal(t, np.eye(4)) for t in placed) or faces.shape[0] == 0:
+            out.append(Placement(mesh.frame))
+        elif world_space and len(placed) == 1:
+            out.append(Placement(mesh.frame, baked=placed[0]))
         else:
             tri = vertices[faces]
-            frames.append(Frame.fit(tri.min(axis=1), tri.max(axis=1)))
-    return frames
+            out.append(Placement(Frame.fit(tri.min(axis=1), tri.max(axis=1))))
+    return out
 
 
-def build_object(vertices, faces, frame: Frame, *, method="binned", max_leaf=1, bins=16,
+def build_object(vertices, faces, placement: Placement, *, method="binned", max_leaf=1, bins=16,
                  ct=1.0, ci=1.0, dtype=np.float32) -> ObjectTree:
-    """BVH of one object's triangles in ``frame`` (validated, padding stripped)."""
+    """BVH of one object's triangles where ``placement`` says (validated, padding stripped)."""
     import jaxbvh
 
-    tri = frame.to_local(np.asarray(vertices, np.float64)[faces]).astype(dtype)
+    vertices = np.asarray(vertices, np.float64)
+    if placement.baked is not None:  # the same arithmetic as Mesh.triangles
+        t = placement.baked
+        vertices = vertices @ t[:3, :3].T + t[:3, 3]
+    tri = placement.frame.to_local(vertices[faces]).astype(dtype)
     lo, hi = tri.min(axis=1), tri.max(axis=1)
     tree = to_numpy(jaxbvh.build(lo, hi, method=method, max_leaf=max_leaf, bins=bins, ct=ct,
                                  ci=ci, dtype=dtype))
@@ -187,20 +213,20 @@ def build_object(vertices, faces, frame: Frame, *, method="binned", max_leaf=1, 
                       prim_count=tree.prim_count[:real], axis=tree.axis[:real],
                       prim_index=tree.prim_index[:n], root=np.int32(0))
     jaxbvh.validate(tree, lo, hi)
-    return ObjectTree(tree=tree, frame=frame, triangles=tri)
+    return ObjectTree(tree=tree, placement=placement, triangles=tri)
 
 
 def build_objects(mesh, *, method="binned", max_leaf=1, bins=16, ct=1.0, ci=1.0,
-                  dtype=np.float32, only=None) -> dict[int, ObjectTree]:
+                  dtype=np.float32, world_space=True, only=None) -> dict[int, ObjectTree]:
     """:func:`build_object` for every object of ``mesh`` (or the ids in ``only``)."""
-    frames = object_frames(mesh)
+    where = placements(mesh, world_space)
     ids = range(len(mesh.objects)) if only is None else only
     out = {}
     for obj in ids:
         vertices, faces = mesh.objects[obj]
         if faces.shape[0] == 0:
             raise ValueError(f"object {obj} of {mesh.name} has no triangles")
-        out[obj] = build_object(vertices, faces, frames[obj], method=method, max_leaf=max_leaf,
+        out[obj] = build_object(vertices, faces, where[obj], method=method, max_leaf=max_leaf,
                                 bins=bins, ct=ct, ci=ci, dtype=dtype)
     return out
 
@@ -225,25 +251,27 @@ def _affine(frame: Frame) -> np.ndarray:
     return m
 
 
-def pack(mesh, trees: dict[int, ObjectTree], *, pad: bool = True) -> tuple[Forest, Instances]:
+def pack(mesh, trees: dict[int, ObjectTree], *, pad: bool = True,
+         capacity: dict | None = None) -> tuple[Forest, Instances]:
     """Pack the object trees of ``mesh`` into one :class:`Forest` and its :class:`Instances`.
 
-    ``trees`` must hold every object some instance uses, built in
-    :func:`object_frames`' frames (checked). Returns NumPy arrays padded to capacity
-    buckets (``pad=False``: exact sizes). Raises ``ValueError`` for a singular
-    instance transform.
+    ``trees`` must hold every object some instance uses, each built where
+    :func:`placements` says (checked). Returns NumPy arrays padded to capacity
+    buckets (``pad=False``: exact sizes; ``capacity``: at least ``{"nodes": N, "prims":
+    P, "instances": I}``, e.g. to give many scenes one shape). Raises ``ValueError``
+    for a singular instance transform.
     """
-    frames = object_frames(mesh)
     n_obj = len(mesh.objects)
     used = sorted({obj for obj, _ in mesh.instances})
     missing = [o for o in used if o not in trees]
     if missing:
         raise ValueError(f"no object tree for object(s) {missing}")
+    world_space = any(trees[o].placement.baked is not None for o in used)
+    where = placements(mesh, world_space)
     for o in used:
-        f = trees[o].frame
-        if not (np.array_equal(f.origin, frames[o].origin) and f.scale == frames[o].scale):
-            raise ValueError(f"object {o}'s tree was built in another frame than the scene needs "
-                             "(the scene box changed); rebuild it")
+        if not trees[o].placement.same(where[o]):
+            raise ValueError(f"object {o}'s tree was built in another frame or placement than the "
+                             "scene needs (the scene box or its instances changed); rebuild it")
     dtype = np.asarray(trees[used[0]].tree.lo).dtype
     node_off = np.zeros(n_obj + 1, np.int64)
     prim_off = np.zeros(n_obj + 1, np.int64)
@@ -252,8 +280,9 @@ def pack(mesh, trees: dict[int, ObjectTree], *, pad: bool = True) -> tuple[Fores
         node_off[o + 1] = node_off[o] + (t.tree.left.shape[0] if t is not None else 0)
         prim_off[o + 1] = prim_off[o] + (t.tree.prim_index.shape[0] if t is not None else 0)
     n_nodes, n_prims = int(node_off[-1]), int(prim_off[-1])
-    cap_n = capacity_bucket(n_nodes) if pad else n_nodes
-    cap_p = capacity_bucket(n_prims) if pad else n_prims
+    want = capacity or {}
+    cap_n = max(capacity_bucket(n_nodes) if pad else n_nodes, want.get("nodes", 0))
+    cap_p = max(capacity_bucket(n_prims) if pad else n_prims, want.get("prims", 0))
 
     def ints(fill, size):
         return np.full(size, fill, np.int32)
@@ -287,7 +316,7 @@ def pack(mesh, trees: dict[int, ObjectTree], *, pad: bool = True) -> tuple[Fores
                     root=root, triangles=triangles)
 
     n_inst = len(mesh.instances)
-    cap_i = capacity_bucket(n_inst) if pad else n_inst
+    cap_i = max(capacity_bucket(n_inst) if pad else n_inst, want.get("instances", 0))
     scene_inverse = np.linalg.inv(_affine(mesh.frame))
     obj_of = np.zeros(cap_i, np.int32)
     to_scene = np.zeros((cap_i, 3, 4), dtype)
@@ -297,11 +326,16 @@ def pack(mesh, trees: dict[int, ObjectTree], *, pad: bool = True) -> tuple[Fores
     prim_shift = np.zeros(cap_i, np.int32)
     offset = 0
     for i, (obj, transform) in enumerate(mesh.instances):
-        m = scene_inverse @ np.asarray(transform, np.float64) @ _affine(frames[obj])
+        if where[obj].baked is not None:
+            transform = np.eye(4)  # the object was moved to world space before building
+        m = scene_inverse @ np.asarray(transform, np.float64) @ _affine(where[obj].frame)
         if not np.isfinite(m).all() or abs(np.linalg.det(m[:3, :3])) == 0:
             raise ValueError(f"instance {i} (object {obj}) has a singular transform; it cannot "
                              "be traced in object space")
         inverse = np.linalg.inv(m)
+        if not (np.isfinite(m[:3].astype(dtype)).all() and np.isfinite(inverse[:3].astype(dtype)).all()):
+            raise ValueError(f"instance {i} (object {obj}): its map to the scene frame does not fit "
+                             f"{np.dtype(dtype).name} (object and scene sizes differ by ~1e38 or more)")
         obj_of[i] = obj
         to_scene[i] = m[:3].astype(dtype)
         to_object[i] = inverse[:3].astype(dtype)

@@ -3,9 +3,9 @@
 A scene of objects placed by instances (:class:`jaxbvh.io.Mesh`: ``objects``,
 ``instances``) gets
 
-1. one BVH per distinct object, built once in the object's own frame by any of our
-   builders (binned SAH by default, as the paper) and packed into one forest
-   (:mod:`jaxbvh.forest`);
+1. one BVH per distinct object, built once by any of our builders (binned SAH by
+   default, as the paper) -- in the object's own frame when several instances share it,
+   in world space otherwise -- and packed into one forest (:mod:`jaxbvh.forest`);
 2. a *top level*: a BVH over build references (BRefs: forest node, instance, world box,
    primitive count) that starts from one BRef per instance and, while splitting,
    *opens* BRefs that are large relative to their segment, so that overlapping objects
@@ -117,14 +117,18 @@ def _single_instance(forest: Forest, instances: Instances) -> TwoLevelBVH:
 def build_from(mesh, trees: dict[int, ObjectTree], *, threshold: float = _brefs.DEFAULT_THRESHOLD,
                budget: float = _brefs.DEFAULT_BUDGET, capacity: int | None = None,
                top_bins: int = _brefs.DEFAULT_BINS, overlap: float = _brefs.DEFAULT_OVERLAP,
-               estimate: bool = False, timings: dict | None = None) -> TwoLevelBVH:
+               estimate: bool = False, timings: dict | None = None,
+               shapes: dict | None = None) -> TwoLevelBVH:
     """Pack already built object trees and build the top level (see :func:`build`).
 
-    ``timings``, if given, receives ``pack`` and ``top`` seconds (arrays ready).
+    ``timings``, if given, receives ``pack`` and ``top`` seconds (arrays ready);
+    ``shapes``: least array sizes ``{"nodes", "prims", "instances", "brefs"}`` (so that
+    many scenes share one compiled top-level build and traversal).
     """
     _brefs.check_options(threshold, budget, top_bins, overlap)
     start = time.perf_counter()
-    forest, instances = pack(mesh, trees)
+    shapes = shapes or {}
+    forest, instances = pack(mesh, trees, capacity=shapes)
     packed = time.perf_counter()
     n = len(mesh.instances)
     if n == 1:
@@ -132,7 +136,7 @@ def build_from(mesh, trees: dict[int, ObjectTree], *, threshold: float = _brefs.
     else:
         result = jax.block_until_ready(_brefs.build_top_level(
             forest, instances, n, threshold=threshold, budget=budget, capacity=capacity,
-            bins=top_bins, overlap=overlap, estimate=estimate))
+            bins=top_bins, overlap=overlap, estimate=estimate, array_size=shapes.get("brefs")))
         tl = TwoLevelBVH(top=result.top, bref_node=result.node, bref_instance=result.instance,
                          bref_lo=result.lo, bref_hi=result.hi, bref_prims=result.prims,
                          bref_count=result.count, forest=forest, instances=instances,
@@ -147,11 +151,12 @@ def build(mesh, *, threshold: float = _brefs.DEFAULT_THRESHOLD, budget: float = 
           capacity: int | None = None, top_bins: int = _brefs.DEFAULT_BINS,
           overlap: float = _brefs.DEFAULT_OVERLAP, estimate: bool = False, method: str = "binned",
           max_leaf: int = 1, bins: int = 16, ct: float = 1.0, ci: float = 1.0, dtype=np.float32,
-          timings: dict | None = None) -> TwoLevelBVH:
+          world_space: bool = True, timings: dict | None = None) -> TwoLevelBVH:
     """Two-level BVH of ``mesh`` with re-braiding (module docstring).
 
     Object BVHs: ``method``, ``max_leaf``, ``bins``, ``ct``, ``ci`` as
-    :func:`jaxbvh.build`, in ``dtype`` (float64 needs x64). Top level: ``threshold``
+    :func:`jaxbvh.build`, in ``dtype`` (float64 needs x64); ``world_space``: build objects
+    placed by a single instance in world space (:mod:`jaxbvh.forest`). Top level: ``threshold``
     (opening threshold; inf: plain two-level), ``budget`` BRef slots per instance (or
     ``capacity`` in all), ``top_bins``, ``overlap``, ``estimate`` as
     :func:`jaxbvh.brefs.build_top_level`. ``timings``, if given, receives ``objects``,
@@ -159,7 +164,8 @@ def build(mesh, *, threshold: float = _brefs.DEFAULT_THRESHOLD, budget: float = 
     """
     _brefs.check_options(threshold, budget, top_bins, overlap)
     start = time.perf_counter()
-    trees = build_objects(mesh, method=method, max_leaf=max_leaf, bins=bins, ct=ct, ci=ci, dtype=dtype)
+    trees = build_objects(mesh, method=method, max_leaf=max_leaf, bins=bins, ct=ct, ci=ci, dtype=dtype,
+                          world_space=world_space)
     if timings is not None:
         timings["objects"] = time.perf_counter() - start
     return build_from(mesh, trees, threshold=threshold, budget=budget, capacity=capacity,
@@ -203,6 +209,8 @@ def flatten(tl: TwoLevelBVH, *, pad: bool = True) -> BVH:
         frontier_f = np.concatenate([f.left[frontier_f[inner]], f.right[frontier_f[inner]]]).astype(np.int64)
         frontier_i = np.concatenate([frontier_i[inner], frontier_i[inner]])
         frontier_id = np.concatenate([ids_l, ids_l + 1])
+        order = np.argsort(frontier_id)  # number each level by id, as our builders do
+        frontier_f, frontier_i, frontier_id = frontier_f[order], frontier_i[order], frontier_id[order]
     cf, ci_, cid = (np.concatenate(a) for a in (copies_f, copies_i, copies_id))
     n_flat = next_id
     dtype = top.lo.dtype
@@ -480,19 +488,19 @@ def brute_force(triangles, origin, direction, *, batch: int = 1024):
     """
     tri = jnp.asarray(triangles)
     dtype = tri.dtype
-
-    @jax.jit
-    def chunk(o, d):
-        t, _, _ = jax.vmap(lambda oo, dd: moller_trumbore(tri[:, 0], tri[:, 1], tri[:, 2], oo, dd))(o, d)
-        t = jnp.where(t > 0, t, jnp.inf)
-        best = jnp.min(t, axis=1)
-        prim = jnp.argmax(t == best[:, None], axis=1).astype(jnp.int32)
-        return best, jnp.where(best < jnp.inf, prim, -1)
-
     ts, ps = [], []
     for s in range(0, origin.shape[0], batch):
-        t, p = chunk(jnp.asarray(origin[s:s + batch], dtype), jnp.asarray(direction[s:s + batch], dtype))
+        t, p = _brute_chunk(tri, jnp.asarray(origin[s:s + batch], dtype),
+                            jnp.asarray(direction[s:s + batch], dtype))
         ts.append(np.asarray(t))
         ps.append(np.asarray(p))
     return np.concatenate(ts), np.concatenate(ps)
 
+
+@jax.jit
+def _brute_chunk(tri, origin, direction):
+    t, _, _ = jax.vmap(lambda o, d: moller_trumbore(tri[:, 0], tri[:, 1], tri[:, 2], o, d))(origin, direction)
+    t = jnp.where(t > 0, t, jnp.inf)
+    best = jnp.min(t, axis=1)
+    prim = jnp.argmax(t == best[:, None], axis=1).astype(jnp.int32)
+    return best, jnp.where(best < jnp.inf, prim, -1)
