@@ -182,6 +182,57 @@ def _exclusive_rank(flag, start):
     return before - _at(before, start, 0)
 
 
+def _scan(starts, lo, hi, prims):
+    """Inclusive running (box, primitive count) along axis 1, restarting where ``starts``."""
+
+    def combine(a, b):
+        fa, la, ha, pa = a
+        fb, lb, hb, pb = b
+        keep = fb[..., None]
+        return (fa | fb, jnp.where(keep, lb, jnp.minimum(la, lb)), jnp.where(keep, hb, jnp.maximum(ha, hb)),
+                jnp.where(fb, pb, pa + pb))
+
+    return jax.lax.associative_scan(combine, (starts, lo, hi, prims), axis=1)[1:]
+
+
+def _best_planes(sid, bin_p, lo, hi, prims, *, bins, cap):
+    """Cheapest bin plane of every segment: ``(cost, axis * bins + plane)`` [C].
+
+    Per axis the BRefs are sorted by (segment, bin); forward and backward segmented scans
+    give the box and primitive count of both sides of every plane where the bin changes
+    (empty bins between two occupied ones give the same partition; the lowest such plane
+    is named). Costs and the tie rule are those of the module docstring; segments without
+    a plane get ``(inf, max int)``.
+    """
+    i32 = jnp.int32
+    dtype = lo.dtype
+    axes = jnp.arange(3, dtype=i32)
+    none = cap * bins  # sorts after every real key
+    keys = jnp.where(sid[None, :] < cap, sid[None, :] * bins + bin_p.T, none)  # [3, C]
+    order = jnp.argsort(keys, axis=1, stable=True).astype(i32)
+    seg = jnp.take_along_axis(jnp.broadcast_to(sid, (3, cap)), order, axis=1)
+    b = jnp.take_along_axis(bin_p.T, order, axis=1)
+    s_lo, s_hi, s_p = lo[order], hi[order], prims[order]  # [3, C, 3], [3, C]
+    step = jnp.concatenate([seg[:, 1:] != seg[:, :-1], jnp.ones((3, 1), bool)], axis=1)  # last of a run
+    first = jnp.concatenate([jnp.ones((3, 1), bool), step[:, :-1]], axis=1)
+    l_lo, l_hi, l_p = _scan(first, s_lo, s_hi, s_p)
+    r_lo, r_hi, r_p = (a[:, ::-1] for a in _scan(step[:, ::-1], s_lo[:, ::-1], s_hi[:, ::-1], s_p[:, ::-1]))
+    shift = lambda a, fill: jnp.concatenate([a[:, 1:], jnp.full_like(a[:, :1], fill)], axis=1)  # noqa: E731
+    r_lo, r_hi, r_p = shift(r_lo, jnp.inf), shift(r_hi, -jnp.inf), shift(r_p, 0)
+    # a plane after every sorted BRef whose successor in the segment has a higher bin (so
+    # both sides hold BRefs; bins differ only on an axis of positive span)
+    plane = (seg < cap) & ~step & (b != shift(b, -1))
+    cost = (half_area(l_lo, l_hi) * l_p.astype(dtype) + half_area(r_lo, r_hi) * r_p.astype(dtype))
+    cost = jnp.where(plane, cost, jnp.inf)
+    ids = jnp.where(plane, seg, cap).ravel()
+    best = _segment(jax.ops.segment_min, cost.ravel(), ids, cap)
+    near = (best * (1 + TIE_TOLERANCE)).at[ids].get(mode="fill", fill_value=-jnp.inf)
+    key = jnp.where(plane & (cost.ravel() <= near).reshape(3, cap), axes[:, None] * bins + b,
+                    jnp.iinfo(i32).max)
+    best_key = _segment(jax.ops.segment_min, key.ravel(), ids, cap)
+    return best, best_key
+
+
 @partial(jax.jit, static_argnames=("cap", "bins", "estimate"))
 def _build(forest, instances, n_inst, slots, threshold, overlap, *, cap, bins, estimate):
     C = cap
@@ -300,32 +351,10 @@ def _build(forest, instances, n_inst, slots, threshold, overlap, *, cap, bins, e
         nb = jnp.asarray(bins, dtype)
         raw = jnp.floor((centre - low_p) * nb / jnp.where(span_p > 0, span_p, 1))
         bin_p = jnp.where(span_p > 0, jnp.clip(raw, 0, nb - 1), 0).astype(i32)  # [C, 3]
-        n_keys = C * 3 * bins
-        keys = (sid[:, None] * 3 + jnp.arange(3, dtype=i32)[None, :]) * bins + bin_p
-        keys = jnp.where(is_ref[:, None], keys, n_keys).reshape(-1)
-        rep = lambda a: jnp.repeat(a, 3, axis=0)  # noqa: E731  one row per (BRef, axis)
-        bin_lo = _segment(jax.ops.segment_min, rep(lo), keys, n_keys).reshape(C, 3, bins, 3)
-        bin_hi = _segment(jax.ops.segment_max, rep(hi), keys, n_keys).reshape(C, 3, bins, 3)
-        bin_n = _segment(jax.ops.segment_sum, jnp.ones(3 * C, i32), keys, n_keys).reshape(C, 3, bins)
-        bin_p_count = _segment(jax.ops.segment_sum, rep(prims), keys, n_keys).reshape(C, 3, bins)
-        left_lo = jax.lax.cummin(bin_lo, axis=2)[:, :, :-1]
-        left_hi = jax.lax.cummax(bin_hi, axis=2)[:, :, :-1]
-        right_lo = jax.lax.cummin(bin_lo, axis=2, reverse=True)[:, :, 1:]
-        right_hi = jax.lax.cummax(bin_hi, axis=2, reverse=True)[:, :, 1:]
-        left_n = jnp.cumsum(bin_n, axis=2)[:, :, :-1]
-        right_n = jnp.cumsum(bin_n[:, :, ::-1], axis=2)[:, :, ::-1][:, :, 1:]
-        left_p = jnp.cumsum(bin_p_count, axis=2)[:, :, :-1]
-        right_p = jnp.cumsum(bin_p_count[:, :, ::-1], axis=2)[:, :, ::-1][:, :, 1:]
-        cost = (half_area(left_lo, left_hi) * left_p.astype(dtype)
-                + half_area(right_lo, right_hi) * right_p.astype(dtype))
-        valid = (left_n > 0) & (right_n > 0) & (span > 0)[:, :, None] & split_seg[:, None, None]
-        cost = jnp.where(valid, cost, inf).reshape(C, -1)
-        best = jnp.min(cost, axis=1)
-        is_best = (cost <= (best * (1 + TIE_TOLERANCE))[:, None]) & (cost < inf)
-        choice = jnp.argmax(is_best, axis=1).astype(i32)
+        best, best_key = _best_planes(sid, bin_p, lo, hi, prims, bins=bins, cap=C)
         found = best < inf
-        best_axis = choice // (bins - 1)
-        best_plane = choice % (bins - 1)
+        best_axis = best_key // bins
+        best_plane = best_key % bins
 
         # 5. partition and spare split
         offset = pos - seg

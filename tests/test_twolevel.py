@@ -26,7 +26,7 @@ from tests.strategies import triangle_soups
 SHAPES = {"nodes": 128, "prims": 64, "instances": 8, "brefs": 32}
 FLAT = (256, 128)  # flattened trees padded to one shape for the traversal
 STACK = 48
-SETTINGS = dict(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow,
+SETTINGS = dict(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow,
                                                                        HealthCheck.data_too_large])
 
 
@@ -207,7 +207,7 @@ def test_world_boxes_are_conservative_and_monotone(seed, exponent):
 
 
 def test_plain_mesh_builds_no_top_level_and_equals_the_single_bvh():
-    mesh = scenes.assemble([scenes.tree_mesh(jax.random.key(0), levels=2)], [(0, np.eye(4))])
+    mesh = scenes.assemble([small_tree(3)], [(0, np.eye(4))])
     tl = twolevel.build(mesh, method="binned")
     assert int(tl.bref_count) == 1 and np.asarray(tl.top.left).shape == (1,)
     assert int(tl.bref_node[0]) == int(tl.forest.root[0]) and float(tl.instances.margin[0]) == 0
