@@ -48,8 +48,9 @@ uses the paper's estimate instead: the root has its object's count, a child gets
 plain two-level BVH over the instances (its array then has room for the instances only).
 
 Level-synchronous. The JAX builder runs all segments of one level of the top-level
-tree at once (segment reductions keyed by the segment's start position), in a
-``while_loop`` bounded by ``C + 1`` levels. It equals the recursive NumPy twin
+tree at once (segment reductions keyed by the segment's start position; the binning
+sorts each axis by (segment, bin) and scans, so no segments x bins table is needed), in
+a ``while_loop`` bounded by ``C + 1`` levels (reaching the bound raises). It equals the recursive NumPy twin
 :func:`jaxbvh.reference.twolevel.build_top_level` BRef by BRef: every BRef ends in the
 same slot of the array with the same node, instance, box and count, and the top-level
 trees are the same up to node numbering. Exactness: world boxes, centres, bins, opening
@@ -97,7 +98,8 @@ class TopLevel:
     ``count``: ``node`` int32 forest node (-1 padding), ``instance`` int32, ``lo``, ``hi``
     [C, 3] scene-frame boxes (padding: the empty box), ``prims`` int32 primitive counts
     (exact or estimated), ``position`` int32 slot in the build array. ``count``: number
-    of BRefs (int32 scalar); ``levels``: levels the build took.
+    of BRefs (int32 scalar); ``levels``: levels the build took; ``complete``: the loop
+    ended because no segment was left, not at its bound (the driver raises otherwise).
     """
 
     top: Any
@@ -109,6 +111,7 @@ class TopLevel:
     position: Any
     count: Any
     levels: Any
+    complete: Any
 
 
 def check_options(threshold, budget, bins, overlap) -> None:
@@ -156,10 +159,13 @@ def build_top_level(forest, instances, n_instances: int, *, threshold: float = D
     slots = brefs_capacity(n_instances, threshold, budget, capacity)
     cap = max(capacity_bucket(slots), array_size or 0)
     dtype = np.asarray(forest.lo).dtype
-    return _build(jax.tree_util.tree_map(jnp.asarray, forest),
-                  jax.tree_util.tree_map(jnp.asarray, instances), jnp.int32(n_instances),
-                  jnp.int32(slots), jnp.asarray(threshold, dtype), jnp.asarray(overlap, dtype),
-                  cap=cap, bins=int(bins), estimate=bool(estimate))
+    result = _build(jax.tree_util.tree_map(jnp.asarray, forest),
+                    jax.tree_util.tree_map(jnp.asarray, instances), jnp.int32(n_instances),
+                    jnp.int32(slots), jnp.asarray(threshold, dtype), jnp.asarray(overlap, dtype),
+                    cap=cap, bins=int(bins), estimate=bool(estimate))
+    if not bool(result.complete):  # cannot happen: every level splits every segment of >= 2 BRefs
+        raise RuntimeError(f"top-level build stopped at its bound of {cap + 1} levels with segments left")
+    return result
 
 
 # ----------------------------------------------------------------------------------
@@ -451,4 +457,4 @@ def _build(forest, instances, n_inst, slots, threshold, overlap, *, cap, bins, e
         hi=jnp.full((C, 3), -inf, dtype).at[dest].set(s["hi"], mode="drop"),
         prims=jnp.zeros(C, i32).at[dest].set(s["prims"], mode="drop"),
         position=jnp.full(C, -1, i32).at[dest].set(pos, mode="drop"),
-        count=n_refs, levels=s["level"])
+        count=n_refs, levels=s["level"], complete=~jnp.any(s["seg_live"]))

@@ -183,6 +183,14 @@ def flatten(tl: TwoLevelBVH, *, pad: bool = True) -> BVH:
     space). Primitive ids are world triangle ids. Padded to capacity buckets unless
     ``pad=False``.
     """
+    flat, _ = _flatten(tl)
+    if pad:
+        flat = pad_to(flat, capacity_bucket(flat.left.shape[0]), capacity_bucket(flat.prim_index.shape[0]))
+    return flat
+
+
+def _flatten(tl):
+    """The unpadded flattened tree and its copies: ``(forest node, instance, flat id)`` arrays."""
     t = to_numpy(tl)
     top, f, inst = t.top, t.forest, t.instances
     n_top = top.left.shape[0]
@@ -243,16 +251,53 @@ def flatten(tl: TwoLevelBVH, *, pad: bool = True) -> BVH:
     prim_index = (f.prim_index[slots] + np.repeat(inst.prim_shift[leaf_i], counts)).astype(np.int32)
     flat = BVH(left=left, right=right, parent=parent, lo=lo, hi=hi, prim_start=start, prim_count=count,
                axis=axis, prim_index=prim_index, root=np.int32(int(top.root)))
-    if pad:
-        flat = pad_to(flat, capacity_bucket(n_flat), capacity_bucket(prim_index.shape[0]))
-    return flat
+    return flat, (cf, ci_, cid)
 
 
-def sah(tl: TwoLevelBVH, ct: float = 1.0, ci: float = 1.0) -> float:
-    """SAH of the flattened tree (:func:`flatten`): the paper's total SAH, on one footing."""
+def sah(tl: TwoLevelBVH, ct: float = 1.0, ci: float = 1.0, *, boxes: str = "world") -> float:
+    """SAH of the two-level tree: interior nodes and leaves, ``Ct``, ``Ci`` as :mod:`jaxbvh.cost`.
+
+    ``boxes="world"`` (the default, the paper's Table 1 footing): the SAH of the
+    flattened tree (:func:`flatten`), every node with its world box, instanced nodes
+    with their conservative boxes. ``boxes="object"``: the cost of the traversal this
+    module runs, which tests the nodes below a top-level leaf in their object frame:
+    such a node is hit by a random line with the probability of its box *as
+    transformed* (a parallelepiped, whose surface area replaces the conservative box's;
+    Cauchy's formula), so this SAH is never above the world one and equals it when every
+    object is built in world space. Zero-area nodes follow :mod:`jaxbvh.cost`.
+    """
     import jaxbvh
 
-    return float(jaxbvh.sah(to_jax(flatten(tl)), ct, ci))
+    if boxes == "world":
+        return float(jaxbvh.sah(to_jax(flatten(tl)), ct, ci))
+    if boxes != "object":
+        raise ValueError(f"boxes must be 'world' or 'object', got {boxes!r}")
+    flat, (cf, ci_, cid) = _flatten(tl)
+    t = to_numpy(tl)
+    lo, hi = flat.lo.astype(np.float64), flat.hi.astype(np.float64)
+
+    def half_area(e0, e1, e2):  # edge vectors [n, 3] of parallelepipeds (boxes: axis-aligned)
+        return (np.linalg.norm(np.cross(e0, e1), axis=1) + np.linalg.norm(np.cross(e1, e2), axis=1)
+                + np.linalg.norm(np.cross(e2, e0), axis=1))
+
+    d = np.maximum(hi - lo, 0)
+    area = d[:, 0] * d[:, 1] + d[:, 1] * d[:, 2] + d[:, 2] * d[:, 0]
+    # copies below a BRef's root are tested in their object frame
+    below = np.ones(cid.size, bool)
+    below[: int(np.count_nonzero(t.top.prim_count > 0))] = False  # the first copies are the roots
+    f_lo, f_hi = t.forest.lo[cf[below]].astype(np.float64), t.forest.hi[cf[below]].astype(np.float64)
+    ext = np.maximum(f_hi - f_lo, 0)
+    linear = t.instances.to_scene[ci_[below]][:, :, :3].astype(np.float64)
+    area[cid[below]] = half_area(*(linear[:, :, k] * ext[:, k:k + 1] for k in range(3)))
+    cost = np.where(flat.prim_count > 0, ci * flat.prim_count.astype(np.float64), ct)
+    level = jaxbvh.tree.depth(flat)
+    for k in range(int(level.max()), -1, -1):
+        nodes = np.flatnonzero((level == k) & (flat.left >= 0))
+        l, r = flat.left[nodes], flat.right[nodes]
+        own = area[nodes]
+        weighted = (area[l] * cost[l] + area[r] * cost[r]) / np.where(own > 0, own, 1)
+        cost[nodes] = ct + np.where(own > 0, weighted, cost[l] + cost[r])
+    return float(cost[int(flat.root)])
 
 
 def stored_nodes(tl: TwoLevelBVH) -> dict[str, int]:

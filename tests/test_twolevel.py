@@ -247,6 +247,33 @@ def test_plain_mesh_builds_no_top_level_and_equals_the_single_bvh():
     assert twolevel.stored_nodes(tl)["total"] == jaxbvh.tree.node_count(single) + 1
 
 
+def test_object_frame_sah_bounds_and_limits():
+    tree = small_tree(4)
+    rng = np.random.default_rng(1)
+    moved, turned = [], []
+    for k in range(6):
+        t = np.eye(4)
+        t[:3, 3] = rng.normal(size=3)
+        moved.append((0, t.copy()))
+        t[:3, :3] = scenes.random_rotations(jax.random.key(k), 1)[0] * rng.uniform(0.5, 2)
+        turned.append((0, t))
+    for instances in (moved, turned):
+        mesh = scenes.assemble([tree], instances)
+        for threshold in (math.inf, 0.05):
+            tl = twolevel.build_from(mesh, fm.build_objects(mesh), threshold=threshold, shapes=SHAPES)
+            world, obj = twolevel.sah(tl), twolevel.sah(tl, boxes="object")
+            if instances is moved:  # translated object boxes stay boxes: the same cost (but the margin)
+                assert obj == pytest.approx(world, rel=1e-5)
+            else:  # a rotated box has less area than the box around it
+                assert obj < world
+    # a plain mesh: the same tree, the same number
+    plain = scenes.assemble([tree], [(0, np.eye(4))])
+    tl = twolevel.build(plain)
+    assert twolevel.sah(tl, boxes="object") == pytest.approx(twolevel.sah(tl), rel=1e-6)
+    with pytest.raises(ValueError, match="boxes"):
+        twolevel.sah(tl, boxes="local")
+
+
 def test_estimated_counts_halve_from_the_object_count():
     mesh = scenes.instanced_scene(jax.random.key(3), [small_tree(0)], 6, spread=0.3)
     trees = fm.build_objects(mesh)
