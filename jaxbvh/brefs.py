@@ -10,7 +10,9 @@ the top level can reach into the object BVHs where objects overlap.
 The BRef array
 ==============
 All BRefs live in one array of fixed capacity ``C`` (``budget`` x #instances; the paper
-uses 4). A *segment* is a contiguous piece ``[start, extra)`` of it owned by one node of
+uses 4; ``capacity`` sets it directly, e.g. to the paper's #primitives / 1000 for
+scenes built in world space, a rule meant for scenes of millions of triangles: it would
+give the 32,720-triangle drone 32 slots for its 39 objects). A *segment* is a contiguous piece ``[start, extra)`` of it owned by one node of
 the top-level tree: its BRefs are ``[start, end)``, the rest ``[end, extra)`` is spare
 room that opening may fill. The root segment is ``[0, C)`` with the instances' BRefs at
 ``[0, #instances)``. One step on a segment of ``count = end - start`` BRefs:
