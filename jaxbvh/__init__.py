@@ -22,6 +22,8 @@ _LAZY = {
     "evolve": ("jaxbvh.evolve", None),
     "collapse": ("jaxbvh.collapse", None),
     "grasp": ("jaxbvh.grasp", None),
+    "twolevel": ("jaxbvh.twolevel", None),
+    "scenes": ("jaxbvh.scenes", None),
 }
 
 

@@ -1,0 +1,373 @@
+"""Two-level BVHs with re-braiding (jaxbvh.forest, jaxbvh.brefs, jaxbvh.twolevel, jaxbvh.scenes).
+
+Random scenes: a few small objects (hypothesis triangle soups, extreme scales included)
+placed by instances with identity, rigid, scaled, sheared and mirroring transforms.
+Every array is padded to one shape (SHAPES) so the top-level build and the traversal
+compile once for all examples.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import jaxbvh
+from jaxbvh import brefs, scenes, twolevel
+from jaxbvh import forest as fm
+from jaxbvh.reference import twolevel as ref
+from jaxbvh.traverse import moller_trumbore
+from tests.strategies import triangle_soups
+
+SHAPES = {"nodes": 128, "prims": 64, "instances": 8, "brefs": 32}
+FLAT = (512, 256)  # flattened trees padded to one shape for the traversal
+STACK = 48
+SETTINGS = dict(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow,
+                                                                       HealthCheck.data_too_large])
+
+
+def _transform(rng, kind):
+    if kind == "identity":
+        return np.eye(4)
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    rotation = q * np.sign(np.diag(r))
+    if np.linalg.det(rotation) < 0:
+        rotation[:, 0] *= -1
+    m = np.eye(4)
+    if kind == "rigid":
+        m[:3, :3] = rotation * rng.uniform(0.5, 2.0)
+    elif kind == "affine":  # non-uniform scale and shear
+        m[:3, :3] = rotation @ np.diag(rng.uniform(0.3, 3.0, 3)) @ (np.eye(3) + np.triu(rng.normal(0, 0.5, (3, 3)), 1))
+    elif kind == "mirror":
+        m[:3, :3] = rotation @ np.diag([-1.0, 1.0, 1.0])
+    return m
+
+
+@st.composite
+def random_scenes(draw, max_objects=3, max_instances=8):
+    """A :class:`Mesh` of 1-3 soups of <= 10 triangles and 2-8 instances of them.
+
+    The whole scene sits at one scale (1e-30 ... 1e30), as a real scene would.
+    """
+    n_obj = draw(st.integers(1, max_objects))
+    soups = [draw(triangle_soups(min_size=1, max_size=10, extreme=False)) for _ in range(n_obj)]
+    scale = 10.0 ** draw(st.sampled_from([0, -30, 10, 30]))
+    soups = [tri * scale for tri in soups]
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    n_inst = draw(st.integers(2, max_instances))
+    spread = draw(st.sampled_from([0.0, 0.3, 1.0, 3.0]))
+    objects = [(tri.reshape(-1, 3), np.arange(3 * tri.shape[0]).reshape(-1, 3)) for tri in soups]
+    instances = []
+    for _ in range(n_inst):
+        obj = int(rng.integers(n_obj))
+        kind = rng.choice(["identity", "rigid", "affine", "mirror"], p=[0.25, 0.35, 0.25, 0.15])
+        m = _transform(rng, kind)
+        tri = soups[obj]
+        size = float(np.ptp(tri.reshape(-1, 3), axis=0).max()) or 1.0
+        if kind != "identity":
+            m[:3, 3] = rng.normal(size=3) * spread * size
+        instances.append((obj, m))
+    return scenes.assemble(objects, instances, name="random")
+
+
+def small_tree(seed):
+    """A 22-triangle tree: fits SHAPES."""
+    return scenes.tree_mesh(jax.random.key(seed), levels=1, branches=2, sides=3, leaves=1)
+
+
+@st.composite
+def forest_scenes(draw):
+    """2-8 overlapping instances of one or two 22-triangle trees (deep enough to open)."""
+    seeds = draw(st.lists(st.integers(0, 1000), min_size=1, max_size=2))
+    return scenes.instanced_scene(jax.random.key(draw(st.integers(0, 2**31 - 1))),
+                                  [small_tree(k) for k in seeds], draw(st.integers(2, 8)),
+                                  spread=draw(st.sampled_from([0.2, 0.5, 1.0])), upright=draw(st.booleans()))
+
+
+def top_level(mesh, trees, **options):
+    forest, inst = fm.pack(mesh, trees, capacity=SHAPES)
+    n = len(mesh.instances)
+    result = brefs.build_top_level(forest, inst, n, array_size=SHAPES["brefs"], **options)
+    return forest, inst, jaxbvh.to_numpy(result)
+
+
+def canonical(top, slot_of):
+    """Top-level tree as nested tuples; a leaf is its BRef's slot in the build array."""
+    def rec(n):
+        box = (tuple(top.lo[n].tolist()), tuple(top.hi[n].tolist()))
+        if top.prim_count[n] > 0:
+            return ("leaf", int(slot_of(top.prim_index[top.prim_start[n]])), box)
+        return (int(top.axis[n]), rec(int(top.left[n])), rec(int(top.right[n])), box)
+    return rec(int(top.root))
+
+
+OPTIONS = st.fixed_dictionaries({
+    "threshold": st.sampled_from([0.02, 0.1, 0.3, math.inf]),
+    "budget": st.sampled_from([1.0, 1.5, 2.0, 4.0]),
+    "overlap": st.sampled_from([0.0, 0.1, 0.5]),
+    "estimate": st.booleans(),
+})
+
+
+# ----------------------------------------------------------------------------------
+# The top-level build against its recursive twin
+# ----------------------------------------------------------------------------------
+
+
+@settings(**SETTINGS)
+@given(mesh=st.one_of(random_scenes(), forest_scenes()), options=OPTIONS, world_space=st.booleans())
+def test_top_level_equals_reference_bref_by_bref(mesh, options, world_space):
+    trees = fm.build_objects(mesh, world_space=world_space)
+    forest, inst, res = top_level(mesh, trees, **options)
+    n = len(mesh.instances)
+    slots = brefs.brefs_capacity(n, options["threshold"], options["budget"])
+    top_r, br = ref.build_top_level(forest, inst, n, threshold=options["threshold"], slots=slots,
+                                    overlap=options["overlap"], estimate=options["estimate"])
+    count = int(res.count)
+    position = res.position[:count]
+    # every BRef in the same slot with the same node, instance, box and count
+    np.testing.assert_array_equal(position, np.flatnonzero(br["node"] >= 0))
+    for key in ("node", "instance", "prims", "lo", "hi"):
+        np.testing.assert_array_equal(getattr(res, key)[:count], br[key][position], err_msg=key)
+    assert count <= slots
+    assert canonical(res.top, lambda b: res.position[b]) == canonical(top_r, lambda s: s)
+    # the top level is a valid BVH over its BRefs, one BRef per leaf
+    jaxbvh.validate(res.top, res.lo[:count], res.hi[:count])
+    assert set(res.top.prim_count[res.top.prim_count > 0].tolist()) == {1}
+    if math.isinf(options["threshold"]):  # plain two-level: the instances' roots
+        assert count == n
+        np.testing.assert_array_equal(np.sort(res.instance[:count]), np.arange(n))
+        np.testing.assert_array_equal(res.node[:count], forest.root[inst.object[res.instance[:count]]])
+
+
+@pytest.mark.parametrize("seed, spread, threshold, budget", [(0, 0.5, 0.05, 3.0), (1, 0.2, 0.3, 4.0),
+                                                           (4, 0.5, 0.05, 3.0), (2, 0.2, 0.3, 4.0)])
+def test_top_level_equals_reference_on_forests(seed, spread, threshold, budget):
+    """Forests where how the spare room is split decides which BRefs open (checked: a spare
+    split in the wrong proportion, or ties to the highest axis, fail here)."""
+    mesh = scenes.instanced_scene(jax.random.key(seed), [small_tree(seed), small_tree(seed + 10)], 8,
+                                  spread=spread)
+    trees = fm.build_objects(mesh)
+    forest, inst, res = top_level(mesh, trees, threshold=threshold, budget=budget)
+    _, br = ref.build_top_level(forest, inst, 8, threshold=threshold,
+                                slots=brefs.brefs_capacity(8, threshold, budget))
+    count = int(res.count)
+    assert count > 8  # opened something
+    np.testing.assert_array_equal(res.position[:count], np.flatnonzero(br["node"] >= 0))
+    for key in ("node", "instance", "prims", "lo", "hi"):
+        np.testing.assert_array_equal(getattr(res, key)[:count], br[key][res.position[:count]], err_msg=key)
+
+
+@settings(**SETTINGS)
+@given(mesh=st.one_of(random_scenes(), forest_scenes()), options=OPTIONS)
+def test_flattened_tree_is_valid_and_traversal_finds_the_closest_hits(mesh, options):
+    trees = fm.build_objects(mesh)
+    tl = twolevel.build_from(mesh, trees, threshold=options["threshold"], budget=options["budget"],
+                             overlap=options["overlap"], estimate=options["estimate"], shapes=SHAPES)
+    flat = twolevel.flatten(tl, pad=False)
+    lo, hi = mesh.local_boxes()
+    jaxbvh.validate(flat, lo, hi)  # conservative world boxes contain the float32 triangle boxes
+    # the BRefs are a cut: every world triangle under exactly one BRef (validate checked ids)
+    assert int(np.asarray(tl.bref_prims)[: int(tl.bref_count)].sum()) == mesh.n_triangles or options["estimate"]
+    flat = jaxbvh.tree.pad_to(flat, *FLAT)
+
+    tri = np.zeros((FLAT[1], 3, 3), np.float32)  # degenerate padding: never hit; one shape
+    tri[:mesh.n_triangles] = mesh.local_triangles()
+    key = jax.random.key(0)
+    origin, direction = jaxbvh.rays.make_rays(key, "random", flat, tri, 200)
+    hits = twolevel.closest_hit(tl, origin, direction, capacity=STACK)
+    t_brute, p_brute = twolevel.brute_force(tri, origin, direction)
+    flat_hits = jaxbvh.rays.closest_hit(flat, tri, origin, direction, capacity=STACK)
+    for name, t, prim in (("two-level", hits.t, hits.prim), ("flattened", flat_hits.t, flat_hits.prim)):
+        np.testing.assert_array_equal(np.isfinite(t), np.isfinite(t_brute), err_msg=name)
+        hit = np.isfinite(t)
+        np.testing.assert_allclose(t[hit], t_brute[hit], rtol=1e-4, atol=1e-6, err_msg=name)
+        # the same triangle, or one the brute force finds at the same distance (a shared edge)
+        other = hit & (prim != p_brute)
+        if other.any():
+            t_other, _, _ = moller_trumbore(*np.moveaxis(tri[prim[other]], 1, 0), origin[other], direction[other])
+            np.testing.assert_allclose(np.asarray(t_other), t_brute[other], rtol=1e-4, atol=1e-6, err_msg=name)
+    assert (hits.box_tests >= 1).all() and (hits.prim_tests >= (hits.prim >= 0)).all()
+
+
+# ----------------------------------------------------------------------------------
+# Properties of the pieces
+# ----------------------------------------------------------------------------------
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), exponent=st.sampled_from([0, -20, 20]))
+def test_world_boxes_are_conservative_and_monotone(seed, exponent):
+    rng = np.random.default_rng(seed)
+    scale = 10.0 ** exponent  # object boxes at any scale, mapped to a scene frame of size ~1
+    m = np.eye(4)
+    m[:3] = rng.normal(size=(3, 4))
+    m[:3, :3] /= scale
+    lo = (rng.normal(size=(50, 3)) * scale).astype(np.float32)
+    hi = lo + (rng.exponential(size=(50, 3)) * scale).astype(np.float32)
+    inner_lo = lo + (hi - lo) * rng.uniform(0, 0.5, (50, 3)).astype(np.float32)
+    inner_hi = np.maximum(inner_lo, hi - (hi - lo) * rng.uniform(0, 0.5, (50, 3)).astype(np.float32))
+    m32 = np.broadcast_to(m[:3].astype(np.float32), (50, 3, 4))
+    margin = np.full(50, fm.margin_for(np.float32), np.float32)
+    w_lo, w_hi = map(np.asarray, twolevel._world_boxes_jit(lo, hi, m32, margin))
+    # the exactly transformed corners (float64 from the float64 matrix) lie inside
+    corners = np.stack(np.meshgrid([0, 1], [0, 1], [0, 1], indexing="ij"), -1).reshape(8, 3)
+    pts = np.where(corners[None] == 0, lo[:, None].astype(np.float64), hi[:, None].astype(np.float64))
+    world = pts @ m[:3, :3].T + m[:3, 3]
+    assert (w_lo <= world.min(1)).all() and (w_hi >= world.max(1)).all()
+    # a box inside another maps inside the other's image; NumPy twin gives the same bits
+    i_lo, i_hi = map(np.asarray, twolevel._world_boxes_jit(inner_lo, inner_hi, m32, margin))
+    assert (i_lo >= w_lo).all() and (i_hi <= w_hi).all()
+    for k in range(5):
+        r_lo, r_hi = ref.world_box(lo[k], hi[k], m32[k], margin[k])
+        np.testing.assert_array_equal(r_lo, w_lo[k])
+        np.testing.assert_array_equal(r_hi, w_hi[k])
+    # the identity with margin 0 is exact
+    eye = np.broadcast_to(np.eye(4, dtype=np.float32)[:3], (50, 3, 4))
+    e_lo, e_hi = map(np.asarray, twolevel._world_boxes_jit(lo, hi, eye, np.zeros(50, np.float32)))
+    np.testing.assert_array_equal(e_lo, lo)
+    np.testing.assert_array_equal(e_hi, hi)
+
+
+def test_plain_mesh_builds_no_top_level_and_equals_the_single_bvh():
+    mesh = scenes.assemble([small_tree(3)], [(0, np.eye(4))])
+    tl = twolevel.build(mesh, method="binned")
+    assert int(tl.bref_count) == 1 and np.asarray(tl.top.left).shape == (1,)
+    assert int(tl.bref_node[0]) == int(tl.forest.root[0]) and float(tl.instances.margin[0]) == 0
+    lo, hi = mesh.local_boxes()
+    single = jaxbvh.to_numpy(jaxbvh.build(lo, hi, method="binned"))
+    flat = twolevel.flatten(tl)
+    jaxbvh.validate(flat, lo, hi)
+    np.testing.assert_array_equal(jaxbvh.to_interchange(flat)["lo"], jaxbvh.to_interchange(single)["lo"])
+    assert twolevel.sah(tl) == float(jaxbvh.sah(single))
+    assert twolevel.stored_nodes(tl)["total"] == jaxbvh.tree.node_count(single) + 1
+
+
+def test_object_frame_sah_bounds_and_limits():
+    tree = small_tree(4)
+    rng = np.random.default_rng(1)
+    moved, turned = [], []
+    for k in range(6):
+        t = np.eye(4)
+        t[:3, 3] = rng.normal(size=3)
+        moved.append((0, t.copy()))
+        t[:3, :3] = scenes.random_rotations(jax.random.key(k), 1)[0] * rng.uniform(0.5, 2)
+        turned.append((0, t))
+    for instances in (moved, turned):
+        mesh = scenes.assemble([tree], instances)
+        for threshold in (math.inf, 0.05):
+            tl = twolevel.build_from(mesh, fm.build_objects(mesh), threshold=threshold, shapes=SHAPES)
+            world, obj = twolevel.sah(tl), twolevel.sah(tl, boxes="object")
+            if instances is moved:  # translated object boxes stay boxes: the same cost (but the margin)
+                assert obj == pytest.approx(world, rel=1e-5)
+            else:  # a rotated box has less area than the box around it
+                assert obj < world
+    # a plain mesh: the same tree, the same number
+    plain = scenes.assemble([tree], [(0, np.eye(4))])
+    tl = twolevel.build(plain)
+    assert twolevel.sah(tl, boxes="object") == pytest.approx(twolevel.sah(tl), rel=1e-6)
+    with pytest.raises(ValueError, match="boxes"):
+        twolevel.sah(tl, boxes="local")
+
+
+def test_estimated_counts_halve_from_the_object_count():
+    mesh = scenes.instanced_scene(jax.random.key(3), [small_tree(0)], 6, spread=0.3)
+    trees = fm.build_objects(mesh)
+    forest, _, exact = top_level(mesh, trees, threshold=0.02, budget=4.0)
+    _, _, guess = top_level(mesh, trees, threshold=0.02, budget=4.0, estimate=True)
+    n = int(exact.count)
+    assert n > 6  # something opened
+    np.testing.assert_array_equal(exact.prims[:n], forest.subtree_prims[exact.node[:n]])
+    # estimated counts: the object's count halved once per level below the root
+    depth = jaxbvh.tree.depth(jaxbvh.BVH(left=forest.left, right=forest.right, parent=forest.parent,
+                                         lo=forest.lo, hi=forest.hi, prim_start=forest.prim_start,
+                                         prim_count=forest.prim_count, axis=forest.axis,
+                                         prim_index=forest.prim_index, root=np.int32(0)))
+    m = int(guess.count)
+    total = forest.subtree_prims[forest.root[0]]
+    for node, prims in zip(guess.node[:m], guess.prims[:m]):
+        expect = total
+        for _ in range(depth[node]):
+            expect = max(expect // 2, 1)
+        assert prims == expect
+
+
+def test_top_level_compiles_once_for_every_threshold_and_scene():
+    mesh = scenes.instanced_scene(jax.random.key(1), [small_tree(0)], 5)
+    trees = fm.build_objects(mesh)
+    top_level(mesh, trees, threshold=0.1)
+    before = brefs._build._cache_size()
+    for threshold in (0.05, 0.5, math.inf):
+        top_level(mesh, trees, threshold=threshold, budget=2.0)
+    other = scenes.instanced_scene(jax.random.key(2), [small_tree(5)], 7)
+    top_level(other, fm.build_objects(other), threshold=0.1)
+    assert brefs._build._cache_size() == before
+
+
+def test_float64_build_matches_reference_and_validates():
+    with jax.enable_x64(True):
+        mesh = scenes.instanced_scene(jax.random.key(4), [small_tree(1)], 5, spread=0.3)
+        trees = fm.build_objects(mesh, dtype=np.float64)
+        forest, inst, res = top_level(mesh, trees, threshold=0.05)
+        assert res.lo.dtype == np.float64 and forest.triangles.dtype == np.float64
+        top_r, br = ref.build_top_level(forest, inst, 5, threshold=0.05, slots=20)
+        count = int(res.count)
+        np.testing.assert_array_equal(res.position[:count], np.flatnonzero(br["node"] >= 0))
+        np.testing.assert_array_equal(res.lo[:count], br["lo"][res.position[:count]])
+        tl = twolevel.build_from(mesh, trees, threshold=0.05, shapes=SHAPES)
+        lo, hi = mesh.local_boxes(np.float64)
+        jaxbvh.validate(twolevel.flatten(tl), lo, hi)
+
+
+@pytest.mark.parametrize("options, message", [
+    ({"threshold": 0.0}, "threshold"), ({"threshold": -1.0}, "threshold"),
+    ({"threshold": float("nan")}, "threshold"), ({"budget": 0.5}, "budget"),
+    ({"budget": float("inf")}, "budget"), ({"top_bins": 1}, "bins"), ({"overlap": -0.1}, "overlap"),
+])
+def test_bad_options_raise(options, message):
+    mesh = scenes.instanced_scene(jax.random.key(0), [scenes.room(1.0, 1.0)], 2)
+    with pytest.raises(ValueError, match=message):
+        twolevel.build(mesh, **options)
+
+
+# ----------------------------------------------------------------------------------
+# Scenes
+# ----------------------------------------------------------------------------------
+
+
+def test_instanced_scene_places_its_instances():
+    tree = small_tree(0)
+    a = scenes.instanced_scene(jax.random.key(7), [tree], 10, upright=True)
+    b = scenes.instanced_scene(jax.random.key(7), [tree], 10, upright=True)
+    np.testing.assert_array_equal(a.triangles, b.triangles)  # same key, same scene
+    assert a.n_triangles == 10 * tree[1].shape[0] and len(a.instances) == 10
+    for obj, transform in a.instances:  # rotations about y only, on the ground
+        np.testing.assert_allclose(transform[1, :3], [0, transform[1, 1], 0], atol=1e-12)
+        assert transform[1, 3] == 0
+    v, f = a.objects[0]
+    _, t = a.instances[3]
+    np.testing.assert_allclose(a.triangles[3 * f.shape[0]:4 * f.shape[0]], (v @ t[:3, :3].T + t[:3, 3])[f])
+
+
+def test_dynamic_scene_reuses_static_objects_each_frame():
+    dyn = scenes.dynamic_scene(jax.random.key(0), *small_tree(2), n_static=4, frames=3)
+    first = dyn.frame(0)
+    static = fm.build_objects(first, only=range(dyn.moving_object))
+    for k in range(3):
+        mesh = dyn.frame(k)
+        # the room bounds everything: the scene frame, and so the static trees, stay valid
+        assert mesh.frame.scale == first.frame.scale
+        np.testing.assert_array_equal(mesh.frame.origin, first.frame.origin)
+        trees = dict(static)
+        trees.update(fm.build_objects(mesh, only=[dyn.moving_object]))
+        tl = twolevel.build_from(mesh, trees, shapes=SHAPES)
+        lo, hi = mesh.local_boxes()
+        jaxbvh.validate(twolevel.flatten(tl), lo, hi)
+    # a tree built for another placement is refused
+    moved = scenes.assemble(first.objects, [(o, t @ np.diag([2.0, 1, 1, 1])) for o, t in first.instances])
+    with pytest.raises(ValueError, match="rebuild"):
+        fm.pack(moved, static | fm.build_objects(first, only=[dyn.moving_object]))
