@@ -94,6 +94,7 @@ from jaxbvh.tree import BVH, to_jax
 
 DEFAULT_MAX_STEPS = 1024       # search steps per node and iteration (legocar needs < 200)
 DEFAULT_MAX_ITERATIONS = 1000
+DEFAULT_FIRST_FRACTION = 1.0
 
 
 @jax.tree_util.register_dataclass
@@ -124,21 +125,28 @@ class _State(NamedTuple):
     area: Any    # [N] scaled half-areas (0 for padding)
 
 
-RANK_BITS = 8  # low mantissa bits of a gain ignored when moves are ranked
+#: mantissa bits of a gain that rank moves: gains within about 1% of each other tie
+RANK_MANTISSA = 7
 
 
 def rank_key(gain):
-    """Integer key that orders positive gains, blind to their last :data:`RANK_BITS` bits.
+    """Integer key that orders positive gains by their exponent and first
+    :data:`RANK_MANTISSA` mantissa bits (about 1%): closer gains tie, and then the
+    smaller id ranks first. Mirror-image moves (``a`` beside ``b`` and ``b`` beside
+    ``a``) gain the same in exact arithmetic but come out several ulps apart, differently
+    in XLA and in NumPy; a coarse key makes them tie in both.
 
     Works on JAX and NumPy arrays (float32 -> int32, float64 -> int64 keys; a float64
-    key is returned by NumPy or by JAX with x64 on).
+    key needs x64 in JAX, which float64 trees have).
     """
     if isinstance(gain, np.ndarray) or np.isscalar(gain):
         gain = np.asarray(gain)
-        ints = gain.view(np.int32 if gain.dtype == np.float32 else np.int64)
-        return ints >> RANK_BITS
-    ints = jax.lax.bitcast_convert_type(gain, jnp.int32 if gain.dtype == jnp.float32 else jnp.int64)
-    return ints >> RANK_BITS
+        f32 = gain.dtype == np.float32
+        ints = gain.view(np.int32 if f32 else np.int64)
+    else:
+        f32 = gain.dtype == jnp.float32
+        ints = jax.lax.bitcast_convert_type(gain, jnp.int32 if f32 else jnp.int64)
+    return ints >> ((23 if f32 else 52) - RANK_MANTISSA)
 
 
 def default_min_gain(dtype) -> float:
@@ -217,11 +225,21 @@ def _interior_sah(st: _State, prim_count, ct, ci):
 
 
 class _Search(NamedTuple):
-    out: Any
-    high: Any
-    down: Any
-    red: Any
-    hlo: Any
+    """The search state of a set of lanes (each works on one node ``a`` at a time)."""
+
+    a: Any         # the node being placed (-1: idle lane)
+    p: Any         # its parent
+    alo: Any       # its box
+    ahi: Any
+    area_p: Any    # S(p)
+    base: Any      # S(p) - S(a): the bound's constant part
+    steps: Any     # steps taken for a
+    out: Any       # current node of the walk
+    high: Any      # current highest node
+    area_high: Any  # its area
+    down: Any      # walking down (else up)
+    red: Any       # running sum (module docstring)
+    hlo: Any       # box of the highest node without a (union of the walked subtrees)
     hhi: Any
     best: Any
     best_out: Any
@@ -229,96 +247,154 @@ class _Search(NamedTuple):
     done: Any
 
 
-def _search(st: _State, scale, max_steps, min_gain):
-    """Best place of every node: ``(gain [N], out [N], lca [N])``; ``out = -1``: none."""
+class _Tables(NamedTuple):
+    """Node data packed by rows, so that a walk step gathers whole rows."""
+
+    box: Any    # [N, 8] float: lo (3), hi (3), area, 0
+    links: Any  # [N, 4] int32: left, right, parent, 0
+
+
+def _tables(st: _State) -> _Tables:
     cap = st.child.shape[0]
     dtype = st.lo.dtype
-    child, parent, lo, hi, area = st.child, st.parent, st.lo, st.hi, st.area
-    left = child[:, 0]
-    a = jnp.arange(cap, dtype=jnp.int32)
-    valid = parent >= 0  # real nodes but the root (padding has no parent either)
-    p = jnp.where(valid, parent, 0)
-    alo, ahi = lo, hi
-    area_p = _take(area, p)
-    base = area_p - area
-    start = _sibling(child, parent, a)
-    start = jnp.where(valid, start, 0)
-    inf = jnp.full((cap, 3), jnp.inf, dtype)
-    zero = jnp.zeros(cap, dtype)
-    init = _Search(out=start, high=p, down=jnp.ones(cap, bool), red=zero, hlo=inf, hhi=-inf,
-                   best=zero, best_out=jnp.full(cap, -1, jnp.int32),
-                   best_lca=jnp.full(cap, -1, jnp.int32), done=~valid)
+    box = jnp.concatenate([st.lo, st.hi, st.area[:, None], jnp.zeros((cap, 1), dtype)], axis=1)
+    links = jnp.concatenate([st.child, st.parent[:, None], jnp.zeros((cap, 1), jnp.int32)], axis=1)
+    return _Tables(box, links)
+
+
+def _start_search(t: _Tables, a):
+    """Search states for nodes ``a`` [W] (``-1``: an idle lane, done at once)."""
+    dtype = t.box.dtype
+    idle = a < 0
+    row_a = _take(t.box, a)
+    p = jnp.where(idle, 0, _take(t.links, a)[:, 2])
+    links_p = _take(t.links, p)
+    area_p = _take(t.box, p)[:, 6]
+    width = a.shape[0]
+    inf = jnp.full((width, 3), jnp.inf, dtype)
+    zero = jnp.zeros(width, dtype)
+    none = jnp.full(width, -1, jnp.int32)
+    sibling = jnp.where(links_p[:, 0] == a, links_p[:, 1], links_p[:, 0])
+    return _Search(a=a, p=p, alo=row_a[:, 0:3], ahi=row_a[:, 3:6], area_p=area_p,
+                   base=area_p - row_a[:, 6], steps=jnp.zeros(width, jnp.int32), out=sibling,
+                   high=p, area_high=area_p, down=jnp.ones(width, bool), red=zero, hlo=inf,
+                   hhi=-inf, best=zero, best_out=none, best_lca=none, done=idle)
+
+
+def _step(t: _Tables, s: _Search, scale, min_gain, max_steps) -> _Search:
+    """One step of every lane's walk (lanes that are done keep their state)."""
+    out = s.out
+    row = _take(t.box, out)
+    olo, ohi, s_out = row[:, 0:3], row[:, 3:6], row[:, 6]
+    links = _take(t.links, out)
 
     def merged_area(lo_b, hi_b):
-        return half_area(jnp.minimum(alo, lo_b), jnp.maximum(ahi, hi_b), scale)
+        return half_area(jnp.minimum(s.alo, lo_b), jnp.maximum(s.ahi, hi_b), scale)
 
-    def step(s: _Search) -> _Search:
-        out = s.out
-        olo, ohi = _take(lo, out), _take(hi, out)
-        s_out = _take(area, out)
-        merged = merged_area(olo, ohi)
-        tol = min_gain * _take(area, s.high)
-        kids = _take(child, out)
+    merged = merged_area(olo, ohi)
+    tol = min_gain * s.area_high
 
-        # going down: out is a candidate place; descend unless a leaf or pruned
-        gain_d = area_p - merged + s.red
-        take_d = gain_d > s.best + tol
-        best_d = jnp.where(take_d, gain_d, s.best)
-        red_d = s.red + (s_out - merged)
-        stop = (kids[:, 0] < 0) | (red_d + base <= best_d + tol)
-        out_d = jnp.where(stop, out, kids[:, 0])
+    # going down: out is a candidate place; descend unless a leaf or pruned
+    gain_d = s.area_p - merged + s.red
+    take_d = gain_d > s.best + tol
+    best_d = jnp.where(take_d, gain_d, s.best)
+    red_d = s.red + (s_out - merged)
+    stop = (links[:, 0] < 0) | (red_d + s.base <= best_d + tol)
+    out_d = jnp.where(stop, out, links[:, 0])
 
-        # going up: leave out's growth behind
-        red_u = s.red - (s_out - merged)
-        up = _take(parent, out)
-        up_kids = _take(child, up)
-        at_high = up == s.high
-        # below the highest node: the right sibling next, or further up
-        from_left = up_kids[:, 0] == out
-        out_b = jnp.where(from_left, up_kids[:, 1], up)
-        # back at the highest node g: g is a candidate (unless g is p), then climb
-        hlo = jnp.minimum(s.hlo, olo)
-        hhi = jnp.maximum(s.hhi, ohi)
-        g = s.high
-        not_p = g != p
-        shrunk = half_area(hlo, hhi, scale)
-        s_g = _take(area, g)
-        gain_a = area_p + red_u + (s_g - shrunk) - merged_area(hlo, hhi)
-        take_a = not_p & (gain_a > s.best + tol)
-        red_a = jnp.where(not_p, red_u + (s_g - shrunk), red_u)
-        top = _take(parent, g)
-        finished = top < 0
-        top_kids = _take(child, top)
-        out_c = jnp.where(top_kids[:, 0] == g, top_kids[:, 1], top_kids[:, 0])
+    # going up: leave out's growth behind
+    red_u = s.red - (s_out - merged)
+    up = links[:, 2]
+    up_links = _take(t.links, up)
+    at_high = up == s.high
+    # below the highest node: the right sibling next, or further up
+    from_left = up_links[:, 0] == out
+    out_b = jnp.where(from_left, up_links[:, 1], up)
+    # back at the highest node g (= up): g is a candidate (unless g is p), then climb
+    hlo = jnp.minimum(s.hlo, olo)
+    hhi = jnp.maximum(s.hhi, ohi)
+    g = s.high
+    not_p = g != s.p
+    shrunk = half_area(hlo, hhi, scale)
+    s_g = s.area_high
+    gain_a = s.area_p + red_u + (s_g - shrunk) - merged_area(hlo, hhi)
+    take_a = not_p & (gain_a > s.best + tol)
+    red_a = jnp.where(not_p, red_u + (s_g - shrunk), red_u)
+    top = up_links[:, 2]                       # parent of g (up_links are g's links here)
+    finished = top < 0
+    top_links = _take(t.links, top)
+    out_c = jnp.where(top_links[:, 0] == g, top_links[:, 1], top_links[:, 0])
 
-        down, live = s.down, ~s.done
-        climb = ~down & at_high
-        new = _Search(
-            out=jnp.where(down, out_d, jnp.where(at_high, out_c, out_b)),
-            high=jnp.where(climb, top, s.high),
-            down=jnp.where(down, ~stop, jnp.where(at_high, True, from_left)),
-            red=jnp.where(down, red_d, jnp.where(at_high, red_a, red_u)),
-            hlo=jnp.where(climb[:, None], hlo, s.hlo),
-            hhi=jnp.where(climb[:, None], hhi, s.hhi),
-            best=jnp.where(down, best_d, jnp.where(climb & take_a, gain_a, s.best)),
-            best_out=jnp.where(down & take_d, out, jnp.where(climb & take_a, g, s.best_out)),
-            best_lca=jnp.where(down & take_d, s.high, jnp.where(climb & take_a, g, s.best_lca)),
-            done=climb & finished,
-        )
-        # lanes already done keep their state
-        return jax.tree_util.tree_map(
-            lambda n, o: jnp.where(live.reshape(live.shape + (1,) * (n.ndim - 1)), n, o), new, s)
+    down, live = s.down, ~s.done
+    climb = ~down & at_high
+    steps = s.steps + 1
+    new = s._replace(
+        steps=steps,
+        out=jnp.where(down, out_d, jnp.where(at_high, out_c, out_b)),
+        high=jnp.where(climb, top, s.high),
+        area_high=jnp.where(climb, _take(t.box, top)[:, 6], s.area_high),
+        down=jnp.where(down, ~stop, jnp.where(at_high, True, from_left)),
+        red=jnp.where(down, red_d, jnp.where(at_high, red_a, red_u)),
+        hlo=jnp.where(climb[:, None], hlo, s.hlo),
+        hhi=jnp.where(climb[:, None], hhi, s.hhi),
+        best=jnp.where(down, best_d, jnp.where(climb & take_a, gain_a, s.best)),
+        best_out=jnp.where(down & take_d, out, jnp.where(climb & take_a, g, s.best_out)),
+        best_lca=jnp.where(down & take_d, s.high, jnp.where(climb & take_a, g, s.best_lca)),
+        done=(climb & finished) | (steps >= max_steps),
+    )
+    return jax.tree_util.tree_map(
+        lambda n, o: jnp.where(live.reshape(live.shape + (1,) * (n.ndim - 1)), n, o), new, s)
+
+
+#: walk steps between refills of finished lanes (speed only)
+REFILL_STEPS = 8
+
+
+def search_width(capacity: int) -> int:
+    """Lanes of the search: nodes searched at once (a static size from the capacity)."""
+    return int(min(capacity, max(1024, min(16384, capacity // 16))))
+
+
+def _search(st: _State, candidates, count, scale, max_steps, min_gain):
+    """Best place of each candidate: ``(gain [N], out [N], lca [N])`` by node id.
+
+    ``candidates`` [N]: node ids, the first ``count`` of them searched (none the root).
+    The walks run in :func:`search_width` lanes; every :data:`REFILL_STEPS` steps, the
+    lanes whose walk ended (at the root or after ``max_steps`` steps) hand in their
+    result and take the next candidates, so the work follows the steps the walks take,
+    not the longest walk times the node count. ``out = -1`` where no place gains more
+    than the margin (and for nodes not searched).
+    """
+    cap = st.child.shape[0]
+    width = search_width(cap)
+    dtype = st.lo.dtype
+    t = _tables(st)
+    first = jnp.where(jnp.arange(width) < count, candidates[:width], -1)
+    init = _start_search(t, first)
+    results = (jnp.zeros(cap, dtype), jnp.full(cap, -1, jnp.int32), jnp.full(cap, -1, jnp.int32))
 
     def cond(c):
-        s, i = c
-        return (i < max_steps) & ~jnp.all(s.done)
+        s, _, _, i = c
+        return ~jnp.all(s.done) & (i <= (cap // width + 2) * (max_steps // REFILL_STEPS + 1))
 
     def body(c):
-        s, i = c
-        return step(s), i + 1
+        s, nxt, results, i = c
+        s = jax.lax.fori_loop(0, REFILL_STEPS, lambda _, s: _step(t, s, scale, min_gain, max_steps), s)
+        # finished lanes hand in their result and take the next candidates
+        free = s.done
+        at = jnp.where(free & (s.a >= 0), s.a, cap)
+        gain, out, lca = results
+        results = (gain.at[at].set(s.best, mode="drop"), out.at[at].set(s.best_out, mode="drop"),
+                   lca.at[at].set(s.best_lca, mode="drop"))
+        slot = nxt + jnp.cumsum(free.astype(jnp.int32)) - 1
+        fresh = jnp.where(free & (slot < count), _take(candidates, slot), -1)
+        new = _start_search(t, fresh)
+        s = jax.tree_util.tree_map(
+            lambda n, o: jnp.where(free.reshape(free.shape + (1,) * (n.ndim - 1)), n, o), new, s)
+        return s, nxt + jnp.sum(free, dtype=jnp.int32), results, i + 1
 
-    s, _ = jax.lax.while_loop(cond, body, (init, jnp.int32(0)))
-    return s.best, s.best_out, s.best_lca
+    _, _, results, _ = jax.lax.while_loop(cond, body, (init, jnp.int32(width), results, jnp.int32(0)))
+    return results
 
 
 # ----------------------------------------------------------------------------------
@@ -345,48 +421,106 @@ def _walk(parent, starts, tops, active, fn, carry, cap):
     return carry
 
 
-def _select(st: _State, gain, out, lca):
-    """Which moves are taken (bool [N]): ranked first on every node they lock."""
+def _best(gain, out, width):
+    """Up to ``width`` of the moves found, best first: node ids [width] (``-1``: none).
+
+    The moves found are taken in id order (the first ``width`` of them when there are
+    more), then ranked by :func:`rank_key` of their gain, descending, ties by id.
+    """
+    cap = out.shape[0]
+    has = out >= 0
+    at = jnp.where(has, jnp.cumsum(has.astype(jnp.int32)) - 1, width)
+    a = jnp.full(width, -1, jnp.int32).at[at].set(jnp.arange(cap, dtype=jnp.int32), mode="drop")
+    key = jnp.where(a >= 0, -rank_key(_take(gain, a)), jnp.iinfo(jnp.int32).max)
+    big = jnp.int32(cap)
+    _, _, a = jax.lax.sort((key, jnp.where(a >= 0, a, big), a), num_keys=2)
+    return a
+
+
+class _Moves(NamedTuple):
+    """Moves as lanes, best first (lane index = rank): ``a`` (-1: idle lane), the nodes
+    it touches and the ends of its paths."""
+
+    a: Any
+    p: Any
+    s: Any
+    g: Any      # parent of p (-1: p is the root)
+    out: Any
+    up: Any     # parent of out (-1: out is the root)
+    lca: Any
+
+
+def _moves(st: _State, a, out, lca) -> _Moves:
+    live = a >= 0
+    p = jnp.where(live, _take(st.parent, a), -1)
+    y = jnp.where(live, _take(out, a), -1)
+    return _Moves(a=a, p=p, s=jnp.where(live, _sibling(st.child, st.parent, a), -1),
+                  g=jnp.where(live, _take(st.parent, p), -1), out=y,
+                  up=jnp.where(live, _take(st.parent, y), -1),
+                  lca=jnp.where(live, _take(lca, a), -1))
+
+
+def _select(st: _State, m: _Moves):
+    """Which moves (lanes, best first) are taken: the greedy choice in rank order, in rounds.
+
+    Round after round, every remaining move that ranks first on every node it locks
+    (among the remaining moves) is taken, and moves that lock a node of a taken move
+    drop out. The result is the sequential greedy choice (best rank first, a move taken
+    when it shares no locked node with one taken before): the first-ranked remaining
+    move always wins, and a move wins in a round exactly when every better move that
+    shares a node with it has dropped out.
+    """
     cap = st.child.shape[0]
     parent = st.parent
-    ids = jnp.arange(cap, dtype=jnp.int32)
-    has = out >= 0
-    key = jnp.where(has, -rank_key(gain), jnp.iinfo(jnp.int32).max)
-    _, _, order = jax.lax.sort((key, ids, ids), num_keys=2)
-    rank = jnp.zeros(cap, jnp.int32).at[order].set(ids)
-    p = jnp.where(has, parent, 0)
-    extra = jnp.stack([ids, _sibling(st.child, parent, ids), _take(parent, p),
-                       _take(parent, jnp.maximum(out, 0))], axis=1)  # [N, 4]
-    extra = jnp.where(has[:, None], extra, -1)
-    none = jnp.int32(cap)
-    lock = jnp.full(cap, none, jnp.int32)
-    lock = lock.at[_oob(extra, cap)].min(jnp.broadcast_to(rank[:, None], extra.shape), mode="drop")
+    width = m.a.shape[0]
+    has = m.a >= 0
+    rank = jnp.arange(width, dtype=jnp.int32)
+    extra = jnp.stack([m.a, m.s, m.g, m.up], axis=1)  # [W, 4], -1: none
+    none = jnp.int32(width)
 
-    def claim(lock, nodes, live):
-        return lock.at[jnp.where(live, nodes, cap)].min(rank, mode="drop")
+    def claim(lanes):
+        """Scatter-min of lane ranks over the nodes each lane in ``lanes`` locks."""
+        lock = jnp.full(cap, none, jnp.int32)
+        lock = lock.at[jnp.where(lanes[:, None], _oob(extra, cap), cap)].min(
+            jnp.broadcast_to(rank[:, None], extra.shape), mode="drop")
 
-    lock = _walk(parent, p, lca, has, claim, lock, cap)
-    lock = _walk(parent, jnp.maximum(out, 0), lca, has, claim, lock, cap)
+        def mark(lock, nodes, live):
+            return lock.at[jnp.where(live, nodes, cap)].min(rank, mode="drop")
 
-    def check(ok, nodes, live):
-        return ok & (~live | (_take(lock, nodes) == rank))
+        lock = _walk(parent, m.p, m.lca, lanes, mark, lock, cap)
+        return _walk(parent, m.out, m.lca, lanes, mark, lock, cap)
 
-    ok = has & jnp.all((extra < 0) | (_take(lock, extra) == rank[:, None]), axis=1)
-    ok = _walk(parent, p, lca, has, check, ok, cap)
-    ok = _walk(parent, jnp.maximum(out, 0), lca, has, check, ok, cap)
-    return ok
+    def every(lanes, test):
+        """Whether ``test(nodes, ranks)`` holds on every node each lane locks."""
+        ok = lanes & jnp.all((extra < 0) | test(extra, rank[:, None]), axis=1)
+
+        def check(ok, nodes, live):
+            return ok & (~live | test(nodes, rank))
+
+        ok = _walk(parent, m.p, m.lca, lanes, check, ok, cap)
+        return _walk(parent, m.out, m.lca, lanes, check, ok, cap)
+
+    def cond(c):
+        return jnp.any(c[0]) & (c[3] <= width)
+
+    def body(c):
+        alive, taken, held, i = c
+        lock = claim(alive)
+        free = every(alive, lambda n, r: _take(held, n) == none)
+        win = every(alive & free, lambda n, r: _take(lock, n) == r)
+        held = jnp.minimum(held, claim(win))
+        return alive & free & ~win, taken | win, held, i + 1
+
+    _, taken, _, _ = jax.lax.while_loop(
+        cond, body, (has, jnp.zeros(width, bool), jnp.full(cap, none, jnp.int32), jnp.int32(0)))
+    return taken
 
 
-def _apply(st: _State, taken, out, lca, scale):
+def _apply(st: _State, m: _Moves, taken, scale):
     """Apply the taken moves at once, then refit their changed paths (module docstring)."""
     cap = st.child.shape[0]
     child, parent = st.child, st.parent
-    a = jnp.arange(cap, dtype=jnp.int32)
-    p = jnp.where(taken, parent, 0)
-    s = _sibling(child, parent, a)
-    g = _take(parent, p)
-    y = jnp.maximum(out, 0)
-    up = _take(parent, y)
+    a, p, s, g, y, up, lca = m.a, m.p, m.s, m.g, m.out, m.up, m.lca
     side_s = jnp.where(_take(child, p)[:, 0] == a, 1, 0)
     side_p = jnp.where(_take(child, g)[:, 0] == p, 0, 1)
     side_y = jnp.where(_take(child, up)[:, 0] == y, 0, 1)
@@ -454,23 +588,52 @@ def _prepare(tree):
     return _State(child, tree.parent.astype(jnp.int32), lo, hi, root, _areas(lo, hi, scale))
 
 
-@jax.jit
-def _iteration(st: _State, prim_count, ct, ci, max_steps, min_gain):
-    """One iteration: ``(state, moves taken, total gain, SAH after)``."""
+def move_width(capacity: int) -> int:
+    """Moves considered per iteration: a static size from the capacity."""
+    return int(min(capacity, max(4096, capacity // 32)))
+
+
+#: ``octaves`` at and above this: every node is a candidate (the threshold is 0)
+ALL_OCTAVES = 4096
+
+
+def _candidates(st: _State, octaves):
+    """Real non-root nodes whose parent's area is at least ``2^-octaves`` of the root's,
+    in id order: ``(ids [N] (-1 past count), count)``."""
+    cap = st.child.shape[0]
+    valid = st.parent >= 0
+    area_p = _take(st.area, st.parent)
+    threshold = jnp.ldexp(st.area[st.root], -jnp.minimum(octaves, ALL_OCTAVES))
+    pick = valid & ((area_p >= threshold) | (octaves >= ALL_OCTAVES))
+    at = jnp.where(pick, jnp.cumsum(pick.astype(jnp.int32)) - 1, cap)
+    ids = jnp.full(cap, -1, jnp.int32).at[at].set(jnp.arange(cap, dtype=jnp.int32), mode="drop")
+    return ids, jnp.sum(pick, dtype=jnp.int32)
+
+
+def _find(st: _State, octaves, max_steps, min_gain):
+    """Search and select: ``(moves, taken, gain of each lane, candidates searched)``."""
     scale = _scale_of(st)
-    gain, out, lca = _search(st, scale, max_steps, min_gain)
-    taken = _select(st, gain, out, lca)
-    new = _apply(st, taken, out, lca, scale)
+    candidates, count = _candidates(st, octaves)
+    gain, out, lca = _search(st, candidates, count, scale, max_steps, min_gain)
+    a = _best(gain, out, move_width(st.child.shape[0]))
+    m = _moves(st, a, out, lca)
+    return m, _select(st, m), jnp.where(a >= 0, _take(gain, a), 0), count
+
+
+@jax.jit
+def _iteration(st: _State, prim_count, ct, ci, octaves, max_steps, min_gain):
+    """One iteration: ``(state, moves taken, total gain, SAH after, candidates, nodes)``."""
+    m, taken, gain, count = _find(st, octaves, max_steps, min_gain)
+    new = _apply(st, m, taken, _scale_of(st))
     moves = jnp.sum(taken, dtype=jnp.int32)
-    return new, moves, jnp.sum(jnp.where(taken, gain, 0)), _interior_sah(new, prim_count, ct, ci)
+    return (new, moves, jnp.sum(jnp.where(taken, gain, 0)), _interior_sah(new, prim_count, ct, ci),
+            count, jnp.sum(st.parent >= 0, dtype=jnp.int32))
 
 
 @jax.jit
-def _moves_of(st: _State, max_steps, min_gain):
-    """The search and the selection of one iteration (for tests): ``(gain, out, lca, taken)``."""
-    scale = _scale_of(st)
-    gain, out, lca = _search(st, scale, max_steps, min_gain)
-    return gain, out, lca, _select(st, gain, out, lca)
+def _moves_of(st: _State, octaves, max_steps, min_gain):
+    """Search and selection of one iteration (for tests): ``(moves, taken, gains, count)``."""
+    return _find(st, octaves, max_steps, min_gain)
 
 
 @jax.jit
@@ -484,22 +647,42 @@ def _check_tree(tree):
         raise ValueError(f"tree must be a binary jaxbvh.BVH, got {type(tree).__name__}")
 
 
+def first_octaves(area, parent, root, first_fraction: float) -> int:
+    """The fewest octaves of parent area (below the root's) that hold ``first_fraction``
+    of the candidates (host; :data:`ALL_OCTAVES` for all of them)."""
+    if first_fraction >= 1:
+        return ALL_OCTAVES
+    area, parent = np.asarray(area), np.asarray(parent)
+    area_p = area[parent[parent >= 0]]
+    root_area = float(area[int(root)])
+    if root_area <= 0 or area_p.size == 0:
+        return ALL_OCTAVES
+    need = int(np.ceil(first_fraction * area_p.size))
+    for octaves in range(0, 64):
+        if int(np.sum(area_p >= np.ldexp(area.dtype.type(root_area), -octaves))) >= need:
+            return octaves
+    return ALL_OCTAVES
+
+
 def reinsert(tree, *, ct: float = 1.0, ci: float = 1.0,
              max_iterations: int = DEFAULT_MAX_ITERATIONS, max_steps: int = DEFAULT_MAX_STEPS,
-             min_gain: float | None = None, split_axes: bool = True,
-             on_iteration: Callable | None = None,
+             first_fraction: float = DEFAULT_FIRST_FRACTION, min_gain: float | None = None,
+             split_axes: bool = True, on_iteration: Callable | None = None,
              time_budget: float | None = None) -> ReinsertResult:
-    """Parallel reinsertion until an iteration takes no move (module docstring).
+    """Parallel reinsertion until an iteration over all nodes takes no move (module docstring).
 
     ``tree``: a :class:`~jaxbvh.tree.BVH` (NumPy or JAX arrays, any capacity; leaves of
     any size). ``max_iterations``: most iterations. ``max_steps``: the search bound, in
-    steps per node and iteration. ``min_gain``: relative margin (module docstring).
-    ``split_axes``: run :func:`jaxbvh.rotate.assign_split_axes` at the end.
-    ``on_iteration(i, sah, moves)``: called on the host after every iteration (progress).
-    ``time_budget``: seconds after which to stop (at the end of an iteration) with the
-    tree so far (the best so far: every iteration lowers the SAH); the clock starts after
-    the first iteration, which also compiles. Returns a :class:`ReinsertResult` whose
-    tree has the input's capacity.
+    steps per node and iteration. ``first_fraction``: about the share of nodes searched
+    at first, those of largest parent area (whole octaves of parent area below the
+    root's, :func:`first_octaves`); after every iteration that takes no move one more
+    octave is searched, until all nodes are. ``min_gain``: relative margin (module
+    docstring). ``split_axes``: run :func:`jaxbvh.rotate.assign_split_axes` at the end.
+    ``on_iteration(i, sah, moves)``: called on the host after every iteration
+    (progress). ``time_budget``: seconds after which to stop (at the end of an
+    iteration) with the tree so far (the best so far: every iteration lowers the SAH);
+    the clock starts after the first iteration, which also compiles. Returns a
+    :class:`ReinsertResult` whose tree has the input's capacity.
     """
     from jaxbvh.cost import sah as sah_of
     from jaxbvh.rotate import assign_split_axes
@@ -509,6 +692,8 @@ def reinsert(tree, *, ct: float = 1.0, ci: float = 1.0,
         raise ValueError(f"max_iterations must be >= 0, got {max_iterations}")
     if max_steps < 1:
         raise ValueError(f"max_steps must be >= 1, got {max_steps}")
+    if not 0 < first_fraction <= 1:
+        raise ValueError(f"first_fraction must be in (0, 1], got {first_fraction}")
     if not ct >= 0 or not ci >= 0:
         raise ValueError(f"ct and ci must be >= 0, got ct={ct}, ci={ci}")
     if time_budget is not None and not time_budget > 0:
@@ -522,18 +707,22 @@ def reinsert(tree, *, ct: float = 1.0, ci: float = 1.0,
         raise ValueError(f"min_gain must be >= 0, got {min_gain}")
     sah_start = sah_of(tree, ct, ci)
     st = _prepare(tree)
+    octaves = first_octaves(*jax.device_get((st.area, st.parent, st.root)), first_fraction)
     history, moves, deadline = [], 0, None
-    args = (jnp.asarray(ct, dtype), jnp.asarray(ci, dtype), jnp.int32(max_steps),
-            jnp.asarray(min_gain, dtype))
+    ct_, ci_, steps_, mg_ = (jnp.asarray(ct, dtype), jnp.asarray(ci, dtype), jnp.int32(max_steps),
+                             jnp.asarray(min_gain, dtype))
     for i in range(max_iterations if ct > 0 else 0):
-        st, taken, _, sah = _iteration(st, tree.prim_count, *args)
-        taken, sah = int(taken), float(sah)
+        st, taken, _, sah, count, nodes = _iteration(st, tree.prim_count, ct_, ci_,
+                                                     jnp.int32(octaves), steps_, mg_)
+        taken, sah, count, nodes = int(taken), float(sah), int(count), int(nodes)
         history.append(sah)
         moves += taken
         if on_iteration is not None:
             on_iteration(i, sah, taken)
         if taken == 0:
-            break
+            if count == nodes:
+                break
+            octaves = octaves + 1 if octaves < 64 else ALL_OCTAVES
         if time_budget is not None:
             if deadline is None:
                 deadline = time.perf_counter() + time_budget

@@ -1,12 +1,14 @@
 """NumPy twin of :mod:`jaxbvh.reinsert`, written the slow, literal way.
 
-One candidate at a time: the same bounded search (Meister & Bittner's traversal from
-the candidate's sibling up to the root, the same pruning bound, the same step count and
-the same margins), the same conflict rule (moves ranked by gain, ties by id; a move is
-taken when it ranks first on every node it locks) and then the taken moves applied one
-after the other in rank order, each followed by a refit of the two paths it changed up
-to the root (the JAX version refits the same nodes all at once, stopping below the
-common ancestor, whose box cannot change). Layout, cost and rules: :mod:`jaxbvh.reinsert`.
+One candidate at a time: the same candidates (nodes of large parent area, by octaves),
+the same bounded search (Meister & Bittner's traversal from the candidate's sibling up to
+the root, the same pruning bound, the same step count and the same margins), the same
+choice of moves (the first ``move_width`` found in id order, ranked by gain with ties
+by id, then taken greedily in rank order when they lock no node a better taken move
+locks) and then the taken moves applied one after the other in rank order, each
+followed by a refit of the two paths it changed up to the root (the JAX version refits
+the same nodes all at once, stopping below the common ancestor, whose box cannot
+change). Layout, cost and rules: :mod:`jaxbvh.reinsert`.
 """
 
 from __future__ import annotations
@@ -191,14 +193,12 @@ def lock_set(t: Tree, a: int, out: int, lca: int) -> set[int]:
     return nodes
 
 
-RANK_BITS = 8
-
-
 def rank_key(gain) -> int:
-    """The gain's bit pattern as an integer without its last ``RANK_BITS`` bits: gains
-    that differ only by rounding (mirror-image moves) tie."""
+    """The gain's exponent and first 7 mantissa bits as an integer (about 1%): closer
+    gains tie (:func:`jaxbvh.reinsert.rank_key`)."""
     gain = np.asarray(gain)
-    return int(gain.view(np.int32 if gain.dtype == np.float32 else np.int64)) >> RANK_BITS
+    f32 = gain.dtype == np.float32
+    return int(gain.view(np.int32 if f32 else np.int64)) >> ((23 if f32 else 52) - 7)
 
 
 def rank_order(candidates):
@@ -208,14 +208,15 @@ def rank_order(candidates):
 
 
 def select(t: Tree, candidates):
-    """The moves that rank first on every node they lock, best first."""
-    ranked = rank_order(candidates)
-    owner = {}
-    for r, (_, a, out, lca) in enumerate(ranked):
-        for n in lock_set(t, a, out, lca):
-            owner.setdefault(n, r)  # ranked best first: the first claim is the best
-    return [m for r, m in enumerate(ranked)
-            if all(owner[n] == r for n in lock_set(t, m[1], m[2], m[3]))]
+    """The greedy choice: moves in rank order, each taken when it locks no node that a
+    move taken before it locks. Returns the taken moves, best first."""
+    held, taken = set(), []
+    for move in rank_order(candidates):
+        nodes = lock_set(t, move[1], move[2], move[3])
+        if held.isdisjoint(nodes):
+            held |= nodes
+            taken.append(move)
+    return taken
 
 
 def apply_move(t: Tree, a: int, out: int):
@@ -254,53 +255,72 @@ def apply_move(t: Tree, a: int, out: int):
 # ----------------------------------------------------------------------------------
 
 
-def candidates(t: Tree, max_steps: int, min_gain: float):
-    """Search every real node but the root, in id order: ``[(gain, a, out, lca), ...]``
-    for those that found a place, and the steps each search took (dict)."""
-    found, steps = [], {}
-    for a in range(t.child.shape[0]):
-        if a == t.root or t.parent[a] < 0:
-            continue
-        gain, out, lca, k = search(t, a, max_steps, min_gain)
-        steps[a] = k
+def candidates(t: Tree, octaves: int):
+    """Real nodes but the root whose parent's area is at least ``2^-octaves`` of the
+    root's (every one from ``ALL_OCTAVES`` on), in id order."""
+    from jaxbvh.reinsert import ALL_OCTAVES
+
+    threshold = np.ldexp(t.area(t.root), -min(octaves, ALL_OCTAVES))
+    return [a for a in range(t.child.shape[0])
+            if a != t.root and t.parent[a] >= 0
+            and (octaves >= ALL_OCTAVES or t.area(int(t.parent[a])) >= threshold)]
+
+
+def found_moves(t: Tree, nodes, max_steps: int, min_gain: float, width: int):
+    """Search ``nodes``; the moves found ``[(gain, a, out, lca), ...]``, the first
+    ``width`` in id order."""
+    found = []
+    for a in nodes:
+        gain, out, lca, _ = search(t, a, max_steps, min_gain)
         if out >= 0:
             found.append((gain, a, out, lca))
-    return found, steps
+    return sorted(found, key=lambda m: m[1])[:width]
 
 
-def iteration(t: Tree, max_steps: int, min_gain: float):
-    """One parallel iteration done sequentially: search all, select, apply in rank order.
+def iteration(t: Tree, octaves: int, max_steps: int, min_gain: float, width: int):
+    """One parallel iteration done sequentially: search, select, apply in rank order.
 
-    Returns the applied moves ``[(gain, a, out, lca), ...]`` best first.
+    Returns the applied moves ``[(gain, a, out, lca), ...]`` best first and the number
+    of candidates searched.
     """
-    found, _ = candidates(t, max_steps, min_gain)
-    taken = select(t, found)
+    nodes = candidates(t, octaves)
+    taken = select(t, found_moves(t, nodes, max_steps, min_gain, width))
     for _, a, out, _ in taken:
         apply_move(t, a, out)
-    return taken
+    return taken, len(nodes)
 
 
 def default_min_gain(dtype) -> float:
     return float(64 * np.finfo(np.dtype(dtype)).eps)
 
 
-def reinsert(tree, *, ct=1.0, ci=1.0, max_iterations=100, max_steps=1024, min_gain=None):
+def reinsert(tree, *, ct=1.0, ci=1.0, max_iterations=1000, max_steps=1024, first_fraction=1.0,
+             min_gain=None):
     """Parallel reinsertion, one move at a time; returns ``(tree, info)``.
 
-    ``info``: ``iterations`` run, ``moves`` (total), ``history`` (SAH after each
-    iteration), ``taken`` (the moves of each iteration, best first), ``sah``. Stops after
-    an iteration that takes no move, or after ``max_iterations``. ``ct`` only scales the
-    gains (all moves keep the leaves), so it does not change the moves.
+    The schedule of :func:`jaxbvh.reinsert.reinsert`: candidates from the octaves
+    :func:`jaxbvh.reinsert.first_octaves` gives, one more octave after an iteration that
+    takes no move, until an iteration over all nodes takes none (or ``max_iterations``).
+    ``info``: ``iterations``, ``moves`` (total), ``history`` (SAH after each iteration),
+    ``taken`` (the moves of each iteration, best first), ``sah``.
     """
+    from jaxbvh.reinsert import ALL_OCTAVES, first_octaves, move_width
+
     t = Tree(tree)
     min_gain = default_min_gain(t.lo.dtype) if min_gain is None else min_gain
+    width = move_width(t.child.shape[0])
+    area = np.array([t.area(n) for n in range(t.child.shape[0])], t.lo.dtype)
+    octaves = first_octaves(area, t.parent, t.root, first_fraction)
+    nodes = sum(1 for a in range(t.child.shape[0]) if t.parent[a] >= 0)
     history, taken_all = [], []
-    for _ in range(max_iterations):
-        taken = iteration(t, max_steps, min_gain)
+    for _ in range(max_iterations if ct > 0 else 0):
+        taken, count = iteration(t, octaves, max_steps, min_gain, width)
         taken_all.append(taken)
         history.append(t.sah(ct, ci))
         if not taken:
-            break
+            if count == nodes:
+                break
+            octaves = octaves + 1 if octaves < 64 else ALL_OCTAVES
     return t.to_bvh(), {"iterations": len(taken_all), "moves": sum(map(len, taken_all)),
                         "history": history, "taken": taken_all, "sah": t.sah(ct, ci)}
 
