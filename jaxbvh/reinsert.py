@@ -95,6 +95,7 @@ from jaxbvh.tree import BVH, to_jax
 DEFAULT_MAX_STEPS = 1024       # search steps per node and iteration (legocar needs < 200)
 DEFAULT_MAX_ITERATIONS = 1000
 DEFAULT_FIRST_FRACTION = 1.0
+DEFAULT_ESCALATE = 1e-4
 
 
 @jax.tree_util.register_dataclass
@@ -666,8 +667,9 @@ def first_octaves(area, parent, root, first_fraction: float) -> int:
 
 def reinsert(tree, *, ct: float = 1.0, ci: float = 1.0,
              max_iterations: int = DEFAULT_MAX_ITERATIONS, max_steps: int = DEFAULT_MAX_STEPS,
-             first_fraction: float = DEFAULT_FIRST_FRACTION, min_gain: float | None = None,
-             split_axes: bool = True, on_iteration: Callable | None = None,
+             first_fraction: float = DEFAULT_FIRST_FRACTION, escalate: float = DEFAULT_ESCALATE,
+             min_gain: float | None = None, split_axes: bool = True,
+             on_iteration: Callable | None = None,
              time_budget: float | None = None) -> ReinsertResult:
     """Parallel reinsertion until an iteration over all nodes takes no move (module docstring).
 
@@ -675,8 +677,9 @@ def reinsert(tree, *, ct: float = 1.0, ci: float = 1.0,
     any size). ``max_iterations``: most iterations. ``max_steps``: the search bound, in
     steps per node and iteration. ``first_fraction``: about the share of nodes searched
     at first, those of largest parent area (whole octaves of parent area below the
-    root's, :func:`first_octaves`); after every iteration that takes no move one more
-    octave is searched, until all nodes are. ``min_gain``: relative margin (module
+    root's, :func:`first_octaves`); after an iteration that lowers the SAH by at most
+    ``escalate`` (relative) one more octave is searched, after one that takes no move
+    four more, until all nodes are (from 64 octaves on: all nodes). ``min_gain``: relative margin (module
     docstring). ``split_axes``: run :func:`jaxbvh.rotate.assign_split_axes` at the end.
     ``on_iteration(i, sah, moves)``: called on the host after every iteration
     (progress). ``time_budget``: seconds after which to stop (at the end of an
@@ -719,10 +722,11 @@ def reinsert(tree, *, ct: float = 1.0, ci: float = 1.0,
         moves += taken
         if on_iteration is not None:
             on_iteration(i, sah, taken)
-        if taken == 0:
-            if count == nodes:
-                break
-            octaves = octaves + 1 if octaves < 64 else ALL_OCTAVES
+        before = history[-2] if len(history) > 1 else float(sah_start)
+        if taken == 0 and count == nodes:
+            break
+        if count < nodes and (taken == 0 or before - sah <= escalate * before):
+            octaves = octaves + (1 if taken else 4) if octaves < 64 else ALL_OCTAVES
         if time_budget is not None:
             if deadline is None:
                 deadline = time.perf_counter() + time_budget

@@ -137,8 +137,8 @@ def _form(st: _State, root, n, min_gain):
     kids = _take(st.child, root)
     leaves = jnp.full(n, -1, jnp.int32).at[0].set(kids[0]).at[1].set(kids[1])
     inner = jnp.full(n - 1, -1, jnp.int32).at[0].set(root)
-    k = jnp.int32(2)
-    for _ in range(n - 2):
+    def grow_one(_, carry):
+        leaves, inner, k = carry
         present = leaves >= 0
         expandable = present & (_take(st.child, leaves)[:, 0] >= 0)
         areas = jnp.where(expandable, _take(st.area, leaves), -jnp.inf)
@@ -149,7 +149,9 @@ def _form(st: _State, root, n, min_gain):
         xk = _take(st.child, x)
         leaves = jnp.where(grow, leaves.at[j].set(xk[0]).at[k].set(xk[1], mode="drop"), leaves)
         inner = jnp.where(grow, inner.at[k - 1].set(x, mode="drop"), inner)
-        k = k + grow.astype(jnp.int32)
+        return leaves, inner, k + grow.astype(jnp.int32)
+
+    leaves, inner, k = jax.lax.fori_loop(0, n - 2, grow_one, (leaves, inner, jnp.int32(2)))
     return leaves, inner, k
 
 
@@ -184,10 +186,8 @@ def _solve(st: _State, root, scale, ct, min_gain, n):
     # rebuild breadth first: queue position i holds the set of interior node inner[i]
     popcount = jnp.asarray(popcount)
     single = jnp.asarray(single)
-    queue = jnp.zeros(n - 1, jnp.int32).at[0].set(full)
-    nxt = jnp.int32(1)
-    rows = []
-    for i in range(n - 1):
+    def place(i, carry):
+        queue, nxt, new_child = carry
         active = i < k - 1
         s = queue[i]
         p = part[s]
@@ -198,8 +198,12 @@ def _solve(st: _State, root, scale, ct, min_gain, n):
             push = active & ~one
             queue = jnp.where(push, queue.at[jnp.minimum(nxt, n - 2)].set(m), queue)
             nxt = nxt + push.astype(jnp.int32)
-        rows.append((jnp.stack(ids), set_lo[s], set_hi[s], cost[s], set_area[s]))
-    new = tuple(jnp.stack([r[f] for r in rows]) for f in range(5))   # child [n-1, 2], ...
+        return queue, nxt, new_child.at[i].set(jnp.stack(ids))
+
+    queue, _, new_child = jax.lax.fori_loop(
+        0, n - 1, place, (jnp.zeros(n - 1, jnp.int32).at[0].set(full), jnp.int32(1),
+                          jnp.zeros((n - 1, 2), jnp.int32)))
+    new = (new_child, set_lo[queue], set_hi[queue], cost[queue], set_area[queue])
     return change, inner, k, new, current
 
 

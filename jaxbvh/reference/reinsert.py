@@ -295,12 +295,13 @@ def default_min_gain(dtype) -> float:
 
 
 def reinsert(tree, *, ct=1.0, ci=1.0, max_iterations=1000, max_steps=1024, first_fraction=1.0,
-             min_gain=None):
+             escalate=1e-4, min_gain=None):
     """Parallel reinsertion, one move at a time; returns ``(tree, info)``.
 
     The schedule of :func:`jaxbvh.reinsert.reinsert`: candidates from the octaves
     :func:`jaxbvh.reinsert.first_octaves` gives, one more octave after an iteration that
-    takes no move, until an iteration over all nodes takes none (or ``max_iterations``).
+    lowers the SAH by at most ``escalate`` (relative), four more after one that takes no
+    move, until an iteration over all nodes takes none (or ``max_iterations``).
     ``info``: ``iterations``, ``moves`` (total), ``history`` (SAH after each iteration),
     ``taken`` (the moves of each iteration, best first), ``sah``.
     """
@@ -313,14 +314,16 @@ def reinsert(tree, *, ct=1.0, ci=1.0, max_iterations=1000, max_steps=1024, first
     octaves = first_octaves(area, t.parent, t.root, first_fraction)
     nodes = sum(1 for a in range(t.child.shape[0]) if t.parent[a] >= 0)
     history, taken_all = [], []
+    start = t.sah(ct, ci)
     for _ in range(max_iterations if ct > 0 else 0):
         taken, count = iteration(t, octaves, max_steps, min_gain, width)
         taken_all.append(taken)
         history.append(t.sah(ct, ci))
-        if not taken:
-            if count == nodes:
-                break
-            octaves = octaves + 1 if octaves < 64 else ALL_OCTAVES
+        before = history[-2] if len(history) > 1 else start
+        if not taken and count == nodes:
+            break
+        if count < nodes and (not taken or before - history[-1] <= escalate * before):
+            octaves = octaves + (1 if taken else 4) if octaves < 64 else ALL_OCTAVES
     return t.to_bvh(), {"iterations": len(taken_all), "moves": sum(map(len, taken_all)),
                         "history": history, "taken": taken_all, "sah": t.sah(ct, ci)}
 
