@@ -94,7 +94,7 @@ from jaxbvh.tree import BVH, to_jax
 
 DEFAULT_MAX_STEPS = 1024       # search steps per node and iteration (legocar needs < 200)
 DEFAULT_MAX_ITERATIONS = 1000
-DEFAULT_FIRST_FRACTION = 1.0
+DEFAULT_FIRST_FRACTION = 1 / 32
 DEFAULT_ESCALATE = 1e-4
 
 
