@@ -294,11 +294,11 @@ def default_min_gain(dtype) -> float:
     return float(64 * np.finfo(np.dtype(dtype)).eps)
 
 
-def reinsert(tree, *, ct=1.0, ci=1.0, max_iterations=1000, max_steps=1024, first_fraction=1.0,
-             escalate=1e-4, min_gain=None):
+def reinsert(tree, *, ct=1.0, ci=1.0, max_iterations=1000, max_steps=1024,
+             first_fraction=1 / 32, escalate=1e-4, min_gain=None):
     """Parallel reinsertion, one move at a time; returns ``(tree, info)``.
 
-    The schedule of :func:`jaxbvh.reinsert.reinsert`: candidates from the octaves
+    The schedule and defaults of :func:`jaxbvh.reinsert.reinsert`: candidates from the octaves
     :func:`jaxbvh.reinsert.first_octaves` gives, one more octave after an iteration that
     lowers the SAH by at most ``escalate`` (relative), four more after one that takes no
     move, until an iteration over all nodes takes none (or ``max_iterations``).
