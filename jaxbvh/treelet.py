@@ -60,7 +60,7 @@ from jaxbvh.tree import BVH, to_jax
 DEFAULT_LEAVES = 7
 MAX_LEAVES = 10        # 2^n subsets and 3^n splits: beyond this the DP is too large
 DEFAULT_MAX_PASSES = 8
-DEFAULT_WINDOWS = (256, 16)  # treelets solved at once (speed only, never the result)
+DEFAULT_WINDOWS = (256,)  # treelets solved at once (speed only; each size is one more compiled copy)
 
 
 @jax.tree_util.register_dataclass
