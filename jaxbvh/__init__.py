@@ -13,7 +13,8 @@ from jaxbvh.build import BUILDERS, build
 __version__ = "0.1.0"
 
 _LAZY = {"load_mesh": ("jaxbvh.io", "load_mesh"), "io": ("jaxbvh.io", None), "rays": ("jaxbvh.rays", None),
-         "rotate": ("jaxbvh.rotate", None)}
+         "rotate": ("jaxbvh.rotate", None), "reinsert": ("jaxbvh.reinsert", None),
+         "treelet": ("jaxbvh.treelet", None), "optimize": ("jaxbvh.optimize", None)}
 
 
 def __getattr__(name):

@@ -50,23 +50,38 @@ up), when the best place found so far is kept: the search is bounded.
 
 One iteration
 =============
-1. Every real node but the root searches at once: the traversal is vectorised over
-   all nodes as lanes of one ``while_loop``, one step per lane per loop step.
-2. Conflicts: a move *locks* ``a``, ``s``, the paths from ``p`` and from ``out`` up to
+1. Candidates: the real nodes but the root whose parent's area is at least ``2^-k`` of
+   the root's (``k`` octaves; the removal of a large parent is the first term of the
+   gain, and on our inputs the top few percent of nodes by parent area hold nearly all
+   of the first iterations' gain). ``k`` starts where about ``first_fraction`` of the
+   nodes are candidates and grows by one octave after an iteration that lowers the SAH
+   by at most ``escalate`` (relative), by four after one that takes no move, until all
+   nodes are candidates (coarse to fine; ``first_fraction = 1``: Meister & Bittner's
+   every node, every iteration).
+2. Search: the candidates' walks run vectorised in :func:`search_width` lanes of one
+   ``while_loop`` (a work queue: every :data:`REFILL_STEPS` steps, lanes whose walk
+   ended hand in their result and take the next candidate), over node data packed by
+   rows, so the work follows the steps the walks take.
+3. Conflicts: a move *locks* ``a``, ``s``, the paths from ``p`` and from ``out`` up to
    their common ancestor (both ends included) and the parents of ``p`` and ``out``
-   (their child links change). Moves are ranked by gain (descending), ties by the id
-   of ``a`` (smaller first); a move is taken when it ranks first on every node it locks
-   (a scatter-min of ranks, then a check). Taken moves lock disjoint node sets, which
-   makes them independent: the boxes each one reads are changed by none of the others,
-   so each gains exactly what its search found and the order of applying them does not
-   matter.
-3. All taken moves are applied at once (scatters), then the boxes on each move's two
+   (their child links change). The moves found (the first :func:`move_width` in id
+   order) are ranked by gain, descending (:func:`rank_key`: gains within about 1% tie),
+   ties by the id of ``a`` (smaller first), and taken greedily in rank order: a move is
+   taken when it locks no node that a better taken move locks. On the device this runs
+   in rounds: every remaining move that ranks first on all the nodes it locks is taken
+   (a scatter-min of ranks, then a check), moves touching a taken move's nodes drop
+   out, repeat, which gives exactly the greedy choice. Taken moves lock disjoint node
+   sets, which makes them independent: the boxes each one reads are changed by none of
+   the others, so each gains exactly what its search found, the SAH drops by their sum,
+   and the order of applying them does not matter.
+4. All taken moves are applied at once (scatters), then the boxes on each move's two
    changed paths are refitted bottom-up, all moves in lockstep, stopping below the
    common ancestor (whose box cannot change).
 
-Iterations repeat until one takes no move, ``max_iterations``, or ``time_budget``.
-The NumPy twin (:mod:`jaxbvh.reference.reinsert`) searches one node at a time with the
-same steps and applies the taken moves one by one, in rank order.
+Iterations repeat until one over all nodes takes no move, ``max_iterations``, or
+``time_budget``; every iteration lowers the SAH, so the last tree is the best. The NumPy
+twin (:mod:`jaxbvh.reference.reinsert`) searches one candidate at a time with the same
+steps, takes the moves greedily and applies them one by one, in rank order.
 
 Exactness
 =========
@@ -82,7 +97,6 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from functools import partial
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -90,6 +104,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh.cost import extent_scale, half_area
+from jaxbvh.refit import refit_boxes
 from jaxbvh.tree import BVH, to_jax
 
 DEFAULT_MAX_STEPS = 1024       # search steps per node and iteration (legocar needs < 200)
@@ -174,34 +189,6 @@ def _sibling(child, parent, n):
     up = _take(parent, n)
     kids = _take(child, up)
     return jnp.where(kids[..., 0] == n, kids[..., 1], kids[..., 0])
-
-
-def _refit(child, lo, hi):
-    """Every interior box set to the union of its children's (bottom-up sweeps).
-
-    A sweep sets every interior box from its children's; it stops when nothing changes
-    (height + 1 sweeps), at most ``N + 1`` sweeps.
-    """
-    cap = child.shape[0]
-    interior = child[:, 0] >= 0
-    left, right = child[:, 0], child[:, 1]
-
-    def sweep(lo, hi):
-        new_lo = jnp.where(interior[:, None], jnp.minimum(_take(lo, left), _take(lo, right)), lo)
-        new_hi = jnp.where(interior[:, None], jnp.maximum(_take(hi, left), _take(hi, right)), hi)
-        return new_lo, new_hi
-
-    def cond(c):
-        return c[2] & (c[3] <= cap)
-
-    def body(c):
-        lo, hi, _, i = c
-        new_lo, new_hi = sweep(lo, hi)
-        changed = jnp.any(new_lo != lo) | jnp.any(new_hi != hi)
-        return new_lo, new_hi, changed, i + 1
-
-    lo, hi, _, _ = jax.lax.while_loop(cond, body, (lo, hi, jnp.bool_(True), jnp.int32(0)))
-    return lo, hi
 
 
 def _areas(lo, hi, scale):
@@ -583,7 +570,7 @@ def _scale_of(st: _State):
 @jax.jit
 def _prepare(tree):
     child = jnp.stack([tree.left, tree.right], axis=1).astype(jnp.int32)
-    lo, hi = _refit(child, tree.lo, tree.hi)
+    lo, hi = refit_boxes(child, tree.lo, tree.hi)
     root = jnp.asarray(tree.root, jnp.int32)
     scale = extent_scale(lo[root], hi[root])
     return _State(child, tree.parent.astype(jnp.int32), lo, hi, root, _areas(lo, hi, scale))

@@ -55,6 +55,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh.cost import extent_scale, half_area
+from jaxbvh.refit import refit_boxes
 from jaxbvh.tree import BVH, to_jax
 
 DEFAULT_LEAVES = 7
@@ -314,10 +315,8 @@ def _pass(st: _State, scale, ct, min_gain, *, n, windows):
 
 @jax.jit
 def _prepare(tree, ct, ci):
-    from jaxbvh.reinsert import _refit
-
     child = jnp.stack([tree.left, tree.right], axis=1).astype(jnp.int32)
-    lo, hi = _refit(child, tree.lo, tree.hi)
+    lo, hi = refit_boxes(child, tree.lo, tree.hi)
     scale = extent_scale(lo[tree.root], hi[tree.root])
     area = half_area(lo, hi, scale)
     cost = _costs(child, area, tree.prim_count, ct, ci)
