@@ -2,6 +2,7 @@
 
     python bench/bench_optimize.py                  # tinybvh trees + our builds, all methods
     python bench/bench_optimize.py --trees legocar --no-builds --methods reinsert pipeline
+    python bench/bench_optimize.py --methods pipeline --merge   # redo one method, keep the rest
     python bench/bench_optimize.py --big            # the 1.05M-triangle input of bench_rotate.py:
                                                     # annealing, then the others in a tenth of its time
 
@@ -247,6 +248,8 @@ def main(argv=None):
     parser.add_argument("--methods", nargs="*", default=list(METHODS), choices=METHODS)
     parser.add_argument("--sa-steps", type=int, default=1250)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--merge", action="store_true",
+                        help="keep the rows of optimize.json this run does not redo")
     parser.add_argument("--big", action="store_true")
     parser.add_argument("--big-copies", type=int, default=15)
     parser.add_argument("--big-walls", type=int, default=4000)
@@ -258,6 +261,12 @@ def main(argv=None):
         print((RESULTS / "optimize_big.md").read_text())
         return
     rows = run(args)
+    if args.merge and (RESULTS / "optimize.json").exists():
+        new = {(r["input"], r["method"]) for r in rows}
+        old = json.loads((RESULTS / "optimize.json").read_text())["rows"]
+        rows = [r for r in old if (r["input"], r["method"]) not in new] + rows
+        order = list(dict.fromkeys(r["input"] for r in old + rows))
+        rows.sort(key=lambda r: (order.index(r["input"]), METHODS.index(r["method"])))
     write(rows, args)
     print((RESULTS / "optimize.md").read_text())
 

@@ -7,7 +7,9 @@ Methods (:data:`METHODS`):
 * ``"reinsert"`` — parallel reinsertion (Meister & Bittner 2018, :mod:`jaxbvh.reinsert`);
 * ``"treelet"`` — treelet restructuring (Karras & Aila 2013, :mod:`jaxbvh.treelet`);
 * ``"pipeline"`` — rounds of treelet restructuring (:data:`PIPELINE_TREELET_PASSES`
-  passes) followed by reinsertion, until a round lowers the SAH by less than
+  passes) followed by reinsertion (from the largest parent areas in the first round, from
+  every node in later ones, where the gains left are spread thin), until a round lowers
+  the SAH by less than
   ``round_gain`` (relative, default :data:`PIPELINE_ROUND_GAIN`) or after
   :data:`PIPELINE_MAX_ROUNDS` rounds. The two move sets are complementary: reinsertion
   moves whole subtrees anywhere in the tree, treelets rearrange up to 7 neighbouring
@@ -142,7 +144,9 @@ def optimize(tree, method: str = "pipeline", *, key=None, ct: float = 1.0, ci: f
                   "reinsert": dict(options.get("reinsert", {}))}
         steps = moves = 0
         sah = sah_start
-        for _ in range(max_rounds):
+        for round_ in range(max_rounds):
+            if round_ == 1:  # the big moves are made: search every node from the start
+                stages["reinsert"] = {**stages["reinsert"], "first_fraction": 1.0}
             before = sah
             for stage in ("treelet", "reinsert"):
                 deadline = clock.get("deadline")
