@@ -24,6 +24,9 @@ _LAZY = {
     "grasp": ("jaxbvh.grasp", None),
     "twolevel": ("jaxbvh.twolevel", None),
     "scenes": ("jaxbvh.scenes", None),
+    "reinsert": ("jaxbvh.reinsert", None),
+    "treelet": ("jaxbvh.treelet", None),
+    "optimize": ("jaxbvh.optimize", None),
 }
 
 

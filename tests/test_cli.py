@@ -491,12 +491,19 @@ def test_second_run_compiles_nothing(tmp_path):
     np.savez(tree, **arrays)
     commands = [["build", str(mesh), "--json"],
                 ["optimize", str(tree), "--json"],
+                ["optimize", str(tree), "--method", "hc", "--json"],
                 ["optimize", str(tree), "--method", "sa", "--iterations", "6", "--chains", "2", "--json"],
+<<<<<<< HEAD
                 ["trace", str(tree), str(mesh), "--rays", "64", "--json"],
                 ["evolve", str(mesh), "--population", "4", "--generations", "2", "--json"],
                 ["collapse", str(tree), "--json"],
                 ["collapse", str(mesh), "--method", "greedy", "--json"],
                 ["grasp", str(mesh), "--trials", "4", "--json"]]
+=======
+                ["optimize", str(tree), "--method", "reinsert", "--time-budget", "5", "--json"],
+                ["optimize", str(tree), "--method", "treelet", "--treelet-leaves", "5", "--json"],
+                ["trace", str(tree), str(mesh), "--rays", "64", "--json"]]
+>>>>>>> optimize2
     env = {**__import__("os").environ, "JAXBVH_CACHE_DIR": str(tmp_path / "cache"),
            "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
 

@@ -1,8 +1,11 @@
-"""``jaxbvh optimize INPUT``: improve a BVH by tree rotations (Kensler 2008).
+"""``jaxbvh optimize INPUT``: improve a BVH's topology (:mod:`jaxbvh.optimize`).
 
 INPUT is a mesh or scene (built with the default builder first) or a tree ``.npz``
 (its leaf boxes stand for the primitives, so no mesh is needed). ``--method hc`` is hill
-climbing to convergence, ``--method sa`` simulated annealing with Kensler's schedule.
+climbing of Kensler's rotations to convergence, ``--method sa`` simulated annealing with
+Kensler's schedule, ``--method reinsert`` parallel reinsertion (Meister & Bittner 2018),
+``--method treelet`` treelet restructuring (Karras & Aila 2013), ``--method pipeline``
+(the default) rounds of treelets and reinsertion (:mod:`jaxbvh.optimize`).
 """
 
 from __future__ import annotations
@@ -12,9 +15,15 @@ import time
 import jaxbvh
 from jaxbvh.commands import _common
 from jaxbvh.io import Mesh
+from jaxbvh.optimize import METHODS
+from jaxbvh.reinsert import DEFAULT_FIRST_FRACTION, DEFAULT_MAX_STEPS
 from jaxbvh.schedule import DEFAULT_HOTTEST
+from jaxbvh.treelet import DEFAULT_LEAVES, MAX_LEAVES
 
-HELP = "optimize a BVH by tree rotations: hill climbing or simulated annealing (Kensler 2008)"
+DEFAULT_METHOD = "pipeline"
+
+HELP = ("optimize a BVH: rotations (hill climbing, annealing), parallel reinsertion, treelet "
+        "restructuring, or the pipeline of treelets and reinsertion")
 
 
 def add_parser(subparsers):
@@ -22,9 +31,11 @@ def add_parser(subparsers):
     parser.add_argument("input", metavar="INPUT",
                         help="a mesh/scene file (built with the default builder first) or a "
                              "tree .npz")
-    parser.add_argument("--method", choices=("hc", "sa"), default="hc",
-                        help="hc: hill climbing to convergence; sa: simulated annealing "
-                             "(default: hc)")
+    parser.add_argument("--method", choices=METHODS, default=DEFAULT_METHOD,
+                        help="hc: rotations, hill climbing to convergence; sa: rotations, "
+                             "simulated annealing; reinsert: parallel reinsertion; treelet: "
+                             "treelet restructuring; pipeline: rounds of treelets then "
+                             f"reinsertion (default: {DEFAULT_METHOD})")
     parser.add_argument("--iterations", type=_common._int_at_least(1), default=1250, metavar="N",
                         help="annealing passes N of the schedule (Kensler: 1250; default 1250)")
     parser.add_argument("--period", type=_common._int_at_least(1), default=50, metavar="F",
@@ -38,8 +49,20 @@ def add_parser(subparsers):
     parser.add_argument("--seed", type=int, default=0, metavar="S",
                         help="random seed for annealing (default: 0)")
     parser.add_argument("--max-passes", type=_common._int_at_least(1), default=1000, metavar="P",
-                        help="most hill-climbing passes, or quench passes after annealing "
-                             "(default: 1000)")
+                        help="most passes (hc, treelet) or iterations (reinsert), or quench "
+                             "passes after annealing (default: 1000)")
+    parser.add_argument("--first-fraction", type=float, default=DEFAULT_FIRST_FRACTION,
+                        metavar="F",
+                        help="reinsert: about the share of nodes (largest parent area first) "
+                             "searched at first, growing to all (default: 1/32)")
+    parser.add_argument("--max-steps", type=_common._int_at_least(1), default=DEFAULT_MAX_STEPS,
+                        metavar="S",
+                        help="reinsert: search steps per node and iteration (default: "
+                             f"{DEFAULT_MAX_STEPS})")
+    parser.add_argument("--treelet-leaves", type=_common._int_at_least(2), default=DEFAULT_LEAVES,
+                        metavar="N",
+                        help=f"treelet: leaves per treelet, 2 .. {MAX_LEAVES} (default: "
+                             f"{DEFAULT_LEAVES}, as Karras & Aila)")
     parser.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                         help="stop after about this many seconds (compiling apart) with the best "
                              "tree so far (default: run to convergence)")
@@ -53,12 +76,16 @@ def add_parser(subparsers):
 def run(args) -> dict:
     import jax
 
-    from jaxbvh import rotate
+    from jaxbvh.optimize import optimize
 
     if not args.hottest >= 0:
         raise ValueError(f"--hottest must be >= 0, got {args.hottest}")
     if args.time_budget is not None and not args.time_budget > 0:
         raise ValueError(f"--time-budget must be > 0 seconds, got {args.time_budget}")
+    if not 0 < args.first_fraction <= 1:
+        raise ValueError(f"--first-fraction must be in (0, 1], got {args.first_fraction}")
+    if args.treelet_leaves > MAX_LEAVES:
+        raise ValueError(f"--treelet-leaves must be at most {MAX_LEAVES}, got {args.treelet_leaves}")
     names = ["load", "build", "validate", "optimize", "check"] + (["save"] if args.output else [])
     with _common.Stages(args, names) as stages:
         with stages("load"):
@@ -77,28 +104,31 @@ def run(args) -> dict:
             info = {"kind": "tree", "input": loaded.path}
         before = jaxbvh.all_costs(tree, args.ct, args.ci)
 
-        total = args.max_passes if args.method == "hc" else args.iterations
-        bar = _common.progress(args, total=total, desc=f"{args.method} passes")
+        totals = {"hc": args.max_passes, "sa": args.iterations}
+        bar = _common.progress(args, total=totals.get(args.method), desc=f"{args.method}")
 
-        def on_pass(i, sah, moves, temperature):
+        def on_step(stage, step, sah, moves):
             bar.update(1)
-            bar.set_postfix(sah=f"{float(sah):.4f}", moves=int(moves), T=f"{float(temperature):.3f}")
+            bar.set_postfix(stage=stage, sah=f"{float(sah):.4f}", moves=int(moves))
 
+        reinsert_options = dict(max_iterations=args.max_passes, max_steps=args.max_steps,
+                                first_fraction=args.first_fraction)
+        treelet_options = dict(leaves=args.treelet_leaves)
+        options = {
+            "hc": dict(max_passes=args.max_passes),
+            "sa": dict(steps=args.iterations, hottest=args.hottest, period=args.period,
+                       chains=args.chains, max_quench=args.max_passes),
+            "reinsert": reinsert_options,
+            "treelet": dict(treelet_options, max_passes=args.max_passes),
+            "pipeline": dict(reinsert=reinsert_options, treelet=treelet_options),
+        }[args.method]
         with stages("optimize"):
             start = time.perf_counter()
-            if args.method == "hc":
-                result = rotate.hill_climb(tree, ct=args.ct, ci=args.ci, max_passes=args.max_passes,
-                                           on_pass=on_pass, time_budget=args.time_budget)
-            else:
-                result = rotate.anneal(jax.random.key(args.seed), tree, steps=args.iterations,
-                                       hottest=args.hottest, period=args.period,
-                                       chains=args.chains, max_quench=args.max_passes,
-                                       ct=args.ct, ci=args.ci,
-                                       on_pass=on_pass, time_budget=args.time_budget)
-            result = jax.block_until_ready(result)
+            result = optimize(tree, args.method, key=jax.random.key(args.seed), ct=args.ct,
+                              ci=args.ci, time_budget=args.time_budget, on_step=on_step, **options)
             seconds = time.perf_counter() - start
         bar.close()
-        optimized = jaxbvh.to_numpy(result.tree)
+        optimized = result.tree
         with stages("check"):
             jaxbvh.validate(optimized, prim_lo, prim_hi)
             if prim_lo is None:
@@ -115,7 +145,7 @@ def run(args) -> dict:
                 jaxbvh.save(args.output, optimized, frame=frame)
 
     out = {"command": "optimize", **info, "method": args.method,
-           "passes": int(result.passes), "moves": int(result.moves),
+           "passes": result.steps, "moves": result.moves,
            "seconds": seconds,  # includes compiling (cached across runs by the CLI)
            "before": before, "after": after,
            "sah_change_percent": 100.0 * (after["sah"] / before["sah"] - 1.0) if before["sah"] else 0.0,
@@ -125,4 +155,16 @@ def run(args) -> dict:
                     "chains": args.chains, "seed": args.seed})
         if result.chain_sah is not None:
             out["chain_sah"] = [float(x) for x in result.chain_sah]
+    if args.method in ("reinsert", "pipeline"):
+        out.update({"first_fraction": args.first_fraction, "max_steps": args.max_steps})
+    if args.method in ("treelet", "pipeline"):
+        out["treelet_leaves"] = args.treelet_leaves
+    if args.method == "pipeline":
+        stages_run = []  # consecutive steps of one stage grouped: stage, steps, SAH after
+        for stage, _, sah, _ in result.trace:
+            if not stages_run or stages_run[-1]["stage"] != stage:
+                stages_run.append({"stage": stage, "steps": 0, "sah": sah})
+            stages_run[-1]["steps"] += 1
+            stages_run[-1]["sah"] = sah
+        out["stages"] = stages_run
     return out

@@ -1,0 +1,275 @@
+"""Every optimizer from the same start trees: SAH against wall time (jaxbvh.optimize).
+
+    python bench/bench_optimize.py                  # tinybvh trees + our builds, all methods
+    python bench/bench_optimize.py --trees legocar --no-builds --methods reinsert pipeline
+    python bench/bench_optimize.py --methods pipeline --merge   # redo one method, keep the rest
+    python bench/bench_optimize.py --big            # the 1.05M-triangle input of bench_rotate.py:
+                                                    # annealing, then the others in a tenth of its time
+
+Methods: ``hc`` (rotations, hill climbing), ``sa`` (rotations, annealing, Kensler's
+N = 1250, one chain), ``reinsert`` (parallel reinsertion), ``treelet`` (treelet
+restructuring), ``pipeline`` (rounds of both). Inputs: the three tinybvh trees in
+``../shared/data/trees`` (tinybvh's own reinsertion optimizer beside them, from the data
+README) and our sweep / binned builds of shared meshes.
+
+Every run is made twice: once to compile (cut short), then timed; the curve is the SAH
+after every pass or iteration against the seconds since the timed call began (annealing
+and hill climbing report in chunks of passes, so their points come in bursts). Writes
+``bench/results/optimize.json``, ``optimize.md`` and ``optimize.png``; ``--big`` writes
+``optimize_big.*``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import jaxbvh  # noqa: E402
+from jaxbvh.optimize import METHODS, optimize  # noqa: E402
+
+DATA = ROOT.parent / "shared" / "data"
+RESULTS = ROOT / "bench" / "results"
+TINYBVH = {  # start SAH -> after its reinsertion optimizer, seconds (README of the data)
+    "legocar": (30.212, 26.733, 0.119),
+    "drone": (15.397, 12.763, 0.350),
+    "bunny": (31.880, 31.942, 1.219),
+}
+BUILDS = (("spot.obj", "sweep", 1), ("fandisk.obj", "binned", 1), ("stanford-bunny.obj", "sweep", 1))
+
+
+def options_for(method, args):
+    if method == "sa":
+        return dict(steps=args.sa_steps)
+    return {}
+
+
+def run_curve(tree, method, args, time_budget=None):
+    """Compile (a run cut short), then a timed run: ``(result, seconds, curve)``."""
+    options = options_for(method, args)
+    for stage in (("treelet", "reinsert") if method == "pipeline" else (method,)):  # compile
+        optimize(tree, stage, time_budget=1e-9, **options_for(stage, args))
+    curve = []
+    start = time.perf_counter()
+
+    def on_step(stage, step, sah, moves):
+        curve.append((time.perf_counter() - start, sah, stage))
+
+    result = optimize(tree, method, time_budget=time_budget, on_step=on_step, **options)
+    seconds = time.perf_counter() - start
+    return result, seconds, curve
+
+
+def inputs(args):
+    for name in args.trees:
+        path = DATA / "trees" / f"{name}_binned_ref.npz"
+        if path.exists():
+            yield f"{name} (tinybvh)", jaxbvh.load(path)[0], name
+    if args.builds:
+        from jaxbvh.io import load_mesh
+        from jaxbvh.tree import compact
+
+        for mesh_name, builder, max_leaf in BUILDS:
+            path = DATA / "meshes" / mesh_name
+            if not path.exists():
+                continue
+            lo, hi = load_mesh(path).local_boxes()
+            tree = compact(jax.block_until_ready(jaxbvh.build(lo, hi, method=builder, max_leaf=max_leaf)))
+            yield f"{mesh_name} (jaxbvh {builder})", tree, None
+
+
+def best_within(curve, seconds):
+    ok = [sah for t, sah, _ in curve if t <= seconds]
+    return min(ok) if ok else None
+
+
+def first_below(curve, target):
+    return next((t for t, sah, _ in curve if sah < target), None)
+
+
+def run(args):
+    rows = []
+    for label, tree, tiny in inputs(args):
+        nodes = jaxbvh.tree.node_count(tree)
+        start_sah = float(jaxbvh.sah(jaxbvh.to_jax(tree)))
+        print(f"== {label}: {nodes:,} nodes, SAH {start_sah:.3f}", file=sys.stderr)
+        for method in args.methods:
+            result, seconds, curve = run_curve(tree, method, args)
+            jaxbvh.validate(result.tree)
+            row = {"input": label, "nodes": nodes, "start_sah": start_sah, "method": method,
+                   "sah": result.sah, "seconds": seconds, "steps": result.steps,
+                   "moves": result.moves, "curve": curve}
+            if tiny:
+                row["tinybvh_sah"], row["tinybvh_seconds"] = TINYBVH[tiny][1], TINYBVH[tiny][2]
+                row["best_in_tinybvh_time"] = best_within(curve, TINYBVH[tiny][2])
+                row["seconds_to_beat_tinybvh"] = first_below(curve, TINYBVH[tiny][1])
+            rows.append(row)
+            print({k: v for k, v in row.items() if k != "curve"}, file=sys.stderr, flush=True)
+    return rows
+
+
+def plot(rows, path, title=""):
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError as exc:
+        print(f"no plot: {exc}", file=sys.stderr)
+        return
+    names = list(dict.fromkeys(r["input"] for r in rows))
+    cols = min(3, len(names))
+    rows_n = (len(names) + cols - 1) // cols
+    fig, axes = plt.subplots(rows_n, cols, figsize=(5.2 * cols, 4 * rows_n), squeeze=False)
+    for ax, name in zip(axes.ravel(), names):
+        mine = [r for r in rows if r["input"] == name]
+        for r in mine:
+            t = [0.0] + [max(x, 1e-3) for x, _, _ in r["curve"]]
+            s = [r["start_sah"]] + [y for _, y, _ in r["curve"]]
+            ax.step(np.maximum(t, 1e-3), s, where="post", label=f"{r['method']} ({r['sah']:.3f})")
+        if "tinybvh_sah" in mine[0]:
+            ax.scatter([mine[0]["tinybvh_seconds"]], [mine[0]["tinybvh_sah"]], marker="x", c="k",
+                       zorder=5, label=f"tinybvh reinsertion ({mine[0]['tinybvh_sah']:.3f})")
+        ax.set_xscale("log")
+        ax.set_title(name, fontsize=9)
+        ax.set_xlabel("seconds (warm)")
+        ax.set_ylabel("SAH")
+        low = min(min(y for _, y, _ in r["curve"]) if r["curve"] else r["sah"] for r in mine)
+        ax.set_ylim(low - 0.02 * abs(low), mine[0]["start_sah"] * 1.005)
+        ax.legend(fontsize=7)
+    for ax in axes.ravel()[len(names):]:
+        ax.axis("off")
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+
+
+def meta(args):
+    return {"machine": platform.machine(), "cpus": os.cpu_count(), "jax": jax.__version__,
+            "platform": platform.platform(), "args": vars(args)}
+
+
+def write(rows, args):
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    m = meta(args)
+    (RESULTS / "optimize.json").write_text(json.dumps({"meta": m, "rows": rows}, indent=1))
+    lines = ["# Optimizers: SAH against time", "",
+             f"Machine: {m['platform']}, {m['cpus']} CPUs (shared with other jobs while it ran), "
+             f"JAX {m['jax']}. Seconds are wall time of a warm call (compiled before), SAH with "
+             f"Ct = Ci = 1. Annealing: N = {args.sa_steps}, one chain, h = 0.15. Curves: "
+             "optimize.png.", "",
+             "| input | nodes | start SAH | method | SAH | change | seconds | passes / iterations | "
+             "tinybvh SAH (s) | best in tinybvh's time | s to beat tinybvh |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        tiny = (f"{r['tinybvh_sah']:.3f} ({r['tinybvh_seconds']:.2f})" if "tinybvh_sah" in r else "-")
+        within = r.get("best_in_tinybvh_time")
+        beat = r.get("seconds_to_beat_tinybvh")
+        lines.append(f"| {r['input']} | {r['nodes']:,} | {r['start_sah']:.3f} | {r['method']} | "
+                     f"{r['sah']:.3f} | {100 * (r['sah'] / r['start_sah'] - 1):+.1f}% | "
+                     f"{r['seconds']:.2f} | {r['steps']} | {tiny} | "
+                     f"{'-' if within is None else format(within, '.3f')} | "
+                     f"{'-' if beat is None else format(beat, '.2f')} |")
+    (RESULTS / "optimize.md").write_text("\n".join(lines) + "\n")
+    plot(rows, RESULTS / "optimize.png")
+
+
+def run_big(args):
+    """Annealing (N = ``--sa-steps``) on the big input, then every other method with a
+    time budget of a tenth of annealing's time."""
+    from bench_rotate import big_scene
+
+    start = time.perf_counter()
+    lo, hi = big_scene(args.big_copies, args.big_walls, args.seed)
+    frame = jaxbvh.Frame.fit(lo, hi)
+    lo, hi = frame.to_local(lo).astype(np.float32), frame.to_local(hi).astype(np.float32)
+    tree = jaxbvh.tree.compact(jax.block_until_ready(jaxbvh.build(lo, hi)))
+    label = f"big: {args.big_copies} bunnies + {args.big_walls} walls (jaxbvh sweep)"
+    print(f"== {label}: {len(lo):,} triangles, built in {time.perf_counter() - start:.0f} s",
+          file=sys.stderr, flush=True)
+    nodes = jaxbvh.tree.node_count(tree)
+    start_sah = float(jaxbvh.sah(jaxbvh.to_jax(tree)))
+    rows = []
+    sa, sa_seconds, curve = run_curve(tree, "sa", args)
+    rows.append({"input": label, "nodes": nodes, "start_sah": start_sah, "method": "sa",
+                 "sah": sa.sah, "seconds": sa_seconds, "steps": sa.steps, "moves": sa.moves,
+                 "curve": curve})
+    print({k: v for k, v in rows[-1].items() if k != "curve"}, file=sys.stderr, flush=True)
+    budget = sa_seconds / 10
+    for method in [m for m in args.methods if m != "sa"]:
+        result, seconds, curve = run_curve(tree, method, args, time_budget=budget)
+        jaxbvh.validate(result.tree, lo, hi)
+        rows.append({"input": label, "nodes": nodes, "start_sah": start_sah, "method": method,
+                     "sah": result.sah, "seconds": seconds, "steps": result.steps,
+                     "moves": result.moves, "curve": curve, "time_budget": budget})
+        print({k: v for k, v in rows[-1].items() if k != "curve"}, file=sys.stderr, flush=True)
+    return rows, len(lo), budget
+
+
+def write_big(rows, triangles, budget, args):
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    m = meta(args)
+    (RESULTS / "optimize_big.json").write_text(json.dumps({"meta": m, "rows": rows,
+                                                          "triangles": triangles,
+                                                          "time_budget": budget}, indent=1))
+    sa = rows[0]
+    lines = ["# Optimizers on the >= 1M-triangle input (`--big`)", "",
+             f"{sa['input']}: {triangles:,} triangles, {sa['nodes']:,} nodes, start SAH "
+             f"{sa['start_sah']:.3f}. Machine: {m['platform']}, {m['cpus']} CPUs (shared with "
+             f"other jobs while it ran), JAX {m['jax']}. Annealing (N = {args.sa_steps}, one "
+             f"chain) ran to the end; every other method had a time budget of a tenth of its "
+             f"time ({budget:.1f} s; a method stops at the end of the pass or iteration that "
+             "crosses it). Seconds are warm (compiled before).", "",
+             "| method | SAH | change | seconds | passes / iterations | below annealing's SAH |",
+             "|---|---|---|---|---|---|"]
+    for r in rows:
+        below = "-" if r is sa else ("yes" if r["sah"] < sa["sah"] else "no")
+        lines.append(f"| {r['method']} | {r['sah']:.3f} | {100 * (r['sah'] / r['start_sah'] - 1):+.1f}% | "
+                     f"{r['seconds']:.1f} | {r['steps']} | {below} |")
+    (RESULTS / "optimize_big.md").write_text("\n".join(lines) + "\n")
+    plot(rows, RESULTS / "optimize_big.png", title="big input: annealing vs a tenth of its time")
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--trees", nargs="*", default=["legocar", "drone", "bunny"])
+    parser.add_argument("--no-builds", dest="builds", action="store_false")
+    parser.add_argument("--methods", nargs="*", default=list(METHODS), choices=METHODS)
+    parser.add_argument("--sa-steps", type=int, default=1250)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--merge", action="store_true",
+                        help="keep the rows of optimize.json this run does not redo")
+    parser.add_argument("--big", action="store_true")
+    parser.add_argument("--big-copies", type=int, default=15)
+    parser.add_argument("--big-walls", type=int, default=4000)
+    args = parser.parse_args(argv)
+    if args.big:
+        sys.path.insert(0, str(ROOT / "bench"))
+        rows, triangles, budget = run_big(args)
+        write_big(rows, triangles, budget, args)
+        print((RESULTS / "optimize_big.md").read_text())
+        return
+    rows = run(args)
+    if args.merge and (RESULTS / "optimize.json").exists():
+        new = {(r["input"], r["method"]) for r in rows}
+        old = json.loads((RESULTS / "optimize.json").read_text())["rows"]
+        rows = [r for r in old if (r["input"], r["method"]) not in new] + rows
+        order = list(dict.fromkeys(r["input"] for r in old + rows))
+        rows.sort(key=lambda r: (order.index(r["input"]), METHODS.index(r["method"])))
+    write(rows, args)
+    print((RESULTS / "optimize.md").read_text())
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,312 @@
+"""Parallel reinsertion (jaxbvh.reinsert) against its NumPy twin and the invariants.
+
+Random trees are padded to one capacity so every jitted function compiles once.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import jaxbvh
+from jaxbvh import reinsert
+from jaxbvh.reference import reinsert as ref
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+NODES, PRIMS = 128, 64  # one capacity for all random trees
+SETTINGS = dict(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+MIN_GAIN = reinsert.default_min_gain(np.float32)
+
+
+def random_tree(seed: int, n: int, max_leaf: int = 1, grid: bool = False, dtype=np.float32):
+    """Random binary tree over ``n`` random boxes: recursive random splits of a permutation
+    (so a poor tree, with much to gain), node ids shuffled, root not 0.
+
+    ``grid``: boxes on a coarse grid, many duplicates and flat boxes (exact ties, exact
+    arithmetic). Returns ``(tree padded to NODES / PRIMS, prim_lo, prim_hi)``.
+    """
+    rng = np.random.default_rng(seed)
+    if grid:
+        lo = rng.integers(0, 3, (n, 3)).astype(dtype)
+        hi = lo + rng.integers(0, 2, (n, 3)).astype(dtype)
+    else:
+        lo = rng.uniform(-5, 5, (n, 3)).astype(dtype)
+        hi = lo + rng.exponential(1.0, (n, 3)).astype(dtype)
+    child, start, count, prim_index = [], [], [], []
+
+    def make(ids):
+        i = len(child)
+        child.append([-1, -1]), start.append(0), count.append(0)
+        if len(ids) == 1 or (len(ids) <= max_leaf and rng.random() < 0.5):
+            start[i], count[i] = len(prim_index), len(ids)
+            prim_index.extend(ids)
+        else:
+            k = int(rng.integers(1, len(ids)))
+            child[i] = [make(ids[:k]), make(ids[k:])]
+        return i
+
+    make([int(p) for p in rng.permutation(n)])
+    m = len(child)
+    new = rng.permutation(m)
+    ids = np.full((m, 2), -1, np.int32)
+    for old in range(m):
+        for side in range(2):
+            c = child[old][side]
+            ids[new[old], side] = new[c] if c >= 0 else -1
+    inv = np.argsort(new)
+    start, count = np.array(start, np.int32)[inv], np.array(count, np.int32)[inv]
+    box_lo = np.zeros((m, 3), dtype)
+    box_hi = np.zeros((m, 3), dtype)
+
+    def box(node):
+        if ids[node, 0] < 0:
+            run = prim_index[start[node]:start[node] + count[node]]
+            box_lo[node], box_hi[node] = lo[run].min(0), hi[run].max(0)
+        else:
+            box(ids[node, 0]), box(ids[node, 1])
+            box_lo[node] = np.minimum(box_lo[ids[node, 0]], box_lo[ids[node, 1]])
+            box_hi[node] = np.maximum(box_hi[ids[node, 0]], box_hi[ids[node, 1]])
+
+    box(int(new[0]))
+    arrays = dict(child=ids, prim_start=start, prim_count=count,
+                  prim_index=np.array(prim_index, np.int32), lo=box_lo, hi=box_hi,
+                  root=np.int32(new[0]))
+    tree = jaxbvh.from_interchange(arrays, pad=False)
+    return jaxbvh.tree.pad_to(tree, NODES, PRIMS), lo, hi
+
+
+def assert_same_tree(a, b, fields=("left", "right", "parent", "lo", "hi", "root")):
+    a, b = jaxbvh.to_numpy(a), jaxbvh.to_numpy(b)
+    for field in fields:
+        np.testing.assert_array_equal(np.asarray(getattr(a, field)), np.asarray(getattr(b, field)),
+                                      err_msg=field)
+
+
+def check_result(tree, result, prim_lo, prim_hi, ct=1.0):
+    """Valid, leaves untouched, SAH as reported and never worse than the start."""
+    jaxbvh.validate(result.tree, prim_lo, prim_hi)
+    t, out = jaxbvh.to_numpy(tree), jaxbvh.to_numpy(result.tree)
+    leaf = t.prim_count > 0
+    for field in ("prim_start", "prim_count", "prim_index"):
+        np.testing.assert_array_equal(getattr(out, field), getattr(t, field))
+    np.testing.assert_array_equal(out.lo[leaf], t.lo[leaf])
+    np.testing.assert_array_equal(out.hi[leaf], t.hi[leaf])
+    assert out.left.shape == t.left.shape  # same capacity
+    sah = float(jaxbvh.sah(jaxbvh.to_jax(out), ct))
+    assert float(result.sah) == pytest.approx(sah, rel=1e-6)
+    assert sah <= float(result.sah_start) * (1 + 1e-6)
+    return sah
+
+
+trees = st.builds(lambda seed, n, leaf, grid: (seed, n, leaf, grid),
+                  st.integers(0, 2**31), st.integers(2, 40), st.integers(1, 3), st.booleans())
+
+
+def _search_all(tree, max_steps):
+    s = reinsert._prepare(jaxbvh.to_jax(tree))
+    ids, count = reinsert._candidates(s, jnp.int32(reinsert.ALL_OCTAVES))
+    out = jax.jit(reinsert._search)(s, ids, count, reinsert._scale_of(s), jnp.int32(max_steps),
+                                    jnp.float32(MIN_GAIN))
+    return s, [np.asarray(x) for x in out]
+
+
+# ----------------------------------------------------------------------------------
+# The search
+# ----------------------------------------------------------------------------------
+
+
+@settings(**SETTINGS)
+@given(trees, st.sampled_from([1, 3, 8, 1024]))
+def test_search_equals_reference_node_by_node(case, max_steps):
+    """Every node's best place, gain and common ancestor, also when the step bound cuts
+    the walk short."""
+    tree, _, _ = random_tree(*case)
+    s, (gain, out, lca) = _search_all(tree, max_steps)
+    t = ref.Tree(tree)
+    np.testing.assert_array_equal(t.lo, np.asarray(s.lo))  # the same refit
+    for a in range(NODES):
+        if t.parent[a] < 0:
+            assert out[a] == -1
+            continue
+        g, o, l, steps = ref.search(t, a, max_steps, MIN_GAIN)
+        assert steps <= max_steps
+        assert (out[a], lca[a]) == (o, l), a
+        if o >= 0:
+            assert gain[a] == pytest.approx(float(g), rel=1e-4, abs=1e-6)
+
+
+@settings(**SETTINGS)
+@given(trees)
+def test_each_gain_is_the_drop_in_interior_area_of_its_move(case):
+    """Applying one found move alone lowers the sum of interior areas by its gain."""
+    tree, plo, phi = random_tree(*case)
+    s, (gain, out, _) = _search_all(tree, 1024)
+    base = ref.Tree(tree)
+
+    def interior_area(t):
+        return sum(float(t.area(n)) for n in t.post_order() if t.child[n, 0] >= 0)
+
+    before = interior_area(base)
+    for a in np.flatnonzero(out >= 0)[:8]:
+        t = ref.Tree(tree)
+        ref.apply_move(t, int(a), int(out[a]))
+        jaxbvh.validate(t.to_bvh(), plo, phi)
+        assert before - interior_area(t) == pytest.approx(float(gain[a]), rel=1e-3, abs=1e-5)
+        assert gain[a] > 0
+
+
+# ----------------------------------------------------------------------------------
+# One iteration: selection and the batch
+# ----------------------------------------------------------------------------------
+
+
+def _one_iteration(tree, octaves=reinsert.ALL_OCTAVES):
+    s = reinsert._prepare(jaxbvh.to_jax(tree))
+    m, taken, gains, count = reinsert._moves_of(s, jnp.int32(octaves), jnp.int32(1024),
+                                                jnp.float32(MIN_GAIN))
+    new, moves, total, sah, _, _ = reinsert._iteration(
+        s, jnp.asarray(tree.prim_count), jnp.float32(1), jnp.float32(1), jnp.int32(octaves),
+        jnp.int32(1024), jnp.float32(MIN_GAIN))
+    return s, m, np.asarray(taken), np.asarray(gains), new, int(moves), float(total), float(sah)
+
+
+@settings(**SETTINGS)
+@given(trees)
+def test_iteration_equals_the_reference_applying_the_same_batch(case):
+    """The parallel iteration's tree is the selected batch applied one move at a time, in
+    rank order; the SAH drops by the batch's total gain (the moves are independent)."""
+    tree, plo, phi = random_tree(*case)
+    s, m, taken, gains, new, moves, total, sah = _one_iteration(tree)
+    a, out = np.asarray(m.a), np.asarray(m.out)
+    assert moves == taken.sum()
+    batch = [(int(a[i]), int(out[i])) for i in np.flatnonzero(taken)]
+    expected = ref.apply_batch(tree, batch)
+    got = reinsert._to_tree(jaxbvh.to_jax(tree), new)
+    assert_same_tree(got, expected)
+    jaxbvh.validate(got, plo, phi)
+    before = float(jaxbvh.sah(jaxbvh.to_jax(tree)))
+    after = float(jaxbvh.sah(got))
+    root_area = float(np.asarray(s.area)[int(s.root)])
+    if root_area > 0:
+        assert before - after == pytest.approx(total / root_area, rel=1e-3, abs=1e-5)
+    assert after == pytest.approx(sah, rel=1e-5)
+
+
+@settings(**SETTINGS)
+@given(trees)
+def test_selection_is_the_greedy_choice_over_disjoint_lock_sets(case):
+    """The rounds of the JAX selection give the sequential greedy choice of the twin,
+    fed the same moves, and the taken moves lock disjoint node sets."""
+    tree, _, _ = random_tree(*case)
+    s, m, taken, gains, *_ = _one_iteration(tree)
+    t = ref.Tree(tree)
+    a, out, lca = (np.asarray(x) for x in (m.a, m.out, m.lca))
+    lanes = np.flatnonzero(a >= 0)
+    moves = [(np.float32(gains[i]), int(a[i]), int(out[i]), int(lca[i])) for i in lanes]
+    # the lanes come best first
+    assert [mv[1] for mv in ref.rank_order(moves)] == [mv[1] for mv in moves]
+    expected = {mv[1] for mv in ref.select(t, moves)}
+    assert {int(a[i]) for i in np.flatnonzero(taken)} == expected
+    held = set()
+    for i in np.flatnonzero(taken):
+        nodes = ref.lock_set(t, int(a[i]), int(out[i]), int(lca[i]))
+        assert held.isdisjoint(nodes)
+        held |= nodes
+    if lanes.size:
+        assert taken[lanes[0]]  # the best move is always taken
+
+
+# ----------------------------------------------------------------------------------
+# Whole runs
+# ----------------------------------------------------------------------------------
+
+
+@settings(**{**SETTINGS, "max_examples": 15})
+@given(trees, st.sampled_from([1.0, 0.2]))
+def test_reinsert_equals_reference(case, first_fraction):
+    tree, plo, phi = random_tree(*case)
+    result = reinsert.reinsert(tree, first_fraction=first_fraction, split_axes=False)
+    expected, info = ref.reinsert(tree, first_fraction=first_fraction)
+    assert result.iterations == info["iterations"] and result.moves == info["moves"]
+    assert_same_tree(result.tree, expected)
+    np.testing.assert_allclose(result.history, info["history"], rtol=1e-5)
+    sah = check_result(tree, result, plo, phi)
+    assert np.all(np.diff(np.concatenate([[float(result.sah_start)], result.history])) <= 1e-5 * sah)
+    # converged: one more iteration over all nodes finds nothing
+    assert _one_iteration(result.tree)[5] == 0
+
+
+def test_reinsert_with_split_axes_and_float64():
+    tree, plo, phi = random_tree(3, 30, 2)
+    result = reinsert.reinsert(tree)
+    check_result(tree, result, plo, phi)
+    assert (np.asarray(result.tree.axis)[np.asarray(result.tree.left) >= 0] >= 0).all()
+    with jax.enable_x64(True):
+        tree64, plo64, phi64 = random_tree(3, 30, 2, dtype=np.float64)
+        result64 = reinsert.reinsert(tree64, split_axes=False)
+        assert np.asarray(result64.tree.lo).dtype == np.float64
+        check_result(tree64, result64, plo64, phi64)
+        expected, _ = ref.reinsert(tree64)
+        assert_same_tree(result64.tree, expected)
+
+
+def test_time_budget_stops_early_with_a_valid_tree():
+    tree, plo, phi = random_tree(12, 60, 1)
+    full = reinsert.reinsert(tree, first_fraction=0.05)
+    short = reinsert.reinsert(tree, first_fraction=0.05, time_budget=1e-9)
+    check_result(tree, short, plo, phi)
+    assert 1 <= short.iterations < full.iterations <= reinsert.DEFAULT_MAX_ITERATIONS
+    log = []
+    reinsert.reinsert(tree, on_iteration=lambda i, sah, moves: log.append((i, sah, moves)))
+    assert [i for i, *_ in log] == list(range(len(log))) and log[-1][2] == 0
+
+
+def test_tiny_trees_and_zero_traversal_cost():
+    for n in (1, 2, 3):
+        tree, plo, phi = random_tree(n, n)
+        result = reinsert.reinsert(tree)
+        check_result(tree, result, plo, phi)
+        assert result.moves == 0 if n <= 2 else result.moves >= 0
+    tree, plo, phi = random_tree(5, 20)
+    result = reinsert.reinsert(tree, ct=0.0)  # no move changes the SAH
+    assert result.iterations == 0 and result.moves == 0
+    check_result(tree, result, plo, phi, ct=0.0)
+
+
+def test_no_retrace_for_trees_of_one_capacity():
+    reinsert.reinsert(random_tree(1, 20)[0])
+    before = reinsert._iteration._cache_size()
+    for seed in range(2, 5):
+        reinsert.reinsert(random_tree(seed, 30, 2)[0], max_steps=7 * seed, first_fraction=0.1)
+    assert reinsert._iteration._cache_size() == before
+
+
+def test_bad_arguments_raise_value_error():
+    tree = random_tree(0, 5)[0]
+    for kwargs in (dict(max_steps=0), dict(max_iterations=-1), dict(first_fraction=0),
+                   dict(first_fraction=1.5), dict(ct=-1.0), dict(time_budget=0),
+                   dict(on_iteration=3), dict(min_gain=-1.0)):
+        with pytest.raises(ValueError):
+            reinsert.reinsert(tree, **kwargs)
+    wide = jaxbvh.from_interchange({**jaxbvh.to_interchange(tree), "child": np.full((9, 3), -1, np.int32)})
+    with pytest.raises(ValueError, match="binary"):
+        reinsert.reinsert(wide)
+
+
+@pytest.mark.skipif(not (DATA / "trees").exists(), reason=f"shared data not found at {DATA}")
+def test_real_tree_iterations_equal_reference():
+    """legocar (tinybvh, leaves of up to 32 triangles): three iterations from the largest
+    parent areas, node for node as the twin; valid, leaves untouched, SAH lower."""
+    tree, _ = jaxbvh.load(DATA / "trees" / "legocar_binned_ref.npz")
+    result = reinsert.reinsert(tree, max_iterations=3, first_fraction=0.02, split_axes=False)
+    expected, info = ref.reinsert(tree, max_iterations=3, first_fraction=0.02)
+    assert_same_tree(result.tree, expected)
+    np.testing.assert_allclose(result.history, info["history"], rtol=1e-5)
+    check_result(tree, result, None, None)
+    assert float(result.sah) < float(result.sah_start) - 0.3

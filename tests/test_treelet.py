@@ -1,0 +1,125 @@
+"""Treelet restructuring (jaxbvh.treelet) against brute force, its NumPy twin and the invariants."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import jaxbvh
+from jaxbvh import treelet
+from jaxbvh.reference import treelet as ref
+from test_reinsert import NODES, assert_same_tree, check_result, random_tree, trees
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+SETTINGS = dict(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+MIN_GAIN = float(64 * np.finfo(np.float32).eps)
+
+
+def test_split_tables():
+    members, popcount, single, sizes = treelet.tables(7)
+    assert sum(parts.size for _, parts in sizes) == 966  # (3^7 - 2^8 + 1) / 2 splits
+    for sets, parts in sizes:
+        for mask, row in zip(sets, parts):
+            assert list(row) == treelet.splits(int(mask)) == ref.splits(int(mask))
+            assert all(p & mask == p and p != mask and p & (mask & -mask) for p in row)
+            # each unordered split once
+            assert len({frozenset((int(p), int(mask ^ p))) for p in row}) == len(row)
+    assert popcount[0b1011] == 3 and single[0b100] == 2 and single[0b110] == -1
+
+
+@settings(**SETTINGS)
+@given(trees, st.sampled_from([4, 6]), st.data())
+def test_dynamic_programme_equals_brute_force(case, n, data):
+    """The recursion over subsets finds the least cost over every binary tree of the
+    treelet's leaves (all (2k - 3)!! of them), in NumPy and in JAX."""
+    tree, _, _ = random_tree(*case)
+    t = ref.Tree(tree, 1.0, 1.0)
+    interior = [x for x in t.post_order() if t.child[x, 0] >= 0]
+    if not interior:
+        return
+    root = data.draw(st.sampled_from(interior))
+    leaves, inner = ref.form(t, root, n, MIN_GAIN)
+    assert len(inner) == len(leaves) - 1 and inner[0] == root
+    cost, split, *_ = ref.solve(t, leaves, MIN_GAIN)
+    full = (1 << len(leaves)) - 1
+    best_tree, best = ref.brute_force(t, leaves)
+    assert float(cost[full]) == pytest.approx(float(best), rel=1e-5)
+    # the JAX solver of the same treelet
+    s, scale = treelet._prepare(jaxbvh.to_jax(tree), jnp.float32(1), jnp.float32(1))
+    change, j_inner, k, new, current = jax.jit(treelet._solve, static_argnums=5)(
+        s, jnp.int32(root), scale, jnp.float32(1), jnp.float32(MIN_GAIN), n)
+    assert int(k) == len(leaves)
+    assert list(np.asarray(j_inner)[: int(k) - 1]) == inner
+    assert float(np.asarray(new[3])[0]) == pytest.approx(float(best), rel=1e-5)  # root's cost
+    assert float(current) >= float(best) * (1 - 1e-5)  # the current topology is one of them
+
+
+@settings(**{**SETTINGS, "max_examples": 15})
+@given(trees)
+def test_restructure_equals_reference(case):
+    tree, plo, phi = random_tree(*case)
+    result = treelet.restructure(tree, split_axes=False)
+    expected, info = ref.restructure(tree, max_passes=treelet.DEFAULT_MAX_PASSES)
+    assert result.passes == info["passes"] and result.restructured == info["restructured"]
+    assert_same_tree(result.tree, expected)
+    np.testing.assert_allclose(result.history, info["history"], rtol=1e-5)
+    sah = check_result(tree, result, plo, phi)
+    assert np.all(np.diff(np.concatenate([[float(result.sah_start)], result.history])) <= 1e-5 * sah)
+
+
+def test_smaller_treelets_and_windows():
+    tree, plo, phi = random_tree(9, 40, 2)
+    a = treelet.restructure(tree, leaves=4, split_axes=False)
+    expected, _ = ref.restructure(tree, leaves=4)
+    assert_same_tree(a.tree, expected)
+    check_result(tree, a, plo, phi)
+    b = treelet.restructure(tree, split_axes=False)
+    c = treelet.restructure(tree, split_axes=False, windows=(3,))  # speed only
+    assert_same_tree(b.tree, c.tree)
+    assert float(b.sah) <= float(a.sah) * (1 + 1e-6)  # 7 leaves see more than 4
+
+
+def test_time_budget_progress_float64_and_tiny_trees():
+    tree, plo, phi = random_tree(12, 60, 1)
+    log = []
+    full = treelet.restructure(tree, on_pass=lambda i, sah, changed: log.append((i, sah, changed)))
+    assert [i for i, *_ in log] == list(range(full.passes)) and log[-1][2] == 0
+    short = treelet.restructure(tree, time_budget=1e-9)
+    check_result(tree, short, plo, phi)
+    assert 1 <= short.passes <= 2 < full.passes
+    for n in (1, 2, 3):
+        small, slo, shi = random_tree(n, n)
+        check_result(small, treelet.restructure(small), slo, shi)
+    with jax.enable_x64(True):
+        tree64, plo64, phi64 = random_tree(4, 30, 2, dtype=np.float64)
+        result64 = treelet.restructure(tree64, split_axes=False)
+        assert np.asarray(result64.tree.lo).dtype == np.float64
+        check_result(tree64, result64, plo64, phi64)
+        assert_same_tree(result64.tree, ref.restructure(tree64)[0])
+
+
+def test_bad_arguments_raise_value_error():
+    tree = random_tree(0, 5)[0]
+    for kwargs in (dict(leaves=1), dict(leaves=treelet.MAX_LEAVES + 1), dict(max_passes=-1),
+                   dict(ct=-1.0), dict(windows=()), dict(time_budget=0), dict(on_pass=1),
+                   dict(min_gain=-1.0)):
+        with pytest.raises(ValueError):
+            treelet.restructure(tree, **kwargs)
+
+
+@pytest.mark.skipif(not (DATA / "trees").exists(), reason=f"shared data not found at {DATA}")
+def test_real_tree_pass_equals_reference():
+    tree, _ = jaxbvh.load(DATA / "trees" / "legocar_binned_ref.npz")
+    result = treelet.restructure(tree, max_passes=1, split_axes=False)
+    expected, info = ref.restructure(tree, max_passes=1)
+    assert_same_tree(result.tree, expected)
+    assert result.restructured == info["restructured"] > 0
+    check_result(tree, result, None, None)
+    assert float(result.sah) < float(result.sah_start) - 1.0
+    assert NODES  # random trees share one capacity with test_reinsert
