@@ -1,0 +1,180 @@
+"""PLOC: Parallel Locally-Ordered Clustering (Meister & Bittner 2017) (jitted).
+
+Algorithm
+=========
+Agglomerative clustering, bottom-up, in parallel. The primitives, sorted along the
+Morton curve (:mod:`jaxbvh.morton`), start as one cluster each, kept in an array in
+that order. Each iteration:
+
+1. **Nearest neighbour.** Every cluster looks at the ``r`` clusters before it and the
+   ``r`` after it in the array and picks the one whose merged box has the smallest
+   surface area (the paper's distance). The area of each pair is computed once, as an
+   ``[r, C]`` array of shifted unions: cluster ``i`` reads its right neighbours from
+   column ``i`` and its left ones from the columns ``i - d``.
+2. **Merge** every mutual pair (``i`` picks ``j`` and ``j`` picks ``i``): the merged
+   cluster takes the place of the lower one, the upper place is emptied.
+3. **Compact** the array in order (an exclusive prefix sum).
+
+until one cluster is left. ``r`` (``radius``) is the effort knob: the paper uses 8 to
+25, and a larger ``r`` finds better neighbours at proportionally more work per iteration.
+
+Neighbour rule (the NumPy twin :mod:`jaxbvh.reference.ploc` keeps the same one).
+Areas within a relative ``TIE_TOLERANCE`` of the least count as equal (XLA may fuse a
+multiply-add, so one area can differ by an ulp here and in NumPy; the rule of
+:mod:`jaxbvh.build`). Among equal ones the nearest in the array wins, and between the
+two at distance ``d`` the one that pairs ``(m, m + d)`` with ``m // d`` even: every
+cluster's choice is then its least pair in one order on pairs, so equal boxes pair off
+``(0, 1), (2, 3), ...`` and a scene of identical boxes gives a balanced tree. With a
+tolerance, choices can form a cycle of three or more clusters and no pair be mutual;
+an iteration that finds no mutual pair is redone with exact comparisons, where the
+least pair of all is always mutual, so every iteration merges at least one pair and
+``n - 1`` iterations always suffice.
+
+Work. The cluster count falls quickly, so the array is processed in *stages* of
+halving static sizes (``cap, cap / 2, ...`` down to :data:`SMALLEST_STAGE`): each stage
+is its own ``while_loop`` over a prefix of the array and hands over when the clusters
+fit the next size. Work per iteration follows the clusters left, not the input.
+
+Output: interior nodes in the reverse of their creation (root 0), then the leaves in
+Morton order; ``axis`` is -1 (a clustering has no split planes; run
+:func:`jaxbvh.rotate.assign_split_axes` for traversal order). Leaves collapse by the
+SAH test of the top-down builders (:mod:`jaxbvh.finish`). Boxes are unions (exact), so
+the tree is identical to the twin's.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxbvh import morton
+from jaxbvh.build import TIE_TOLERANCE
+from jaxbvh.cost import half_area
+from jaxbvh.finish import Linked, to_bvh
+from jaxbvh.tree import BVH
+
+DEFAULT_RADIUS = 16
+SMALLEST_STAGE = 64
+
+
+def stage_sizes(cap: int) -> tuple[int, ...]:
+    """Static array sizes of the stages: ``cap``, then halving down to :data:`SMALLEST_STAGE`."""
+    sizes = [int(cap)]
+    while sizes[-1] > SMALLEST_STAGE:
+        sizes.append((sizes[-1] + 1) // 2)
+    return tuple(sizes)
+
+
+def _neighbours(lo, hi, c, scale, radius: int, exact):
+    """Offset (+-d) of every cluster's chosen neighbour, [C] int32 (rule: module docstring)."""
+    size = lo.shape[0]
+    pos = jnp.arange(size, dtype=jnp.int32)
+    reach = min(radius, size - 1)
+    right = []
+    for d in range(1, reach + 1):
+        pad = jnp.full((d, 3), jnp.inf, lo.dtype)
+        area = half_area(jnp.minimum(lo, jnp.concatenate([lo[d:], pad])),
+                         jnp.maximum(hi, jnp.concatenate([hi[d:], -pad])), scale)
+        right.append(jnp.where(pos + d < c, area, jnp.inf))
+    left = [jnp.concatenate([jnp.full(d, jnp.inf, lo.dtype), right[d - 1][:-d]]) for d in range(1, reach + 1)]
+    cand = jnp.stack(right + left)  # [2 reach, C]
+    best = jnp.min(cand, axis=0)
+    limit = jnp.where(exact, best, best * (1 + TIE_TOLERANCE))
+    dist = jnp.arange(1, reach + 1, dtype=jnp.int32)[:, None]
+    parity = (pos[None, :] // dist) % 2
+    key = jnp.concatenate([2 * dist + parity, 2 * dist + 1 - parity])
+    key = jnp.where((cand <= limit) & (cand < jnp.inf), key, jnp.iinfo(jnp.int32).max)
+    row = jnp.argmin(key, axis=0).astype(jnp.int32)
+    return jnp.where(row < reach, row + 1, reach - 1 - row)
+
+
+def _iteration(n, scale, radius: int, carry):
+    """One iteration over a stage's arrays: neighbours, merges, compaction."""
+    (node, lo, hi, count, first, c), internal, made, steps = carry
+    size = lo.shape[0]
+    cap = internal[0].shape[0]
+    pos = jnp.arange(size, dtype=jnp.int32)
+    valid = pos < c
+
+    def mutual_of(offset):
+        partner = pos + offset
+        back = jnp.take(offset, jnp.clip(partner, 0, size - 1), mode="clip")
+        return valid & (partner >= 0) & (partner < c) & (back == -offset)
+
+    offset = _neighbours(lo, hi, c, scale, radius, False)
+    mutual = mutual_of(offset)
+    offset = jax.lax.cond(jnp.any(mutual), lambda: offset, lambda: _neighbours(lo, hi, c, scale, radius, True))
+    mutual = mutual_of(offset)
+
+    partner = jnp.clip(pos + offset, 0, size - 1)
+    lower = mutual & (offset > 0)
+    upper = mutual & (offset < 0)
+    rank = jnp.cumsum(lower.astype(jnp.int32)) - lower
+    slot = jnp.where(lower, (n - 2) - (made + rank), cap)  # the root (last merge) lands in slot 0
+    m_lo = jnp.minimum(lo, lo[partner])
+    m_hi = jnp.maximum(hi, hi[partner])
+    m_count = count + count[partner]
+    m_first = jnp.minimum(first, first[partner])
+    i_left, i_right, i_lo, i_hi, i_count, i_first = internal
+    internal = (i_left.at[slot].set(node, mode="drop"), i_right.at[slot].set(node[partner], mode="drop"),
+                i_lo.at[slot].set(m_lo, mode="drop"), i_hi.at[slot].set(m_hi, mode="drop"),
+                i_count.at[slot].set(m_count, mode="drop"), i_first.at[slot].set(m_first, mode="drop"))
+    node = jnp.where(lower, slot, node)
+    lo = jnp.where(lower[:, None], m_lo, lo)
+    hi = jnp.where(lower[:, None], m_hi, hi)
+    count = jnp.where(lower, m_count, count)
+    first = jnp.where(lower, m_first, first)
+
+    keep = valid & ~upper
+    target = jnp.where(keep, jnp.cumsum(keep.astype(jnp.int32)) - keep, size)
+
+    def compact(values, fill):
+        return jnp.full_like(values, fill).at[target].set(values, mode="drop")
+
+    clusters = (compact(node, 2 * cap), compact(lo, jnp.inf), compact(hi, -jnp.inf), compact(count, 0),
+                compact(first, 0), jnp.sum(keep, dtype=jnp.int32))
+    return clusters, internal, made + jnp.sum(lower, dtype=jnp.int32), steps + 1
+
+
+@partial(jax.jit, static_argnames=("radius", "stages"))
+def _cluster(lo, hi, n, order, max_leaf, ct, ci, scale, *, radius, stages):
+    cap = lo.shape[0]
+    leaf_lo, leaf_hi = lo[order], hi[order]  # padding positions read padding slots
+    pos = jnp.arange(cap, dtype=jnp.int32)
+    clusters = (cap + pos, leaf_lo, leaf_hi, (pos < n).astype(jnp.int32), pos, jnp.asarray(n, jnp.int32))
+    internal = (jnp.full(cap, 2 * cap, jnp.int32), jnp.full(cap, 2 * cap, jnp.int32),
+                jnp.full((cap, 3), jnp.inf, lo.dtype), jnp.full((cap, 3), -jnp.inf, lo.dtype),
+                jnp.zeros(cap, jnp.int32), jnp.zeros(cap, jnp.int32))
+    carry = (clusters, internal, jnp.int32(0), jnp.int32(0))
+    for k, size in enumerate(stages):
+        goal = stages[k + 1] if k + 1 < len(stages) else 1
+        carry = ((*(a[:size] for a in carry[0][:5]), carry[0][5]),) + carry[1:]
+        # every iteration merges a pair, so n iterations in all always suffice
+        carry = jax.lax.while_loop(lambda c, goal=goal: (c[0][5] > goal) & (c[3] < n),
+                                   partial(_iteration, n, scale, radius), carry)
+    _, (i_left, i_right, i_lo, i_hi, i_count, i_first), _, _ = carry
+    linked = Linked(n=n, left=i_left, right=i_right, lo=i_lo, hi=i_hi, count=i_count, first=i_first,
+                    axis=jnp.full(cap, -1, jnp.int32), leaf_lo=leaf_lo, leaf_hi=leaf_hi, order=order)
+    return to_bvh(linked, max_leaf, ct, ci, scale)
+
+
+def build(lo: np.ndarray, hi: np.ndarray, n: int, *, radius: int = DEFAULT_RADIUS, max_leaf: int, ct: float,
+          ci: float, scale: float, morton_bits: int = 30) -> BVH:
+    """PLOC over padded boxes ``lo``, ``hi`` [cap, 3] (NumPy, first ``n`` real); :func:`jaxbvh.build` calls it.
+
+    ``radius``: neighbours looked at on each side (static: one compile per value).
+    ``scale``: the scene's area scale. Returns a :class:`~jaxbvh.tree.BVH` of JAX arrays.
+    """
+    if int(radius) < 1:
+        raise ValueError(f"radius must be >= 1, got {radius}")
+    bits = morton.check_code_bits(morton_bits)
+    dtype = lo.dtype
+    origin, grid = morton.quantization(lo[:n], hi[:n], bits)
+    lo_j, hi_j = jnp.asarray(lo), jnp.asarray(hi)
+    order = morton.morton_order(lo_j, hi_j, n, jnp.asarray(origin), jnp.asarray(grid), bits=bits)
+    return _cluster(lo_j, hi_j, jnp.int32(n), order, jnp.int32(max_leaf), jnp.asarray(ct, dtype),
+                    jnp.asarray(ci, dtype), jnp.asarray(scale, dtype), radius=int(radius),
+                    stages=stage_sizes(lo.shape[0]))
