@@ -43,6 +43,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jaxbvh.arrays import exclusive_sum, take
 from jaxbvh.cost import half_area
 from jaxbvh.tree import BVH
 
@@ -63,16 +64,13 @@ class Linked(NamedTuple):
     order: Any      # [cap] int32 primitive id at each position
 
 
-def _take(arr, idx, fill):
-    """``arr[idx]`` with ``fill`` where ``idx`` is out of range (no wrap-around of -1)."""
-    return arr.at[idx].get(mode="fill", fill_value=fill)
-
-
 def to_bvh(linked: Linked, max_leaf, ct, ci, scale) -> BVH:
     """The :class:`~jaxbvh.tree.BVH` of ``linked`` with small subtrees collapsed (traceable).
 
     ``max_leaf`` [] int32, ``ct``, ``ci``, ``scale`` [] in the boxes' dtype (``scale``:
-    the power of two areas are measured with, :func:`jaxbvh.build.scene_scale`).
+    the power of two areas are measured with, :func:`jaxbvh.build.scene_scale`). When
+    no node passes the leaf test (always for ``max_leaf = 1``) the layout is a pair of
+    shifted copies; otherwise :func:`_collapse` renumbers.
     """
     n = linked.n
     cap = linked.leaf_lo.shape[0]
@@ -83,87 +81,129 @@ def to_bvh(linked: Linked, max_leaf, ct, ci, scale) -> BVH:
     real = slot < n - 1
     left = jnp.where(real, linked.left, none)
     right = jnp.where(real, linked.right, none)
-    box_lo = jnp.concatenate([jnp.where(real[:, None], linked.lo, jnp.inf), linked.leaf_lo])
-    box_hi = jnp.concatenate([jnp.where(real[:, None], linked.hi, -jnp.inf), linked.leaf_hi])
-    count = jnp.concatenate([jnp.where(real, linked.count, 0), (slot < n).astype(jnp.int32)])
-    first = jnp.concatenate([linked.first, slot])
     parent = jnp.full(nodes, none, jnp.int32).at[left].set(slot, mode="drop").at[right].set(slot, mode="drop")
-    is_right = jnp.zeros(nodes, bool).at[right].set(True, mode="drop")
 
     # the SAH leaf test at every internal node, from its children
-    area = half_area(box_lo, box_hi, scale)
-    n_left, n_right = _take(count, left, 0), _take(count, right, 0)
-    split = (_take(area, left, 0) * n_left.astype(dtype) + _take(area, right, 0) * n_right.astype(dtype))
+    count = jnp.concatenate([jnp.where(real, linked.count, 0), (slot < n).astype(jnp.int32)])
+    area = jnp.concatenate([half_area(linked.lo, linked.hi, scale), half_area(linked.leaf_lo, linked.leaf_hi, scale)])
+    split = (take(area, left, 0) * take(count, left, 0).astype(dtype)
+             + take(area, right, 0) * take(count, right, 0).astype(dtype))
     own = area[:cap]
     n_own = count[:cap].astype(dtype)
     estimate = ct + jnp.where(own > 0, ci * split / jnp.where(own > 0, own, 1), ci * n_own)
     passes = real & (count[:cap] <= max_leaf) & (ci * n_own <= estimate)
+
+    parts = (n, left, right, parent, count, passes)
+    return jax.lax.cond(jnp.any(passes), lambda: _collapse(linked, parts, max_leaf),
+                        lambda: _in_place(linked, parts))
+
+
+def _in_place(linked: Linked, parts) -> BVH:
+    """Layout without collapsing: internal slot k is node k, position p is node n - 1 + p."""
+    n, left, right, parent, _, _ = parts
+    cap = linked.leaf_lo.shape[0]
+    nodes = 2 * cap
+    node = jnp.arange(nodes, dtype=jnp.int32)
+    is_internal = node < n - 1
+    is_leaf = ~is_internal & (node < 2 * n - 1)
+
+    def place(internal, leaf, fill):
+        """Node array [nodes, ...]: ``internal`` [cap, ...] first, then ``leaf`` [cap, ...] from n - 1."""
+        pad = jnp.full((cap,) + leaf.shape[1:], fill, leaf.dtype)
+        shifted = jax.lax.dynamic_slice_in_dim(jnp.concatenate([pad, leaf, pad]), cap - (n - 1), nodes)
+        expand = (slice(None),) + (None,) * (leaf.ndim - 1)
+        return jnp.where(is_internal[expand], jnp.concatenate([internal, pad]),
+                         jnp.where(is_leaf[expand], shifted, fill))
+
+    def final(ids):  # linked id -> node id (none -> -1)
+        return jnp.where(ids < cap, ids, jnp.where(ids < nodes, ids - cap + n - 1, -1))
+
+    no_link = jnp.full(cap, -1, jnp.int32)
+    slot = jnp.arange(cap, dtype=jnp.int32)
+    return BVH(
+        left=place(final(left), no_link, -1), right=place(final(right), no_link, -1),
+        parent=place(final(parent[:cap]), final(parent[cap:]), -1),
+        lo=place(linked.lo, linked.leaf_lo, jnp.inf), hi=place(linked.hi, linked.leaf_hi, -jnp.inf),
+        prim_start=place(jnp.zeros(cap, jnp.int32), slot, 0),
+        prim_count=place(jnp.zeros(cap, jnp.int32), jnp.ones(cap, jnp.int32), 0),
+        axis=place(linked.axis, no_link, -1),
+        prim_index=jnp.where(slot < n, linked.order, -1), root=jnp.int32(0),
+    )
+
+
+def _collapse(linked: Linked, parts, max_leaf) -> BVH:
+    """Layout with the subtrees under passing nodes collapsed into leaves (module docstring)."""
+    n, left, right, parent, count, passes = parts
+    cap = linked.leaf_lo.shape[0]
+    nodes = 2 * cap
+    none = nodes
+    slot = jnp.arange(cap, dtype=jnp.int32)
+    real = slot < n - 1
+    first = jnp.concatenate([linked.first, slot])
+    is_right = jnp.zeros(nodes, bool).at[right].set(True, mode="drop")
 
     # covered: the node or one of its ancestors passes (only the nearest max_leaf - 1 can)
     up = parent[:cap]
 
     def spread(carry):
         covered, _, steps = carry
-        new = passes | _take(covered, up, False)
+        new = passes | take(covered, up, False)
         return new, jnp.any(new != covered), steps + 1
 
     covered, _, _ = jax.lax.while_loop(lambda c: c[1] & (c[2] <= jnp.minimum(max_leaf, cap)), spread,
                                        (passes, jnp.bool_(True), jnp.int32(0)))
-    inside = _take(covered, parent, False)  # [nodes]: the parent is covered, so the node is gone
+    inside = take(covered, parent, False)  # [nodes]: the parent is covered, so the node is gone
     interior = real & ~covered
     final_leaf = jnp.concatenate([passes & ~inside[:cap], (slot < n) & ~inside[cap:]])
 
     # numbering: interior nodes in slot order, then leaves by lowest position
     starts = jnp.zeros(cap, jnp.int32).at[jnp.where(final_leaf, first, cap)].set(1, mode="drop")
-    rank_at = jnp.cumsum(starts) - starts
-    n_leaves = jnp.sum(starts)
-    n_interior = n_leaves - 1
-    interior_id = jnp.cumsum(interior.astype(jnp.int32)) - interior
-    leaf_rank = jnp.where(final_leaf, _take(rank_at, first, 0), cap)
-    final_id = jnp.where(jnp.concatenate([interior, jnp.zeros(cap, bool)]),
-                         jnp.concatenate([interior_id, interior_id]),
+    rank_at = exclusive_sum(starts)
+    n_interior = jnp.sum(starts) - 1
+    interior_all = jnp.concatenate([interior, jnp.zeros(cap, bool)])
+    leaf_rank = jnp.where(final_leaf, take(rank_at, first, 0), cap)
+    final_id = jnp.where(interior_all, jnp.concatenate([exclusive_sum(interior), slot]),
                          jnp.where(final_leaf, n_interior + leaf_rank, none))
     size_by_rank = jnp.zeros(cap, jnp.int32).at[leaf_rank].set(count, mode="drop")
-    start_by_rank = jnp.cumsum(size_by_rank) - size_by_rank
+    start_by_rank = exclusive_sum(size_by_rank)
 
     # every primitive walks up to its leaf, adding the primitives left of its path
     left_all = jnp.concatenate([left, jnp.full(cap, none, jnp.int32)])
-    leaf_of = cap + slot
-    offset = jnp.zeros(cap, jnp.int32)
 
     def climb(carry):
         node, offset, _, steps = carry
-        moving = _take(inside, node, False)
-        above = _take(parent, node, none)
-        sibling = _take(left_all, above, none)
-        add = jnp.where(moving & _take(is_right, node, False), _take(count, sibling, 0), 0)
+        moving = take(inside, node, False)
+        above = take(parent, node, none)
+        add = jnp.where(moving & take(is_right, node, False), take(count, take(left_all, above, none), 0), 0)
         node = jnp.where(moving, above, node)
-        return node, offset + add, jnp.any(_take(inside, node, False)), steps + 1
+        return node, offset + add, jnp.any(take(inside, node, False)), steps + 1
 
     leaf_of, offset, _, _ = jax.lax.while_loop(
         lambda c: c[2] & (c[3] < jnp.minimum(max_leaf, cap)), climb,
-        (leaf_of, offset, jnp.any(inside[cap:] & (slot < n)), jnp.int32(0)))
-    prim_slot = _take(start_by_rank, _take(leaf_rank, leaf_of, cap), 0) + offset
+        (cap + slot, jnp.zeros(cap, jnp.int32), jnp.any(inside[cap:] & (slot < n)), jnp.int32(0)))
+    prim_slot = take(start_by_rank, take(leaf_rank, leaf_of, cap), 0) + offset
     prim_index = jnp.full(cap, -1, jnp.int32).at[jnp.where(slot < n, prim_slot, cap)].set(linked.order, mode="drop")
 
-    # scatter every kept node to its final id
-    target = jnp.where(final_id < none, final_id, none)
-    interior_all = jnp.concatenate([interior, jnp.zeros(cap, bool)])
-    child_id = lambda ids: jnp.where(interior_all, _take(final_id, ids, none), -1)  # noqa: E731
+    # every node id gathers its source (the inverse of final_id, one integer scatter)
+    source = jnp.full(nodes, none, jnp.int32).at[final_id].set(jnp.arange(nodes, dtype=jnp.int32), mode="drop")
+    is_leaf = take(final_leaf, source, False)
+    is_interior = take(interior_all, source, False)
+
+    def field(internal, leaf, fill):
+        both = jnp.concatenate([internal, leaf])
+        return take(both, source, fill)
+
+    def link(ids):
+        return jnp.where(is_interior, take(final_id, take(ids, source, none), -1), -1)
+
     right_all = jnp.concatenate([right, jnp.full(cap, none, jnp.int32)])
-    axis_all = jnp.concatenate([linked.axis, jnp.full(cap, -1, jnp.int32)])
-    parent_id = jnp.where(parent < none, _take(final_id, parent, none), -1)
-
-    def put(fill, values, dtype_):
-        return jnp.full((nodes,) + values.shape[1:], fill, dtype_).at[target].set(values, mode="drop")
-
+    parent_id = take(final_id, take(parent, source, none), -1)
+    parent_id = jnp.where(parent_id < none, parent_id, -1)
     return BVH(
-        left=put(-1, child_id(left_all), jnp.int32),
-        right=put(-1, child_id(right_all), jnp.int32),
-        parent=put(-1, parent_id, jnp.int32),
-        lo=put(jnp.inf, box_lo, dtype), hi=put(-jnp.inf, box_hi, dtype),
-        prim_start=put(0, jnp.where(final_leaf, _take(start_by_rank, leaf_rank, 0), 0), jnp.int32),
-        prim_count=put(0, jnp.where(final_leaf, count, 0), jnp.int32),
-        axis=put(-1, jnp.where(interior_all, axis_all, -1), jnp.int32),
+        left=link(left_all), right=link(right_all), parent=parent_id,
+        lo=field(linked.lo, linked.leaf_lo, jnp.inf), hi=field(linked.hi, linked.leaf_hi, -jnp.inf),
+        prim_start=jnp.where(is_leaf, take(start_by_rank, take(leaf_rank, source, cap), 0), 0),
+        prim_count=jnp.where(is_leaf, take(count, source, 0), 0),
+        axis=jnp.where(is_interior, take(linked.axis, source, -1), -1),
         prim_index=prim_index, root=jnp.int32(0),
     )

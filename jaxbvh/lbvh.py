@@ -46,6 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh import morton
+from jaxbvh.arrays import exclusive_sum, take
 from jaxbvh.finish import Linked, to_bvh
 from jaxbvh.tree import BVH
 
@@ -123,50 +124,51 @@ def fit_boxes(left, right, n, leaf_lo, leaf_hi, *, window: int):
     right = jnp.where(real, right, none)
     parent = jnp.full(nodes, none, jnp.int32).at[left].set(slot, mode="drop").at[right].set(slot, mode="drop")
     is_left = jnp.zeros(nodes, bool).at[left].set(True, mode="drop")
-    sibling = jnp.where(is_left, right.at[parent].get(mode="fill", fill_value=none),
-                        left.at[parent].get(mode="fill", fill_value=none))
+    sibling = jnp.where(is_left, take(right, parent, none), take(left, parent, none))
     lo = jnp.concatenate([jnp.full((cap, 3), jnp.inf, leaf_lo.dtype), leaf_lo])
     hi = jnp.concatenate([jnp.full((cap, 3), -jnp.inf, leaf_hi.dtype), leaf_hi])
     never = jnp.iinfo(jnp.int32).max
     # done_at: the window step a node was fitted in (-1: a primitive, fitted from the start)
     done_at = jnp.concatenate([jnp.full(cap, never, jnp.int32), jnp.full(cap, -1, jnp.int32)])
     ready = real & (left >= cap) & (right >= cap)
-    queue = jnp.concatenate([jnp.nonzero(ready, size=cap, fill_value=none)[0].astype(jnp.int32),
-                             jnp.full(window, none, jnp.int32)])
+    queue = jnp.full(cap + window, none, jnp.int32).at[jnp.where(ready, exclusive_sum(ready), cap + window)].set(
+        slot, mode="drop")
     lane = jnp.arange(window, dtype=jnp.int32)
     total = jnp.maximum(n - 1, 0)
 
     def step(carry):
-        lo, hi, done_at, queue, head, tail, w = carry
-        ids = jax.lax.dynamic_slice(queue, (head,), (window,))
+        lo, hi, done_at, queue, ids, head, tail, w = carry
         valid = lane < tail - head
         ids = jnp.where(valid, ids, none)
-        kid_l = left.at[ids].get(mode="fill", fill_value=none)
-        kid_r = right.at[ids].get(mode="fill", fill_value=none)
-        box_lo = jnp.minimum(lo.at[kid_l].get(mode="fill", fill_value=jnp.inf),
-                             lo.at[kid_r].get(mode="fill", fill_value=jnp.inf))
-        box_hi = jnp.maximum(hi.at[kid_l].get(mode="fill", fill_value=-jnp.inf),
-                             hi.at[kid_r].get(mode="fill", fill_value=-jnp.inf))
+        kid_l = take(left, ids, none)
+        kid_r = take(right, ids, none)
+        box_lo = jnp.minimum(take(lo, kid_l, jnp.inf), take(lo, kid_r, jnp.inf))
+        box_hi = jnp.maximum(take(hi, kid_l, -jnp.inf), take(hi, kid_r, -jnp.inf))
         lo = lo.at[ids].set(box_lo, mode="drop")
         hi = hi.at[ids].set(box_hi, mode="drop")
         done_at = done_at.at[ids].set(w, mode="drop")
-        up = parent.at[ids].get(mode="fill", fill_value=none)
-        other = done_at.at[sibling.at[ids].get(mode="fill", fill_value=none)].get(mode="fill", fill_value=never)
-        enqueue = valid & (up < none) & ((other < w) | ((other == w) & is_left.at[ids].get(mode="fill", fill_value=False)))
-        at = tail + jnp.cumsum(enqueue.astype(jnp.int32)) - enqueue
-        queue = queue.at[jnp.where(enqueue, at, cap + window)].set(up, mode="drop")
-        done = jnp.sum(valid, dtype=jnp.int32)
-        return lo, hi, done_at, queue, head + done, tail + jnp.sum(enqueue, dtype=jnp.int32), w + 1
+        up = take(parent, ids, none)
+        other = take(done_at, take(sibling, ids, none), never)
+        enqueue = valid & (up < none) & ((other < w) | ((other == w) & take(is_left, ids, False)))
+        # the parents, compacted, go in at the tail (what lands past them is overwritten later)
+        fresh = jnp.full(window, none, jnp.int32).at[jnp.where(enqueue, exclusive_sum(enqueue), window)].set(
+            up, mode="drop")
+        queue = jax.lax.dynamic_update_slice(queue, fresh, (tail,))
+        head = head + jnp.sum(valid, dtype=jnp.int32)
+        tail = tail + jnp.sum(enqueue, dtype=jnp.int32)
+        # the next window is read after the write (reading it before would make XLA copy the queue)
+        return lo, hi, done_at, queue, jax.lax.dynamic_slice(queue, (head,), (window,)), head, tail, w + 1
 
     # every step fits at least one node while any is left, so n steps always suffice
-    carry = (lo, hi, done_at, queue, jnp.int32(0), jnp.sum(ready, dtype=jnp.int32), jnp.int32(0))
-    carry = jax.lax.while_loop(lambda c: (c[4] < total) & (c[4] < c[5]) & (c[6] < cap), step, carry)
+    carry = (lo, hi, done_at, queue, queue[:window], jnp.int32(0), jnp.sum(ready, dtype=jnp.int32), jnp.int32(0))
+    carry = jax.lax.while_loop(lambda c: (c[5] < total) & (c[5] < c[6]) & (c[7] < cap), step, carry)
     return carry[0][:cap], carry[1][:cap]
 
 
 @partial(jax.jit, static_argnames=("window",))
 def _finish(lo, hi, n, order, left, right, first, count, axis, max_leaf, ct, ci, scale, *, window):
-    leaf_lo, leaf_hi = lo[order], hi[order]  # padding positions read padding slots
+    # padding positions read padding slots
+    leaf_lo, leaf_hi = jnp.take(lo, order, axis=0, mode="clip"), jnp.take(hi, order, axis=0, mode="clip")
     node_lo, node_hi = fit_boxes(left, right, n, leaf_lo, leaf_hi, window=window)
     linked = Linked(n=n, left=left, right=right, lo=node_lo, hi=node_hi, count=count, first=first,
                     axis=axis, leaf_lo=leaf_lo, leaf_hi=leaf_hi, order=order)

@@ -51,13 +51,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh import morton
+from jaxbvh.arrays import exclusive_sum
 from jaxbvh.build import TIE_TOLERANCE
 from jaxbvh.cost import half_area
 from jaxbvh.finish import Linked, to_bvh
 from jaxbvh.tree import BVH
 
 DEFAULT_RADIUS = 16
-SMALLEST_STAGE = 64
+SMALLEST_STAGE = 2048
 
 
 def stage_sizes(cap: int) -> tuple[int, ...]:
@@ -68,26 +69,75 @@ def stage_sizes(cap: int) -> tuple[int, ...]:
     return tuple(sizes)
 
 
-def _neighbours(lo, hi, c, scale, radius: int, exact):
-    """Offset (+-d) of every cluster's chosen neighbour, [C] int32 (rule: module docstring)."""
+def _parity(pos, d):
+    """``(pos // d) % 2`` for int32 ``pos`` >= 0 and a traced ``d`` >= 1, without an integer divide.
+
+    A float quotient is within 1 of the true one; one correction each way makes it exact.
+    """
+    q = jnp.floor(pos.astype(jnp.float32) * (1.0 / d.astype(jnp.float32))).astype(jnp.int32)
+    q = jnp.where(q * d > pos, q - 1, q)
+    q = jnp.where((q + 1) * d <= pos, q + 1, q)
+    return q & 1
+
+
+def _pair_areas(lo, hi, c, scale, reach: int):
+    """Merged-box areas of every cluster with the ``reach`` clusters after it, [reach, C].
+
+    Row ``d - 1`` pairs cluster ``i`` with ``i + d``; ``inf`` where there is no such
+    cluster. A loop over ``d`` (the program does not grow with the radius); each row is
+    one fused pass over static-size shifted slices.
+    """
     size = lo.shape[0]
     pos = jnp.arange(size, dtype=jnp.int32)
-    reach = min(radius, size - 1)
-    right = []
-    for d in range(1, reach + 1):
-        pad = jnp.full((d, 3), jnp.inf, lo.dtype)
-        area = half_area(jnp.minimum(lo, jnp.concatenate([lo[d:], pad])),
-                         jnp.maximum(hi, jnp.concatenate([hi[d:], -pad])), scale)
-        right.append(jnp.where(pos + d < c, area, jnp.inf))
-    left = [jnp.concatenate([jnp.full(d, jnp.inf, lo.dtype), right[d - 1][:-d]]) for d in range(1, reach + 1)]
-    cand = jnp.stack(right + left)  # [2 reach, C]
-    best = jnp.min(cand, axis=0)
-    limit = jnp.where(exact, best, best * (1 + TIE_TOLERANCE))
-    dist = jnp.arange(1, reach + 1, dtype=jnp.int32)[:, None]
-    parity = (pos[None, :] // dist) % 2
-    key = jnp.concatenate([2 * dist + parity, 2 * dist + 1 - parity])
-    key = jnp.where((cand <= limit) & (cand < jnp.inf), key, jnp.iinfo(jnp.int32).max)
-    row = jnp.argmin(key, axis=0).astype(jnp.int32)
+    pad = jnp.full((reach, 3), jnp.inf, lo.dtype)
+    lo_next, hi_next = jnp.concatenate([lo, pad]), jnp.concatenate([hi, -pad])
+
+    def row(k, rows):
+        d = k + 1
+        other_lo = jax.lax.dynamic_slice(lo_next, (d, 0), (size, 3))
+        other_hi = jax.lax.dynamic_slice(hi_next, (d, 0), (size, 3))
+        area = half_area(jnp.minimum(lo, other_lo), jnp.maximum(hi, other_hi), scale)
+        return rows.at[k].set(jnp.where(pos + d < c, area, jnp.inf))
+
+    return jax.lax.fori_loop(0, reach, row, jnp.zeros((reach, size), lo.dtype))
+
+
+def _shifted(row, d, reach: int):
+    """``row[i - d]`` (``inf`` for ``i < d``): the left-neighbour view of a right-neighbour row."""
+    padded = jnp.concatenate([jnp.full(reach, jnp.inf, row.dtype), row])
+    return jax.lax.dynamic_slice(padded, (reach - d,), (row.shape[0],))
+
+
+def _least_area(areas):
+    """Least area of every cluster's candidates [C] (a fold: XLA's float min-reduce is slow on CPU)."""
+    reach = areas.shape[0]
+
+    def fold(k, best):
+        return jnp.minimum(best, jnp.minimum(areas[k], _shifted(areas[k], k + 1, reach)))
+
+    return jax.lax.fori_loop(0, reach, fold, jnp.full(areas.shape[1], jnp.inf, areas.dtype))
+
+
+def _choose(areas, limit):
+    """Offset (+-d) of every cluster's choice among its candidates with area ``<= limit`` [C].
+
+    Rule: module docstring. The tie key of pair ``(m, m + d)`` is ``2 d + (m // d) % 2``;
+    keys are scaled by ``radix`` and the candidate's row added, so the least key also
+    names the row.
+    """
+    reach, size = areas.shape
+    pos = jnp.arange(size, dtype=jnp.int32)
+    radix = 1 << (2 * reach).bit_length()
+    never = jnp.iinfo(jnp.int32).max
+
+    def fold(k, key):
+        d = k + 1
+        parity = _parity(pos, d)
+        right = jnp.where(areas[k] <= limit, (2 * d + parity) * radix + k, never)
+        left = jnp.where(_shifted(areas[k], d, reach) <= limit, (2 * d + 1 - parity) * radix + reach + k, never)
+        return jnp.minimum(key, jnp.minimum(right, left))
+
+    row = jax.lax.fori_loop(0, reach, fold, jnp.full(size, never, jnp.int32)) % radix
     return jnp.where(row < reach, row + 1, reach - 1 - row)
 
 
@@ -104,22 +154,24 @@ def _iteration(n, scale, radius: int, carry):
         back = jnp.take(offset, jnp.clip(partner, 0, size - 1), mode="clip")
         return valid & (partner >= 0) & (partner < c) & (back == -offset)
 
-    offset = _neighbours(lo, hi, c, scale, radius, False)
-    mutual = mutual_of(offset)
-    offset = jax.lax.cond(jnp.any(mutual), lambda: offset, lambda: _neighbours(lo, hi, c, scale, radius, True))
+    areas = _pair_areas(lo, hi, c, scale, min(radius, size - 1))
+    best = _least_area(areas)
+    offset = _choose(areas, best * (1 + TIE_TOLERANCE))
+    # the exact rule only when no pair is mutual (rare)
+    offset = jax.lax.cond(jnp.any(mutual_of(offset)), lambda: offset, lambda: _choose(areas, best))
     mutual = mutual_of(offset)
 
     partner = jnp.clip(pos + offset, 0, size - 1)
     lower = mutual & (offset > 0)
     upper = mutual & (offset < 0)
-    rank = jnp.cumsum(lower.astype(jnp.int32)) - lower
+    rank = exclusive_sum(lower)
     slot = jnp.where(lower, (n - 2) - (made + rank), cap)  # the root (last merge) lands in slot 0
-    m_lo = jnp.minimum(lo, lo[partner])
-    m_hi = jnp.maximum(hi, hi[partner])
-    m_count = count + count[partner]
-    m_first = jnp.minimum(first, first[partner])
+    m_lo = jnp.minimum(lo, jnp.take(lo, partner, axis=0, mode="clip"))
+    m_hi = jnp.maximum(hi, jnp.take(hi, partner, axis=0, mode="clip"))
+    m_count = count + jnp.take(count, partner, axis=0, mode="clip")
+    m_first = jnp.minimum(first, jnp.take(first, partner, axis=0, mode="clip"))
     i_left, i_right, i_lo, i_hi, i_count, i_first = internal
-    internal = (i_left.at[slot].set(node, mode="drop"), i_right.at[slot].set(node[partner], mode="drop"),
+    internal = (i_left.at[slot].set(node, mode="drop"), i_right.at[slot].set(jnp.take(node, partner, axis=0, mode="clip"), mode="drop"),
                 i_lo.at[slot].set(m_lo, mode="drop"), i_hi.at[slot].set(m_hi, mode="drop"),
                 i_count.at[slot].set(m_count, mode="drop"), i_first.at[slot].set(m_first, mode="drop"))
     node = jnp.where(lower, slot, node)
@@ -129,7 +181,7 @@ def _iteration(n, scale, radius: int, carry):
     first = jnp.where(lower, m_first, first)
 
     keep = valid & ~upper
-    target = jnp.where(keep, jnp.cumsum(keep.astype(jnp.int32)) - keep, size)
+    target = jnp.where(keep, exclusive_sum(keep), size)
 
     def compact(values, fill):
         return jnp.full_like(values, fill).at[target].set(values, mode="drop")
@@ -142,7 +194,8 @@ def _iteration(n, scale, radius: int, carry):
 @partial(jax.jit, static_argnames=("radius", "stages"))
 def _cluster(lo, hi, n, order, max_leaf, ct, ci, scale, *, radius, stages):
     cap = lo.shape[0]
-    leaf_lo, leaf_hi = lo[order], hi[order]  # padding positions read padding slots
+    # padding positions read padding slots
+    leaf_lo, leaf_hi = jnp.take(lo, order, axis=0, mode="clip"), jnp.take(hi, order, axis=0, mode="clip")
     pos = jnp.arange(cap, dtype=jnp.int32)
     clusters = (cap + pos, leaf_lo, leaf_hi, (pos < n).astype(jnp.int32), pos, jnp.asarray(n, jnp.int32))
     internal = (jnp.full(cap, 2 * cap, jnp.int32), jnp.full(cap, 2 * cap, jnp.int32),
