@@ -64,13 +64,15 @@ class Linked(NamedTuple):
     order: Any      # [cap] int32 primitive id at each position
 
 
-def to_bvh(linked: Linked, max_leaf, ct, ci, scale) -> BVH:
+def to_bvh(linked: Linked, max_leaf, ct, ci, scale, *, collapse: bool) -> BVH:
     """The :class:`~jaxbvh.tree.BVH` of ``linked`` with small subtrees collapsed (traceable).
 
     ``max_leaf`` [] int32, ``ct``, ``ci``, ``scale`` [] in the boxes' dtype (``scale``:
-    the power of two areas are measured with, :func:`jaxbvh.build.scene_scale`). When
-    no node passes the leaf test (always for ``max_leaf = 1``) the layout is a pair of
-    shifted copies; otherwise :func:`_collapse` renumbers.
+    the power of two areas are measured with, :func:`jaxbvh.build.scene_scale`).
+    ``collapse`` (static; the builders pass ``max_leaf > 1``): without it every leaf
+    holds one primitive and the layout is a pair of shifted copies; with it the
+    leaf test runs and :func:`_collapse` renumbers. One compiled program per mode, the
+    value of ``max_leaf`` is traced.
     """
     n = linked.n
     cap = linked.leaf_lo.shape[0]
@@ -82,6 +84,8 @@ def to_bvh(linked: Linked, max_leaf, ct, ci, scale) -> BVH:
     left = jnp.where(real, linked.left, none)
     right = jnp.where(real, linked.right, none)
     parent = jnp.full(nodes, none, jnp.int32).at[left].set(slot, mode="drop").at[right].set(slot, mode="drop")
+    if not collapse:
+        return _in_place(linked, n, left, right, parent)
 
     # the SAH leaf test at every internal node, from its children
     count = jnp.concatenate([jnp.where(real, linked.count, 0), (slot < n).astype(jnp.int32)])
@@ -92,15 +96,11 @@ def to_bvh(linked: Linked, max_leaf, ct, ci, scale) -> BVH:
     n_own = count[:cap].astype(dtype)
     estimate = ct + jnp.where(own > 0, ci * split / jnp.where(own > 0, own, 1), ci * n_own)
     passes = real & (count[:cap] <= max_leaf) & (ci * n_own <= estimate)
-
-    parts = (n, left, right, parent, count, passes)
-    return jax.lax.cond(jnp.any(passes), lambda: _collapse(linked, parts, max_leaf),
-                        lambda: _in_place(linked, parts))
+    return _collapse(linked, (n, left, right, parent, count, passes), max_leaf)
 
 
-def _in_place(linked: Linked, parts) -> BVH:
+def _in_place(linked: Linked, n, left, right, parent) -> BVH:
     """Layout without collapsing: internal slot k is node k, position p is node n - 1 + p."""
-    n, left, right, parent, _, _ = parts
     cap = linked.leaf_lo.shape[0]
     nodes = 2 * cap
     node = jnp.arange(nodes, dtype=jnp.int32)

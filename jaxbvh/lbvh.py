@@ -165,14 +165,14 @@ def fit_boxes(left, right, n, leaf_lo, leaf_hi, *, window: int):
     return carry[0][:cap], carry[1][:cap]
 
 
-@partial(jax.jit, static_argnames=("window",))
-def _finish(lo, hi, n, order, left, right, first, count, axis, max_leaf, ct, ci, scale, *, window):
+@partial(jax.jit, static_argnames=("window", "collapse"))
+def _finish(lo, hi, n, order, left, right, first, count, axis, max_leaf, ct, ci, scale, *, window, collapse):
     # padding positions read padding slots
     leaf_lo, leaf_hi = jnp.take(lo, order, axis=0, mode="clip"), jnp.take(hi, order, axis=0, mode="clip")
     node_lo, node_hi = fit_boxes(left, right, n, leaf_lo, leaf_hi, window=window)
     linked = Linked(n=n, left=left, right=right, lo=node_lo, hi=node_hi, count=count, first=first,
                     axis=axis, leaf_lo=leaf_lo, leaf_hi=leaf_hi, order=order)
-    return to_bvh(linked, max_leaf, ct, ci, scale)
+    return to_bvh(linked, max_leaf, ct, ci, scale, collapse=collapse)
 
 
 def window_size(cap: int) -> int:
@@ -196,4 +196,4 @@ def build(lo: np.ndarray, hi: np.ndarray, n: int, *, max_leaf: int, ct: float, c
                                                            jnp.asarray(grid), bits=bits)
     return _finish(lo_j, hi_j, jnp.int32(n), order, left, right, first, count, axis, jnp.int32(max_leaf),
                    jnp.asarray(ct, dtype), jnp.asarray(ci, dtype), jnp.asarray(scale, dtype),
-                   window=window_size(lo.shape[0]))
+                   window=window_size(lo.shape[0]), collapse=int(max_leaf) > 1)

@@ -191,8 +191,8 @@ def _iteration(n, scale, radius: int, carry):
     return clusters, internal, made + jnp.sum(lower, dtype=jnp.int32), steps + 1
 
 
-@partial(jax.jit, static_argnames=("radius", "stages"))
-def _cluster(lo, hi, n, order, max_leaf, ct, ci, scale, *, radius, stages):
+@partial(jax.jit, static_argnames=("radius", "stages", "collapse"))
+def _cluster(lo, hi, n, order, max_leaf, ct, ci, scale, *, radius, stages, collapse):
     cap = lo.shape[0]
     # padding positions read padding slots
     leaf_lo, leaf_hi = jnp.take(lo, order, axis=0, mode="clip"), jnp.take(hi, order, axis=0, mode="clip")
@@ -211,7 +211,7 @@ def _cluster(lo, hi, n, order, max_leaf, ct, ci, scale, *, radius, stages):
     _, (i_left, i_right, i_lo, i_hi, i_count, i_first), _, _ = carry
     linked = Linked(n=n, left=i_left, right=i_right, lo=i_lo, hi=i_hi, count=i_count, first=i_first,
                     axis=jnp.full(cap, -1, jnp.int32), leaf_lo=leaf_lo, leaf_hi=leaf_hi, order=order)
-    return to_bvh(linked, max_leaf, ct, ci, scale)
+    return to_bvh(linked, max_leaf, ct, ci, scale, collapse=collapse)
 
 
 def build(lo: np.ndarray, hi: np.ndarray, n: int, *, radius: int = DEFAULT_RADIUS, max_leaf: int, ct: float,
@@ -230,4 +230,4 @@ def build(lo: np.ndarray, hi: np.ndarray, n: int, *, radius: int = DEFAULT_RADIU
     order = morton.morton_order(lo_j, hi_j, n, jnp.asarray(origin), jnp.asarray(grid), bits=bits)
     return _cluster(lo_j, hi_j, jnp.int32(n), order, jnp.int32(max_leaf), jnp.asarray(ct, dtype),
                     jnp.asarray(ci, dtype), jnp.asarray(scale, dtype), radius=int(radius),
-                    stages=stage_sizes(lo.shape[0]))
+                    stages=stage_sizes(lo.shape[0]), collapse=int(max_leaf) > 1)
