@@ -158,6 +158,18 @@ def test_small_subtrees_collapse_by_the_sah_test(method):
                 assert len(set(ids // 4)) == 1  # one group per leaf
 
 
+@pytest.mark.parametrize("method", ["lbvh", "ploc"])
+def test_a_leaf_that_costs_what_its_split_costs_stays_a_leaf(method):
+    """Two flat unit squares side by side: Ci N = 2 = Ct + Ci (1 + 1) / 2 exactly; a tie keeps the leaf."""
+    lo = np.array([[0, 0, 0], [1, 0, 0]], np.float32)
+    hi = np.array([[1, 1, 0], [2, 1, 0]], np.float32)
+    for max_leaf, nodes in ((2, 1), (1, 3)):
+        tree = jaxbvh.build(lo, hi, method=method, max_leaf=max_leaf)
+        jaxbvh.validate(tree, lo, hi)
+        assert jaxbvh.tree.node_count(tree) == nodes
+        assert jaxbvh.tree.node_count(reference.build(lo, hi, max_leaf=max_leaf)) == nodes
+
+
 def test_sizes_in_one_capacity_bucket_compile_once():
     rng = np.random.default_rng(1)
     sizes = [13, 14, 15, 16]
