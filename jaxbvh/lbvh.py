@@ -189,8 +189,8 @@ def build(lo: np.ndarray, hi: np.ndarray, n: int, *, max_leaf: int, ct: float, c
     """
     bits = morton.check_code_bits(morton_bits)
     dtype = lo.dtype
-    origin, grid = morton.quantization(lo[:n], hi[:n], bits)
     lo_j, hi_j = jnp.asarray(lo), jnp.asarray(hi)
+    origin, grid = morton.quantization(lo_j, hi_j, n, bits)
     with morton.x64():
         order, left, right, first, count, axis = _topology(lo_j, hi_j, jnp.int32(n), jnp.asarray(origin),
                                                            jnp.asarray(grid), bits=bits)

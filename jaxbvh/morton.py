@@ -13,8 +13,9 @@ lowest centre per axis and ``scale = 2^b / E`` for ``E`` the centre box's larges
 extent, so cells are cubes and a flat axis simply uses fewer cells. ``b = 10`` gives
 30-bit codes, ``b = 21`` 63-bit codes; the bits of ``qx``, ``qy``, ``qz`` are
 interleaved with ``x`` most significant (bit ``3k + 2`` of a code is bit ``k`` of ``qx``).
-:func:`quantization` computes ``origin`` and ``scale`` on the host in the boxes'
-dtype, so the NumPy reference (:mod:`jaxbvh.reference.morton`) quantizes identically.
+:func:`quantization` computes ``scale`` on the host in the boxes' dtype from the exact
+centre bounds, so the NumPy reference (:mod:`jaxbvh.reference.morton`) quantizes
+identically.
 
 Keys
 ====
@@ -64,21 +65,30 @@ def check_code_bits(bits: int) -> int:
     return int(bits)
 
 
-def quantization(lo: np.ndarray, hi: np.ndarray, bits: int):
-    """``(origin [3], scale)`` of the cubic grid over the centres of ``lo``, ``hi`` [n, 3].
+@jax.jit
+def centre_bounds(lo, hi, n):
+    """Lowest and highest centre [3] each of the first ``n`` of ``lo``, ``hi`` [cap, 3] (exact)."""
+    centre = 0.5 * lo + 0.5 * hi
+    is_prim = (jnp.arange(lo.shape[0]) < n)[:, None]
+    return (jnp.min(jnp.where(is_prim, centre, jnp.inf), axis=0),
+            jnp.max(jnp.where(is_prim, centre, -jnp.inf), axis=0))
 
-    Computed on the host in the boxes' dtype (module docstring). ``scale`` is capped at
-    the dtype's largest finite value, so a tiny centre box never makes it infinite
-    (``0 * inf`` would be NaN); all centres in one point give ``scale = 0``, every
-    code 0.
+
+def quantization(lo, hi, n: int, bits: int):
+    """``(origin [3], scale)`` of the cubic grid over the centres of the first ``n`` boxes.
+
+    ``lo``, ``hi`` [cap, 3] in the working dtype (JAX or NumPy). The centre bounds come
+    from :func:`centre_bounds` (a jitted pass); ``scale`` is computed on the host in the
+    boxes' dtype, as the NumPy reference does, and capped at the dtype's largest finite
+    value, so a tiny centre box never makes it infinite (``0 * inf`` would be NaN); all
+    centres in one point give ``scale = 0``, every code 0.
     """
-    dtype = lo.dtype
-    centre = dtype.type(0.5) * lo + dtype.type(0.5) * hi
-    origin = centre.min(axis=0)
-    extent = float((centre.max(axis=0) - origin).max())
+    dtype = np.dtype(lo.dtype)
+    low, high = (np.asarray(a) for a in centre_bounds(jnp.asarray(lo), jnp.asarray(hi), jnp.int32(n)))
+    extent = float((high - low).max())
     cells = float(2 ** (int(bits) // 3))
     scale = min(cells / extent, float(np.finfo(dtype).max)) if extent > 0 else 0.0
-    return origin.astype(dtype), dtype.type(scale)
+    return low.astype(dtype), dtype.type(scale)
 
 
 def _spread(x, bits_per_axis: int):

@@ -1,4 +1,4 @@
-"""PLOC: Parallel Locally-Ordered Clustering (Meister & Bittner 2017) (jitted).
+"""PLOC: Parallel Locally-Ordered Clustering (Meister & Bittner 2017, IEEE TVCG 2018) (jitted).
 
 Algorithm
 =========
@@ -16,7 +16,8 @@ that order. Each iteration:
 3. **Compact** the array in order (an exclusive prefix sum).
 
 until one cluster is left. ``r`` (``radius``) is the effort knob: the paper uses 8 to
-25, and a larger ``r`` finds better neighbours at proportionally more work per iteration.
+25; a larger ``r`` looks further for neighbours at proportionally more work per
+iteration (the SAH reached is not monotone in ``r``: ``bench/results/build_trade.md``).
 
 Neighbour rule (the NumPy twin :mod:`jaxbvh.reference.ploc` keeps the same one).
 Areas within a relative ``TIE_TOLERANCE`` of the least count as equal (XLA may fuse a
@@ -171,7 +172,8 @@ def _iteration(n, scale, radius: int, carry):
     m_count = count + jnp.take(count, partner, axis=0, mode="clip")
     m_first = jnp.minimum(first, jnp.take(first, partner, axis=0, mode="clip"))
     i_left, i_right, i_lo, i_hi, i_count, i_first = internal
-    internal = (i_left.at[slot].set(node, mode="drop"), i_right.at[slot].set(jnp.take(node, partner, axis=0, mode="clip"), mode="drop"),
+    m_right = jnp.take(node, partner, mode="clip")
+    internal = (i_left.at[slot].set(node, mode="drop"), i_right.at[slot].set(m_right, mode="drop"),
                 i_lo.at[slot].set(m_lo, mode="drop"), i_hi.at[slot].set(m_hi, mode="drop"),
                 i_count.at[slot].set(m_count, mode="drop"), i_first.at[slot].set(m_first, mode="drop"))
     node = jnp.where(lower, slot, node)
@@ -225,8 +227,8 @@ def build(lo: np.ndarray, hi: np.ndarray, n: int, *, radius: int = DEFAULT_RADIU
         raise ValueError(f"radius must be >= 1, got {radius}")
     bits = morton.check_code_bits(morton_bits)
     dtype = lo.dtype
-    origin, grid = morton.quantization(lo[:n], hi[:n], bits)
     lo_j, hi_j = jnp.asarray(lo), jnp.asarray(hi)
+    origin, grid = morton.quantization(lo_j, hi_j, n, bits)
     order = morton.morton_order(lo_j, hi_j, n, jnp.asarray(origin), jnp.asarray(grid), bits=bits)
     return _cluster(lo_j, hi_j, jnp.int32(n), order, jnp.int32(max_leaf), jnp.asarray(ct, dtype),
                     jnp.asarray(ci, dtype), jnp.asarray(scale, dtype), radius=int(radius),
