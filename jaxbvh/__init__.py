@@ -13,7 +13,8 @@ from jaxbvh.build import BUILDERS, build
 __version__ = "0.1.0"
 
 _LAZY = {"load_mesh": ("jaxbvh.io", "load_mesh"), "io": ("jaxbvh.io", None), "rays": ("jaxbvh.rays", None),
-         "rotate": ("jaxbvh.rotate", None)}
+         "rotate": ("jaxbvh.rotate", None), "lbvh": ("jaxbvh.lbvh", None), "ploc": ("jaxbvh.ploc", None),
+         "morton": ("jaxbvh.morton", None)}
 
 
 def __getattr__(name):
