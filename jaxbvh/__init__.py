@@ -27,6 +27,9 @@ _LAZY = {
     "reinsert": ("jaxbvh.reinsert", None),
     "treelet": ("jaxbvh.treelet", None),
     "optimize": ("jaxbvh.optimize", None),
+    "lbvh": ("jaxbvh.lbvh", None),
+    "ploc": ("jaxbvh.ploc", None),
+    "morton": ("jaxbvh.morton", None),
 }
 
 

@@ -81,7 +81,7 @@ from jaxbvh.cost import half_area
 from jaxbvh.tree import BVH, capacity_bucket
 from jaxbvh.validate import few_ids
 
-BUILDERS = ("sweep", "binned", "median")
+BUILDERS = ("sweep", "binned", "median", "lbvh", "ploc")
 TIE_TOLERANCE = 2.0 ** -20  # relative; costs this close count as a tie (module docstring)
 
 
@@ -130,29 +130,45 @@ def scene_scale(lo: np.ndarray, hi: np.ndarray) -> float:
 
 
 def build(prim_lo, prim_hi, *, method: str = "sweep", max_leaf: int = 1, bins: int = 16,
-          ct: float = 1.0, ci: float = 1.0, pad: bool = True, dtype=None) -> BVH:
+          ct: float = 1.0, ci: float = 1.0, pad: bool = True, dtype=None, radius: int = 16,
+          morton_bits: int = 30) -> BVH:
     """Build a binary BVH over primitive boxes.
+
+    ``"sweep"``, ``"binned"`` and ``"median"`` run the top-down engine below;
+    ``"lbvh"`` (:mod:`jaxbvh.lbvh`, Karras' radix tree over Morton codes) and ``"ploc"``
+    (:mod:`jaxbvh.ploc`, Meister & Bittner's clustering) build bottom-up, far faster on
+    large inputs, at some cost in SAH.
 
     Args:
       prim_lo, prim_hi: [n, 3] primitive boxes (any frame; pass scene-relative
         coordinates, e.g. ``jaxbvh.io.Mesh.local_boxes()``, for float32 accuracy far
         from the origin).
-      method: ``"sweep"`` (full-sweep SAH), ``"binned"`` or ``"median"``.
+      method: ``"sweep"`` (full-sweep SAH), ``"binned"``, ``"median"``, ``"lbvh"`` or
+        ``"ploc"``.
       max_leaf: largest leaf; 1 (default) splits down to single primitives.
       bins: bins per axis for ``"binned"``.
       ct, ci: SAH traversal and intersection costs (leaf termination only).
       pad: pad arrays to a capacity bucket (fewer recompiles) or size them exactly.
       dtype: float32 (default) or float64 (needs x64); boxes are cast to it, so validate
         the tree against boxes cast the same way.
+      radius: neighbours on each side a ``"ploc"`` cluster looks at (effort knob; static).
+      morton_bits: 30 or 63, the Morton codes ``"lbvh"`` and ``"ploc"`` sort by.
 
     Returns:
-      A :class:`~jaxbvh.tree.BVH` of JAX arrays with ``2 * capacity`` node slots, nodes
-      numbered level by level from the root 0, ``axis`` set to each split's axis.
+      A :class:`~jaxbvh.tree.BVH` of JAX arrays with ``2 * capacity`` node slots, root 0
+      and the real nodes first: numbered level by level with ``axis`` set to each split's
+      axis for the top-down builders; for ``"lbvh"`` and ``"ploc"`` interior nodes first
+      (parents before children for ``"ploc"``), then leaves in Morton order, ``axis`` the
+      Morton bit's axis (``"lbvh"``) or -1 (``"ploc"``).
     """
     if method not in BUILDERS:
         raise ValueError(f"unknown builder {method!r}; choose one of {', '.join(BUILDERS)}")
     if int(max_leaf) < 1:
         raise ValueError(f"max_leaf must be >= 1, got {max_leaf}")
+    if method == "ploc" and int(radius) < 1:
+        raise ValueError(f"radius must be >= 1, got {radius}")
+    if method in ("lbvh", "ploc") and int(morton_bits) not in (30, 63):
+        raise ValueError(f"morton_bits must be 30 or 63, got {morton_bits}")
     if method == "binned" and int(bins) < 2:
         raise ValueError(f"bins must be >= 2, got {bins}")
     lo_p, hi_p, n, scale = engine_inputs(prim_lo, prim_hi, pad=pad, dtype=dtype)
@@ -212,7 +228,20 @@ def engine_inputs(prim_lo, prim_hi, *, pad: bool = True, dtype=None):
     lo_p = np.full((cap, 3), np.inf, dt)
     hi_p = np.full((cap, 3), -np.inf, dt)
     lo_p[:n], hi_p[:n] = lo, hi
+<<<<<<< HEAD
     return jnp.asarray(lo_p), jnp.asarray(hi_p), jnp.int32(n), jnp.asarray(scene_scale(lo, hi), dt)
+=======
+    if method in ("lbvh", "ploc"):
+        from jaxbvh import lbvh, ploc
+
+        options = dict(max_leaf=int(max_leaf), ct=ct, ci=ci, scale=scene_scale(lo, hi), morton_bits=int(morton_bits))
+        if method == "lbvh":
+            return lbvh.build(lo_p, hi_p, n, **options)
+        return ploc.build(lo_p, hi_p, n, radius=int(radius), **options)
+    return _build(jnp.asarray(lo_p), jnp.asarray(hi_p), jnp.int32(n), jnp.int32(max_leaf),
+                  jnp.asarray(ct, dt), jnp.asarray(ci, dt), jnp.asarray(scene_scale(lo, hi), dt),
+                  method=method, bins=int(bins) if method == "binned" else 0)
+>>>>>>> fastbuild
 
 
 # ----------------------------------------------------------------------------------

@@ -32,11 +32,16 @@ def add_builder_args(parser) -> None:
     from jaxbvh.build import BUILDERS
 
     parser.add_argument("--builder", choices=BUILDERS, default="sweep",
-                        help="split rule of the top-down builder (default: sweep)")
+                        help="sweep, binned or median (top-down SAH engine), lbvh or ploc (bottom-up "
+                             "from Morton order: much faster on big inputs) (default: sweep)")
     parser.add_argument("--max-leaf", type=_int_at_least(1), default=1, metavar="N",
                         help="most primitives per leaf (default: 1)")
     parser.add_argument("--bins", type=_int_at_least(2), default=16, metavar="B",
                         help="bins per axis for --builder binned, >= 2 (default: 16)")
+    parser.add_argument("--radius", type=_int_at_least(1), default=16, metavar="R",
+                        help="neighbours on each side a cluster looks at, for --builder ploc (default: 16)")
+    parser.add_argument("--morton-bits", type=int, choices=(30, 63), default=30,
+                        help="Morton code length for --builder lbvh and ploc (default: 30)")
     parser.add_argument("--ct", type=float, default=1.0, help="SAH traversal cost (default: 1)")
     parser.add_argument("--ci", type=float, default=1.0, help="SAH intersection cost (default: 1)")
 
@@ -182,7 +187,8 @@ def build_mesh_tree(mesh: Mesh, args, stages: Stages):
     lo, hi = mesh.local_boxes()
     with stages("build"):
         tree = jaxbvh.build(lo, hi, method=args.builder, max_leaf=args.max_leaf, bins=args.bins,
-                            ct=args.ct, ci=args.ci)
+                            ct=args.ct, ci=args.ci, radius=getattr(args, "radius", 16),
+                            morton_bits=getattr(args, "morton_bits", 30))
         # the capacity a saved copy loads with: same shape, same compiled programs
         tree = compact(jax.block_until_ready(tree))
     with stages("validate"):

@@ -86,11 +86,21 @@ def _binned_split(ids, lo, hi, centre, scale, bins):
     return best, axis, left, right
 
 
-def build(prim_lo, prim_hi, *, method="sweep", max_leaf=1, bins=16, ct=1.0, ci=1.0) -> BVH:
+def build(prim_lo, prim_hi, *, method="sweep", max_leaf=1, bins=16, ct=1.0, ci=1.0, radius=16,
+          morton_bits=30) -> BVH:
     """Reference build; same arguments as :func:`jaxbvh.build`, boxes used in their dtype.
 
-    Returns an unpadded NumPy :class:`~jaxbvh.tree.BVH` in depth-first order.
+    Returns an unpadded NumPy :class:`~jaxbvh.tree.BVH` in depth-first order. The
+    bottom-up builders have twins of their own (:mod:`jaxbvh.reference.lbvh`,
+    :mod:`jaxbvh.reference.ploc`), which this dispatches to.
     """
+    if method in ("lbvh", "ploc"):
+        from jaxbvh.reference import lbvh, ploc
+
+        options = dict(max_leaf=max_leaf, ct=ct, ci=ci, morton_bits=morton_bits)
+        if method == "lbvh":
+            return lbvh.build(prim_lo, prim_hi, **options)
+        return ploc.build(prim_lo, prim_hi, radius=radius, **options)
     lo = np.asarray(prim_lo)
     hi = np.asarray(prim_hi)
     dtype = lo.dtype
