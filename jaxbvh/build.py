@@ -175,6 +175,13 @@ def build(prim_lo, prim_hi, *, method: str = "sweep", max_leaf: int = 1, bins: i
     if method == "binned" and capacity_bucket(int(n)) * int(bins) >= 2**31:
         raise ValueError(f"binned build of {int(n)} primitives with {bins} bins needs keys past int32; "
                          "use fewer bins")
+    if method in ("lbvh", "ploc"):
+        from jaxbvh import lbvh, ploc
+
+        options = dict(max_leaf=int(max_leaf), ct=ct, ci=ci, scale=scale, morton_bits=int(morton_bits))
+        if method == "lbvh":
+            return lbvh.build(lo_p, hi_p, int(n), **options)
+        return ploc.build(lo_p, hi_p, int(n), radius=int(radius), **options)
     dt = lo_p.dtype
     return _build(lo_p, hi_p, n, jnp.int32(max_leaf), jnp.asarray(ct, dt), jnp.asarray(ci, dt), scale,
                   method=method, bins=int(bins) if method == "binned" else 0)
@@ -228,20 +235,7 @@ def engine_inputs(prim_lo, prim_hi, *, pad: bool = True, dtype=None):
     lo_p = np.full((cap, 3), np.inf, dt)
     hi_p = np.full((cap, 3), -np.inf, dt)
     lo_p[:n], hi_p[:n] = lo, hi
-<<<<<<< HEAD
     return jnp.asarray(lo_p), jnp.asarray(hi_p), jnp.int32(n), jnp.asarray(scene_scale(lo, hi), dt)
-=======
-    if method in ("lbvh", "ploc"):
-        from jaxbvh import lbvh, ploc
-
-        options = dict(max_leaf=int(max_leaf), ct=ct, ci=ci, scale=scene_scale(lo, hi), morton_bits=int(morton_bits))
-        if method == "lbvh":
-            return lbvh.build(lo_p, hi_p, n, **options)
-        return ploc.build(lo_p, hi_p, n, radius=int(radius), **options)
-    return _build(jnp.asarray(lo_p), jnp.asarray(hi_p), jnp.int32(n), jnp.int32(max_leaf),
-                  jnp.asarray(ct, dt), jnp.asarray(ci, dt), jnp.asarray(scene_scale(lo, hi), dt),
-                  method=method, bins=int(bins) if method == "binned" else 0)
->>>>>>> fastbuild
 
 
 # ----------------------------------------------------------------------------------

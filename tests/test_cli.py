@@ -481,6 +481,21 @@ print("COMPILES", len(compiles) - len(hits), "HITS", len(hits))
 """
 
 
+def _instanced_scene(path: Path) -> Path:
+    """A glTF scene: one small mesh placed by three overlapping, shifted instances."""
+    import trimesh
+
+    grid = trimesh.load(grid_obj(path.with_suffix(".obj"), n=3), process=False)
+    scene = trimesh.Scene()
+    scene.add_geometry(grid, geom_name="grid", node_name="n0")
+    for i in (1, 2):
+        matrix = np.eye(4)
+        matrix[:3, 3] = [0.3 * i, 0.2 * i, 0.1 * i]
+        scene.graph.update(frame_to=f"m{i}", frame_from=scene.graph.base_frame, matrix=matrix, geometry="grid")
+    scene.export(path)
+    return path
+
+
 def test_second_run_compiles_nothing(tmp_path):
     """Every command, run again in a fresh process, takes every program from the cache."""
     import subprocess
@@ -493,17 +508,16 @@ def test_second_run_compiles_nothing(tmp_path):
                 ["optimize", str(tree), "--json"],
                 ["optimize", str(tree), "--method", "hc", "--json"],
                 ["optimize", str(tree), "--method", "sa", "--iterations", "6", "--chains", "2", "--json"],
-<<<<<<< HEAD
+                ["optimize", str(tree), "--method", "reinsert", "--time-budget", "5", "--json"],
+                ["optimize", str(tree), "--method", "treelet", "--treelet-leaves", "5", "--json"],
                 ["trace", str(tree), str(mesh), "--rays", "64", "--json"],
                 ["evolve", str(mesh), "--population", "4", "--generations", "2", "--json"],
                 ["collapse", str(tree), "--json"],
                 ["collapse", str(mesh), "--method", "greedy", "--json"],
-                ["grasp", str(mesh), "--trials", "4", "--json"]]
-=======
-                ["optimize", str(tree), "--method", "reinsert", "--time-budget", "5", "--json"],
-                ["optimize", str(tree), "--method", "treelet", "--treelet-leaves", "5", "--json"],
-                ["trace", str(tree), str(mesh), "--rays", "64", "--json"]]
->>>>>>> optimize2
+                ["grasp", str(mesh), "--trials", "4", "--json"],
+                ["build", str(mesh), "--builder", "lbvh", "--json"],
+                ["build", str(mesh), "--builder", "ploc", "--json"],
+                ["rebraid", str(_instanced_scene(tmp_path / "scene.glb")), "--rays", "16", "--json"]]
     env = {**__import__("os").environ, "JAXBVH_CACHE_DIR": str(tmp_path / "cache"),
            "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
 
