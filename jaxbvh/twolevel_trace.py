@@ -171,7 +171,8 @@ def _trace_one(tl, origin, direction, t_max, max_steps, *, capacity):
     hit = s["prim"] >= 0
     hits = Hits(t=jnp.where(hit, s["t"], jnp.inf), prim=s["prim"], u=s["u"], v=s["v"],
                 box_tests=s["box_tests"], prim_tests=s["prim_tests"], nodes_visited=s["nodes_visited"],
-                leaves_visited=s["leaves_visited"], stack_overflow=s["stack_overflow"])
+                leaves_visited=s["leaves_visited"], stack_overflow=s["stack_overflow"],
+                step_limit=busy(s))
     return hits, busy(s)
 
 
