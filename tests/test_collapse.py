@@ -187,7 +187,13 @@ def test_level_order_is_breadth_first(spec):
 # The optimal DP
 # ----------------------------------------------------------------------------------
 
-COSTS = {"k": None, "ceil(k/4)": collapse.node_test_cost(4)}
+def even_widths_cheap(k):
+    """A user's T(k) on int arrays, not monotone: an even number of boxes costs k / 2."""
+    return np.where(k % 2 == 0, k / 2, k)
+
+
+COSTS = {"k": None, "ceil(k/4)": collapse.node_test_cost(4), "ceil(k/8)": collapse.node_test_cost(8),
+         "user": even_widths_cheap}
 
 
 @settings(max_examples=30, **SETTINGS)
@@ -196,6 +202,7 @@ COSTS = {"k": None, "ceil(k/4)": collapse.node_test_cost(4)}
 @example((2, 2, 1, "random"), 8, "k")        # root and two leaves
 @example((3, 30, 1, "point"), 8, "k")        # every area zero: all ties
 @example((4, 40, 1, "grid"), 3, "ceil(k/4)")
+@example((5, 40, 3, "random"), 8, "user")    # multi-primitive leaves, a T that is not monotone
 def test_dp_equals_reference(spec, k, cost_name):
     tree, lo, hi = random_tree(*spec)
     cost = COSTS[cost_name]
@@ -281,6 +288,8 @@ def test_dp_not_worse_than_greedy_qbvh_binary(spec, k):
 @given(trees, st.sampled_from([None, 2, 3, 5]))
 @example((3, 30, 1, "point"), None)
 @example((3, 30, 1, "point"), 3)
+@example((1, 1, 1, "random"), None)  # one leaf
+@example((2, 2, 1, "random"), 3)     # root and two leaves
 def test_greedy_equals_reference(spec, k):
     tree, lo, hi = random_tree(*spec)
     result = collapse.greedy(tree, max_children=k)
@@ -311,6 +320,9 @@ def test_greedy_rule_is_the_papers():
 
 @settings(max_examples=20, **SETTINGS)
 @given(trees)
+@example((1, 1, 1, "random"))
+@example((2, 2, 1, "random"))
+@example((3, 30, 1, "point"))
 def test_qbvh_equals_reference(spec):
     tree, lo, hi = random_tree(*spec)
     result = collapse.qbvh(tree)
