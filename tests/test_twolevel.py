@@ -350,6 +350,19 @@ def test_bins_count_primitives_not_brefs():
         assert res.instance[top.prim_index[top.prim_start[right]]] == 2
 
 
+def test_capacity_sets_the_bref_slots():
+    """``capacity`` (e.g. the paper's #primitives / 1000) replaces ``budget`` x instances;
+    as many slots as instances leave no room to open; fewer are refused."""
+    mesh = _row_of_trees(0.0)  # three copies of one tree in one place: they open
+    trees = fm.build_objects(mesh)
+    _, _, roomy = top_level(mesh, trees, threshold=0.01, capacity=12)
+    assert 3 < int(roomy.count) <= 12
+    _, _, tight = top_level(mesh, trees, threshold=0.01, capacity=3)
+    assert int(tight.count) == 3
+    with pytest.raises(ValueError, match="capacity"):
+        top_level(mesh, trees, threshold=0.01, capacity=2)
+
+
 def _row_of_trees(step):
     """Three copies of one tree, shifted along x by ``step`` times its width."""
     v, f = small_tree(0)
