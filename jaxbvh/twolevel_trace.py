@@ -171,9 +171,8 @@ def _trace_one(tl, origin, direction, t_max, max_steps, *, capacity):
     hit = s["prim"] >= 0
     hits = Hits(t=jnp.where(hit, s["t"], jnp.inf), prim=s["prim"], u=s["u"], v=s["v"],
                 box_tests=s["box_tests"], prim_tests=s["prim_tests"], nodes_visited=s["nodes_visited"],
-                leaves_visited=s["leaves_visited"], stack_overflow=s["stack_overflow"],
-                step_limit=busy(s))
-    return hits, busy(s)
+                leaves_visited=s["leaves_visited"], stack_overflow=s["stack_overflow"], step_limit=busy(s))
+    return hits
 
 
 @partial(jax.jit, static_argnames=("capacity",))
@@ -181,7 +180,8 @@ def trace_batch(tl, origin, direction, t_max, max_steps, *, capacity):
     """Closest hits of rays ``origin``, ``direction`` [R, 3] (scene frame) through ``tl``.
 
     ``t_max`` [R]; ``max_steps``: loop bound (:func:`step_bound`); ``capacity``: static
-    stack size (:func:`stack_capacity`). Returns ``(Hits, step_overflow [R] bool)``.
+    stack size (:func:`stack_capacity`). Returns :class:`~jaxbvh.traverse.Hits` (``step_limit``:
+    the ray was still busy at the bound).
     """
     one = partial(_trace_one, tl, max_steps=max_steps, capacity=capacity)
     return jax.vmap(one)(origin, direction, t_max)
@@ -217,13 +217,12 @@ def closest_hit(tl, origin, direction, *, batch: int = 256,
     hits = jax.tree_util.tree_map(lambda *parts: np.concatenate([np.asarray(p)[:n] for (n, _), p in
                                                                  zip(pieces, parts)]),
                                   *[h for _, h in pieces])
-    hits, over = hits
     if hits.stack_overflow.any():
         bad = np.flatnonzero(hits.stack_overflow)
         raise RuntimeError(f"two-level traversal stack of {capacity} entries overflowed on "
                            f"{bad.size} ray(s) (first: {bad[:5].tolist()})")
-    if over.any():
-        bad = np.flatnonzero(over)
+    if hits.step_limit.any():
+        bad = np.flatnonzero(hits.step_limit)
         raise RuntimeError(f"two-level traversal passed its bound of {int(bound)} steps on "
                            f"{bad.size} ray(s) (first: {bad[:5].tolist()}): the tree is malformed")
     return hits

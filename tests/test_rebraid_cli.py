@@ -68,7 +68,7 @@ def test_json_has_the_three_way_table(capsys, scene, tmp_path):
 
 
 def test_text_output_prints_the_table(capsys, scene):
-    status, out, err = run_cli(capsys, "rebraid", scene, "--threshold", "inf")
+    status, out, err = run_cli(capsys, "rebraid", scene, "--threshold", "inf", "--builder", "sweep")
     assert status == 0, err
     lines = out.splitlines()
     assert lines[0].split()[:2] == ["SAH", "vs"]

@@ -323,6 +323,84 @@ def test_float64_build_matches_reference_and_validates():
         jaxbvh.validate(twolevel.flatten(tl), lo, hi)
 
 
+def _box_object(n_triangles):
+    """``n_triangles`` copies of one triangle whose box is the unit cube."""
+    v = np.array([[0.0, 0, 0], [1, 1, 1], [1, 0, 0]])
+    return np.tile(v, (n_triangles, 1)), np.arange(3 * n_triangles).reshape(-1, 3)
+
+
+def _shifted(obj, x):
+    t = np.eye(4)
+    t[0, 3] = x
+    return (obj, t)
+
+
+def test_bins_count_primitives_not_brefs():
+    """Unit boxes at x = 0, 2, 4 with 1, 1 and 40 triangles: counting BRefs, both planes
+    cost the same (and the lower one wins); counting primitives, the 40-triangle box goes
+    alone (checked: binning that counts 1 per BRef fails here)."""
+    mesh = scenes.assemble([_box_object(1), _box_object(40)],
+                           [_shifted(0, 0.0), _shifted(0, 2.0), _shifted(1, 4.0)])
+    for estimate in (False, True):
+        _, _, res = top_level(mesh, fm.build_objects(mesh), threshold=math.inf, estimate=estimate)
+        top = res.top
+        root = int(top.root)
+        left, right = int(top.left[root]), int(top.right[root])
+        assert top.axis[root] == 0 and top.prim_count[left] == 0 and top.prim_count[right] == 1
+        assert res.instance[top.prim_index[top.prim_start[right]]] == 2
+
+
+def test_capacity_sets_the_bref_slots():
+    """``capacity`` (e.g. the paper's #primitives / 1000) replaces ``budget`` x instances;
+    as many slots as instances leave no room to open; fewer are refused."""
+    mesh = _row_of_trees(0.0)  # three copies of one tree in one place: they open
+    trees = fm.build_objects(mesh)
+    _, _, roomy = top_level(mesh, trees, threshold=0.01, capacity=12)
+    assert 3 < int(roomy.count) <= 12
+    _, _, tight = top_level(mesh, trees, threshold=0.01, capacity=3)
+    assert int(tight.count) == 3
+    with pytest.raises(ValueError, match="capacity"):
+        top_level(mesh, trees, threshold=0.01, capacity=2)
+
+
+def _row_of_trees(step):
+    """Three copies of one tree, shifted along x by ``step`` times its width."""
+    v, f = small_tree(0)
+    width = float(np.ptp(v[:, 0]))
+    return scenes.assemble([(v, f)], [_shifted(0, k * step * width) for k in range(3)])
+
+
+@pytest.mark.parametrize("step, opens", [(3.0, False), (0.95, False), (0.5, True), (0.0, True)])
+def test_few_barely_overlapping_brefs_stop_opening(step, opens):
+    """<= 4 BRefs that overlap by less than ``overlap`` (10%) of the shorter extent on some
+    axis are not opened, however wide; more overlap opens them (checked: without the
+    termination test every case opens)."""
+    mesh = _row_of_trees(step)
+    _, _, res = top_level(mesh, fm.build_objects(mesh), threshold=0.01, budget=4.0)
+    assert (int(res.count) > 3) == opens
+    if not opens:
+        np.testing.assert_array_equal(np.sort(res.instance[:3]), [0, 1, 2])
+
+
+def test_traversal_of_a_cyclic_top_level_stops_at_its_bound():
+    """A top level whose root is its own left child: the loop ends at its step bound and the
+    driver raises (the stack is made large enough that the bound, not the stack, stops it)."""
+    import dataclasses
+
+    mesh = _row_of_trees(0.5)
+    tl = jaxbvh.to_numpy(twolevel.build_from(mesh, fm.build_objects(mesh), threshold=math.inf, shapes=SHAPES))
+    top = tl.top
+    left = np.array(top.left)
+    left[int(top.root)] = int(top.root)
+    broken = dataclasses.replace(tl, top=dataclasses.replace(top, left=left))
+    size = np.asarray(top.hi[int(top.root)] - top.lo[int(top.root)], np.float32)
+    centre = np.asarray(top.lo[int(top.root)] + 0.5 * size, np.float32)
+    origin = np.repeat((centre - size)[None], 4, 0)  # rays through the root box's centre
+    direction = np.repeat(size[None], 4, 0)
+    with pytest.raises(RuntimeError, match="bound of"):
+        twolevel.closest_hit(broken, origin, direction, capacity=4 * twolevel.step_bound(broken))
+
+
 @pytest.mark.parametrize("options, message", [
     ({"threshold": 0.0}, "threshold"), ({"threshold": -1.0}, "threshold"),
     ({"threshold": float("nan")}, "threshold"), ({"budget": 0.5}, "budget"),
