@@ -83,7 +83,8 @@ def test_cli_methods_give_valid_saved_trees(capsys, tmp_path):
         assert saved["valid"] is True
         assert saved["sah"] == pytest.approx(result["after"]["sah"], rel=1e-5)
     stages = results["pipeline"]["stages"]
-    assert stages[0]["stage"] == "treelet" and sum(s["steps"] for s in stages) == results["pipeline"]["passes"]
+    assert stages[0]["stage"] == "treelet"
+    assert sum(s["steps"] for s in stages) == results["pipeline"]["passes"]
     assert all(a["stage"] != b["stage"] for a, b in zip(stages, stages[1:]))
     assert results["pipeline"]["treelet_leaves"] == 7 and "first_fraction" in results["reinsert"]
     assert "first_fraction" not in results["treelet"]
