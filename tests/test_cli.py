@@ -378,7 +378,8 @@ def test_the_unbroken_tree_is_valid(capsys, tmp_path):
 
 # (command, argv after the tree file); commands that read a tree must refuse broken ones
 TREE_READERS = {
-    "optimize hc": lambda tree, mesh: ["optimize", tree],
+    "optimize": lambda tree, mesh: ["optimize", tree],  # the default method: the pipeline
+    "optimize hc": lambda tree, mesh: ["optimize", tree, "--method", "hc"],
     "optimize sa": lambda tree, mesh: ["optimize", tree, "--method", "sa", "--iterations", 4],
     "trace": lambda tree, mesh: ["trace", tree, mesh, "--rays", 20],
     "collapse dp": lambda tree, mesh: ["collapse", tree],

@@ -61,3 +61,53 @@ def test_time_budget_and_bad_arguments():
         optimize(tree, "pipeline", steps=3)
     with pytest.raises(ValueError, match="time_budget"):
         optimize(tree, "reinsert", time_budget=-1)
+
+
+# ----------------------------------------------------------------------------------
+# jaxbvh optimize --method reinsert|treelet|pipeline (the command line)
+# ----------------------------------------------------------------------------------
+
+
+def test_cli_methods_give_valid_saved_trees(capsys, tmp_path):
+    from test_cli import grid_obj, run_json
+
+    mesh = grid_obj(tmp_path / "grid.obj", n=5)
+    results = {}
+    for method in ("pipeline", "reinsert", "treelet"):
+        out = tmp_path / f"{method}.npz"
+        argv = ["optimize", mesh, "-o", out] + ([] if method == "pipeline" else ["--method", method])
+        results[method] = result = run_json(capsys, *argv)  # the default is the pipeline
+        assert result["method"] == method and result["valid"] is True
+        assert result["after"]["sah"] <= result["before"]["sah"] * (1 + 1e-6)
+        saved = run_json(capsys, "stats", out, "--mesh", mesh)  # the tree written is valid
+        assert saved["valid"] is True
+        assert saved["sah"] == pytest.approx(result["after"]["sah"], rel=1e-5)
+    stages = results["pipeline"]["stages"]
+    assert stages[0]["stage"] == "treelet"
+    assert sum(s["steps"] for s in stages) == results["pipeline"]["passes"]
+    assert all(a["stage"] != b["stage"] for a, b in zip(stages, stages[1:]))
+    assert results["pipeline"]["treelet_leaves"] == 7 and "first_fraction" in results["reinsert"]
+    assert "first_fraction" not in results["treelet"]
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["--method", "reinsert", "--first-fraction", "0"], "--first-fraction"),
+    (["--first-fraction", "1.5"], "--first-fraction"),
+    (["--method", "treelet", "--treelet-leaves", "11"], "--treelet-leaves"),
+    (["--method", "reinsert", "--time-budget", "0"], "--time-budget"),
+    (["--method", "treelet", "--time-budget", "-1"], "--time-budget"),
+])
+def test_cli_bad_options_are_one_line_errors(capsys, tmp_path, argv, fragment):
+    from test_cli import assert_one_line_error, grid_obj, run_cli
+
+    mesh = grid_obj(tmp_path / "grid.obj")
+    assert_one_line_error(*run_cli(capsys, "optimize", mesh, *argv), fragment)
+
+
+@pytest.mark.parametrize("method", ["reinsert", "treelet"])
+@pytest.mark.parametrize("kind", ["cycle", "nan-box"])
+def test_cli_methods_refuse_broken_trees(capsys, tmp_path, method, kind):
+    from test_cli import assert_one_line_error, broken_tree_file, run_cli
+
+    mesh, path = broken_tree_file(tmp_path, kind)
+    assert_one_line_error(*run_cli(capsys, "optimize", path, "--method", method), "invalid BVH", path.name)

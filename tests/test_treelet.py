@@ -60,6 +60,26 @@ def test_dynamic_programme_equals_brute_force(case, n, data):
     assert float(current) >= float(best) * (1 - 1e-5)  # the current topology is one of them
 
 
+@settings(**SETTINGS)
+@given(trees, st.sampled_from([3, 5, 7]))
+def test_treelets_grow_by_their_largest_leaf(case, n):
+    """Karras & Aila's formation rule, checked on the result rather than replayed: a
+    treelet is the subtree of ``root`` cut at its leaves, it has ``n`` leaves unless none
+    of them can be expanded, and every expanded node is (up to the tie margin) at least
+    as large as every treelet leaf left unexpanded that could have been."""
+    tree, _, _ = random_tree(*case)
+    t = ref.Tree(tree, 1.0, 1.0)
+    for root in (x for x in t.post_order() if t.child[x, 0] >= 0):
+        leaves, inner = ref.form(t, root, n, MIN_GAIN)
+        assert inner[0] == root and len(inner) == len(leaves) - 1
+        assert sorted(int(c) for x in inner for c in t.child[x]) == sorted(leaves + inner[1:])
+        expandable = [x for x in leaves if t.child[x, 0] >= 0]
+        assert len(leaves) == n or not expandable
+        if expandable and len(inner) > 1:
+            smallest = min(t.area[x] for x in inner[1:])
+            assert smallest >= max(t.area[x] for x in expandable) * (1 - 2 * MIN_GAIN)
+
+
 @settings(**{**SETTINGS, "max_examples": 15})
 @given(trees)
 def test_restructure_equals_reference(case):
