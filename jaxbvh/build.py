@@ -38,7 +38,8 @@ places (or here and in NumPy), and only a tolerance makes the choice reproducibl
 
 Leaves. A node of one primitive is a leaf. With ``max_leaf > 1`` a node of at most
 ``max_leaf`` primitives becomes a leaf when ``Ci N <= Ct + Ci (A_L N_L + A_R N_R) / A``
-(SAH termination; for a zero-area node the right side is ``Ct + Ci N``, so it stays a
+within the tie tolerance (SAH termination: a tie is a leaf, e.g. a point inside its
+sibling's box, which costs exactly what the leaf costs; for a zero-area node the right side is ``Ct + Ci N``, so it stays a
 leaf); the median builder makes such nodes leaves unconditionally.
 
 Areas are half-areas of extents times a power of two fixed by the scene box, so no
@@ -490,7 +491,9 @@ def _build(lo, hi, n, max_leaf, ct, ci, scale, splits=None, *, method, bins, rcl
             count_f = count.astype(dtype)
             split_est = ct + jnp.where(node_area > 0, ci * best / jnp.where(node_area > 0, node_area, 1),
                                        ci * count_f)
-            sah_leaf = (ci * count_f <= split_est) | ~found
+            # a leaf when it costs no more than the split, within the tie tolerance (an
+            # exact tie, e.g. a point inside its sibling's box, must not hang on rounding)
+            sah_leaf = (ci * count_f <= split_est * (1 + TIE_TOLERANCE)) | ~found
 
         leaf = frontier & ((count <= 1) | ((count <= max_leaf) & sah_leaf))
         split = frontier & ~leaf

@@ -147,7 +147,7 @@ def build(prim_lo, prim_hi, *, method="sweep", max_leaf=1, bins=16, ct=1.0, ci=1
                     split = None
                 else:  # SAH termination test
                     estimate = ct + (ci * split[0] / area if area > 0 else ci * dtype.type(count))
-                    if ci * dtype.type(count) <= estimate:
+                    if ci * dtype.type(count) <= estimate * dtype.type(1 + TIE_TOLERANCE):
                         split = None
         if split is None:
             prim_start[node] = len(prim_index)
