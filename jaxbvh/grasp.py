@@ -337,7 +337,8 @@ def grasp(key, prim_lo, prim_hi, *, trials: int = 100, noise=None, deviations=No
       chunk_prims: most primitives per forest call (default :data:`CHUNK_PRIMS`); a
         subtree larger than that gets a call of its own.
       pad, dtype: as for :func:`jaxbvh.build`.
-      on_chunk: called after each forest call with (trials done, best objective so far).
+      on_chunk: called after each forest call with (trials done, best objective among
+        them; ``base`` while none is done), and once at the end with (trials, best).
 
     Returns:
       A :class:`GraspResult`; its tree is the best trial's (lowest objective, then lowest
@@ -409,8 +410,9 @@ def grasp(key, prim_lo, prim_hi, *, trials: int = 100, noise=None, deviations=No
         c = int(greedy.count[i])
         if batch and size + c > chunk_prims:
             run(batch)
-            if on_chunk is not None:
-                on_chunk(batch[-1][0], float(np.min(objectives[: batch[-1][0]], initial=greedy.base)))
+            if on_chunk is not None:  # trials before the batch's last one are finished
+                done = batch[-1][0]
+                on_chunk(done, float(np.min(objectives[:done])) if done else greedy.base)
             batch, size = [], 0
         batch.append((t, i))
         size += c
