@@ -81,13 +81,13 @@ OBJECTIVES = ("nt", "sah")
 # The noise must shrink with the mesh: noise acts per node, and every deviation from the
 # greedy split costs a little on average, so at a fixed noise big meshes only get worse
 # (bunny, 69k triangles: best of 100 at noise 0.01 is 0.06% above greedy, every trial
-# worse; the paper's 0.1 is 0.4-0.7% worse on 6k-triangle meshes). Measured (rcl "axes",
-# 100 trials, seed 0, D = 1, 2, 3, 5, 10, 20, 30 deviations per tree, eight shared
-# meshes of 5.8k-69k triangles; bench/results/stochastic.md): D = 1 ... 10 all put the
-# best of 100 below greedy on every mesh, D = 10 with the most trials below greedy on
-# average (6.5 of 100; 2-16 per mesh) and larger gains than D <= 3; at D >= 20 spot and
-# fandisk find nothing better. Gains are small: 0.002% (spot) to 0.13% (fandisk) at
-# D = 10, up to 1.2% (legocar, D ~ 110).
+# worse; the paper's 0.1 is 0.4-0.7% worse on the 6k-triangle meshes). Measured
+# (bench/results/stochastic.md; rcl "axes", 100 trials, D = 1, 2, 3, 5, 10, 20, 30
+# deviations per tree, seeds 0-2 on six shared meshes of 5.8k-20k triangles, seed 0 on
+# bunny): D = 2 ... 10 put the best of 100 below greedy in every run (D = 1 missed once),
+# D = 10 with the most trials below greedy on average (6.4 of 100; 2-18 per run); at
+# D >= 20 spot, teapot and fandisk runs find nothing better. Gains are small: 0.002%
+# (spot) to 0.8% (legocar) at D = 10, up to 1.4% (legocar, D ~ 330).
 DEFAULT_DEVIATIONS = 10.0
 
 # Most primitives in one forest call: the memory bound. Measured 1.4 KB of peak memory per
@@ -337,7 +337,8 @@ def grasp(key, prim_lo, prim_hi, *, trials: int = 100, noise=None, deviations=No
       chunk_prims: most primitives per forest call (default :data:`CHUNK_PRIMS`); a
         subtree larger than that gets a call of its own.
       pad, dtype: as for :func:`jaxbvh.build`.
-      on_chunk: called after each forest call with (trials done, best objective so far).
+      on_chunk: called after each forest call with (trials done, best objective among
+        them; ``base`` while none is done), and once at the end with (trials, best).
 
     Returns:
       A :class:`GraspResult`; its tree is the best trial's (lowest objective, then lowest
@@ -409,8 +410,9 @@ def grasp(key, prim_lo, prim_hi, *, trials: int = 100, noise=None, deviations=No
         c = int(greedy.count[i])
         if batch and size + c > chunk_prims:
             run(batch)
-            if on_chunk is not None:
-                on_chunk(batch[-1][0], float(np.min(objectives[: batch[-1][0]], initial=greedy.base)))
+            if on_chunk is not None:  # trials before the batch's last one are finished
+                done = batch[-1][0]
+                on_chunk(done, float(np.min(objectives[:done])) if done else greedy.base)
             batch, size = [], 0
         batch.append((t, i))
         size += c

@@ -186,6 +186,20 @@ def test_chunking_and_trial_count_do_not_change_trials():
     assert runs[2].objective == runs[0].best_of(3)
 
 
+def test_progress_reports_each_chunk_and_the_best_so_far():
+    # what the CLI's progress bar shows: one report per forest call, then (trials, best)
+    lo, hi = random_boxes(8, 21)
+    calls = []
+    result = grasp.grasp(jax.random.key(5), lo, hi, trials=6, noise=0.4, rcl=3, chunk_prims=10,
+                         on_chunk=lambda done, best: calls.append((done, best)))
+    assert len(calls) >= 3  # several chunks of at most 10 primitives, and the final report
+    done = [d for d, _ in calls]
+    assert done == sorted(done) and 0 <= done[0] and done[-1] == 6
+    assert calls[-1][1] == result.objective
+    for d, best in calls:  # trials before `done` are finished: their best is final
+        assert best == (float(np.min(result.objectives[:d])) if d else result.base)
+
+
 def test_same_key_same_tree_bit_for_bit():
     lo, hi = random_boxes(9, 24)
     a = grasp.grasp(jax.random.key(6), lo, hi, trials=3, noise=0.2, chunk_prims=CHUNK)
