@@ -13,7 +13,9 @@ and ``build.md`` to ``--out``.
 compiled once per capacity bucket, the first call timed apart): SAH and warm build time
 of median, LBVH (30- and 63-bit codes), PLOC (r = 4, 8, 16, 25), binned and sweep, and
 of the pipelines LBVH + hill climbing and PLOC (r = 16) + hill climbing
-(:func:`jaxbvh.rotate.hill_climb`; pipeline time = warm build + warm climb), on the shared
+(:func:`jaxbvh.rotate.hill_climb`; pipeline time = warm build + warm climb) and LBVH +
+treelet restructuring (:func:`jaxbvh.treelet.restructure`, one warm run; not on ``big``,
+where it takes minutes), on the shared
 meshes, two overlapping bunnies (``bunny2``, 138,902 triangles: the 120k class of the
 issue's tinybvh timing) and the 1.05M-triangle ``big`` input of
 ``bench/bench_rotate.py``. Wall time and process CPU time are both recorded: on a shared
@@ -49,18 +51,19 @@ CONFIGS = [  # (label, builder options)
     ("lbvh", dict(method="lbvh")),
     ("ploc r=16", dict(method="ploc", radius=16)),
 ]
-TRADE = [  # (label, builder options, hill climbing after it)
-    ("median", dict(method="median"), False),
-    ("lbvh", dict(method="lbvh"), False),
-    ("lbvh 63-bit", dict(method="lbvh", morton_bits=63), False),
-    ("ploc r=4", dict(method="ploc", radius=4), False),
-    ("ploc r=8", dict(method="ploc", radius=8), False),
-    ("ploc r=16", dict(method="ploc", radius=16), False),
-    ("ploc r=25", dict(method="ploc", radius=25), False),
-    ("binned-16", dict(method="binned", bins=16), False),
-    ("sweep", dict(method="sweep"), False),
-    ("lbvh + HC", dict(method="lbvh"), True),
-    ("ploc r=16 + HC", dict(method="ploc", radius=16), True),
+TRADE = [  # (label, builder options, optimizer after it: None, "hc" or "treelet")
+    ("median", dict(method="median"), None),
+    ("lbvh", dict(method="lbvh"), None),
+    ("lbvh 63-bit", dict(method="lbvh", morton_bits=63), None),
+    ("ploc r=4", dict(method="ploc", radius=4), None),
+    ("ploc r=8", dict(method="ploc", radius=8), None),
+    ("ploc r=16", dict(method="ploc", radius=16), None),
+    ("ploc r=25", dict(method="ploc", radius=25), None),
+    ("binned-16", dict(method="binned", bins=16), None),
+    ("sweep", dict(method="sweep"), None),
+    ("lbvh + HC", dict(method="lbvh"), "hc"),
+    ("ploc r=16 + HC", dict(method="ploc", radius=16), "hc"),
+    ("lbvh + treelet", dict(method="lbvh"), "treelet"),
 ]
 TINYBVH_BINNED_S = (0.088, 0.099)  # the issue: tinybvh's binned build, one C++ thread, 120-150k triangles
 
@@ -144,20 +147,29 @@ def run_trade(args):
     import jax
 
     import jaxbvh
-    from jaxbvh import rotate
+    from jaxbvh import rotate, treelet
 
     rows = []
     for name, lo, hi in trade_inputs(args.inputs.split(",")):
         big = lo.shape[0] > 500_000
-        for label, options, climb in TRADE:
+        for label, options, after in TRADE:
+            if after == "treelet" and big:
+                continue  # minutes per run at 1M triangles (bench/results/optimize.md: 9 s on 69k)
             repeat = 1 if big and options["method"] in ("sweep", "binned") else args.repeat
             tree, first, wall, cpu = timed(lambda: jaxbvh.build(lo, hi, **options), repeat)
             jaxbvh.validate(tree, lo, hi)
             row = dict(input=name, triangles=int(lo.shape[0]), config=label, first_s=first, build_s=wall,
                        build_cpu_s=cpu, build_sah=float(jaxbvh.sah(tree)))
-            if climb:
+            if after:
+                def optimized(tree=tree, after=after):
+                    if after == "hc":
+                        return rotate.hill_climb(tree, split_axes=False)
+                    result = treelet.restructure(tree, split_axes=False)
+                    jax.block_until_ready(result.tree)
+                    return result
+
                 result, climb_first, climb_wall, climb_cpu = timed(
-                    lambda: rotate.hill_climb(tree, split_axes=False), args.repeat)
+                    optimized, args.repeat if after == "hc" else 1)
                 jaxbvh.validate(result.tree, lo, hi)
                 tree = result.tree
                 row.update(climb_s=climb_wall, climb_cpu_s=climb_cpu, climb_first_s=climb_first,
@@ -188,7 +200,8 @@ def write_trade(rows, args):
     lines = [f"# Builders: time against SAH ({machine}; float32; Ct = Ci = 1; max_leaf = 1)", "",
              "Warm seconds, median of the repeats (1 for sweep and binned on `big`); CPU = process CPU "
              "seconds (all threads), steadier than wall time on a shared machine. Pipelines: warm build "
-             "+ warm hill climbing (`jaxbvh.rotate.hill_climb`, split axes off). `vs sweep`: SAH change "
+             "+ warm hill climbing (`jaxbvh.rotate.hill_climb`, split axes off) or + one warm treelet "
+             "restructuring (`jaxbvh.treelet.restructure`, to convergence; not on `big`). `vs sweep`: SAH change "
              "and time ratio against the sweep build of the same input. First call = compile + build.", ""]
     for name in dict.fromkeys(r["input"] for r in rows):
         mine = [r for r in rows if r["input"] == name]

@@ -182,7 +182,7 @@ def window_size(cap: int) -> int:
 
 def build(lo: np.ndarray, hi: np.ndarray, n: int, *, max_leaf: int, ct: float, ci: float, scale: float,
           morton_bits: int = 30) -> BVH:
-    """LBVH over padded boxes ``lo``, ``hi`` [cap, 3] (NumPy, first ``n`` real); :func:`jaxbvh.build` calls it.
+    """LBVH over padded boxes ``lo``, ``hi`` [cap, 3] (NumPy or JAX, first ``n`` real); :func:`jaxbvh.build` calls it.
 
     ``scale``: the scene's area scale (:func:`jaxbvh.build.scene_scale`). Returns a
     :class:`~jaxbvh.tree.BVH` of JAX arrays (layout: module docstring).

@@ -218,7 +218,7 @@ def _cluster(lo, hi, n, order, max_leaf, ct, ci, scale, *, radius, stages, colla
 
 def build(lo: np.ndarray, hi: np.ndarray, n: int, *, radius: int = DEFAULT_RADIUS, max_leaf: int, ct: float,
           ci: float, scale: float, morton_bits: int = 30) -> BVH:
-    """PLOC over padded boxes ``lo``, ``hi`` [cap, 3] (NumPy, first ``n`` real); :func:`jaxbvh.build` calls it.
+    """PLOC over padded boxes ``lo``, ``hi`` [cap, 3] (NumPy or JAX, first ``n`` real); :func:`jaxbvh.build` calls it.
 
     ``radius``: neighbours looked at on each side (static: one compile per value).
     ``scale``: the scene's area scale. Returns a :class:`~jaxbvh.tree.BVH` of JAX arrays.

@@ -190,3 +190,28 @@ def test_bad_options_get_clear_errors():
         jaxbvh.build(np.zeros((0, 3)), np.zeros((0, 3)), method="lbvh")
     with pytest.raises(ValueError, match="NaN"):
         jaxbvh.build(np.array([[np.nan, 0, 0]]), np.zeros((1, 3)), method="lbvh")
+
+
+@pytest.mark.parametrize("method", ["lbvh", "ploc"])
+def test_build_dispatch_keeps_dtype_padding_and_the_twin(method):
+    """jaxbvh.build (checked, cast and padded by engine_inputs) gives the twin's tree in every mode:
+    float32 padded to the capacity bucket, unpadded (pad=False), float64 under x64."""
+    from jaxbvh.reference import ploc as reference_ploc
+
+    rng = np.random.default_rng(11)
+    c = np.round(rng.uniform(-1, 1, (37, 3)) * 4) / 4  # shared centres: ties and duplicate codes
+    lo, hi = c - 0.1, c + rng.uniform(0.1, 0.3, (37, 3))
+    twin = reference.build if method == "lbvh" else reference_ploc.build
+    options = dict(morton_bits=63, max_leaf=2) if method == "lbvh" else dict(radius=3, max_leaf=2)
+    lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)
+    want32 = canonical(twin(lo32, hi32, **options))
+    for pad, slots in ((True, 2 * jaxbvh.capacity_bucket(37)), (False, 2 * 37)):
+        tree = jaxbvh.build(lo, hi, method=method, pad=pad, **options)  # float64 input, x64 off: float32
+        assert tree.lo.dtype == np.float32 and tree.lo.shape == (slots, 3) and tree.left.shape == (slots,)
+        jaxbvh.validate(tree, lo32, hi32)
+        assert canonical(tree) == want32
+    with jax.enable_x64(True):
+        tree = jaxbvh.build(lo, hi, method=method, **options)
+        assert tree.lo.dtype == np.float64
+        jaxbvh.validate(tree, lo, hi)
+        assert canonical(tree) == canonical(twin(lo, hi, **options))
