@@ -17,6 +17,7 @@ parsed meshes are kept in its ``meshes/`` folder (:func:`jaxbvh.io.use_mesh_cach
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import os
 import pkgutil
@@ -50,9 +51,14 @@ def cache_dir() -> Path:
     return Path.home() / ".cache" / "jaxbvh" / "jax"
 
 
+_CACHE_OPTIONS = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs",
+                  "jax_persistent_cache_min_entry_size_bytes")
+
+
 def enable_compilation_cache() -> Path | None:
     """Point JAX's persistent compilation cache at :func:`cache_dir` (None if unusable)."""
     import jax
+    from jax.experimental.compilation_cache import compilation_cache
 
     path = cache_dir()
     try:
@@ -63,11 +69,36 @@ def enable_compilation_cache() -> Path | None:
     # our builders compile in well under a second on small meshes; cache them anyway
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    compilation_cache.reset_cache()  # JAX opens its cache once: make it open this folder
     # parsed meshes too: parsing (and importing trimesh) costs more than the arrays
     from jaxbvh.io import use_mesh_cache
 
     use_mesh_cache(path / "meshes")
     return path
+
+
+@contextlib.contextmanager
+def compilation_cache_on():
+    """The tool's caches (:func:`enable_compilation_cache`) for the duration of one command.
+
+    On exit JAX's cache options, its cache object and the mesh cache are put back as they
+    were, so calling :func:`main` from Python (tests, notebooks) leaves no process-wide
+    cache behind.
+    """
+    import jax
+    from jax.experimental.compilation_cache import compilation_cache
+
+    from jaxbvh import io
+
+    before = {name: getattr(jax.config, name) for name in _CACHE_OPTIONS}
+    meshes_before = io.mesh_cache_folder()
+    try:
+        yield enable_compilation_cache()
+    finally:
+        for name, value in before.items():
+            jax.config.update(name, value)
+        compilation_cache.reset_cache()
+        io.use_mesh_cache(meshes_before)
 
 
 def _load_commands() -> dict:
@@ -118,9 +149,9 @@ def main(argv: list[str] | None = None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help, --version, usage errors (argparse prints them)
         return int(exc.code or 0)
-    enable_compilation_cache()
     try:
-        result = modules[args.command].run(args)
+        with compilation_cache_on():
+            result = modules[args.command].run(args)
     except (MeshError, InvalidTreeError, ValueError, FileNotFoundError, OSError) as exc:
         print(f"jaxbvh: error: {_error_line(exc)}", file=sys.stderr)
         return EXIT_USAGE

@@ -35,7 +35,7 @@ from jaxbvh.frame import Frame
 from jaxbvh.validate import few_ids
 
 __all__ = ["Mesh", "MeshError", "TreeFile", "load_mesh", "load_any", "bundled_mesh_path",
-           "boxes_in_frame", "use_mesh_cache"]
+           "boxes_in_frame", "use_mesh_cache", "mesh_cache_folder"]
 
 TREE_SUFFIXES = (".npz",)
 
@@ -228,6 +228,11 @@ def use_mesh_cache(folder: str | os.PathLike | None) -> None:
     """
     global _mesh_cache
     _mesh_cache = None if folder is None else Path(folder)
+
+
+def mesh_cache_folder() -> Path | None:
+    """The folder :func:`use_mesh_cache` set (``None``: no cache)."""
+    return _mesh_cache
 
 
 def _cache_entry(path: str) -> Path | None:

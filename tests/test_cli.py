@@ -102,12 +102,23 @@ def test_usage_errors_exit_2(capsys):
     assert "Traceback" not in capsys.readouterr().err
 
 
-def test_compilation_cache_dir(cache_dir, monkeypatch):
+def test_compilation_cache_dir(cache_dir, monkeypatch, capsys):
+    """The tool's caches are on for one command and put back after it: calling the CLI
+    from Python leaves JAX's configuration as it was."""
     import jax
 
+    from jaxbvh import io
+
+    before = (jax.config.jax_compilation_cache_dir, io.mesh_cache_folder())
     assert cli.cache_dir() == cache_dir
-    assert cli.enable_compilation_cache() == cache_dir
-    assert jax.config.jax_compilation_cache_dir == str(cache_dir)
+    with cli.compilation_cache_on() as path:
+        assert path == cache_dir
+        assert jax.config.jax_compilation_cache_dir == str(cache_dir)
+        assert io.mesh_cache_folder() == cache_dir / "meshes"
+    assert (jax.config.jax_compilation_cache_dir, io.mesh_cache_folder()) == before
+    assert cli.main(["build", "--json"]) == 0
+    assert (jax.config.jax_compilation_cache_dir, io.mesh_cache_folder()) == before
+    assert any((cache_dir / "meshes").iterdir())  # the command did use the caches
     monkeypatch.delenv("JAXBVH_CACHE_DIR")
     assert cli.cache_dir() == Path.home() / ".cache" / "jaxbvh" / "jax"
 

@@ -128,7 +128,7 @@ def test_deviation_rate_is_the_noise(rcl):
         prims = _prims_under(tree)
         count = 0
         for node in np.flatnonzero(tree.left >= 0):
-            greedy = ref._greedy(ref._candidates(np.sort(prims[node]), lo, hi, centre, scale))
+            greedy = ref.tie_winner(ref.sweep_candidates(np.sort(prims[node]), lo, hi, centre, scale))
             taken = (int(tree.axis[node]), set(prims[int(tree.left[node])].tolist()))
             count += taken != (greedy[2], set(greedy[3].tolist()))
         deviations.append(count)

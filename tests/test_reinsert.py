@@ -17,68 +17,13 @@ from hypothesis import strategies as st
 import jaxbvh
 from jaxbvh import reinsert
 from jaxbvh.reference import reinsert as ref
+from helpers import random_tree
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 NODES, PRIMS = 128, 64  # one capacity for all random trees
 SETTINGS = dict(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 MIN_GAIN = reinsert.default_min_gain(np.float32)
 
-
-def random_tree(seed: int, n: int, max_leaf: int = 1, grid: bool = False, dtype=np.float32):
-    """Random binary tree over ``n`` random boxes: recursive random splits of a permutation
-    (so a poor tree, with much to gain), node ids shuffled, root not 0.
-
-    ``grid``: boxes on a coarse grid, many duplicates and flat boxes (exact ties, exact
-    arithmetic). Returns ``(tree padded to NODES / PRIMS, prim_lo, prim_hi)``.
-    """
-    rng = np.random.default_rng(seed)
-    if grid:
-        lo = rng.integers(0, 3, (n, 3)).astype(dtype)
-        hi = lo + rng.integers(0, 2, (n, 3)).astype(dtype)
-    else:
-        lo = rng.uniform(-5, 5, (n, 3)).astype(dtype)
-        hi = lo + rng.exponential(1.0, (n, 3)).astype(dtype)
-    child, start, count, prim_index = [], [], [], []
-
-    def make(ids):
-        i = len(child)
-        child.append([-1, -1]), start.append(0), count.append(0)
-        if len(ids) == 1 or (len(ids) <= max_leaf and rng.random() < 0.5):
-            start[i], count[i] = len(prim_index), len(ids)
-            prim_index.extend(ids)
-        else:
-            k = int(rng.integers(1, len(ids)))
-            child[i] = [make(ids[:k]), make(ids[k:])]
-        return i
-
-    make([int(p) for p in rng.permutation(n)])
-    m = len(child)
-    new = rng.permutation(m)
-    ids = np.full((m, 2), -1, np.int32)
-    for old in range(m):
-        for side in range(2):
-            c = child[old][side]
-            ids[new[old], side] = new[c] if c >= 0 else -1
-    inv = np.argsort(new)
-    start, count = np.array(start, np.int32)[inv], np.array(count, np.int32)[inv]
-    box_lo = np.zeros((m, 3), dtype)
-    box_hi = np.zeros((m, 3), dtype)
-
-    def box(node):
-        if ids[node, 0] < 0:
-            run = prim_index[start[node]:start[node] + count[node]]
-            box_lo[node], box_hi[node] = lo[run].min(0), hi[run].max(0)
-        else:
-            box(ids[node, 0]), box(ids[node, 1])
-            box_lo[node] = np.minimum(box_lo[ids[node, 0]], box_lo[ids[node, 1]])
-            box_hi[node] = np.maximum(box_hi[ids[node, 0]], box_hi[ids[node, 1]])
-
-    box(int(new[0]))
-    arrays = dict(child=ids, prim_start=start, prim_count=count,
-                  prim_index=np.array(prim_index, np.int32), lo=box_lo, hi=box_hi,
-                  root=np.int32(new[0]))
-    tree = jaxbvh.from_interchange(arrays, pad=False)
-    return jaxbvh.tree.pad_to(tree, NODES, PRIMS), lo, hi
 
 
 def assert_same_tree(a, b, fields=("left", "right", "parent", "lo", "hi", "root")):
@@ -105,7 +50,8 @@ def check_result(tree, result, prim_lo, prim_hi, ct=1.0):
 
 
 trees = st.builds(lambda seed, n, leaf, grid: (seed, n, leaf, grid),
-                  st.integers(0, 2**31), st.integers(2, 40), st.integers(1, 3), st.booleans())
+                  st.integers(0, 2**31), st.integers(2, 40), st.integers(1, 3),
+                  st.sampled_from(["random", "grid"]))
 
 
 def _search_all(tree, max_steps):

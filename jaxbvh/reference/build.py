@@ -28,11 +28,13 @@ def _scene_scale(lo, hi):
     return float(np.ldexp(1.0, -int(np.frexp(m)[1]))) if m > 0 else 1.0
 
 
-def _sweep_split(ids, lo, hi, centre, scale):
-    """Full sweep over all axes; returns (cost, axis, left ids, right ids)."""
+def sweep_candidates(ids, lo, hi, centre, scale):
+    """Every split of the full sweep over all axes: ``(cost, tie code, axis, left ids,
+    right ids)``, cost ``A_L N_L + A_R N_R``, code ``(|2 N_L - N| * 2 + (2 N_L > N)) * 3 +
+    axis`` (nearest the middle, the smaller left side first, then the lowest axis)."""
     dtype = lo.dtype
     n = len(ids)
-    candidates = []  # (cost, tie key, axis, left, right)
+    candidates = []
     for axis in range(3):
         order = ids[np.lexsort((ids, centre[ids, axis]))]
         # forward sweep: box of the first k primitives
@@ -53,10 +55,21 @@ def _sweep_split(ids, lo, hi, centre, scale):
             cost = left_area[k - 1] * dtype.type(k) + right_area[k] * dtype.type(n - k)
             tie = (abs(2 * k - n) * 2 + (2 * k > n)) * 3 + axis
             candidates.append((cost, tie, axis, order[:k], order[k:]))
+    return candidates
+
+
+def tie_winner(candidates):
+    """The tie rule: least cost, then the least code among costs within ``TIE_TOLERANCE``."""
     best = min(c[0] for c in candidates)
-    near = best * dtype.type(1 + TIE_TOLERANCE)
-    cost, _, axis, left, right = min((c for c in candidates if c[0] <= near), key=lambda c: c[1])
-    return best, axis, left, right
+    near = best * type(best)(1 + TIE_TOLERANCE)
+    return min((c for c in candidates if c[0] <= near), key=lambda c: c[1])
+
+
+def _sweep_split(ids, lo, hi, centre, scale):
+    """Full sweep over all axes; returns (cost, axis, left ids, right ids)."""
+    candidates = sweep_candidates(ids, lo, hi, centre, scale)
+    _, _, axis, left, right = tie_winner(candidates)
+    return min(c[0] for c in candidates), axis, left, right
 
 
 def _binned_split(ids, lo, hi, centre, scale, bins):

@@ -17,13 +17,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from jaxbvh.reference.build import TIE_TOLERANCE
+from jaxbvh.reference.build import sweep_candidates, tie_winner
 from jaxbvh.tree import BVH
-
-
-def _half_area(lo, hi, scale):
-    d = np.maximum((hi - lo) * scale, 0)
-    return d[0] * d[1] + d[1] * d[2] + d[2] * d[0]
 
 
 def _scene_scale(lo, hi):
@@ -45,43 +40,6 @@ def node_uniforms(key, trial: int, start: int, count: int) -> np.ndarray:
     return np.asarray(_uniforms_fn()(key, np.int32(trial), np.int32(start), np.int32(count)))
 
 
-def _candidates(ids, lo, hi, centre, scale):
-    """Every split of ``ids``: list of (cost, tie code, axis, left ids, right ids).
-
-    Code ``(|2 N_L - N| * 2 + (2 N_L > N)) * 3 + axis``: the sweep builder's tie rule
-    (split nearest the middle, the smaller left side first, then the lowest axis).
-    """
-    dtype = lo.dtype
-    n = len(ids)
-    out = []
-    for axis in range(3):
-        order = ids[np.lexsort((ids, centre[ids, axis]))]
-        left_area = np.empty(n, dtype)
-        box_lo, box_hi = lo[order[0]].copy(), hi[order[0]].copy()
-        for i in range(n):
-            box_lo = np.minimum(box_lo, lo[order[i]])
-            box_hi = np.maximum(box_hi, hi[order[i]])
-            left_area[i] = _half_area(box_lo, box_hi, scale)
-        right_area = np.empty(n, dtype)
-        box_lo, box_hi = lo[order[-1]].copy(), hi[order[-1]].copy()
-        for i in range(n - 1, -1, -1):
-            box_lo = np.minimum(box_lo, lo[order[i]])
-            box_hi = np.maximum(box_hi, hi[order[i]])
-            right_area[i] = _half_area(box_lo, box_hi, scale)
-        for k in range(1, n):
-            cost = left_area[k - 1] * dtype.type(k) + right_area[k] * dtype.type(n - k)
-            code = (abs(2 * k - n) * 2 + (2 * k > n)) * 3 + axis
-            out.append((cost, code, axis, order[:k], order[k:]))
-    return out
-
-
-def _greedy(candidates):
-    """The tie-rule winner: least cost, then the least code among costs within tolerance."""
-    best = min(c[0] for c in candidates)
-    near = best * type(best)(1 + TIE_TOLERANCE)
-    return min((c for c in candidates if c[0] <= near), key=lambda c: c[1])
-
-
 def choose_split(candidates, u0, u1, noise, rcl):
     """The split a node takes: the greedy one, or with ``u0 < noise`` an alternative.
 
@@ -90,19 +48,19 @@ def choose_split(candidates, u0, u1, noise, rcl):
     ``1 + min(floor(u1 (m - 1)), m - 2)`` of the ``m = min(k, len(candidates))`` best,
     ranks given by taking the greedy split of what is left, one after another.
     """
-    greedy = _greedy(candidates)
+    greedy = tie_winner(candidates)
     if not np.float32(u0) < np.float32(noise):
         return greedy
     if rcl == "axes":
         axis = (greedy[2] + (1 if u1 < np.float32(0.5) else 2)) % 3
-        return _greedy([c for c in candidates if c[2] == axis])
+        return tie_winner([c for c in candidates if c[2] == axis])
     size = min(int(rcl), len(candidates))
     if size < 2:
         return greedy
     rank = 1 + min(int(np.floor(np.float32(u1) * np.float32(size - 1))), size - 2)
     left = [c for c in candidates if c[1] != greedy[1]]
     for _ in range(rank):
-        pick = _greedy(left)
+        pick = tie_winner(left)
         left = [c for c in left if c[1] != pick[1]]
     return pick
 
@@ -141,7 +99,8 @@ def randomized_build(key, prim_lo, prim_hi, *, trial: int = 0, noise: float, rcl
             prim_index.append(int(ids[0]))
             continue
         u0, u1 = node_uniforms(key, trial, start, count)
-        _, _, axis, left_ids, right_ids = choose_split(_candidates(ids, lo, hi, centre, scale), u0, u1, noise, rcl)
+        candidates = sweep_candidates(ids, lo, hi, centre, scale)
+        _, _, axis, left_ids, right_ids = choose_split(candidates, u0, u1, noise, rcl)
         axis_of[node] = axis
         l_id, r_id = new_node(node), new_node(node)
         left[node], right[node] = l_id, r_id
