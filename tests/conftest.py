@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import gc
+
 import pytest
 
 
@@ -12,3 +14,20 @@ def _compilation_cache_out_of_home(tmp_path_factory):
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("JAXBVH_CACHE_DIR", str(path))
         yield path
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """Drop JAX's compiled programs after each test module.
+
+    Every XLA CPU executable keeps memory maps of its own for as long as a jit cache holds
+    it. The whole suite in one process compiles thousands of programs (hypothesis draws
+    many shapes) and passed Linux's limit of 65,530 maps per process (vm.max_map_count);
+    XLA then segfaulted while compiling or serializing the next program.
+    """
+    yield
+    import jax
+
+    jax.clear_caches()
+    gc.collect()
+
