@@ -96,13 +96,13 @@ defaults to ``64 * eps`` of the float type.
 from __future__ import annotations
 
 import dataclasses
-import time
 from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxbvh.budget import TimeBudget
 from jaxbvh.cost import extent_scale, half_area
 from jaxbvh.refit import refit_boxes
 from jaxbvh.tree import BVH, to_jax
@@ -698,7 +698,8 @@ def reinsert(tree, *, ct: float = 1.0, ci: float = 1.0,
     sah_start = sah_of(tree, ct, ci)
     st = _prepare(tree)
     octaves = first_octaves(*jax.device_get((st.area, st.parent, st.root)), first_fraction)
-    history, moves, deadline = [], 0, None
+    history, moves = [], 0
+    budget = TimeBudget(time_budget)
     ct_, ci_, steps_, mg_ = (jnp.asarray(ct, dtype), jnp.asarray(ci, dtype), jnp.int32(max_steps),
                              jnp.asarray(min_gain, dtype))
     for i in range(max_iterations if ct > 0 else 0):
@@ -714,11 +715,8 @@ def reinsert(tree, *, ct: float = 1.0, ci: float = 1.0,
             break
         if count < nodes and (taken == 0 or before - sah <= escalate * before):
             octaves = octaves + (1 if taken else 4) if octaves < 64 else ALL_OCTAVES
-        if time_budget is not None:
-            if deadline is None:
-                deadline = time.perf_counter() + time_budget
-            elif time.perf_counter() > deadline:
-                break
+        if budget.spent():
+            break
     out = _to_tree(tree, st)
     if split_axes:
         out = assign_split_axes(out)

@@ -78,6 +78,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxbvh.budget import TimeBudget
 from jaxbvh.cost import extent_scale, half_area
 from jaxbvh.schedule import DEFAULT_HOTTEST, kensler_temperature
 from jaxbvh.tree import BVH, capacity_bucket, pad_to, to_jax, to_numpy
@@ -894,7 +895,7 @@ def _run_chunked(tree, keys, dyn, on_pass, static, time_budget=None) -> RotateRe
     """
     import time
 
-    deadline = None
+    budget = TimeBudget(time_budget)
     on_pass = on_pass or (lambda *_: None)
     carry = _start_jit(tree, keys, dyn, **static)
     limit = min(int(dyn.limit), static["history_len"])
@@ -911,11 +912,8 @@ def _run_chunked(tree, keys, dyn, on_pass, static, time_budget=None) -> RotateRe
             on_pass(j, np.nanmin(history[:, j]), moves[j], temps[j])
         if now < done_passes + chunk or done.all():
             break  # converged (or at the limit)
-        if time_budget is not None:
-            if deadline is None:  # the first chunk compiled: start the clock
-                deadline = time.perf_counter() + time_budget
-            elif time.perf_counter() > deadline:
-                break
+        if budget.spent():  # the first chunk compiled: the clock starts after it
+            break
         done_passes = now
         if time.perf_counter() - clock < 0.1:
             chunk = min(2 * chunk, MAX_CHUNK)

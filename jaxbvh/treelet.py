@@ -46,7 +46,6 @@ in the same order, by the same recursion.
 from __future__ import annotations
 
 import dataclasses
-import time
 from functools import lru_cache, partial
 from typing import Any, Callable, NamedTuple
 
@@ -54,6 +53,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxbvh.budget import TimeBudget
 from jaxbvh.cost import extent_scale, half_area
 from jaxbvh.refit import refit_boxes
 from jaxbvh.tree import BVH, to_jax
@@ -380,7 +380,8 @@ def restructure(tree, *, leaves: int = DEFAULT_LEAVES, ct: float = 1.0, ci: floa
     ct_, ci_, mg = (jnp.asarray(x, dtype) for x in (ct, ci, min_gain))
     sah_start = sah_of(tree, ct, ci)
     st, scale = _prepare(tree, ct_, ci_)
-    history, changed_all, deadline = [], 0, None
+    history, changed_all = [], 0
+    budget = TimeBudget(time_budget)
     for i in range(max_passes if leaves > 2 else 0):
         st, changed, sah = _run_pass(st, scale, tree.root, tree.prim_count, ct_, ci_, mg,
                                      n=int(leaves), windows=tuple(int(w) for w in windows))
@@ -391,11 +392,8 @@ def restructure(tree, *, leaves: int = DEFAULT_LEAVES, ct: float = 1.0, ci: floa
             on_pass(i, sah, changed)
         if changed == 0:
             break
-        if time_budget is not None:
-            if deadline is None:
-                deadline = time.perf_counter() + time_budget
-            elif time.perf_counter() > deadline:
-                break
+        if budget.spent():
+            break
     out = _to_tree(tree, st)
     if split_axes:
         out = assign_split_axes(out)

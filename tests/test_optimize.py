@@ -111,3 +111,19 @@ def test_cli_methods_refuse_broken_trees(capsys, tmp_path, method, kind):
 
     mesh, path = broken_tree_file(tmp_path, kind)
     assert_one_line_error(*run_cli(capsys, "optimize", path, "--method", method), "invalid BVH", path.name)
+
+
+def test_time_budget_clock_starts_after_the_first_step():
+    import time
+
+    from jaxbvh.budget import TimeBudget
+
+    none = TimeBudget(None)
+    assert not any(none.spent() for _ in range(3))
+    tiny = TimeBudget(1e-9)
+    time.sleep(0.01)  # the first step (compiling) is not counted
+    assert not tiny.spent()
+    time.sleep(0.01)
+    assert tiny.spent()
+    long = TimeBudget(3600.0)
+    assert not long.spent() and not long.spent()
