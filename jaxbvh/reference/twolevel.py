@@ -83,7 +83,8 @@ def build_top_level(forest, instances, n_instances, *, threshold=0.1, slots=None
     def wide(p, box_lo, box_hi):
         ext = box_hi - box_lo
         dim = int(np.argmax(ext))
-        return (hi[p, dim] - lo[p, dim]) > threshold * ext[dim]
+        # threshold = inf never opens (and inf * a zero extent would be NaN)
+        return bool(np.isfinite(threshold)) and bool((hi[p, dim] - lo[p, dim]) > threshold * ext[dim])
 
     left, right, parent, axis, top_lo, top_hi, leaf_slot = [], [], [], [], [], [], []
 
