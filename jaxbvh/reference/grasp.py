@@ -17,13 +17,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from jaxbvh.reference.build import sweep_candidates, tie_winner
+from jaxbvh.reference.build import _scene_scale, sweep_candidates, tie_winner
 from jaxbvh.tree import BVH
-
-
-def _scene_scale(lo, hi):
-    m = float(np.max(hi.max(0).astype(np.float64) - lo.min(0).astype(np.float64)))
-    return float(np.ldexp(1.0, -int(np.frexp(m)[1]))) if m > 0 else 1.0
 
 
 @lru_cache(maxsize=1)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from jaxbvh.reference.walk import post_order
 from jaxbvh.tree import to_numpy
 
 
@@ -73,16 +74,7 @@ class Tree:
         return int(self.child[p, 1] if self.child[p, 0] == n else self.child[p, 0])
 
     def post_order(self):
-        out, stack = [], [(self.root, False)]
-        while stack:
-            n, expanded = stack.pop()
-            if expanded or self.child[n, 0] < 0:
-                out.append(n)
-                continue
-            stack.append((n, True))
-            stack.append((int(self.child[n, 1]), False))
-            stack.append((int(self.child[n, 0]), False))
-        return out
+        return post_order(self.child, self.root)
 
     def path_up(self, n, top):
         """``n``, its parent, ... up to ``top`` (inclusive)."""

@@ -10,10 +10,10 @@ takes its uniforms from :func:`jaxbvh.rotate.annealing_draws`, indexed
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 
+from jaxbvh.reference.walk import post_order
 from jaxbvh.tree import to_numpy
 
 
@@ -67,16 +67,7 @@ class _Tree:
         A move at a node only rearranges its own, already visited, subtree, so the order
         computed up front is the order a recursive visit would take.
         """
-        out, stack = [], [(self.root, False)]
-        while stack:
-            n, expanded = stack.pop()
-            if expanded or self.child[n, 0] < 0:
-                out.append(n)
-                continue
-            stack.append((n, True))
-            stack.append((int(self.child[n, 1]), False))
-            stack.append((int(self.child[n, 0]), False))
-        return out
+        return post_order(self.child, self.root)
 
     def to_bvh(self):
         return self.source.replace(left=self.child[:, 0].astype(np.int32),

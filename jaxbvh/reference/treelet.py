@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from jaxbvh.reference.walk import post_order
 from jaxbvh.tree import to_numpy
 
 
@@ -64,16 +65,7 @@ class Tree:
         return d[0] * d[1] + d[1] * d[2] + d[2] * d[0]
 
     def post_order(self):
-        out, stack = [], [(self.root, False)]
-        while stack:
-            n, expanded = stack.pop()
-            if expanded or self.child[n, 0] < 0:
-                out.append(n)
-                continue
-            stack.append((n, True))
-            stack.append((int(self.child[n, 1]), False))
-            stack.append((int(self.child[n, 0]), False))
-        return out
+        return post_order(self.child, self.root)
 
     def heights(self):
         h = {}
