@@ -10,7 +10,6 @@ takes its uniforms from :func:`jaxbvh.rotate.annealing_draws`, indexed
 
 from __future__ import annotations
 
-
 import numpy as np
 
 from jaxbvh.reference.walk import post_order
