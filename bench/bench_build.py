@@ -13,8 +13,8 @@ and ``build.md`` to ``--out``.
 compiled once per capacity bucket, the first call timed apart): SAH and warm build time
 of median, LBVH (30- and 63-bit codes), PLOC (r = 4, 8, 16, 25), binned and sweep, and
 of the pipelines LBVH + hill climbing and PLOC (r = 16) + hill climbing
-(:func:`jaxbvh.rotate.hill_climb`; pipeline time = warm build + warm climb) and LBVH +
-treelet restructuring (:func:`jaxbvh.treelet.restructure`, one warm run; not on ``big``,
+(:func:`jaxbvh.optimize.rotate.hill_climb`; pipeline time = warm build + warm climb) and LBVH +
+treelet restructuring (:func:`jaxbvh.optimize.treelet.restructure`, one warm run; not on ``big``,
 where it takes minutes), on the shared
 meshes, two overlapping bunnies (``bunny2``, 138,902 triangles: the 120k class of the
 issue's tinybvh timing) and the 1.05M-triangle ``big`` input of
@@ -113,8 +113,8 @@ def trade_inputs(names):
     import numpy as np
 
     from bench.bench_rotate import big_scene
-    from jaxbvh.frame import Frame
     from jaxbvh.io import load_mesh
+    from jaxbvh.tree.frame import Frame
 
     for name in names:
         if name in MESHES:
@@ -147,7 +147,7 @@ def run_trade(args):
     import jax
 
     import jaxbvh
-    from jaxbvh import rotate, treelet
+    from jaxbvh.optimize import rotate, treelet
 
     rows = []
     for name, lo, hi in trade_inputs(args.inputs.split(",")):

@@ -9,7 +9,7 @@ fresh process sharing one new compilation-cache folder:
    events, which JAX also records for cache hits, minus ``/jax/compilation_cache/cache_hits``
    events; 0 means every program came from the cache),
 
-and, in one process, the command twice through ``jaxbvh.cli.main``: the second of those
+and, in one process, the command twice through ``jaxbvh.cli``: the second of those
 is the *warm* time (everything compiled and in memory). ``overhead = second run -
 warm``: Python and JAX start-up plus loading compiled programs from the cache (and any
 compiling the cache missed). Target (issue "Every command fast on its second run"):

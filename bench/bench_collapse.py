@@ -14,7 +14,7 @@ leaf as in the paper, unless said otherwise):
   tree, greedy pushup (no width limit), QBVH and the DP with K = 8 and K = 16.
 * **K sweep** — DP time (warm, compile apart) and R_cost for K = 2 ... 16 on the bunny.
 * **node sweep** — DP time with K = 8 against the number of nodes (linear growth).
-* **reference** — the NumPy twin (:mod:`jaxbvh.reference.collapse`) against the JAX DP
+* **reference** — the NumPy twin (:mod:`jaxbvh.wide.collapse_reference`) against the JAX DP
   on the tinybvh legocar tree (and the bunny): time and whether the trees are identical.
 * **leaves** (beyond the paper) — the DP allowed to merge subtrees into leaves of up to
   P primitives: R_cost + leaf cost against the binary tree.
@@ -45,8 +45,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import jaxbvh  # noqa: E402
-from jaxbvh import collapse, rays  # noqa: E402
-from jaxbvh.reference import collapse as ref  # noqa: E402
+from jaxbvh import rays
+from jaxbvh.wide import collapse  # noqa: E402
+from jaxbvh.wide import collapse_reference as ref  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 RESULTS = ROOT / "bench" / "results"

@@ -33,8 +33,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import jaxbvh  # noqa: E402
-from jaxbvh import evolve, insertion  # noqa: E402
-from jaxbvh.reference import insertion as ref_insertion  # noqa: E402
+from jaxbvh.builders import insertion
+from jaxbvh.builders import insertion_reference as ref_insertion  # noqa: E402
+from jaxbvh.stochastic import evolve  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 RESULTS = ROOT / "bench" / "results"

@@ -23,7 +23,8 @@ import jax
 import numpy as np
 
 import jaxbvh
-from jaxbvh import collapse, rays
+from jaxbvh import rays
+from jaxbvh.wide import collapse
 
 ROOT = Path(__file__).resolve().parent
 DATA = ROOT.parents[1] / "shared" / "data"

@@ -37,9 +37,15 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import jaxbvh  # noqa: E402
-from jaxbvh import brefs, rays, scenes, traverse, twolevel  # noqa: E402
-from jaxbvh import forest as fm  # noqa: E402
+from jaxbvh import (
+    rays,
+    scenes,  # noqa: E402
+    twolevel,
+)
 from jaxbvh.io import bundled_mesh_path, load_mesh  # noqa: E402
+from jaxbvh.rays import traversal as traverse
+from jaxbvh.twolevel import brefs
+from jaxbvh.twolevel import objects as fm  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 RESULTS = ROOT / "bench" / "results"

@@ -34,8 +34,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import jaxbvh  # noqa: E402
-from jaxbvh import rotate  # noqa: E402
-from jaxbvh.reference import rotate as ref  # noqa: E402
+from jaxbvh.optimize import rotate  # noqa: E402
+from jaxbvh.optimize import rotate_reference as ref  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 RESULTS = ROOT / "bench" / "results"

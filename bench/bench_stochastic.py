@@ -41,8 +41,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import jaxbvh  # noqa: E402
-from jaxbvh import grasp  # noqa: E402
 from jaxbvh.io import load_mesh  # noqa: E402
+from jaxbvh.stochastic import grasp  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 RESULTS = ROOT / "bench" / "results"

@@ -1,51 +1,50 @@
 """jaxbvh: bounding volume hierarchies as JAX array programs.
 
-Public API (flat): build a tree, check it, cost it, save and load it. The layout of a
-tree is documented once, in :mod:`jaxbvh.tree`.
+Public API (flat): build a tree, check it, cost it, optimize it, save and load it. The
+layout of a tree is documented once, in :mod:`jaxbvh.tree.layout`.
+
+Packages, one concept each (every JAX module's NumPy twin sits beside it as
+``<module>_reference``):
+
+=================  =====================================================================
+package            what it holds
+=================  =====================================================================
+``tree``           the layout, interchange files, frame, invariants, costs, refit,
+                   split axes, batches
+``builders``       top-down (sweep, binned, median), LBVH, PLOC, insertion
+``optimize``       one protocol for every optimizer: rotations (Kensler), reinsertion,
+                   treelets, the pipeline
+``wide``           collapsing to wide trees (Susano Pinto)
+``stochastic``     GRASP and the genetic algorithm (Ng & Trifonov)
+``twolevel``       two-level BVHs and partial re-braiding (Benthin et al.)
+``rays``           ray generation, traversal, measured costs
+``io``             meshes and scenes from files
+``cli``            the ``jaxbvh`` command
+=================  =====================================================================
+
+``numerics`` holds the rules every algorithm shares (ties, margins, area scale) and
+``draws`` the random numbers an algorithm and its twin both consume.
 """
 
-from jaxbvh.frame import Frame
-from jaxbvh.tree import BVH, WideBVH, capacity_bucket, from_interchange, load, save, to_interchange, to_jax, to_numpy
-from jaxbvh.validate import InvalidTreeError, check, validate
-from jaxbvh.cost import all_costs, goldsmith_salmon_cost, ng_trifonov_cost, node_costs, sah
-from jaxbvh.build import BUILDERS, build
+from jaxbvh import io, optimize, rays, scenes, twolevel
+from jaxbvh.builders import insertion, lbvh, morton, ploc
+from jaxbvh.builders.dispatch import BUILDERS, build
+from jaxbvh.io import load_mesh
+from jaxbvh.optimize import reinsert, rotate, treelet
+from jaxbvh.stochastic import evolve, grasp
+from jaxbvh.tree.cost import all_costs, goldsmith_salmon_cost, ng_trifonov_cost, node_costs, sah
+from jaxbvh.tree.frame import Frame
+from jaxbvh.tree.interchange import from_interchange, load, save, to_interchange
+from jaxbvh.tree.layout import BVH, WideBVH, capacity_bucket, to_jax, to_numpy
+from jaxbvh.tree.validate import InvalidTreeError, check, validate
+from jaxbvh.wide import collapse
 
 __version__ = "0.1.0"
-
-# attribute -> (module, attribute in it, or None for the module itself)
-_LAZY = {
-    "load_mesh": ("jaxbvh.io", "load_mesh"),
-    "io": ("jaxbvh.io", None),
-    "rays": ("jaxbvh.rays", None),
-    "rotate": ("jaxbvh.rotate", None),
-    "insertion": ("jaxbvh.insertion", None),
-    "evolve": ("jaxbvh.evolve", None),
-    "collapse": ("jaxbvh.collapse", None),
-    "grasp": ("jaxbvh.grasp", None),
-    "twolevel": ("jaxbvh.twolevel", None),
-    "scenes": ("jaxbvh.scenes", None),
-    "reinsert": ("jaxbvh.reinsert", None),
-    "treelet": ("jaxbvh.treelet", None),
-    "optimize": ("jaxbvh.optimize", None),
-    "lbvh": ("jaxbvh.lbvh", None),
-    "ploc": ("jaxbvh.ploc", None),
-    "morton": ("jaxbvh.morton", None),
-}
-
-
-def __getattr__(name):
-    # trimesh and the optimizers load only when first used, keeping `import jaxbvh` light
-    if name in _LAZY:
-        import importlib
-
-        module_name, attribute = _LAZY[name]
-        module = importlib.import_module(module_name)
-        return getattr(module, attribute) if attribute else module
-    raise AttributeError(f"module 'jaxbvh' has no attribute {name!r}")
 
 __all__ = [
     "BVH", "WideBVH", "Frame", "InvalidTreeError", "BUILDERS",
     "build", "check", "validate", "sah", "node_costs", "ng_trifonov_cost", "goldsmith_salmon_cost",
     "all_costs", "save", "load", "to_interchange", "from_interchange", "to_numpy", "to_jax",
-    "capacity_bucket", "load_mesh",
+    "capacity_bucket", "load_mesh", "io", "optimize", "rays", "scenes", "twolevel", "insertion", "lbvh",
+    "morton", "ploc", "reinsert", "rotate", "treelet", "evolve", "grasp", "collapse",
 ]

@@ -1,6 +1,6 @@
 """Synthetic multi-object scenes for two-level BVHs: instanced crowds and dynamic-in-static.
 
-Both return :class:`jaxbvh.io.Mesh` objects, exactly as :func:`jaxbvh.io.load_mesh`
+Both return :class:`jaxbvh.io.meshes.Mesh` objects, exactly as :func:`jaxbvh.io.meshes.load_mesh`
 returns a scene file: distinct ``objects`` in object space, ``instances`` (object id,
 4x4 transform) and the world-space triangles in instance order.
 
@@ -23,14 +23,14 @@ import dataclasses
 import jax
 import numpy as np
 
-from jaxbvh.io import Mesh
+from jaxbvh.io.meshes import Mesh
 
 
 def assemble(objects, instances, name: str = "scene") -> Mesh:
     """A :class:`Mesh` from ``objects`` [(vertices float64 [v, 3], faces int [f, 3])] and
     ``instances`` [(object id, transform float64 [4, 4])], world triangles in instance order.
 
-    A mirroring transform reverses its faces' winding, as :func:`jaxbvh.io.load_mesh` does.
+    A mirroring transform reverses its faces' winding, as :func:`jaxbvh.io.meshes.load_mesh` does.
     """
     objects = [(np.asarray(v, np.float64), np.asarray(f, np.int32)) for v, f in objects]
     instances = [(int(o), np.asarray(t, np.float64)) for o, t in instances]

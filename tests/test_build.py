@@ -5,14 +5,14 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
+from helpers import canonical
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from strategies import box_sets, boxes, triangle_soups
 
 import jaxbvh
-from jaxbvh.frame import Frame
-from jaxbvh.reference import build as reference
-from strategies import box_sets, boxes, triangle_soups
-from helpers import canonical
+from jaxbvh.builders import topdown_reference as reference
+from jaxbvh.tree.frame import Frame
 
 SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -96,7 +96,7 @@ def test_sah_builders_beat_median_split():
 
 
 def test_sizes_in_one_capacity_bucket_compile_once():
-    from jaxbvh.build import _build
+    from jaxbvh.builders.topdown import _build
 
     rng = np.random.default_rng(1)
     sizes = [13, 14, 15, 16]
@@ -134,7 +134,8 @@ def test_bad_options_get_clear_errors():
 def test_builder_vmaps_over_trials():
     """The level-synchronous engine runs under vmap (random trials build in one call)."""
     import jax.numpy as jnp
-    from jaxbvh.build import _build, scene_scale
+
+    from jaxbvh.builders.topdown import _build, scene_scale
 
     rng = np.random.default_rng(7)
     lo = rng.random((3, 20, 3)).astype(np.float32)

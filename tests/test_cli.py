@@ -1,4 +1,4 @@
-"""The jaxbvh command line tool, run in-process through ``jaxbvh.cli.main``."""
+"""The jaxbvh command line tool, run in-process through ``jaxbvh.cli``."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 import jaxbvh
 from jaxbvh import cli
-from jaxbvh.commands import _common
+from jaxbvh.cli.commands import _common
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 

@@ -15,15 +15,17 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from helpers import random_tree
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 import jaxbvh
-from jaxbvh import cli, collapse, levels, traverse
-from jaxbvh.reference import collapse as ref
-from jaxbvh.reference import rays as ref_rays
+from jaxbvh import cli
+from jaxbvh.rays import traversal as traverse
+from jaxbvh.rays import traversal_reference as ref_rays
 from jaxbvh.tree import pad_to
-from helpers import random_tree
+from jaxbvh.wide import collapse, levels
+from jaxbvh.wide import collapse_reference as ref
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 NODES, PRIMS = 128, 64  # one capacity for every random tree: one compile per configuration
@@ -75,7 +77,7 @@ def check(result, tree, lo, hi, cost=None):
 @jax.jit
 def _schedule_and_sweeps(tree):
     """Schedule with tiny windows, and two sweeps over it: subtree sizes (bottom-up) and
-    depths (top-down), as a user of :mod:`jaxbvh.levels` would write them."""
+    depths (top-down), as a user of :mod:`jaxbvh.wide.levels` would write them."""
     jnp = jax.numpy
     n = tree.left.shape[0]
     left = jnp.where(tree.left >= 0, tree.left, n)

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from strategies import boxes, triangle_soups
 
 import jaxbvh
-from jaxbvh.frame import Frame
-from jaxbvh.reference import cost as reference
-from strategies import boxes, triangle_soups
+from jaxbvh.tree import cost_reference as reference
+from jaxbvh.tree.frame import Frame
 
 SETTINGS = settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 # float32 evaluation of a float32 tree vs float64 evaluation of the same boxes

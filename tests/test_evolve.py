@@ -22,9 +22,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import jaxbvh
-from jaxbvh import cli, evolve, insertion
-from jaxbvh.reference import evolve as ref
-from jaxbvh.reference import insertion as ref_insertion
+from jaxbvh import cli
+from jaxbvh.builders import insertion
+from jaxbvh.builders import insertion_reference as ref_insertion
+from jaxbvh.stochastic import evolve
+from jaxbvh.stochastic import evolve_reference as ref
 
 REPO = Path(__file__).resolve().parents[1]
 SETTINGS = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -182,7 +184,7 @@ _SUBPROCESS = textwrap.dedent("""
     import json, sys
     sys.path.insert(0, {repo!r}); sys.path.insert(0, {tests!r})
     import jax, numpy as np
-    from jaxbvh import evolve
+    from jaxbvh.stochastic import evolve
     from test_evolve import boxes
     lo, hi = boxes(6, 21)
     r = evolve.evolve(jax.random.key(2), lo, hi, population=8, generations=4, mutation=0.1, devices=2)

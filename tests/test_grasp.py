@@ -11,16 +11,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import canonical
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
-
-import jaxbvh
-from jaxbvh import grasp
-from jaxbvh.frame import Frame
-from jaxbvh.reference import grasp as ref
-from helpers import canonical
 from strategies import box_sets, boxes, triangle_soups
 from test_cli import assert_one_line_error, cache_dir, grid_obj, run_cli, run_json  # noqa: F401
+
+import jaxbvh
+from jaxbvh import numerics
+from jaxbvh.stochastic import grasp
+from jaxbvh.stochastic import grasp_reference as ref
+from jaxbvh.tree.frame import Frame
 
 SETTINGS = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow])
 RCLS = st.sampled_from(["axes", 1, 2, 3, 5, 20])
@@ -119,7 +120,7 @@ def test_every_node_deviates_at_noise_one():
 def test_deviation_rate_is_the_noise(rcl):
     """noise = the probability that a node does not take its greedy split (split axis or sides)."""
     lo, hi = random_boxes(11, 24)
-    scale = lo.dtype.type(ref._scene_scale(lo, hi))
+    scale = lo.dtype.type(numerics.scene_scale(lo, hi))
     centre = np.float32(0.5) * lo + np.float32(0.5) * hi
     noise, trials = 0.25, 30
     deviations = []
@@ -230,7 +231,7 @@ def test_forest_trees_equal_whole_trials():
     """A forest of copies of the scene, each its own trial: every tree is that trial's."""
     import importlib
 
-    engine = importlib.import_module("jaxbvh.build")
+    engine = importlib.import_module("jaxbvh.builders.topdown")
     lo, hi = random_boxes(15, 10)
     trials = np.array([4, 0, 9], np.int32)
     copies = len(trials)

@@ -11,13 +11,14 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from strategies import box_sets, boxes, triangle_soups
 
 import jaxbvh
-from jaxbvh import insertion
-from jaxbvh.frame import Frame
-from jaxbvh.reference import cost as ref_cost
-from jaxbvh.reference import insertion as ref
-from strategies import box_sets, boxes, triangle_soups
+from jaxbvh import numerics
+from jaxbvh.builders import insertion
+from jaxbvh.builders import insertion_reference as ref
+from jaxbvh.tree import cost_reference as ref_cost
+from jaxbvh.tree.frame import Frame
 
 CAP = 48  # one capacity for every random case
 SETTINGS = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -87,8 +88,8 @@ def test_insertion_costs_add_up_to_the_tree_cost(data, seed, max_children):
     assert len(trace) == lo.shape[0] - 1
     assert sum(kind == "pair" for _, _, kind, _ in trace) == lo.shape[0] - 1 - sum(
         kind == "child" for _, _, kind, _ in trace)
-    scale = ref._scene_scale(lo, hi)
-    root_area = ref._half_area(tree.lo[int(tree.root)], tree.hi[int(tree.root)], scale)
+    scale = numerics.scene_scale(lo, hi)
+    root_area = numerics.half_area(tree.lo[int(tree.root)], tree.hi[int(tree.root)], scale)
     total = sum(increase for _, _, _, increase in trace)
     if root_area > 0:
         assert total / root_area == pytest.approx(ref_cost.goldsmith_salmon_cost(tree), rel=1e-9, abs=1e-12)

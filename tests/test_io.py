@@ -352,7 +352,7 @@ def test_cached_mesh_equals_the_parsed_one(tmp_path, mesh_cache, monkeypatch):
     def no_parsing(path):
         raise AssertionError("parsed again")
 
-    monkeypatch.setattr(io, "_parse", no_parsing)
+    monkeypatch.setattr(io.meshes, "_parse", no_parsing)
     with pytest.warns(UserWarning, match="dots"):  # the warning comes back with the entry
         cached = load_mesh(path)
     assert_same_mesh(cached, parsed)

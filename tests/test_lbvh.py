@@ -8,17 +8,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import canonical
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from strategies import box_sets, boxes, triangle_soups
 
 import jaxbvh
-from jaxbvh import lbvh, morton
-from jaxbvh.build import scene_scale
-from jaxbvh.frame import Frame
-from jaxbvh.reference import lbvh as reference
-from jaxbvh.reference import morton as reference_morton
-from helpers import canonical
-from strategies import box_sets, boxes, triangle_soups
+from jaxbvh.builders import lbvh, morton
+from jaxbvh.builders import lbvh_reference as reference
+from jaxbvh.builders import morton_reference as reference_morton
+from jaxbvh.builders.topdown import scene_scale
+from jaxbvh.tree.frame import Frame
 
 SETTINGS = settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 CAP = 64  # every hypothesis case pads to this capacity: one compiled program per mode
@@ -196,7 +196,7 @@ def test_bad_options_get_clear_errors():
 def test_build_dispatch_keeps_dtype_padding_and_the_twin(method):
     """jaxbvh.build (checked, cast and padded by engine_inputs) gives the twin's tree in every mode:
     float32 padded to the capacity bucket, unpadded (pad=False), float64 under x64."""
-    from jaxbvh.reference import ploc as reference_ploc
+    from jaxbvh.builders import ploc_reference as reference_ploc
 
     rng = np.random.default_rng(11)
     c = np.round(rng.uniform(-1, 1, (37, 3)) * 4) / 4  # shared centres: ties and duplicate codes

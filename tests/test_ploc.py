@@ -8,16 +8,17 @@ import math
 import jax
 import numpy as np
 import pytest
+from helpers import canonical
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from strategies import box_sets, triangle_soups
+from test_lbvh import local_boxes, padded
 
 import jaxbvh
-from jaxbvh import cli, ploc
-from jaxbvh.build import scene_scale
-from jaxbvh.reference import ploc as reference
-from helpers import canonical
-from strategies import box_sets, triangle_soups
-from test_lbvh import CAP, local_boxes, padded
+from jaxbvh import cli
+from jaxbvh.builders import ploc
+from jaxbvh.builders import ploc_reference as reference
+from jaxbvh.builders.topdown import scene_scale
 
 SETTINGS = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 

@@ -16,9 +16,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from jaxbvh import collapse, rays, traverse
-from jaxbvh.reference import rays as ref
+from jaxbvh import rays
+from jaxbvh.rays import traversal as traverse
+from jaxbvh.rays import traversal_reference as ref
 from jaxbvh.tree import BVH, depth, from_interchange
+from jaxbvh.wide import collapse
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 COUNTERS = ("box_tests", "prim_tests", "nodes_visited", "leaves_visited")
@@ -420,6 +422,7 @@ def _real_scene(name, mesh):
     if not (DATA / "trees" / f"{name}_binned_ref.npz").exists():
         pytest.skip(f"shared data not found at {DATA} (reference trees and meshes)")
     import trimesh
+
     import jaxbvh
 
     tree, frame = jaxbvh.load(DATA / "trees" / f"{name}_binned_ref.npz")
@@ -475,6 +478,7 @@ def test_closest_hits_equal_embree(name, mesh, kind):
 def test_cli_trace(tmp_path, capsys):
     pytest.importorskip("matplotlib", reason="--image needs matplotlib (the plot extra)")
     import trimesh
+
     import jaxbvh
     from jaxbvh import cli
 

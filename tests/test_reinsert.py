@@ -11,18 +11,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import random_tree
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import jaxbvh
-from jaxbvh import reinsert
-from jaxbvh.reference import reinsert as ref
-from helpers import random_tree
+from jaxbvh import numerics
+from jaxbvh.optimize import reinsert
+from jaxbvh.optimize import reinsert_reference as ref
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 NODES, PRIMS = 128, 64  # one capacity for all random trees
 SETTINGS = dict(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-MIN_GAIN = reinsert.default_min_gain(np.float32)
+MIN_GAIN = numerics.min_gain(np.float32)
 
 
 

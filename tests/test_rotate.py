@@ -15,14 +15,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import random_tree
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 import jaxbvh
-from jaxbvh import rotate
-from jaxbvh.reference import rotate as ref
-from jaxbvh.schedule import constant_schedule, kensler_schedule
-from helpers import random_tree
+from jaxbvh.optimize import rotate
+from jaxbvh.optimize import rotate_reference as ref
+from jaxbvh.optimize.schedules import constant_schedule, kensler_schedule
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 NODES, PRIMS = 128, 64  # one capacity for all random trees
@@ -306,14 +306,14 @@ def test_chains_return_the_best_chain():
 
 def test_batch_of_trees_equals_one_by_one():
     cases = [random_tree(s, n, 2) for s, n in ((1, 10), (2, 33), (3, 25))]
-    batch = rotate.stack_trees([t for t, _, _ in cases])
+    batch = jaxbvh.tree.stack_trees([t for t, _, _ in cases])
     out = rotate.optimize_batch(batch)
-    for (tree, plo, phi), got in zip(cases, rotate.unstack_trees(out.tree)):
+    for (tree, plo, phi), got in zip(cases, jaxbvh.tree.unstack_trees(out.tree)):
         assert_same_tree(got, rotate.hill_climb(tree).tree)
         jaxbvh.validate(got, plo, phi)
     keys = jax.random.split(jax.random.key(0), 3)
     out = rotate.optimize_batch(batch, keys, method="sa", steps=8, period=4)
-    for (tree, _, _), key, got in zip(cases, keys, rotate.unstack_trees(out.tree)):
+    for (tree, _, _), key, got in zip(cases, keys, jaxbvh.tree.unstack_trees(out.tree)):
         assert_same_tree(got, rotate.anneal(key, tree, steps=8, period=4).tree)
 
 
@@ -327,7 +327,7 @@ def test_batch_of_trees_equals_one_by_one():
 def test_split_axes_match_reference_and_keep_cost(case):
     seed, n, leaf, grid = case
     tree, plo, phi = random_tree(seed, n, leaf, grid)
-    out = rotate.assign_split_axes(tree)
+    out = jaxbvh.tree.assign_split_axes(tree)
     assert_same_tree(out, ref.assign_split_axes(tree))
     jaxbvh.validate(out, plo, phi)
     t = jaxbvh.to_numpy(out)
@@ -349,10 +349,11 @@ _SUBPROCESS = textwrap.dedent("""
     import jax, numpy as np
     sys.path.insert(0, {repo!r}); sys.path.insert(0, {tests!r})
     from helpers import random_tree
-    from jaxbvh import rotate
+    import jaxbvh
+    from jaxbvh.optimize import rotate
     from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
     cases = [random_tree(s, 40, 1, "grid" if s % 2 == 0 else "random") for s in range(4)]
-    batch = rotate.stack_trees([t for t, _, _ in cases])
+    batch = jaxbvh.tree.stack_trees([t for t, _, _ in cases])
     out = {{"devices": jax.device_count()}}
     if jax.device_count() >= 2:
         mesh = Mesh(np.array(jax.devices()[:2]), ("batch",))
@@ -390,10 +391,10 @@ def test_sharded_batch_on_two_cpu_devices_and_one_thread_agree():
     # the same trees on two devices and on one thread (convergence is not thread-dependent)
     assert two["hc"] == one["hc"] and two["passes"] == one["passes"]
     cases = [random_tree(s, 40, 1, "grid" if s % 2 == 0 else "random") for s in range(4)]
-    here = rotate.optimize_batch(rotate.stack_trees([t for t, _, _ in cases]))
+    here = rotate.optimize_batch(jaxbvh.tree.stack_trees([t for t, _, _ in cases]))
     assert np.asarray(here.tree.left).tolist() == two["hc"]
     keys = jax.random.split(jax.random.key(1), 4)
-    sa = rotate.optimize_batch(rotate.stack_trees([t for t, _, _ in cases]), keys, method="sa",
+    sa = rotate.optimize_batch(jaxbvh.tree.stack_trees([t for t, _, _ in cases]), keys, method="sa",
                                steps=8, period=4)
     assert np.asarray(sa.tree.left).tolist() == two["sa"]
 

@@ -6,14 +6,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import canonical
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from strategies import box_sets
 
 import jaxbvh
-from jaxbvh.frame import Frame
-from jaxbvh.reference import cost as reference
-from strategies import box_sets
-from helpers import canonical
+from jaxbvh.tree import cost_reference as reference
+from jaxbvh.tree.frame import Frame
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 SETTINGS = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])

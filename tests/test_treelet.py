@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from test_reinsert import NODES, assert_same_tree, check_result, random_tree, trees
 
 import jaxbvh
-from jaxbvh import treelet
-from jaxbvh.reference import treelet as ref
-from test_reinsert import NODES, assert_same_tree, check_result, random_tree, trees
+from jaxbvh.optimize import treelet
+from jaxbvh.optimize import treelet_reference as ref
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 SETTINGS = dict(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])

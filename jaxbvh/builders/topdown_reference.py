@@ -1,0 +1,170 @@
+"""Sequential NumPy twin of :mod:`jaxbvh.builders.topdown`: one node at a time, as the papers say.
+
+Recursive top-down construction (an explicit stack stands in for recursion so deep
+trees do not hit Python's limit). The split rules, tie rule and leaf test are those of
+:mod:`jaxbvh.builders.topdown`, and every quantity is computed in the boxes' own dtype with the
+same expressions, so on inputs without ties both produce the same tree (up to node
+numbering and the order of primitives inside a leaf). Nodes come out in depth-first
+order, root 0, unpadded.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from jaxbvh.builders import lbvh_reference as lbvh
+from jaxbvh.builders import ploc_reference as ploc
+from jaxbvh.numerics import TIE_TOLERANCE, half_area, scene_scale
+from jaxbvh.tree.layout import BVH
+
+
+def sweep_candidates(ids, lo, hi, centre, scale):
+    """Every split of the full sweep over all axes: ``(cost, tie code, axis, left ids,
+    right ids)``, cost ``A_L N_L + A_R N_R``, code ``(|2 N_L - N| * 2 + (2 N_L > N)) * 3 +
+    axis`` (nearest the middle, the smaller left side first, then the lowest axis)."""
+    dtype = lo.dtype
+    n = len(ids)
+    candidates = []
+    for axis in range(3):
+        order = ids[np.lexsort((ids, centre[ids, axis]))]
+        # forward sweep: box of the first k primitives
+        left_area = np.empty(n, dtype)
+        box_lo, box_hi = lo[order[0]].copy(), hi[order[0]].copy()
+        for i in range(n):
+            box_lo = np.minimum(box_lo, lo[order[i]])
+            box_hi = np.maximum(box_hi, hi[order[i]])
+            left_area[i] = half_area(box_lo, box_hi, scale)
+        # backward sweep: box of the primitives from i on
+        right_area = np.empty(n, dtype)
+        box_lo, box_hi = lo[order[-1]].copy(), hi[order[-1]].copy()
+        for i in range(n - 1, -1, -1):
+            box_lo = np.minimum(box_lo, lo[order[i]])
+            box_hi = np.maximum(box_hi, hi[order[i]])
+            right_area[i] = half_area(box_lo, box_hi, scale)
+        for k in range(1, n):
+            cost = left_area[k - 1] * dtype.type(k) + right_area[k] * dtype.type(n - k)
+            tie = (abs(2 * k - n) * 2 + (2 * k > n)) * 3 + axis
+            candidates.append((cost, tie, axis, order[:k], order[k:]))
+    return candidates
+
+
+def tie_winner(candidates):
+    """The tie rule: least cost, then the least code among costs within ``TIE_TOLERANCE``."""
+    best = min(c[0] for c in candidates)
+    near = best * type(best)(1 + TIE_TOLERANCE)
+    return min((c for c in candidates if c[0] <= near), key=lambda c: c[1])
+
+
+def _sweep_split(ids, lo, hi, centre, scale):
+    """Full sweep over all axes; returns (cost, axis, left ids, right ids)."""
+    candidates = sweep_candidates(ids, lo, hi, centre, scale)
+    _, _, axis, left, right = tie_winner(candidates)
+    return min(c[0] for c in candidates), axis, left, right
+
+
+def _binned_split(ids, lo, hi, centre, scale, bins):
+    """Wald's binned SAH; returns (cost, axis, left, right) or None without a plane."""
+    dtype = lo.dtype
+    c = centre[ids]
+    cmin, cmax = c.min(0), c.max(0)
+    candidates = []  # (cost, axis, left, right), lowest axis then plane first
+    for axis in range(3):
+        span = cmax[axis] - cmin[axis]
+        if not span > 0:
+            continue
+        raw = np.floor((c[:, axis] - cmin[axis]) * dtype.type(bins) / span)
+        b = np.clip(raw, 0, bins - 1).astype(np.int64)
+        for plane in range(bins - 1):
+            left, right = ids[b <= plane], ids[b > plane]
+            if len(left) == 0 or len(right) == 0:
+                continue
+            cost = (half_area(lo[left].min(0), hi[left].max(0), scale) * dtype.type(len(left))
+                    + half_area(lo[right].min(0), hi[right].max(0), scale) * dtype.type(len(right)))
+            candidates.append((cost, axis, left, right))
+    if not candidates:
+        return None
+    best = min(c[0] for c in candidates)
+    near = best * dtype.type(1 + TIE_TOLERANCE)
+    _, axis, left, right = next(c for c in candidates if c[0] <= near)
+    return best, axis, left, right
+
+
+def build(prim_lo, prim_hi, *, method="sweep", max_leaf=1, bins=16, ct=1.0, ci=1.0, radius=16,
+          morton_bits=30) -> BVH:
+    """Reference build; same arguments as :func:`jaxbvh.builders.topdown`, boxes used in their dtype.
+
+    Returns an unpadded NumPy :class:`~jaxbvh.tree.layout.BVH` in depth-first order. The
+    bottom-up builders have twins of their own (:mod:`jaxbvh.builders.lbvh_reference`,
+    :mod:`jaxbvh.builders.ploc_reference`), which this dispatches to.
+    """
+    if method in ("lbvh", "ploc"):
+
+        options = dict(max_leaf=max_leaf, ct=ct, ci=ci, morton_bits=morton_bits)
+        if method == "lbvh":
+            return lbvh.build(prim_lo, prim_hi, **options)
+        return ploc.build(prim_lo, prim_hi, radius=radius, **options)
+    lo = np.asarray(prim_lo)
+    hi = np.asarray(prim_hi)
+    dtype = lo.dtype
+    ct, ci = dtype.type(ct), dtype.type(ci)
+    n = lo.shape[0]
+    scale = dtype.type(scene_scale(lo, hi))
+    centre = dtype.type(0.5) * lo + dtype.type(0.5) * hi
+
+    left, right, parent, axis_of = [], [], [], []
+    node_lo, node_hi, prim_start, prim_count = [], [], [], []
+    prim_index: list[int] = []
+
+    def new_node(par):
+        for arr, v in ((left, -1), (right, -1), (parent, par), (axis_of, -1), (prim_start, 0), (prim_count, 0)):
+            arr.append(v)
+        node_lo.append(None)
+        node_hi.append(None)
+        return len(left) - 1
+
+    stack = [(new_node(-1), np.arange(n))]
+    while stack:
+        node, ids = stack.pop()
+        box_lo, box_hi = lo[ids].min(0), hi[ids].max(0)
+        node_lo[node], node_hi[node] = box_lo, box_hi
+        count = len(ids)
+        area = half_area(box_lo, box_hi, scale)
+        split = None
+        if count > 1:
+            if method == "sweep":
+                split = _sweep_split(ids, lo, hi, centre, scale)
+            elif method == "binned":
+                split = _binned_split(ids, lo, hi, centre, scale, bins)
+                if split is None and count > max_leaf:
+                    ordered = np.sort(ids)
+                    split = (None, 0, ordered[: count // 2], ordered[count // 2:])
+            elif method == "median":
+                axis = int(np.argmax(box_hi - box_lo))
+                ordered = ids[np.lexsort((ids, centre[ids, axis]))]
+                split = (None, axis, ordered[: count // 2], ordered[count // 2:])
+            else:
+                raise ValueError(f"unknown builder {method!r}")
+            if split is not None and count <= max_leaf:
+                if method == "median" or split[0] is None:
+                    split = None
+                else:  # SAH termination test
+                    estimate = ct + (ci * split[0] / area if area > 0 else ci * dtype.type(count))
+                    if ci * dtype.type(count) <= estimate * dtype.type(1 + TIE_TOLERANCE):
+                        split = None
+        if split is None:
+            prim_start[node] = len(prim_index)
+            prim_count[node] = count
+            prim_index.extend(int(i) for i in ids)
+            continue
+        _, axis, left_ids, right_ids = split
+        axis_of[node] = axis
+        l_id, r_id = new_node(node), new_node(node)
+        left[node], right[node] = l_id, r_id
+        stack.append((r_id, right_ids))
+        stack.append((l_id, left_ids))
+
+    i32 = lambda a: np.asarray(a, np.int32)  # noqa: E731
+    return BVH(left=i32(left), right=i32(right), parent=i32(parent),
+               lo=np.stack(node_lo).astype(dtype), hi=np.stack(node_hi).astype(dtype),
+               prim_start=i32(prim_start), prim_count=i32(prim_count), axis=i32(axis_of),
+               prim_index=i32(prim_index), root=np.int32(0))

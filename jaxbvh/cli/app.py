@@ -1,0 +1,162 @@
+"""The ``jaxbvh`` command line tool.
+
+Each subcommand is a module ``jaxbvh.cli.commands.<name>`` with ``add_parser(subparsers)``
+and ``run(args) -> dict`` (found by name: adding a module adds the command); the dict is
+printed as a table, or as one JSON object with ``--json``.
+
+Exit status: 0 when done; 1 when the command ran but reports an invalid tree (the result
+says ``"valid": false`` and lists the problems: ``jaxbvh stats``); 2 for bad input
+(missing or malformed files, trees a command cannot work on, bad options), after one line
+``jaxbvh: error: ...`` on stderr.
+
+JAX's persistent compilation cache is on: compiled programs are reused across runs.
+It lives in ``~/.cache/jaxbvh/jax`` unless ``JAXBVH_CACHE_DIR`` names another folder;
+parsed meshes are kept in its ``meshes/`` folder (:func:`jaxbvh.io.meshes.use_mesh_cache`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import importlib
+import os
+import pkgutil
+import sys
+from pathlib import Path
+
+from jaxbvh import __version__
+from jaxbvh.cli import commands
+from jaxbvh.cli.commands import _common
+from jaxbvh.io import MeshError, use_mesh_cache
+from jaxbvh.io import meshes as io
+from jaxbvh.tree.validate import InvalidTreeError
+
+# the order commands are listed in ``--help``; modules of ``jaxbvh.cli.commands`` not named
+# here follow in alphabetical order
+ORDER = ["build", "stats", "optimize", "trace"]
+
+
+def command_names() -> list[str]:
+    """Names of the subcommands: every public module of :mod:`jaxbvh.cli.commands`."""
+
+    found = [m.name for m in pkgutil.iter_modules(commands.__path__) if not m.name.startswith("_")]
+    return [n for n in ORDER if n in found] + sorted(n for n in found if n not in ORDER)
+
+# exit statuses: 0 done (and any tree checked is valid); 1 the command ran and reports
+# an invalid tree (``"valid": false`` in its result, e.g. ``jaxbvh stats``); 2 bad input or
+# options, reported in one line on stderr
+EXIT_INVALID = 1
+EXIT_USAGE = 2
+
+
+def cache_dir() -> Path:
+    """Folder of JAX's persistent compilation cache for the CLI."""
+    env = os.environ.get("JAXBVH_CACHE_DIR")
+    if env:
+        return Path(env).expanduser()
+    return Path.home() / ".cache" / "jaxbvh" / "jax"
+
+
+_CACHE_OPTIONS = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs",
+                  "jax_persistent_cache_min_entry_size_bytes")
+
+
+def enable_compilation_cache() -> Path | None:
+    """Point JAX's persistent compilation cache at :func:`cache_dir` (None if unusable)."""
+    import jax
+    from jax.experimental.compilation_cache import compilation_cache
+
+    path = cache_dir()
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None  # read-only home: run without the cache rather than fail
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    # our builders compile in well under a second on small meshes; cache them anyway
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    compilation_cache.reset_cache()  # JAX opens its cache once: make it open this folder
+    # parsed meshes too: parsing (and importing trimesh) costs more than the arrays
+
+    use_mesh_cache(path / "meshes")
+    return path
+
+
+@contextlib.contextmanager
+def compilation_cache_on():
+    """The tool's caches (:func:`enable_compilation_cache`) for the duration of one command.
+
+    On exit JAX's cache options, its cache object and the mesh cache are put back as they
+    were, so calling :func:`main` from Python (tests, notebooks) leaves no process-wide
+    cache behind.
+    """
+    import jax
+    from jax.experimental.compilation_cache import compilation_cache
+
+    before = {name: getattr(jax.config, name) for name in _CACHE_OPTIONS}
+    meshes_before = io.mesh_cache_folder()
+    try:
+        yield enable_compilation_cache()
+    finally:
+        for name, value in before.items():
+            jax.config.update(name, value)
+        compilation_cache.reset_cache()
+        io.use_mesh_cache(meshes_before)
+
+
+def _load_commands() -> dict:
+    return {name: importlib.import_module(f"jaxbvh.cli.commands.{name}") for name in command_names()}
+
+
+def make_parser() -> tuple[argparse.ArgumentParser, dict]:
+    parser = argparse.ArgumentParser(
+        prog="jaxbvh",
+        description="Build, inspect and optimize BVHs for ray tracing (JAX).",
+        epilog=f"JAX compilation cache: {cache_dir()} (set JAXBVH_CACHE_DIR to move it).")
+    parser.add_argument("--version", action="version", version=f"jaxbvh {__version__}")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    subparsers.required = True
+    modules = _load_commands()
+    for module in modules.values():
+        sub = module.add_parser(subparsers)
+        if not any("--json" in a.option_strings for a in sub._actions):
+            sub.add_argument("--json", action="store_true",
+                             help="print the result as one JSON object on stdout")
+    return parser, modules
+
+
+def _error_line(exc: BaseException) -> str:
+    if isinstance(exc, InvalidTreeError):
+        text = f"invalid BVH ({len(exc.problems)} problem(s)): " + "; ".join(exc.problems[:3])
+        if len(exc.problems) > 3:
+            text += f"; ... and {len(exc.problems) - 3} more"
+    elif isinstance(exc, OSError) and exc.filename and exc.strerror:
+        text = f"{exc.strerror}: {exc.filename}"
+    else:
+        text = str(exc) or type(exc).__name__
+    return " ".join(text.split())  # one line
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``jaxbvh`` console script; returns the exit status."""
+
+    parser, modules = make_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version, usage errors (argparse prints them)
+        return int(exc.code or 0)
+    try:
+        with compilation_cache_on():
+            result = modules[args.command].run(args)
+    except (MeshError, InvalidTreeError, ValueError, FileNotFoundError, OSError) as exc:
+        print(f"jaxbvh: error: {_error_line(exc)}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("jaxbvh: interrupted", file=sys.stderr)
+        return 130
+    _common.print_result(result, as_json=getattr(args, "json", False))
+    return EXIT_INVALID if result.get("valid") is False else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,122 @@
+"""``jaxbvh collapse INPUT``: collapse a binary BVH into a wide one (Susano Pinto 2010).
+
+INPUT is a binary tree ``.npz`` or a mesh/scene (built with the builder options first,
+as ``optimize`` does). ``--method dp`` is the optimal collapse (least R_cost with at
+most ``--max-children`` children per node, default 8), ``greedy`` the paper's top-down
+pushup (no width limit unless ``--max-children``), ``qbvh`` the 4-wide baseline (every
+node at odd depth removed). ``--simd-width W`` prices a node's ``k`` child box tests as
+``ceil(k / W)`` (0, the default: ``k``). ``--max-leaf P`` is the builder's leaf size for
+a mesh and, with ``--method dp``, also lets the DP merge subtrees of up to ``P``
+primitives into one leaf (beyond the paper). The output is validated before it is
+written.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+import jaxbvh
+from jaxbvh.cli.commands import _common
+from jaxbvh.io import Mesh
+from jaxbvh.wide import collapse
+from jaxbvh.wide.collapse import MAX_CHILDREN_LIMIT, METHODS
+
+HELP = "collapse a binary BVH into a wide one: optimal DP, greedy pushup or QBVH (Susano Pinto 2010)"
+
+
+def add_parser(subparsers):
+    description = __doc__.split("\n\n", 1)[1].strip().replace("``", "")
+    parser = subparsers.add_parser("collapse", help=HELP, description=description)
+    parser.add_argument("input", metavar="INPUT",
+                        help="a binary tree .npz or a mesh/scene file (built first)")
+    parser.add_argument("--method", choices=METHODS, default="dp",
+                        help="dp: optimal collapse; greedy: top-down pushup; qbvh: 4-wide "
+                             "baseline (default: dp)")
+    parser.add_argument("--max-children", type=int, default=None, metavar="K",
+                        help="most children per node, 2..32 (default: 8 for dp, no limit for "
+                             "greedy; qbvh is 4-wide)")
+    parser.add_argument("--simd-width", type=int, default=0, metavar="W",
+                        help="cost of testing k child boxes: ceil(k / W), or k for W = 0 (default: 0)")
+    parser.add_argument("-o", "--output", metavar="OUT.npz", default=None,
+                        help="save the wide tree (interchange .npz with its frame)")
+    _common.add_builder_args(parser)
+    _common.add_json(parser)
+    return parser
+
+
+def _check_args(args, kind: str):
+    if args.max_children is not None and not 2 <= args.max_children <= MAX_CHILDREN_LIMIT:
+        raise ValueError(f"--max-children must be in [2, {MAX_CHILDREN_LIMIT}], got {args.max_children}")
+    if args.simd_width < 0:
+        raise ValueError(f"--simd-width must be >= 0 (0: one test per box), got {args.simd_width}")
+    if args.method == "qbvh" and args.max_children not in (None, 4):
+        raise ValueError(f"--method qbvh is 4-wide by construction; --max-children {args.max_children} "
+                         "does not apply")
+    if kind == "tree" and args.max_leaf > 1 and args.method != "dp":
+        raise ValueError("--max-leaf with a tree input merges leaves, which needs --method dp")
+
+
+def run(args) -> dict:
+    import jax
+
+    _check_args(args, "tree" if str(args.input).lower().endswith(".npz") else "mesh")
+    names = ["load", "build", "validate", "collapse", "check"] + (["save"] if args.output else [])
+    with _common.Stages(args, names) as stages:
+        with stages("load"):
+            loaded = (_common.load_tree(args.input, binary=True)
+                      if str(args.input).lower().endswith(".npz") else _common.load_input(args.input))
+        if isinstance(loaded, Mesh):
+            tree, prim_lo, prim_hi = _common.build_mesh_tree(loaded, args, stages)
+            frame = loaded.frame
+            info = {"kind": "mesh", **_common.mesh_info(loaded), "builder": args.builder}
+        else:
+            tree, frame = loaded.tree, loaded.frame
+            with stages("build"):
+                pass
+            with stages("validate"):
+                jaxbvh.validate(tree)  # load_tree checked it; this is the same check, timed
+            prim_lo = prim_hi = None
+            info = {"kind": "tree", "input": loaded.path}
+        tree = jaxbvh.to_numpy(tree)
+        test_cost = collapse.node_test_cost(args.simd_width)
+        merge = args.method == "dp" and args.max_leaf > 1
+
+        def once():
+            return jax.block_until_ready(collapse.collapse(
+                tree, args.method, max_children=args.max_children, test_cost=test_cost,
+                max_leaf=args.max_leaf if merge else 1, ci=args.ci))
+
+        with stages("collapse"):
+            start = time.perf_counter()
+            once()  # compiles (cached across runs by the CLI)
+            first = time.perf_counter() - start
+            start = time.perf_counter()
+            result = once()
+            seconds = time.perf_counter() - start
+        wide = jaxbvh.to_numpy(result.tree)
+        with stages("check"):
+            jaxbvh.validate(wide, prim_lo, prim_hi, n_prims=jaxbvh.tree.prim_total(tree))
+        if args.output:
+            with stages("save"):
+                jaxbvh.save(args.output, wide, frame=frame)
+
+    widths = np.sum(np.asarray(wide.child) >= 0, axis=1)
+    max_children = {"dp": args.max_children or collapse.DEFAULT_MAX_CHILDREN, "qbvh": 4,
+                     "greedy": args.max_children}[args.method]
+    out = {"command": "collapse", **info, "method": args.method,
+           "max_children": max_children, "simd_width": args.simd_width,
+           "max_leaf": args.max_leaf,
+           "rcost_before": float(result.rcost_before), "rcost": float(result.rcost),
+           "rcost_change_percent": 100.0 * (float(result.rcost) / float(result.rcost_before) - 1.0)
+           if float(result.rcost_before) else 0.0,
+           "leaf_cost_before": float(result.leaf_cost_before), "leaf_cost": float(result.leaf_cost),
+           "nodes_before": jaxbvh.tree.node_count(tree), "nodes": jaxbvh.tree.node_count(wide),
+           "widest": int(widths.max()),
+           "mean_children": float(widths[widths > 0].mean()) if (widths > 0).any() else 0.0,
+           "seconds": seconds, "compile_seconds": max(first - seconds, 0.0),
+           "valid": True, "output": args.output}
+    if result.objective is not None:
+        out["dp_objective"] = float(result.objective)
+    return out

@@ -1,0 +1,171 @@
+"""``jaxbvh rebraid SCENE``: two-level, re-braided and single BVHs side by side (Benthin et al. 2017).
+
+Builds the object BVHs of SCENE once, then three trees over the same triangles: the
+plain two-level BVH (a top level over the instances), the re-braided one (the top level
+opens object nodes) and a single BVH over all world triangles, and prints the paper's
+three-way table: SAH (all three flattened to world space, one footing; "SAH obj": with
+the nodes below a top-level leaf costed in their object frames, as the two-level
+traversal tests them, see ``jaxbvh.twolevel.sah``), stored nodes,
+BRefs, total and top-level build seconds, and with ``--rays N`` box and primitive tests
+per ray. Build times are warm: every build runs once untimed first, so compiling is not
+counted (the CLI also caches compiled code on disk).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+
+import numpy as np
+
+import jaxbvh
+from jaxbvh import rays, twolevel
+from jaxbvh.builders.dispatch import BUILDERS
+from jaxbvh.cli.commands import _common
+from jaxbvh.io import load_mesh
+from jaxbvh.rays import traversal as traverse
+from jaxbvh.twolevel import brefs
+from jaxbvh.twolevel import objects as fm
+from jaxbvh.twolevel.brefs import DEFAULT_BINS, DEFAULT_BUDGET, DEFAULT_OVERLAP, DEFAULT_THRESHOLD
+
+HELP = "compare two-level, re-braided and single BVHs of a multi-object scene (Benthin et al. 2017)"
+
+
+def add_parser(subparsers):
+    parser = subparsers.add_parser("rebraid", help=HELP, description=HELP + ".")
+    parser.add_argument("scene", metavar="SCENE", help="a scene or mesh file (glTF, OBJ, ...); its "
+                        "objects and instances are kept")
+    parser.add_argument("--threshold", type=float, default=DEFAULT_THRESHOLD,
+                        metavar="T", help="open a BRef wider than T of its segment's largest extent "
+                        f"(> 0; inf: never; default: {DEFAULT_THRESHOLD})")
+    parser.add_argument("--budget", type=float, default=DEFAULT_BUDGET, metavar="B",
+                        help=f"BRef slots per instance, >= 1 (default: {DEFAULT_BUDGET:g})")
+    parser.add_argument("--builder", choices=BUILDERS, default="binned",
+                        help="builder of the object BVHs and the single BVH (default: binned)")
+    parser.add_argument("--max-leaf", type=_common._int_at_least(1), default=1, metavar="N",
+                        help="most primitives per leaf of the object and single BVHs (default: 1)")
+    parser.add_argument("--bins", type=_common._int_at_least(2), default=16, metavar="B",
+                        help="bins per axis of --builder binned (default: 16)")
+    parser.add_argument("--top-bins", type=_common._int_at_least(2), default=DEFAULT_BINS, metavar="B",
+                        help=f"bins per axis of the top-level build (default: {DEFAULT_BINS})")
+    parser.add_argument("--overlap", type=float, default=DEFAULT_OVERLAP, metavar="F",
+                        help="<= 4 BRefs whose boxes overlap by at most F of the shorter extent on "
+                        f"some axis stop opening (default: {DEFAULT_OVERLAP})")
+    parser.add_argument("--estimate", action="store_true",
+                        help="estimate BRef primitive counts as the paper does (default: exact)")
+    parser.add_argument("--object-space", action="store_true",
+                        help="build every object in its own frame, also those placed by one instance "
+                        "(default: those are built in world space)")
+    parser.add_argument("--rays", type=_common._int_at_least(1), default=None, metavar="N",
+                        help="trace N random rays through all three: box and primitive tests per ray")
+    parser.add_argument("--seed", type=int, default=0, help="random seed of the rays (default: 0)")
+    parser.add_argument("-o", "--output", metavar="FLAT.npz", default=None,
+                        help="save the re-braided tree flattened to world space (validated first)")
+    _common.add_json(parser)
+    return parser
+
+
+def _timed(fn):
+    import jax
+
+    fn()  # compile (untimed)
+    start = time.perf_counter()
+    out = jax.block_until_ready(fn())
+    return out, time.perf_counter() - start
+
+
+def run(args) -> dict:
+    import jax
+
+    brefs.check_options(args.threshold, args.budget, args.top_bins, args.overlap)
+    names = ["load", "objects", "two-level", "rebraid", "single", "check"] + (["rays"] if args.rays else []) \
+        + (["save"] if args.output else [])
+    with _common.Stages(args, names) as stages:
+        with stages("load"):
+            mesh = load_mesh(args.scene)
+        options = dict(method=args.builder, max_leaf=args.max_leaf, bins=args.bins,
+                       world_space=not args.object_space)
+        with stages("objects"):
+            trees, t_objects = _timed(lambda: fm.build_objects(mesh, **options))
+        top = dict(top_bins=args.top_bins, overlap=args.overlap, estimate=args.estimate)
+        results = {}
+        for name, threshold in (("two_level", math.inf), ("rebraid", args.threshold)):
+            with stages(name.replace("_", "-")):
+                timings = {}
+                twolevel.build_from(mesh, trees, threshold=threshold, budget=args.budget, **top)  # compile
+                tl = twolevel.build_from(mesh, trees, threshold=threshold, budget=args.budget,
+                                         timings=timings, **top)
+            results[name] = (tl, timings)
+        lo, hi = mesh.local_boxes()
+        with stages("single"):
+            single, t_single = _timed(lambda: jaxbvh.build(lo, hi, method=args.builder,
+                                                           max_leaf=args.max_leaf, bins=args.bins))
+        with stages("check"):
+            single = jaxbvh.to_numpy(single)
+            jaxbvh.validate(single, lo, hi)
+            out = {}
+            flats = {}
+            for name, (tl, timings) in results.items():
+                flat = twolevel.flatten(tl)
+                jaxbvh.validate(flat, lo, hi)
+                flats[name] = flat
+                nodes = twolevel.stored_nodes(tl)
+                out[name] = {"sah": float(jaxbvh.sah(jaxbvh.to_jax(flat))),
+                             "sah_object": twolevel.sah(tl, boxes="object"), "nodes": nodes["total"],
+                             "top_nodes": nodes["top"], "flat_nodes": jaxbvh.tree.node_count(flat),
+                             "brefs": int(tl.bref_count),
+                             "seconds": t_objects + timings["pack"] + timings["top"],
+                             "top_seconds": timings["top"]}
+            out["single"] = {"sah": float(jaxbvh.sah(jaxbvh.to_jax(single))),
+                             "nodes": jaxbvh.tree.node_count(single), "seconds": t_single}
+        if args.rays:
+            with stages("rays"):
+                tri = mesh.local_triangles()
+                origin, direction = rays.make_rays(jax.random.key(args.seed), "random", single, tri, args.rays)
+                single_hits = traverse.closest_hit(single, tri, origin, direction)
+                hits = {name: twolevel.closest_hit(tl, origin, direction) for name, (tl, _) in results.items()}
+                hits["single"] = single_hits
+                for name, h in hits.items():
+                    out[name]["box_tests"] = float(np.mean(h.box_tests))
+                    out[name]["prim_tests"] = float(np.mean(h.prim_tests))
+                    same = np.isclose(h.t, single_hits.t, rtol=1e-4) | (np.isinf(h.t) & np.isinf(single_hits.t))
+                    out[name]["hits_agree"] = float(np.mean(same))
+        if args.output:
+            with stages("save"):
+                jaxbvh.save(args.output, flats["rebraid"], frame=mesh.frame)
+
+    result = {"command": "rebraid", **_common.mesh_info(mesh), "builder": args.builder,
+              "threshold": args.threshold, "budget": args.budget,
+              "slots": brefs.brefs_capacity(len(mesh.instances), args.threshold, args.budget),
+              "two_level": out["two_level"], "rebraid": out["rebraid"], "single": out["single"],
+              "rebraid_vs_two_level": out["rebraid"]["sah"] / out["two_level"]["sah"],
+              "rebraid_vs_single": out["rebraid"]["sah"] / out["single"]["sah"],
+              "top_time_ratio": (out["rebraid"]["top_seconds"] / out["two_level"]["top_seconds"]
+                                 if out["two_level"]["top_seconds"] > 0 else None),
+              "valid": True, "output": args.output}
+    if not args.json:
+        print(table(result), file=sys.stdout)
+        print(file=sys.stdout)
+    return result
+
+
+def table(result: dict) -> str:
+    """The paper's three-way table (Tables 1-2 in one) as aligned text."""
+    base = result["two_level"]["sah"]
+    has_rays = "box_tests" in result["single"]
+    head = ["", "SAH", "vs two-level", "SAH obj", "nodes", "BRefs", "build s", "top s"] + \
+        (["box tests/ray", "prim tests/ray"] if has_rays else [])
+    rows = [head]
+    for name in ("two_level", "rebraid", "single"):
+        r = result[name]
+        row = [name.replace("_", "-"), f"{r['sah']:.3f}", f"{r['sah'] / base:.3f}x",
+               f"{r.get('sah_object', r['sah']):.3f}", f"{r['nodes']:,}",
+               f"{r['brefs']:,}" if "brefs" in r else "-", f"{r['seconds']:.3f}",
+               f"{r['top_seconds']:.4f}" if "top_seconds" in r else "-"]
+        if has_rays:
+            row += [f"{r['box_tests']:.1f}", f"{r['prim_tests']:.2f}"]
+        rows.append(row)
+    widths = [max(len(row[i]) for row in rows) for i in range(len(head))]
+    return "\n".join("  ".join(cell.ljust(w) if i == 0 else cell.rjust(w) for i, (cell, w) in
+                               enumerate(zip(row, widths))) for row in rows)

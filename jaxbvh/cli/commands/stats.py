@@ -1,0 +1,76 @@
+"""``jaxbvh stats MESH_OR_TREE``: costs and shape of a saved tree, or of a fresh build."""
+
+from __future__ import annotations
+
+import jaxbvh
+from jaxbvh.cli.commands import _common
+from jaxbvh.io import Mesh, boxes_in_frame
+
+HELP = ("report nodes, depth, leaf sizes and costs of a tree (.npz) or of a mesh's BVH; "
+        "exit status 1 if the tree is invalid")
+
+
+def add_parser(subparsers):
+    parser = subparsers.add_parser("stats", help=HELP, description=HELP + ".")
+    parser.add_argument("input", metavar="MESH_OR_TREE",
+                        help="a tree .npz (jaxbvh build -o, or another library's export) "
+                             "or a mesh file, built with the default builder")
+    parser.add_argument("--mesh", metavar="MESH", default=None,
+                        help="for a tree: also validate it against this mesh's triangle boxes")
+    _common.add_builder_args(parser)
+    _common.add_json(parser)
+    return parser
+
+
+def run(args) -> dict:
+    names = ["load", "build", "validate"]
+    with _common.Stages(args, names) as stages:
+        with stages("load"):
+            loaded = _common.load_input(args.input, check=False)  # problems are reported below
+        if isinstance(loaded, Mesh):
+            if args.mesh is not None:
+                raise ValueError(f"--mesh applies to a tree file; {args.input} is a mesh")
+            tree, _, _ = _common.build_mesh_tree(loaded, args, stages)
+            result = {"command": "stats", "kind": "mesh", **_common.mesh_info(loaded),
+                      "builder": args.builder, "max_leaf": args.max_leaf}
+            result.update(_common.tree_stats(tree, args.ct, args.ci))
+            result.update({"valid": True, "validated_against": "mesh",
+                           "seconds": stages.seconds["build"]})
+            return result
+        return _tree_stats(loaded, args, stages)
+
+
+def _tree_stats(loaded, args, stages) -> dict:
+    """Report of a tree file. A broken structure (cycle, shared child, bad ids, NaN or
+    inverted boxes) is reported without costs: they would mean nothing. ``valid`` is
+    False (exit status 1) when any check fails."""
+    tree, frame = loaded.tree, loaded.frame
+    result = {"command": "stats", "kind": "tree", "input": loaded.path}
+    with stages("validate"):
+        problems = jaxbvh.check(tree)
+        against = "structure only (pass --mesh to check boxes)"
+        if not problems and args.mesh is not None:
+            mesh = _common.mesh_or_default(args.mesh)
+            world_lo, world_hi = mesh.prim_boxes()
+            lo, hi = boxes_in_frame(world_lo, world_hi, frame, tree.lo.dtype)
+            referenced = int(tree.prim_count.sum())
+            if referenced != mesh.n_triangles:
+                problems = [f"the tree's leaves hold {referenced} primitives but "
+                            f"{mesh.path} has {mesh.n_triangles} triangles"]
+            else:
+                problems = jaxbvh.check(tree, lo, hi)
+            result.update({"mesh": str(mesh.path), "triangles": mesh.n_triangles,
+                           "degenerate": mesh.degenerate})
+            against = "mesh"
+    structure_ok = against == "mesh" or not problems
+    if structure_ok:
+        result.update(_common.tree_stats(tree, args.ct, args.ci))
+    result.update({
+        "frame_origin": [float(x) for x in frame.origin],
+        "frame_scale": float(frame.scale),
+        "valid": not problems,
+        "validated_against": against if structure_ok else "structure (broken: no costs)",
+    })
+    if problems:
+        result["problems"] = problems[:10]
+    return result

@@ -1,0 +1,138 @@
+"""``jaxbvh trace TREE MESH``: trace rays through a saved tree, report tests per ray."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from jaxbvh import rays
+from jaxbvh.cli.commands import _common
+from jaxbvh.io import load_mesh
+from jaxbvh.rays import traversal as traverse
+from jaxbvh.rays.measure import KINDS, MODES
+
+HELP = "trace rays through a tree (.npz) over its mesh; report box and primitive tests per ray"
+
+
+def add_parser(subparsers):
+    parser = subparsers.add_parser("trace", help=HELP, description=HELP + ".")
+    parser.add_argument("tree", metavar="TREE", help="a tree .npz (jaxbvh build -o, or another "
+                                                    "library's export) over MESH's triangles")
+    parser.add_argument("mesh", metavar="MESH", help="the mesh the tree was built over")
+    parser.add_argument("--rays", type=_common._int_at_least(1), default=100_000, metavar="N",
+                        help="number of rays (camera: about N pixels, 4:3) (default: 100000)")
+    parser.add_argument("--kind", choices=KINDS, default="random",
+                        help="random: origins in the root box, uniform directions; camera: "
+                             "pinhole framing the scene; bounce: diffuse rays off the surface "
+                             "(default: random)")
+    parser.add_argument("--mode", choices=MODES, default="closest",
+                        help="closest hit, any hit (shadow rays) or all hits (default: closest)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    parser.add_argument("--batch", type=_common._int_at_least(1), default=256, metavar="B",
+                        help="rays per jitted batch (default: 256)")
+    parser.add_argument("--save", metavar="HITS.npz", default=None,
+                        help="write origin, direction (world space), t and prim (-1: miss) "
+                             "and the per-ray counters")
+    parser.add_argument("--image", metavar="OUT.png", default=None,
+                        help="render camera rays: shaded normals, depth and a heat map of box "
+                             "tests per pixel (the measured rays with --kind camera, else a "
+                             "separate 320 x 240 camera view); needs matplotlib")
+    parser.add_argument("--ct", type=float, default=1.0, help="SAH traversal cost (default: 1)")
+    parser.add_argument("--ci", type=float, default=1.0, help="SAH intersection cost (default: 1)")
+    _common.add_json(parser)
+    return parser
+
+
+def triangles_in_frame(mesh, frame, dtype) -> np.ndarray:
+    """The mesh's triangles [F, 3, 3] in ``frame`` (the tree's), cast to ``dtype``."""
+    tri = mesh.triangles
+    return (tri if frame.is_identity else frame.to_local(tri)).astype(dtype)
+
+
+def run(args) -> dict:
+    import jax
+
+    if args.image:
+        _common.require_matplotlib("--image")
+    with _common.Stages(args, ["load", "trace", "write"]) as stages:
+        with stages("load"):
+            loaded = _common.load_tree(args.tree, check=False)  # checked below, with the mesh
+            mesh = load_mesh(args.mesh)
+            tree, frame = loaded.tree, loaded.frame
+            referenced = int(np.asarray(tree.prim_count).sum())
+            if referenced != mesh.n_triangles:
+                raise ValueError(f"the tree's leaves hold {referenced} primitives but "
+                                 f"{args.mesh} has {mesh.n_triangles} triangles")
+            dtype = np.asarray(tree.lo).dtype
+            triangles = triangles_in_frame(mesh, frame, dtype)
+            # before any jitted loop; a leaf box that misses its triangle would lose hits
+            _common.check_tree_file(loaded, triangles.min(axis=1), triangles.max(axis=1))
+            key = jax.random.key(args.seed)
+            origin, direction = rays.make_rays(key, args.kind, tree, triangles, args.rays)
+        with stages("trace"):
+            hits, summary = rays.measure(tree, triangles, origin, direction, mode=args.mode,
+                                         ct=args.ct, ci=args.ci, batch=args.batch)
+        result = {"command": "trace", "tree": loaded.path, "mesh": str(mesh.path),
+                  "triangles": mesh.n_triangles, "kind": args.kind, "seed": args.seed,
+                  "arity": int(np.asarray(tree.child).shape[1]),
+                  "stack_capacity": traverse.stack_capacity(tree)}
+        result.update(summary)
+        with stages("write"):
+            if args.save:
+                np.savez(args.save, origin=frame.to_world(origin), direction=direction.astype(np.float64),
+                         t=np.where(hits.prim >= 0, hits.t.astype(np.float64) * frame.scale, np.inf),
+                         prim=hits.prim, box_tests=hits.box_tests, prim_tests=hits.prim_tests,
+                         nodes_visited=hits.nodes_visited)
+                result["saved"] = args.save
+            if args.image:
+                if args.kind == "camera":
+                    image_hits, image_dir, size = hits, direction, rays.camera_size(args.rays)
+                    note = "the measured camera rays"
+                else:  # render a separate 320 x 240 camera view
+                    size = (320, 240)
+                    root = int(tree.root)
+                    o, image_dir = rays.camera_rays(tree.lo[root], tree.hi[root], *size, dtype=dtype)
+                    image_hits = rays.closest_hit(tree, triangles, o, image_dir, batch=args.batch)
+                    note = (f"a separate {size[0]} x {size[1]} camera view, closest hits; the table "
+                            f"measures the {args.kind} rays")
+                render(args.image, image_hits, triangles, image_dir, *size, note=note)
+                result["image"] = args.image
+                result["image_rays"] = note
+                result["image_box_tests"] = float(np.mean(image_hits.box_tests))
+    return result
+
+
+def render(path, hits, triangles, direction, width: int, height: int, note: str = "") -> None:
+    """Write a PNG: shaded normals, depth and box tests per pixel of camera rays.
+
+    ``note`` (which rays the picture shows) becomes the figure's title.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    hit = hits.prim >= 0
+    tri = np.asarray(triangles, np.float64)[np.maximum(hits.prim, 0)]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+    facing = np.sum(normal * direction, axis=1) > 0
+    normal[facing] *= -1  # towards the camera
+    colour = np.where(hit[:, None], 0.5 * (normal + 1), 1.0).reshape(height, width, 3)
+    depth = np.where(hit, hits.t, np.nan).reshape(height, width)
+    boxes = np.asarray(hits.box_tests).reshape(height, width)
+
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2), constrained_layout=True)
+    axes[0].imshow(colour)
+    axes[0].set_title("normals (facing the camera)")
+    im = axes[1].imshow(depth, cmap="viridis_r")
+    axes[1].set_title("depth t (tree frame)")
+    fig.colorbar(im, ax=axes[1], shrink=0.8)
+    im = axes[2].imshow(boxes, cmap="inferno")
+    axes[2].set_title(f"box tests per ray (mean {boxes.mean():.1f})")
+    fig.colorbar(im, ax=axes[2], shrink=0.8)
+    for ax in axes:
+        ax.set_axis_off()
+    if note:
+        fig.suptitle(note)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

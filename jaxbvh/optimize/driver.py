@@ -1,0 +1,141 @@
+"""The one host driver every optimizer runs under: compiled chunks of steps, progress, a time budget.
+
+:func:`run` takes any :class:`~jaxbvh.optimize.protocol.Optimizer`: ``init``, then
+``step`` in a compiled ``while_loop`` (:func:`advance`) until the state is done, then
+``result``. With no callback and no budget the whole run is one compiled call. With
+``on_step(info)`` or ``time_budget`` it runs in *chunks* of steps (one step first, then
+doubling while a chunk takes under :data:`CHUNK_SECONDS`, up to :data:`MAX_CHUNK`): the
+host reads the progress after each chunk, calls ``on_step`` once per step with a
+:class:`~jaxbvh.optimize.protocol.StepInfo`, and checks the budget. Chunks never change
+the result: the state carries everything, so one call to the limit and many short ones
+give the same tree (tested).
+
+Time budget. ``time_budget`` (seconds) is wall time counted from the end of the first
+chunk (a single step), which also compiles the programs: compiling is not spent from
+it. The run stops at the end of the chunk that crosses it (chunks grow only while short,
+so the overshoot stays small) and returns the state it reached: the best tree so far for
+every optimizer (all of them only lower the SAH, except annealing, which keeps its best).
+No host callback runs inside a compiled program, so every compiled piece is cached
+(also by JAX's persistent cache).
+"""
+
+from __future__ import annotations
+
+import time
+from functools import partial
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxbvh.optimize.protocol import OptimizerState, StepInfo
+
+#: a chunk of steps grows (doubling, up to this many) while one takes under CHUNK_SECONDS
+MAX_CHUNK = 256
+CHUNK_SECONDS = 0.1
+
+
+class TimeBudget:
+    """``seconds`` of wall time after the first step (``None``: no limit)."""
+
+    def __init__(self, seconds: float | None):
+        if seconds is not None and not seconds > 0:
+            raise ValueError(f"time_budget must be > 0 seconds, got {seconds}")
+        self.seconds = seconds
+        self.deadline = None
+
+    def start(self) -> None:
+        """Start the clock (the driver calls this after the first step)."""
+        if self.seconds is not None and self.deadline is None:
+            self.deadline = time.perf_counter() + self.seconds
+
+    def left(self) -> float | None:
+        """Seconds left (None: no limit; before :meth:`start`, the whole budget)."""
+        if self.seconds is None:
+            return None
+        if self.deadline is None:
+            return self.seconds
+        return self.deadline - time.perf_counter()
+
+    def spent(self) -> bool:
+        """True once the clock has started and run past the budget."""
+        left = self.left()
+        return left is not None and self.deadline is not None and left <= 0
+
+
+def _advance(step: Callable, state: OptimizerState, stop) -> OptimizerState:
+    """``step`` until ``stop`` steps in all or the state is done (traceable)."""
+
+    def cond(s):
+        return ~s.progress.done & (s.progress.step < stop)
+
+    return jax.lax.while_loop(cond, step, state)
+
+
+#: ``advance(step, state, stop)``: the compiled loop of steps (one program per step
+#: function and state shape)
+advance = jax.jit(_advance, static_argnums=0)
+
+
+@partial(jax.jit, static_argnums=0)
+def _finish(result: Callable, state: OptimizerState):
+    return result(state)
+
+
+def run(optimizer, tree, config=None, *, key=None, time_budget: float | None = None,
+        on_step: Callable | None = None, state: OptimizerState | None = None):
+    """Run ``optimizer`` on ``tree`` to the end; returns its ``OptimizeResult`` (NumPy arrays).
+
+    ``config``: the optimizer's ``Config`` (None: defaults). ``key``: a ``jax.random``
+    key for randomized methods (annealing). ``time_budget``: seconds (module docstring).
+    ``on_step(info)``: called on the host after every step with a ``StepInfo``.
+    ``state``: start from this state instead of ``init(tree, config, key)``.
+    The result's ``trace`` lists every step's ``StepInfo`` when the run went in chunks.
+    """
+    if on_step is not None and not callable(on_step):
+        raise ValueError(f"on_step must be a function on_step(info), got {on_step!r}")
+    budget = TimeBudget(time_budget)
+    clock = time.perf_counter()
+    if state is None:
+        state = optimizer.init(tree, config, key)
+    trace = []
+    if on_step is None and time_budget is None:
+        state = advance(optimizer.step, state, jnp.int32(np.iinfo(np.int32).max))
+    else:
+        state = drive(optimizer, state, budget=budget, on_step=on_step, trace=trace, clock=clock)
+    out = jax.device_get(_finish(optimizer.result, state))
+    return out.replace(trace=tuple(trace))
+
+
+def drive(optimizer, state: OptimizerState, *, budget: TimeBudget, on_step: Callable | None = None,
+          trace: list | None = None, clock: float | None = None) -> OptimizerState:
+    """Chunks of steps until the state is done or the budget is spent (module docstring).
+
+    Reports every step to ``on_step`` and appends its ``StepInfo`` to ``trace``.
+    """
+    clock = time.perf_counter() if clock is None else clock
+    done_steps, chunk = int(state.progress.step), 1
+    while True:
+        started = time.perf_counter()
+        state = advance(optimizer.step, state, jnp.int32(done_steps + chunk))
+        # whole (small) arrays to the host: slicing on the device would compile a program
+        # per slice shape
+        progress = jax.device_get(state.progress)
+        now = int(progress.step)
+        seconds = time.perf_counter() - clock
+        for j in range(done_steps, min(now, progress.history.shape[0])):
+            info = StepInfo(optimizer.name, optimizer.stages[int(progress.history_stage[j])], j,
+                            float(progress.history[j]), int(progress.history_moves[j]), seconds)
+            if trace is not None:
+                trace.append(info)
+            if on_step is not None:
+                on_step(info)
+        if bool(progress.done) or now < done_steps + chunk:
+            return state
+        budget.start()  # no-op after the first chunk, which compiled
+        if budget.spent():
+            return state
+        done_steps = now
+        if time.perf_counter() - started < CHUNK_SECONDS:
+            chunk = min(2 * chunk, MAX_CHUNK)

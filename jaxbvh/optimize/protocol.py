@@ -1,0 +1,214 @@
+"""The optimizer protocol: every optimizer is three pure functions over one state pytree.
+
+An optimizer (:class:`Optimizer`; all of them in :data:`jaxbvh.optimize.OPTIMIZERS`) is
+
+* ``Config``: a frozen dataclass of its knobs, with the papers' defaults;
+* ``init(tree, config=None, key=None) -> OptimizerState``: the state before the first
+  step (host code allowed: checks, first settings);
+* ``step(state) -> OptimizerState``: one pass or iteration; pure, jittable, and
+  vmappable over a leading batch axis of states of one capacity. A state that is
+  :attr:`Progress.done` comes back unchanged, so in a batch a tree that has converged
+  stops changing while the others go on;
+* ``result(state) -> OptimizeResult``: the optimized tree and the run's figures
+  (traceable, so a batch of states gives a batch of results).
+
+One host driver (:mod:`jaxbvh.optimize.driver`) runs any of them: chunks of steps in
+one compiled loop, progress callbacks, a time budget.
+
+The state
+=========
+:class:`OptimizerState` has the same five parts for every method:
+
+=============  ======================================================================
+field          meaning
+=============  ======================================================================
+``tree``       the input :class:`~jaxbvh.tree.layout.BVH` (JAX arrays): the fields an
+               optimizer does not change (primitives, leaves) come from it
+``progress``   :class:`Progress`: steps, SAH, moves, history, stopping flags
+``params``     settings passed as traced values (costs, margins, schedule numbers):
+               changing them does not recompile
+``inner``      the method's own loop state (a NamedTuple, documented by the method)
+``static``     hashable settings that fix shapes and modes (pytree metadata: part of
+               the compiled program's identity, equal across a batch)
+=============  ======================================================================
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxbvh.tree.layout import BVH, capacity_bucket
+
+
+class Progress(NamedTuple):
+    """The figures every optimizer keeps current (shapes: ``[]`` scalars, ``[H]`` history)."""
+
+    step: Any           # int32 []: steps (passes or iterations) run so far
+    limit: Any          # int32 []: most steps (the config's step limit)
+    done: Any           # bool []: the run is over (converged or at the limit); step() keeps it
+    converged: Any      # bool []: over because a step changed nothing (rather than the limit)
+    sah: Any            # float []: SAH of the tree result() returns (annealing: the best kept)
+    sah_start: Any      # float []: SAH of the input tree
+    moves: Any          # int32 []: moves applied in all (rotations, reinsertions, treelets)
+    stage: Any          # int32 []: index into Optimizer.stages of the current stage
+    history: Any        # float [H]: SAH after each step, NaN past ``step``
+    history_moves: Any  # int32 [H]: moves of each step
+    history_stage: Any  # int32 [H]: stage of each step
+
+
+def new_progress(sah_start, limit: int, dtype) -> Progress:
+    """Progress before the first step; history length ``H`` = capacity bucket of ``limit``."""
+    length = history_length(limit)
+    sah_start = jnp.asarray(sah_start, dtype)
+    return Progress(step=jnp.int32(0), limit=jnp.int32(limit), done=jnp.bool_(limit <= 0),
+                    converged=jnp.bool_(False), sah=sah_start, sah_start=sah_start, moves=jnp.int32(0),
+                    stage=jnp.int32(0), history=jnp.full(length, jnp.nan, dtype),
+                    history_moves=jnp.zeros(length, jnp.int32), history_stage=jnp.zeros(length, jnp.int32))
+
+
+def history_length(limit: int) -> int:
+    """Entries of the history arrays for a step limit (a capacity bucket: few shapes)."""
+    return capacity_bucket(max(int(limit), 1), minimum=1)
+
+
+def record(progress: Progress, sah, moves, converged) -> Progress:
+    """``progress`` after one more step that reached ``sah`` with ``moves`` moves;
+    ``converged``: that step changed nothing (so the run is over)."""
+    i = progress.step
+    moves = jnp.asarray(moves, jnp.int32)
+    sah = jnp.asarray(sah, progress.history.dtype)
+    step = i + 1
+    return progress._replace(
+        step=step, sah=sah, moves=progress.moves + moves, converged=jnp.asarray(converged, bool),
+        done=jnp.asarray(converged, bool) | (step >= progress.limit),
+        history=progress.history.at[i].set(sah, mode="drop"),
+        history_moves=progress.history_moves.at[i].set(moves, mode="drop"),
+        history_stage=progress.history_stage.at[i].set(progress.stage, mode="drop"))
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class OptimizerState:
+    """The state of any optimizer between steps (layout: module docstring)."""
+
+    tree: Any
+    progress: Progress
+    params: Any
+    inner: Any
+    static: Any = dataclasses.field(default=None, metadata=dict(static=True))
+
+    def replace(self, **changes) -> "OptimizerState":
+        return dataclasses.replace(self, **changes)
+
+
+def keep_if_done(old: OptimizerState, new: OptimizerState) -> OptimizerState:
+    """``new``, or ``old`` unchanged where ``old`` was already done (every step ends with
+    this, so a finished state is a fixed point of ``step``, also inside a batch)."""
+    done = old.progress.done
+    return jax.tree_util.tree_map(lambda n, o: jnp.where(done, o, n), new, old)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class OptimizeResult:
+    """What every optimizer returns (``result(state)``, :func:`jaxbvh.optimize.optimize`).
+
+    ``tree``: the optimized :class:`~jaxbvh.tree.layout.BVH`, same capacity as the
+    input. ``sah``, ``sah_start``: its SAH and the input's (``ct``, ``ci`` of the
+    config). ``steps``: passes or iterations run. ``moves``: moves applied in all
+    (rotations, reinsertions, restructured treelets). ``converged``: the run ended
+    because a step changed nothing (not at a step limit or a time budget).
+    ``history`` [H]: SAH after each step (NaN past ``steps``); ``history_moves`` [H]:
+    moves of each step; ``history_stage`` [H]: the stage of each step (index into the
+    optimizer's ``stages``: the pipeline's are ``("treelet", "reinsert")``).
+    ``chain_sah`` [K]: for annealing with K chains, every chain's final SAH (the other
+    fields describe the best chain); None otherwise. ``trace``: the driver's
+    :class:`StepInfo` of every step, on the host (empty from ``result`` alone).
+    Arrays are JAX arrays from ``result``, NumPy from :func:`jaxbvh.optimize.optimize`.
+    """
+
+    tree: Any
+    sah: Any
+    sah_start: Any
+    steps: Any
+    moves: Any
+    converged: Any
+    history: Any
+    history_moves: Any
+    history_stage: Any
+    chain_sah: Any = None
+    trace: tuple = dataclasses.field(default=(), metadata=dict(static=True))
+
+    def replace(self, **changes) -> "OptimizeResult":
+        return dataclasses.replace(self, **changes)
+
+
+def make_result(tree, progress: Progress, chain_sah=None) -> OptimizeResult:
+    """The :class:`OptimizeResult` of an optimized ``tree`` and its ``progress``."""
+    return OptimizeResult(tree=tree, sah=progress.sah, sah_start=progress.sah_start, steps=progress.step,
+                          moves=progress.moves, converged=progress.converged, history=progress.history,
+                          history_moves=progress.history_moves, history_stage=progress.history_stage,
+                          chain_sah=chain_sah)
+
+
+class StepInfo(NamedTuple):
+    """What the driver tells ``on_step(info)`` after every step (host values)."""
+
+    method: str    # the optimizer's name
+    stage: str     # the stage of this step (the method itself unless it has several)
+    step: int      # index of the step, from 0
+    sah: float     # SAH after it
+    moves: int     # moves it made
+    seconds: float  # wall time since the run started (including compiling)
+
+
+@dataclasses.dataclass(frozen=True)
+class Optimizer:
+    """One optimizer: ``Config`` and the three functions of the protocol (module docstring).
+
+    ``stages``: names of the stages its steps belong to (``(name,)`` for one).
+    ``paper``: where the method comes from.
+    """
+
+    name: str
+    Config: type
+    init: Callable
+    step: Callable
+    result: Callable
+    stages: tuple = ()
+    paper: str = ""
+
+    def __post_init__(self):
+        if not self.stages:
+            object.__setattr__(self, "stages", (self.name,))
+
+
+def check_tree(tree, name: str = "tree") -> None:
+    """Raise ``ValueError`` unless ``tree`` is a binary :class:`~jaxbvh.tree.layout.BVH`."""
+    if not isinstance(tree, BVH):
+        raise ValueError(f"{name} must be a binary jaxbvh.BVH, got {type(tree).__name__}")
+
+
+def check_config(config, Config: type, name: str):
+    """``config`` (None: the defaults) as a ``Config``; ``ValueError`` for another type."""
+    if config is None:
+        return Config()
+    if not isinstance(config, Config):
+        raise ValueError(f"{name}: config must be a {Config.__qualname__}, got {type(config).__name__}")
+    return config
+
+
+def check_costs(ct, ci) -> None:
+    """Raise ``ValueError`` unless the SAH constants are >= 0 (and not NaN)."""
+    if not ct >= 0 or not ci >= 0:
+        raise ValueError(f"ct and ci must be >= 0, got ct={ct}, ci={ci}")
+
+
+def float_dtype(tree) -> np.dtype:
+    """The tree's box dtype (float32 or float64)."""
+    return np.dtype(tree.lo.dtype)

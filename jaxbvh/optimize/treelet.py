@@ -1,0 +1,398 @@
+"""Treelet restructuring (Karras & Aila 2013): SAH-optimal topology of small treelets.
+
+Treelets
+========
+The *treelet* of an interior node ``r`` is grown from ``r``'s two children: while it has
+fewer than ``n`` leaves (default 7, as in the paper), the treelet leaf of largest surface
+area that is an interior node of the tree is replaced by its two children (the first in
+the treelet's leaf list among those within ``min_gain`` of the largest area; the new
+children take the expanded leaf's slot and the next free one). Its *interior* nodes are ``r`` and the expanded nodes, ``k - 1`` of them
+for ``k`` leaves; subtrees below the treelet leaves are left alone. Fewer leaves are
+taken when the subtree has no more interior nodes to expand.
+
+Optimal topology (dynamic programming over subsets)
+===================================================
+With ``c(x) = S(x) C(x)`` (area-weighted cost; ``S`` the scaled half-area, ``C`` the
+node cost of :mod:`jaxbvh.cost`), an interior node costs ``c(x) = Ct S(x) + c(L) +
+c(R)`` (this holds for zero-area nodes too). The best binary tree over a set ``L`` of
+treelet leaves (a bitmask over the ``k`` leaves) therefore costs
+
+    ``c*(L) = Ct S(union of L) + min over splits (P, L \\ P) of c*(P) + c*(L \\ P)``
+
+with ``c*({x}) = c(x)``. Sets are solved in order of size; the splits of ``L`` are the
+proper subsets ``P`` that contain ``L``'s lowest leaf, in increasing bitmask order (each
+unordered split once: ``2^(|L|-1) - 1`` of them, 966 for all sets of 7 leaves), and the
+first split within ``min_gain * c*`` of the least is taken. The topology is rebuilt
+top-down from the chosen splits, reusing the treelet's interior node ids in the order
+the sets are reached breadth first (``r`` keeps the whole set, so its parent link does
+not change); the subset containing the lowest leaf goes left. A treelet is restructured
+only when ``c*`` is below its current cost by more than ``min_gain`` (relative), so no
+move is made on rounding noise (the same rule as :mod:`jaxbvh.rotate`; ``min_gain``
+defaults to ``64 * eps``). Leaves keep their primitives and boxes; interior boxes are
+unions of their leaves' boxes (all interior boxes are refitted tight first).
+
+Rounds
+======
+One *pass* visits every interior node once, as a treelet root, in order of height
+(longest path to a leaf) measured when the pass starts, lowest first: nodes of one
+height have disjoint subtrees, hence disjoint treelets, and are solved together (the
+DP vmapped over every treelet of a window of nodes); by the time a node is solved, every
+node below it has been (restructuring only permutes ids inside a subtree). Passes repeat
+until one restructures nothing, ``max_passes`` (the paper uses 3), or ``time_budget``.
+The NumPy twin (:mod:`jaxbvh.reference.treelet`) solves the same treelets one at a time,
+in the same order, by the same recursion.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from functools import lru_cache, partial
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxbvh.numerics import extent_scale, half_area, take_clipped
+from jaxbvh.numerics import min_gain as default_min_gain
+from jaxbvh.optimize.budget import TimeBudget
+from jaxbvh.tree.cost import sah as sah_of
+from jaxbvh.tree.layout import BVH, to_jax
+from jaxbvh.tree.refit import refit_boxes
+from jaxbvh.tree.split_axes import assign_split_axes
+
+DEFAULT_LEAVES = 7
+MAX_LEAVES = 10        # 2^n subsets and 3^n splits: beyond this the DP is too large
+DEFAULT_MAX_PASSES = 8
+DEFAULT_WINDOWS = (256,)  # treelets solved at once (speed only; each size is one more compiled copy)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class TreeletResult:
+    """What :func:`restructure` returns.
+
+    ``tree``: the optimized :class:`~jaxbvh.tree.BVH` (same capacity). ``sah``,
+    ``sah_start``: SAH after and before. ``passes``: passes run. ``restructured``:
+    treelets changed in all. ``history``: SAH after each pass (NumPy).
+    """
+
+    tree: Any
+    sah: Any
+    sah_start: Any
+    passes: Any
+    restructured: Any
+    history: Any
+
+
+# ----------------------------------------------------------------------------------
+# Static tables of sets and splits
+# ----------------------------------------------------------------------------------
+
+
+def splits(mask: int) -> list[int]:
+    """The splits of a set (bitmask): proper subsets holding its lowest member, increasing."""
+    low = mask & -mask
+    return [p for p in range(1, mask) if p & mask == p and p & low]
+
+
+@lru_cache(maxsize=None)
+def tables(n: int):
+    """Host tables for treelets of up to ``n`` leaves.
+
+    ``members`` [2^n, n] bool; ``popcount`` [2^n]; ``single`` [2^n] (index of the one
+    member, -1 otherwise); ``sizes``: for each set size ``s >= 2`` a pair ``(sets [m],
+    parts [m, 2^(s-1) - 1])`` of bitmasks.
+    """
+    count = 1 << n
+    members = np.array([[(m >> j) & 1 for j in range(n)] for m in range(count)], bool)
+    popcount = members.sum(axis=1).astype(np.int32)
+    single = np.full(count, -1, np.int32)
+    for j in range(n):
+        single[1 << j] = j
+    sizes = []
+    for s in range(2, n + 1):
+        sets = np.array([m for m in range(count) if popcount[m] == s], np.int32)
+        parts = np.array([splits(int(m)) for m in sets], np.int32)
+        sizes.append((sets, parts))
+    return members, popcount, single, tuple(sizes)
+
+
+# ----------------------------------------------------------------------------------
+# One treelet (vmapped over a window)
+# ----------------------------------------------------------------------------------
+
+
+class _State(NamedTuple):
+    child: Any   # [N, 2] int32
+    parent: Any  # [N] int32
+    lo: Any      # [N, 3]
+    hi: Any      # [N, 3]
+    cost: Any    # [N] area-weighted cost c(x) = S(x) C(x)
+    area: Any    # [N] scaled half-area
+
+
+
+def _form(st: _State, root, n, min_gain):
+    """Leaves [n] (-1 past ``k``), interior nodes [n-1] (-1 past ``k-1``) and ``k``."""
+    kids = take_clipped(st.child, root)
+    leaves = jnp.full(n, -1, jnp.int32).at[0].set(kids[0]).at[1].set(kids[1])
+    inner = jnp.full(n - 1, -1, jnp.int32).at[0].set(root)
+    def grow_one(_, carry):
+        leaves, inner, k = carry
+        present = leaves >= 0
+        expandable = present & (take_clipped(st.child, leaves)[:, 0] >= 0)
+        areas = jnp.where(expandable, take_clipped(st.area, leaves), -jnp.inf)
+        largest = jnp.max(areas)
+        j = jnp.argmax(expandable & (areas >= largest - min_gain * jnp.abs(largest)))
+        grow = expandable[j]
+        x = leaves[j]
+        xk = take_clipped(st.child, x)
+        leaves = jnp.where(grow, leaves.at[j].set(xk[0]).at[k].set(xk[1], mode="drop"), leaves)
+        inner = jnp.where(grow, inner.at[k - 1].set(x, mode="drop"), inner)
+        return leaves, inner, k + grow.astype(jnp.int32)
+
+    leaves, inner, k = jax.lax.fori_loop(0, n - 2, grow_one, (leaves, inner, jnp.int32(2)))
+    return leaves, inner, k
+
+
+def _solve(st: _State, root, scale, ct, min_gain, n):
+    """Form and solve the treelet of ``root``; returns what to write back."""
+    members, popcount, single, sizes = tables(n)
+    count = 1 << n
+    leaves, inner, k = _form(st, root, n, min_gain)
+    present = leaves >= 0
+    leaf_lo = jnp.where(present[:, None], take_clipped(st.lo, leaves), jnp.inf)
+    leaf_hi = jnp.where(present[:, None], take_clipped(st.hi, leaves), -jnp.inf)
+    member = jnp.asarray(members)[:, :, None]                          # [2^n, n, 1]
+    set_lo = jnp.min(jnp.where(member, leaf_lo[None], jnp.inf), axis=1)   # [2^n, 3]
+    set_hi = jnp.max(jnp.where(member, leaf_hi[None], -jnp.inf), axis=1)
+    set_area = half_area(set_lo, set_hi, scale)
+    leaf_cost = jnp.where(present, take_clipped(st.cost, leaves), 0)
+    cost = jnp.zeros(count, st.cost.dtype).at[1 << np.arange(n)].set(leaf_cost)
+    part = jnp.zeros(count, jnp.int32)
+    for sets, parts in sizes:
+        total = cost[parts] + cost[sets[:, None] ^ parts]                # [m, splits]
+        least = jnp.min(total, axis=1)
+        near = total <= (least + min_gain * jnp.abs(least))[:, None]
+        pick = jnp.argmax(near, axis=1)
+        cost = cost.at[sets].set(ct * set_area[sets] + least)
+        part = part.at[sets].set(jnp.take_along_axis(jnp.asarray(parts), pick[:, None], axis=1)[:, 0])
+    full = (jnp.int32(1) << k) - 1
+    kids = take_clipped(st.child, root)
+    current = ct * take_clipped(st.area, root) + take_clipped(st.cost, kids[0]) + take_clipped(st.cost, kids[1])
+    best = cost[full]
+    change = best < current - min_gain * jnp.abs(current)
+
+    # rebuild breadth first: queue position i holds the set of interior node inner[i]
+    popcount = jnp.asarray(popcount)
+    single = jnp.asarray(single)
+    def place(i, carry):
+        queue, nxt, new_child = carry
+        active = i < k - 1
+        s = queue[i]
+        p = part[s]
+        ids = []
+        for m in (p, s ^ p):
+            one = popcount[m] == 1
+            ids.append(jnp.where(one, leaves[jnp.maximum(single[m], 0)], inner[jnp.minimum(nxt, n - 2)]))
+            push = active & ~one
+            queue = jnp.where(push, queue.at[jnp.minimum(nxt, n - 2)].set(m), queue)
+            nxt = nxt + push.astype(jnp.int32)
+        return queue, nxt, new_child.at[i].set(jnp.stack(ids))
+
+    queue, _, new_child = jax.lax.fori_loop(
+        0, n - 1, place, (jnp.zeros(n - 1, jnp.int32).at[0].set(full), jnp.int32(1),
+                          jnp.zeros((n - 1, 2), jnp.int32)))
+    new = (new_child, set_lo[queue], set_hi[queue], cost[queue], set_area[queue])
+    return change, inner, k, new, current
+
+
+def _process(st: _State, roots, scale, ct, min_gain, n):
+    """Solve the treelets of ``roots`` [W] (``N``: none; disjoint) and write them back."""
+    cap = st.child.shape[0]
+    live = roots < cap
+    change, inner, k, new, current = jax.vmap(
+        lambda r: _solve(st, r, scale, ct, min_gain, n))(roots)
+    new_child, new_lo, new_hi, new_cost, new_area = new
+    change = change & live
+    slot = jnp.arange(n - 1)[None, :] < (k - 1)[:, None]               # [W, n-1]
+    write = change[:, None] & slot
+    at = jnp.where(write, inner, cap)
+    child = st.child.at[at].set(new_child, mode="drop")
+    kid_at = jnp.where(write[..., None], new_child, cap)
+    parent = st.parent.at[kid_at].set(jnp.broadcast_to(inner[..., None], kid_at.shape), mode="drop")
+    lo = st.lo.at[at].set(new_lo, mode="drop")
+    hi = st.hi.at[at].set(new_hi, mode="drop")
+    cost = st.cost.at[at].set(new_cost, mode="drop")
+    area = st.area.at[at].set(new_area, mode="drop")
+    # an unchanged root still takes the cost of its (improved) children
+    cost = cost.at[jnp.where(live & ~change, roots, cap)].set(current, mode="drop")
+    return _State(child, parent, lo, hi, cost, area), jnp.sum(change, dtype=jnp.int32)
+
+
+# ----------------------------------------------------------------------------------
+# Passes
+# ----------------------------------------------------------------------------------
+
+
+def _heights(child):
+    """Height of every node [N] (leaves and padding 0), by sweeps (at most N + 1)."""
+    cap = child.shape[0]
+    interior = child[:, 0] >= 0
+
+    def cond(c):
+        return c[1] & (c[2] <= cap)
+
+    def body(c):
+        h, _, i = c
+        new = jnp.where(interior, 1 + jnp.maximum(take_clipped(h, child[:, 0]), take_clipped(h, child[:, 1])), 0)
+        return new, jnp.any(new != h), i + 1
+
+    h, _, _ = jax.lax.while_loop(cond, body, (jnp.zeros(cap, jnp.int32), jnp.bool_(True), jnp.int32(0)))
+    return h
+
+
+def _costs(child, area, prim_count, ct, ci):
+    """Area-weighted costs ``c(x)`` of every node [N] by bottom-up sweeps."""
+    cap = child.shape[0]
+    interior = child[:, 0] >= 0
+    leaf = ci * prim_count.astype(area.dtype) * area
+
+    def cond(c):
+        return c[1] & (c[2] <= cap)
+
+    def body(c):
+        cost, _, i = c
+        new = jnp.where(interior, ct * area + take_clipped(cost, child[:, 0]) + take_clipped(cost, child[:, 1]), leaf)
+        return new, jnp.any(new != cost), i + 1
+
+    cost, _, _ = jax.lax.while_loop(cond, body, (leaf, jnp.bool_(True), jnp.int32(0)))
+    return cost
+
+
+def _pass(st: _State, scale, ct, min_gain, *, n, windows):
+    """One bottom-up pass over every interior node; returns the state and treelets changed."""
+    cap = st.child.shape[0]
+    interior = st.child[:, 0] >= 0
+    big = jnp.int32(2 ** 31 - 1)
+    height = jnp.where(interior, _heights(st.child), big)
+    order = jnp.argsort(height, stable=True).astype(jnp.int32)
+    keys = height[order]
+    count = jnp.sum(interior, dtype=jnp.int32)
+    widths = tuple(sorted({min(w, cap) for w in windows}, reverse=True))
+    order = jnp.concatenate([order, jnp.full(widths[0], cap, jnp.int32)])
+
+    def window_loop(carry, width, last):
+        def cond(c):
+            _, start, end, _ = c
+            return (end - start >= width) | (last & (start < end))
+
+        def body(c):
+            st, start, end, changed = c
+            roots = jax.lax.dynamic_slice(order, (start,), (width,))
+            roots = jnp.where(start + jnp.arange(width) < end, roots, cap)
+            st, made = _process(st, roots, scale, ct, min_gain, n)
+            return st, start + jnp.minimum(width, end - start), end, changed + made
+
+        return jax.lax.while_loop(cond, body, carry)
+
+    def cond(c):
+        return c[1] < count
+
+    def body(c):
+        st, start, changed = c
+        end = jnp.searchsorted(keys, keys[start], side="right").astype(jnp.int32)
+        carry = (st, start, end, changed)
+        for i, width in enumerate(widths):
+            carry = window_loop(carry, width, i == len(widths) - 1)
+        st, start, _, changed = carry
+        return st, start, changed
+
+    st, _, changed = jax.lax.while_loop(cond, body, (st, jnp.int32(0), jnp.int32(0)))
+    return st, changed
+
+
+@jax.jit
+def _prepare(tree, ct, ci):
+    child = jnp.stack([tree.left, tree.right], axis=1).astype(jnp.int32)
+    lo, hi = refit_boxes(child, tree.lo, tree.hi)
+    scale = extent_scale(lo[tree.root], hi[tree.root])
+    area = half_area(lo, hi, scale)
+    cost = _costs(child, area, tree.prim_count, ct, ci)
+    return _State(child, tree.parent.astype(jnp.int32), lo, hi, cost, area), scale
+
+
+@partial(jax.jit, static_argnames=("n", "windows"))
+def _run_pass(st: _State, scale, root, prim_count, ct, ci, min_gain, *, n, windows):
+    """One pass: ``(state, treelets changed, SAH after)``."""
+    st, changed = _pass(st, scale, ct, min_gain, n=n, windows=windows)
+    root_area = st.area[root]
+    flat = ct * jnp.sum(st.child[:, 0] >= 0).astype(st.lo.dtype) + ci * jnp.sum(prim_count).astype(st.lo.dtype)
+    sah = jnp.where(root_area > 0, st.cost[root] / jnp.where(root_area > 0, root_area, 1), flat)
+    return st, changed, sah
+
+
+@jax.jit
+def _to_tree(tree, st: _State):
+    return tree.replace(left=st.child[:, 0], right=st.child[:, 1], parent=st.parent,
+                        lo=st.lo, hi=st.hi)
+
+
+def restructure(tree, *, leaves: int = DEFAULT_LEAVES, ct: float = 1.0, ci: float = 1.0,
+                max_passes: int = DEFAULT_MAX_PASSES, min_gain: float | None = None,
+                split_axes: bool = True, windows=DEFAULT_WINDOWS,
+                on_pass: Callable | None = None,
+                time_budget: float | None = None) -> TreeletResult:
+    """Treelet restructuring, pass after pass, until a pass changes nothing (module docstring).
+
+    ``tree``: a :class:`~jaxbvh.tree.BVH` (any capacity; leaves of any size).
+    ``leaves``: treelet size ``n`` (2 .. :data:`MAX_LEAVES`; a static argument: each size
+    compiles its own program). ``max_passes``: most passes. ``min_gain``: relative
+    margin (module docstring). ``split_axes``: run :func:`jaxbvh.rotate.assign_split_axes`
+    at the end. ``windows``: treelets solved at once (speed only). ``on_pass(i, sah,
+    changed)``: called on the host after every pass. ``time_budget``: seconds after which
+    to stop (after a pass) with the tree so far (every pass lowers the SAH); the clock
+    starts after the first pass, which also compiles.
+    """
+    if not isinstance(tree, BVH):
+        raise ValueError(f"tree must be a binary jaxbvh.BVH, got {type(tree).__name__}")
+    if not 2 <= leaves <= MAX_LEAVES:
+        raise ValueError(f"leaves must be in 2 .. {MAX_LEAVES}, got {leaves}")
+    if max_passes < 0:
+        raise ValueError(f"max_passes must be >= 0, got {max_passes}")
+    if not ct >= 0 or not ci >= 0:
+        raise ValueError(f"ct and ci must be >= 0, got ct={ct}, ci={ci}")
+    if not windows or min(windows) < 1:
+        raise ValueError(f"windows must be positive sizes, got {windows}")
+    if time_budget is not None and not time_budget > 0:
+        raise ValueError(f"time_budget must be > 0 seconds, got {time_budget}")
+    if on_pass is not None and not callable(on_pass):
+        raise ValueError(f"on_pass must be a function (pass, sah, changed), got {on_pass!r}")
+    tree = to_jax(tree)
+    dtype = np.dtype(tree.lo.dtype)
+    min_gain = default_min_gain(dtype) if min_gain is None else float(min_gain)
+    if not min_gain >= 0:
+        raise ValueError(f"min_gain must be >= 0, got {min_gain}")
+    ct_, ci_, mg = (jnp.asarray(x, dtype) for x in (ct, ci, min_gain))
+    sah_start = sah_of(tree, ct, ci)
+    st, scale = _prepare(tree, ct_, ci_)
+    history, changed_all = [], 0
+    budget = TimeBudget(time_budget)
+    for i in range(max_passes if leaves > 2 else 0):
+        st, changed, sah = _run_pass(st, scale, tree.root, tree.prim_count, ct_, ci_, mg,
+                                     n=int(leaves), windows=tuple(int(w) for w in windows))
+        changed, sah = int(changed), float(sah)
+        history.append(sah)
+        changed_all += changed
+        if on_pass is not None:
+            on_pass(i, sah, changed)
+        if changed == 0:
+            break
+        if budget.spent():
+            break
+    out = _to_tree(tree, st)
+    if split_axes:
+        out = assign_split_axes(out)
+    return TreeletResult(out, sah_of(out, ct, ci), sah_start, len(history), changed_all,
+                         np.asarray(history, dtype))

@@ -1,0 +1,432 @@
+"""Ray traversal of binary and wide BVHs, counting box and primitive tests (jitted).
+
+One ray is one ``lax.while_loop`` over a fixed-capacity stack; rays are ``vmap``-ed and
+fed to the device in batches. Every loop step does exactly one of two things:
+
+* **node step** — pop ``(node, entry)``; if ``entry <= t_best`` the node is *visited*:
+  a leaf opens its run of primitives, an interior node tests the boxes of all its real
+  children (one *box test* each) and pushes the children it hits, nearest visited first;
+* **primitive step** — test the next primitive of the open leaf (one *primitive test*).
+
+The root box is tested once before the loop. So for a binary tree
+``box_tests = 1 + 2 * interior nodes visited``, and ``nodes_visited`` counts interior
+nodes and leaves that passed the ``entry <= t_best`` check (a popped node whose entry
+lies beyond the closest hit found since it was pushed is skipped, not counted).
+
+Visiting order (front to back):
+
+* binary nodes with a split axis (``tree.axis[n] >= 0``): the left (lower) child first
+  when ``direction[axis] >= 0``, else the right child first — no distance needed;
+* every other node (loaded trees have ``axis == -1``; all wide nodes): children in
+  increasing box entry distance; ties go to the lower child slot.
+
+Stack. ``stack_capacity(tree) = (k - 1) * height + 1`` entries always suffice (a node
+step pops one entry and pushes at most ``k``). It is a static argument; a smaller one is
+allowed, and a ray whose pushes do not fit keeps the entries that fit and sets
+``stack_overflow`` — its hit and counts are then not trustworthy. The drivers raise
+unless ``allow_overflow=True``.
+
+Step bound. In a valid tree a ray pops every node at most once and tests every
+primitive slot at most once, so the loop is cut off after ``N + P + 1`` steps (node and
+``prim_index`` capacities, static): no tree file, however broken (a node listed as its
+own child, a cycle), can make it run forever. A ray that reaches the bound sets
+``step_limit``; the drivers raise :class:`~jaxbvh.tree.validate.InvalidTreeError` for it
+(the commands also check every tree they read before tracing it).
+
+Primitive test. :func:`intersect_triangle` is Möller–Trumbore, two-sided, in the tree's
+float dtype. It is not watertight: a ray through a shared edge can in rare cases slip
+between both triangles (or hit both); we accept that for speed and simplicity, and it is
+part of the tolerance when comparing with Embree. Boxes are tested with the robust slab
+test (exit distance scaled by ``1 + 2 gamma(3)``, Ize 2013), so a box is never missed
+because of rounding, and a zero direction component is replaced by a huge finite inverse
+(no ``0 * inf``).
+
+Hits. Ray interval is the open ``(t_min, t_max)``. Closest hit: smallest ``t``; equal
+``t`` goes to the lower primitive id, so the answer does not depend on the visiting
+order. Any hit: stops at the first hit (counters then depend on the order). All hits:
+every hit is counted; the first ``max_hits`` in visiting order are listed, and
+``hits_overflow`` says the list was too short.
+
+Skip flags (Susano Pinto 2010, section 4.3). ``skip`` [N] bool, optional: a flagged
+node's box is not tested, it is assumed hit (entered where its parent was). The node is
+pushed and popped like any other but counts neither as a box test nor as a visited
+node, so a binary tree with the nodes a collapse removed flagged
+(:attr:`jaxbvh.collapse.CollapseResult.skip`) makes exactly the box tests, primitive
+tests and visits of the wide tree, ray by ray, for all-hits queries (closest and any
+hit visit in another order, so their counts may differ; their hits do not). The root's
+box is always tested.
+
+Plugging in other primitives. The traversal never looks at triangles itself: it calls
+``intersect(prims, prim_id, origin, direction) -> (t, u, v)`` (``t = inf`` for a miss)
+with ``prims`` any pytree passed through ``jit``. A two-level tree will pass the
+instance transforms and the bottom-level trees as ``prims`` and an ``intersect`` that
+transforms the ray and traverses the instance's tree.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from functools import partial
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxbvh.numerics import INV_BIG, robust_factor
+from jaxbvh.tree.layout import BVH, depth, to_jax
+from jaxbvh.tree.validate import InvalidTreeError
+
+MODES = ("closest", "any", "all")
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Hits:
+    """Per-ray results, every array [R].
+
+    ``t`` float (``inf`` for a miss; in any-hit mode the first hit found), ``prim``
+    int32 (-1 for a miss), ``u``, ``v`` barycentrics of the hit; counters int32
+    ``box_tests``, ``prim_tests``, ``nodes_visited``, ``leaves_visited``;
+    ``stack_overflow`` and ``step_limit`` bool (module docstring). All-hits mode adds ``hit_count`` int32 [R],
+    ``hit_prims`` int32 [R, H] (-1 past the end), ``hit_t`` float [R, H] and
+    ``hits_overflow`` bool [R]; the other modes leave them None.
+    """
+
+    t: Any
+    prim: Any
+    u: Any
+    v: Any
+    box_tests: Any
+    prim_tests: Any
+    nodes_visited: Any
+    leaves_visited: Any
+    stack_overflow: Any
+    step_limit: Any
+    hit_count: Any = None
+    hit_prims: Any = None
+    hit_t: Any = None
+    hits_overflow: Any = None
+
+
+# ----------------------------------------------------------------------------------
+# Ray-box and ray-triangle tests
+# ----------------------------------------------------------------------------------
+
+
+def inverse_direction(direction):
+    """``1 / direction`` with ``±INV_BIG`` for zero components (sign of the zero)."""
+    big = jnp.asarray(INV_BIG, direction.dtype)
+    safe = jnp.where(direction == 0, 1, direction)
+    return jnp.where(direction == 0, jnp.copysign(big, direction), 1 / safe)
+
+
+def slab(lo, hi, origin, inv_dir, t_min, t_max):
+    """Robust slab test of boxes ``lo``, ``hi`` [..., 3] against one ray.
+
+    Returns ``(hit, entry)`` [...]: whether the ray meets the box within
+    ``[t_min, t_max]`` and where it enters (``max(near, t_min)``).
+    """
+    t0 = (lo - origin) * inv_dir
+    t1 = (hi - origin) * inv_dir
+    near = jnp.max(jnp.minimum(t0, t1), axis=-1)
+    far = jnp.min(jnp.maximum(t0, t1), axis=-1) * robust_factor(lo.dtype)
+    entry = jnp.maximum(near, t_min)
+    return entry <= jnp.minimum(far, t_max), entry
+
+
+def _cross(a, b):
+    return jnp.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+                      a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                      a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
+
+
+def _dot(a, b):
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
+def moller_trumbore(v0, v1, v2, origin, direction):
+    """Two-sided Möller–Trumbore test; corners [..., 3]. Returns ``(t, u, v)``.
+
+    ``t = inf`` where the ray's line misses the triangle, is parallel to it, or the
+    triangle is degenerate; otherwise ``t`` may be negative (behind the origin).
+    """
+    e1 = v1 - v0
+    e2 = v2 - v0
+    p = _cross(direction, e2)
+    det = _dot(e1, p)
+    ok = det != 0
+    inv_det = 1 / jnp.where(ok, det, 1)
+    s = origin - v0
+    u = _dot(s, p) * inv_det
+    q = _cross(s, e1)
+    v = _dot(direction, q) * inv_det
+    t = _dot(e2, q) * inv_det
+    hit = ok & (u >= 0) & (u <= 1) & (v >= 0) & (u + v <= 1)
+    return jnp.where(hit, t, jnp.inf), u, v
+
+
+def intersect_triangle(triangles, prim, origin, direction):
+    """Leaf test for a triangle mesh: ``triangles`` [T, 3, 3] (tree frame), one id."""
+    tri = triangles[prim]
+    return moller_trumbore(tri[0], tri[1], tri[2], origin, direction)
+
+
+# ----------------------------------------------------------------------------------
+# One ray
+# ----------------------------------------------------------------------------------
+
+
+def stack_capacity(tree) -> int:
+    """Stack entries that always suffice: ``(k - 1) * height + 1`` (host, static)."""
+    height = int(np.max(depth(tree)))
+    k = int(np.asarray(tree.child).shape[1]) if not isinstance(tree, BVH) else 2
+    return (k - 1) * max(height, 0) + 1
+
+
+def max_steps(tree) -> int:
+    """Loop steps one ray may take: ``N + P + 1`` (module docstring; static shapes)."""
+    return int(tree.prim_count.shape[0]) + int(tree.prim_index.shape[0]) + 1
+
+
+def _trace_one(tree, prims, skip, origin, direction, t_min, t_max, *, intersect, mode,
+               capacity, max_hits):
+    child = tree.child  # [N, k]
+    k = child.shape[1]
+    axis = tree.axis if isinstance(tree, BVH) else None
+    dtype = tree.lo.dtype
+    origin = origin.astype(dtype)
+    direction = direction.astype(dtype)
+    t_min = jnp.asarray(t_min, dtype)
+    t_max = jnp.asarray(t_max, dtype)
+    inv_dir = inverse_direction(direction)
+    root = tree.root
+    root_hit, root_entry = slab(tree.lo[root], tree.hi[root], origin, inv_dir, t_min, t_max)
+    n_slots = tree.prim_index.shape[0]
+    slot_ids = jnp.arange(k)
+    i32 = jnp.int32
+
+    state = dict(
+        sp=jnp.where(root_hit, 1, 0).astype(i32),
+        stack_node=jnp.zeros(capacity, i32).at[0].set(root),
+        stack_entry=jnp.full(capacity, jnp.inf, dtype).at[0].set(root_entry),
+        leaf_pos=i32(0), leaf_end=i32(0),
+        t=t_max, prim=i32(-1), u=jnp.zeros((), dtype), v=jnp.zeros((), dtype),
+        box_tests=i32(1), prim_tests=i32(0), nodes_visited=i32(0), leaves_visited=i32(0),
+        stack_overflow=jnp.zeros((), bool), done=jnp.zeros((), bool), steps=i32(0),
+    )
+    step_limit = max_steps(tree)
+    if mode == "all":
+        state.update(best=t_max, hit_count=i32(0), hit_prims=jnp.full(max_hits, -1, i32),
+                     hit_t=jnp.full(max_hits, jnp.inf, dtype))
+
+    def working(s):
+        return ~s["done"] & ((s["sp"] > 0) | (s["leaf_pos"] < s["leaf_end"]))
+
+    def cond(s):
+        return working(s) & (s["steps"] < step_limit)
+
+    def body(s):
+        s = dict(s)
+        s["steps"] = s["steps"] + 1
+        in_leaf = s["leaf_pos"] < s["leaf_end"]
+
+        # primitive step
+        prim = tree.prim_index[jnp.minimum(s["leaf_pos"], n_slots - 1)]
+        t, u, v = intersect(prims, prim, origin, direction)
+        valid = in_leaf & (t > t_min) & (t < t_max)
+        # closest and any hits shrink the interval (s["t"]); all hits keep it whole and
+        # track the closest hit in s["best"]
+        best = s["best"] if mode == "all" else s["t"]
+        if mode == "any":
+            take = valid
+        else:
+            take = valid & ((t < best) | ((t == best) & (prim < s["prim"])))
+        if mode == "all":
+            s["best"] = jnp.where(take, t, best)
+            n = s["hit_count"]
+            slot = jnp.where(valid & (n < max_hits), n, max_hits)
+            s["hit_prims"] = s["hit_prims"].at[slot].set(prim, mode="drop")
+            s["hit_t"] = s["hit_t"].at[slot].set(t, mode="drop")
+            s["hit_count"] = n + valid.astype(i32)
+        else:
+            s["t"] = jnp.where(take, t, s["t"])
+        s["prim"] = jnp.where(take, prim, s["prim"])
+        s["u"] = jnp.where(take, u, s["u"])
+        s["v"] = jnp.where(take, v, s["v"])
+        if mode == "any":
+            s["done"] = valid
+        s["prim_tests"] = s["prim_tests"] + in_leaf.astype(i32)
+        s["leaf_pos"] = s["leaf_pos"] + in_leaf.astype(i32)
+
+        # node step
+        pop = ~in_leaf
+        top = jnp.maximum(s["sp"] - 1, 0)
+        node = s["stack_node"][top]
+        # closest: cull against the best hit; any/all: s["t"] stays t_max
+        visit = pop & (s["stack_entry"][top] <= s["t"])
+        count = tree.prim_count[node]
+        is_leaf = count > 0
+        counted = visit if skip is None else visit & ~skip[node]
+        s["nodes_visited"] = s["nodes_visited"] + counted.astype(i32)
+        open_leaf = visit & is_leaf
+        s["leaves_visited"] = s["leaves_visited"] + open_leaf.astype(i32)
+        s["leaf_pos"] = jnp.where(open_leaf, tree.prim_start[node], s["leaf_pos"])
+        s["leaf_end"] = jnp.where(open_leaf, tree.prim_start[node] + count, s["leaf_end"])
+
+        kids = child[node]
+        real = kids >= 0
+        safe = jnp.maximum(kids, 0)
+        kid_hit, kid_entry = slab(tree.lo[safe], tree.hi[safe], origin, inv_dir[None, :],
+                                  t_min, s["t"])
+        expand = visit & ~is_leaf
+        tested = real
+        if skip is not None:  # assumed hit, entered where this node was
+            skipped = real & skip[safe]
+            kid_hit = kid_hit | skipped
+            kid_entry = jnp.where(skipped, s["stack_entry"][top], kid_entry)
+            tested = real & ~skipped
+        kid_hit = kid_hit & real & expand
+        s["box_tests"] = s["box_tests"] + jnp.where(expand, jnp.sum(tested), 0).astype(i32)
+        if axis is not None:
+            split = axis[node]
+            lower_first = direction[jnp.maximum(split, 0)] >= 0
+            by_axis = jnp.where(lower_first, slot_ids, k - 1 - slot_ids).astype(dtype)
+            key = jnp.where(split >= 0, by_axis, kid_entry)
+        else:
+            key = kid_entry
+        before = (key[:, None] < key[None, :]) | (
+            (key[:, None] == key[None, :]) & (slot_ids[:, None] < slot_ids[None, :]))
+        rank = jnp.sum(kid_hit[:, None] & before, axis=0)  # visiting position of each kid
+        n_push = jnp.sum(kid_hit).astype(i32)
+        pos = top + n_push - 1 - rank  # nearest on top
+        fits = pos < capacity
+        pos = jnp.where(kid_hit & fits, pos, capacity)
+        s["stack_node"] = s["stack_node"].at[pos].set(kids, mode="drop")
+        s["stack_entry"] = s["stack_entry"].at[pos].set(kid_entry, mode="drop")
+        s["stack_overflow"] = s["stack_overflow"] | jnp.any(kid_hit & ~fits)
+        s["sp"] = jnp.where(pop, jnp.minimum(top + n_push, capacity), s["sp"])
+        return s
+
+    s = jax.lax.while_loop(cond, body, state)
+    hit = s["prim"] >= 0
+    best = s["best"] if mode == "all" else s["t"]
+    out = dict(t=jnp.where(hit, best, jnp.inf), prim=s["prim"], u=s["u"], v=s["v"],
+               box_tests=s["box_tests"], prim_tests=s["prim_tests"],
+               nodes_visited=s["nodes_visited"], leaves_visited=s["leaves_visited"],
+               stack_overflow=s["stack_overflow"], step_limit=working(s))
+    if mode == "all":
+        out.update(hit_count=s["hit_count"], hit_prims=s["hit_prims"], hit_t=s["hit_t"],
+                   hits_overflow=s["hit_count"] > max_hits)
+    return Hits(**out)
+
+
+@partial(jax.jit, static_argnames=("intersect", "mode", "capacity", "max_hits"))
+def trace_batch(tree, prims, origin, direction, t_min, t_max, skip=None, *,
+                intersect=intersect_triangle, mode="closest", capacity=64, max_hits=16):
+    """Trace rays ``origin``, ``direction`` [R, 3] (tree frame) through ``tree``; jitted.
+
+    ``prims``: what ``intersect`` reads (``triangles`` [T, 3, 3] for the default);
+    ``t_min``, ``t_max``: scalars or [R]; ``mode``: one of :data:`MODES`;
+    ``capacity``: static stack size; ``max_hits``: list length for ``mode="all"``;
+    ``skip``: optional [N] bool flags (module docstring). Returns :class:`Hits` with
+    arrays [R]. The drivers below batch, pad and check.
+    """
+    r = origin.shape[0]
+    t_min = jnp.broadcast_to(jnp.asarray(t_min, tree.lo.dtype), (r,))
+    t_max = jnp.broadcast_to(jnp.asarray(t_max, tree.lo.dtype), (r,))
+    one = partial(_trace_one, tree, prims, skip, intersect=intersect, mode=mode,
+                  capacity=capacity, max_hits=max_hits)
+    return jax.vmap(one)(origin, direction, t_min, t_max)
+
+
+# ----------------------------------------------------------------------------------
+# Drivers: batching, padding, overflow check
+# ----------------------------------------------------------------------------------
+
+
+def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t_max=np.inf,
+          intersect: Callable = intersect_triangle, capacity: int | None = None,
+          max_hits: int = 16, batch: int = 256, allow_overflow: bool = False, skip=None) -> Hits:
+    """Trace any number of rays in batches of ``batch``; returns :class:`Hits` (NumPy).
+
+    ``tree``: :class:`~jaxbvh.tree.layout.BVH` or :class:`~jaxbvh.tree.layout.WideBVH`;
+    ``prims``: the primitives ``intersect`` reads (triangles [T, 3, 3] in the tree's
+    frame for the default); ``origin``, ``direction``: [R, 3] in the tree's frame
+    (directions need not be unit; ``t`` is in units of ``|direction|``).
+    ``capacity`` defaults to :func:`stack_capacity`; ``skip``: optional [N] bool per-node
+    "assume hit" flags (module docstring, "Skip flags"). The last batch is padded so every
+    batch has the same shape (one compile). Batches are small so that the rays of one
+    batch finish at similar steps (a ``vmap``-ed loop runs as long as its longest ray;
+    on a 2-core CPU 256 rays per batch traced bunny rays 3x faster than 4096).
+    Raises ``RuntimeError`` on stack overflow unless ``allow_overflow``, and
+    :class:`~jaxbvh.tree.validate.InvalidTreeError` when a ray reaches the step bound.
+    """
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    origin = np.asarray(origin)
+    direction = np.asarray(direction)
+    if origin.ndim != 2 or origin.shape[1] != 3 or direction.shape != origin.shape:
+        raise ValueError(f"origin and direction must both be [R, 3], got {origin.shape} "
+                         f"and {direction.shape}")
+    if capacity is None:
+        capacity = stack_capacity(tree)
+    jtree = to_jax(tree)
+    dtype = np.dtype(jtree.lo.dtype)
+    if skip is not None:
+        skip = np.asarray(skip, bool)
+        if skip.shape != (jtree.prim_count.shape[0],):
+            raise ValueError(f"skip must be bool [{jtree.prim_count.shape[0]}] (one flag per node), "
+                             f"got shape {skip.shape}")
+        skip = jnp.asarray(skip)
+    jprims = jax.tree_util.tree_map(jnp.asarray, prims)
+    r = origin.shape[0]
+    batch = max(1, min(batch, r))
+    t_min = np.broadcast_to(np.asarray(t_min, dtype), (r,))
+    t_max = np.broadcast_to(np.asarray(t_max, dtype), (r,))
+    pieces = []
+    for start in range(0, r, batch):
+        stop = min(start + batch, r)
+        n = stop - start
+        o = np.zeros((batch, 3), dtype)
+        d = np.zeros((batch, 3), dtype)
+        d[:, 0] = 1
+        lo_t = np.zeros(batch, dtype)
+        hi_t = np.full(batch, -1, dtype)  # padding rays: empty interval, they stop at once
+        o[:n], d[:n], lo_t[:n], hi_t[:n] = origin[start:stop], direction[start:stop], \
+            t_min[start:stop], t_max[start:stop]
+        pieces.append((n, trace_batch(jtree, jprims, o, d, lo_t, hi_t, skip, intersect=intersect,
+                                      mode=mode, capacity=capacity, max_hits=max_hits)))
+    if not pieces:
+        empty = trace_batch(jtree, jprims, np.zeros((1, 3), dtype), np.ones((1, 3), dtype),
+                            np.zeros(1, dtype), np.full(1, -1, dtype), skip, intersect=intersect,
+                            mode=mode, capacity=capacity, max_hits=max_hits)
+        pieces = [(0, empty)]
+    hits = jax.tree_util.tree_map(
+        lambda *parts: np.concatenate([np.asarray(p)[:n] for (n, _), p in zip(pieces, parts)]),
+        *[h for _, h in pieces])
+    if hits.step_limit.any():
+
+        bad = np.flatnonzero(hits.step_limit)
+        raise InvalidTreeError([f"traversal of {bad.size} ray(s) (first: {bad[:5].tolist()}) did not end "
+                                f"within {max_steps(jtree)} steps: the tree has a cycle or a shared node"])
+    if not allow_overflow and hits.stack_overflow.any():
+        bad = np.flatnonzero(hits.stack_overflow)
+        raise RuntimeError(f"traversal stack of {capacity} entries overflowed on {bad.size} "
+                           f"ray(s) (first: {bad[:5].tolist()}); pass a larger capacity")
+    return hits
+
+
+def closest_hit(tree, triangles, origin, direction, **kwargs) -> Hits:
+    """Closest hit of every ray (:func:`trace` with ``mode="closest"``)."""
+    return trace(tree, triangles, origin, direction, mode="closest", **kwargs)
+
+
+def any_hit(tree, triangles, origin, direction, **kwargs) -> Hits:
+    """First hit found for every ray, e.g. for shadow rays (``mode="any"``)."""
+    return trace(tree, triangles, origin, direction, mode="any", **kwargs)
+
+
+def all_hits(tree, triangles, origin, direction, *, max_hits: int = 16, **kwargs) -> Hits:
+    """Every hit along every ray: ``hit_count`` and the first ``max_hits`` (``mode="all"``)."""
+    return trace(tree, triangles, origin, direction, mode="all", max_hits=max_hits, **kwargs)

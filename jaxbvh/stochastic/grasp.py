@@ -1,0 +1,428 @@
+"""GRASP: randomized full-sweep builds, best of many trials (Ng & Trifonov 2003, §3.4).
+
+The algorithm
+=============
+Ng & Trifonov treat the full-sweep SAH builder (Müller & Fellner; ``jaxbvh.build(method=
+"sweep")``, one primitive per leaf) as a greedy constructive search and randomize it the
+GRASP way: at some nodes the split is drawn from a *restricted candidate list* (RCL)
+instead of always being the best one; many trees are built and the one with the lowest
+objective is kept. A trial builds one tree:
+
+* every node first finds the greedy split (least ``A_L N_L + A_R N_R``, the sweep
+  builder's tie rule), then with probability ``noise`` *deviates* from it;
+* ``rcl="axes"`` (the paper's first method): a deviating node takes the best split of
+  one of the two other axes, each with probability 1/2;
+* ``rcl=k`` (cardinality RCL, the paper's Figure 1): a deviating node takes one of the
+  ``k - 1`` next-best splits over all three axes, uniformly (fewer when the node has fewer
+  than ``k`` candidates; ``k = 1`` never deviates).
+
+``noise`` is the probability of *not* taking the greedy split, as the paper defines its
+noise setting ("different probabilities of not picking the point with the best heuristic
+value"), so a tree of ``n`` primitives (``n - 1`` interior nodes) deviates ``noise (n -
+1)`` times on average: ``deviations = noise (n - 1)`` is the scale-free form. Table 3's
+"random pick among the three axes' best points" is ``rcl="axes"`` with ``noise = 2/3``;
+reading "pick uniformly among the ``k`` best, the best included, with probability ``p``"
+for the cardinality RCL gives ``noise = p (k - 1) / k`` here. The exact rule, ties
+included, is in :mod:`jaxbvh.builders.topdown` (randomized split choice), whose level-synchronous
+engine builds every tree here (nothing is copied).
+
+The objective (``objective="nt"``, the paper's) is the total surface area of the interior
+boxes over the root's (:func:`jaxbvh.tree.cost.ng_trifonov_cost`); ``objective="sah"`` keeps
+the tree of least SAH (``Ct = Ci = 1``) instead. Among equal objectives the lowest trial
+number wins.
+
+Randomness
+==========
+Node ``[start, start + count)`` of trial ``t`` draws its two uniforms from
+:func:`jaxbvh.draws.split_uniforms` ``(key, t, start, count)``: keyed by the node's run of
+primitive positions (root ``[0, n)``, left child ``[start, start + N_L)``, right child
+the rest), not drawn in sequence. So a trial's tree does not depend on how many trials
+run or in which order nodes are built: the level-synchronous engine equals the recursive
+:mod:`jaxbvh.stochastic.grasp_reference` node for node, and the best of the first 10 trials of a
+100-trial run is the best of a 10-trial run with the same key. The first uniform decides
+the deviation (``u0 < noise``), the second the alternative.
+
+Only deviating subtrees are built
+=================================
+Until a node deviates, a trial builds exactly the greedy tree: a node whose ancestors all
+took the greedy split holds the same primitives, has the same run (so the same draws) and
+finds the same greedy split. A trial's tree is therefore the greedy tree with the
+subtrees under its *topmost deviating nodes* (deviating, no deviating ancestor) rebuilt.
+:func:`grasp` builds the greedy tree once, draws ``u0`` for all of its interior nodes in
+every trial, and builds only those subtrees, each as one tree of a forest
+(:func:`jaxbvh.builders.topdown.randomized_forest`: its own trial number, its nodes named as in the
+whole tree). Trees of many trials are packed into one forest, up to
+:data:`CHUNK_PRIMS` primitives per call (memory bound), every call of a run padded to one
+capacity (one compile). A trial's objective is the greedy
+tree's with the rebuilt subtrees' contributions swapped in (in float64 on the host; both
+objectives are sums over nodes: the interior areas for ``"nt"``, each subtree's SAH
+weighted by the area ratios down to it for ``"sah"``). With ``deviations`` per tree the
+rebuilt subtrees hold about ``deviations x depth`` primitives, so a trial costs a small
+fraction of a build; at high noise the root deviates and the whole tree is rebuilt. The
+best trial's tree is built whole at the end (:func:`randomized_build`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxbvh.builders.dispatch import build
+from jaxbvh.builders.topdown import RandomSplits, engine_inputs, randomized_forest
+from jaxbvh.draws import split_uniforms
+from jaxbvh.tree.layout import capacity_bucket, concat_ranges, to_numpy
+
+OBJECTIVES = ("nt", "sah")
+
+# Default noise, as expected deviations per tree: noise = DEFAULT_DEVIATIONS / (n - 1).
+# The noise must shrink with the mesh: noise acts per node, and every deviation from the
+# greedy split costs a little on average, so at a fixed noise big meshes only get worse
+# (bunny, 69k triangles: best of 100 at noise 0.01 is 0.06% above greedy, every trial
+# worse; the paper's 0.1 is 0.4-0.7% worse on the 6k-triangle meshes). Measured
+# (bench/results/stochastic.md; rcl "axes", 100 trials, D = 1, 2, 3, 5, 10, 20, 30
+# deviations per tree, seeds 0-2 on six shared meshes of 5.8k-20k triangles, seed 0 on
+# bunny): D = 2 ... 10 put the best of 100 below greedy in every run (D = 1 missed once),
+# D = 10 with the most trials below greedy on average (6.4 of 100; 2-18 per run); at
+# D >= 20 spot, teapot and fandisk runs find nothing better. Gains are small: 0.002%
+# (spot) to 0.8% (legocar) at D = 10, up to 1.4% (legocar, D ~ 330).
+DEFAULT_DEVIATIONS = 10.0
+
+# Most primitives in one forest call: the memory bound. Measured 1.4 KB of peak memory per
+# forest slot (spot, noise 1: 44 trials in 262,144 slots, +350 MB), and a forest pads to
+# at most twice its primitives, so a call stays under ~1.5 GB.
+CHUNK_PRIMS = 1 << 19
+_DRAWS_PER_CALL = 1 << 22  # u0 draws per call when screening the greedy tree's nodes
+
+
+@dataclasses.dataclass(frozen=True)
+class GraspResult:
+    """What :func:`grasp` returns.
+
+    ``tree``: the best trial's :class:`~jaxbvh.tree.layout.BVH` (JAX arrays, one primitive per
+    leaf); ``objective``: its objective; ``objectives``: float64 NumPy [trials], every
+    trial's objective in trial order; ``best_trial``: its trial number; ``base``: the
+    objective of the greedy sweep tree (``noise = 0``); ``noise``: the noise used;
+    ``rcl``: ``"axes"`` or ``k``; ``name``: the objective's name; ``rebuilt``: int64
+    [trials], primitives under each trial's rebuilt subtrees (the work it cost).
+    """
+
+    tree: Any
+    objective: float
+    objectives: np.ndarray
+    best_trial: int
+    base: float
+    noise: float
+    rcl: Any
+    name: str
+    rebuilt: np.ndarray
+
+    def best_of(self, trials: int) -> float:
+        """Best objective among the first ``trials`` trials (what a shorter run finds)."""
+        return float(np.min(self.objectives[:trials]))
+
+
+def check_rcl(rcl):
+    """``rcl`` as ``"axes"`` or an int ``k >= 1``; ``ValueError`` naming the problem otherwise."""
+    if isinstance(rcl, str) and rcl != "axes":
+        if not rcl.strip().lstrip("+").isdigit():
+            raise ValueError(f"rcl must be 'axes' or a list length k >= 1, got {rcl!r}")
+        rcl = int(rcl)
+    if rcl == "axes":
+        return rcl
+    if isinstance(rcl, (bool, float)) or not isinstance(rcl, (int, np.integer)) or rcl < 1:
+        raise ValueError(f"rcl must be 'axes' or a list length k >= 1, got {rcl!r}")
+    return int(rcl)
+
+
+def resolve_noise(n: int, noise=None, deviations=None) -> float:
+    """The per-node noise for ``n`` primitives from ``noise`` or ``deviations`` (one of them).
+
+    ``deviations``: expected deviations per tree, ``noise = deviations / (n - 1)`` capped
+    at 1 (0 for one primitive). Neither given: :data:`DEFAULT_DEVIATIONS`. Raises
+    ``ValueError`` for both given, noise outside [0, 1], or negative deviations.
+    """
+    if noise is not None and deviations is not None:
+        raise ValueError("give noise or deviations, not both")
+    if noise is not None:
+        noise = float(noise)
+        if not 0.0 <= noise <= 1.0:
+            raise ValueError(f"noise must be in [0, 1], got {noise}")
+        return noise
+    deviations = DEFAULT_DEVIATIONS if deviations is None else float(deviations)
+    if not deviations >= 0.0 or math.isinf(deviations):
+        raise ValueError(f"deviations must be a finite number >= 0, got {deviations}")
+    return min(1.0, deviations / (n - 1)) if n > 1 else 0.0
+
+
+def _mode(rcl):
+    return ("axes", 0) if rcl == "axes" else ("list", int(rcl))
+
+
+def _check_int(name, value, minimum=1):
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+_forest = jax.jit(randomized_forest, static_argnames=("rcl",))
+
+
+def randomized_build(key, prim_lo, prim_hi, *, trial: int = 0, noise: float, rcl="axes", pad: bool = True,
+                     dtype=None):
+    """Trial ``trial`` of a GRASP run keyed ``key``: its whole randomized full-sweep tree.
+
+    Args:
+      key: the run's ``jax.random`` key.
+      prim_lo, prim_hi: [n, 3] primitive boxes (as for :func:`jaxbvh.builders.topdown`).
+      trial: the trial number, >= 0.
+      noise: probability in [0, 1] that a node deviates from the greedy split.
+      rcl: ``"axes"`` or a list length ``k >= 1`` (module docstring).
+      pad, dtype: as for :func:`jaxbvh.builders.topdown`.
+
+    Returns:
+      A :class:`~jaxbvh.tree.layout.BVH` (one primitive per leaf, nodes level by level, root 0).
+    """
+    mode, k = _mode(check_rcl(rcl))
+    trial = _check_int("trial", trial, 0)
+    noise = resolve_noise(2, noise=noise)  # checks it
+    lo, hi, n, scale = engine_inputs(prim_lo, prim_hi, pad=pad, dtype=dtype)
+    cap = lo.shape[0]
+    zeros = jnp.zeros(cap, jnp.int32)
+    splits = RandomSplits(key, zeros, zeros.at[0].set(trial), zeros, jnp.float32(noise), jnp.int32(k))
+    tree, _ = _forest(lo, hi, n, scale, splits, rcl=mode)
+    return tree
+
+
+# ----------------------------------------------------------------------------------
+# Host-side bookkeeping over a tree: runs, subtree sums, SAH weights (float64)
+# ----------------------------------------------------------------------------------
+
+
+def _levels(left, right, roots):
+    """Node ids by depth from ``roots``: list of int arrays (each loop step one level)."""
+    out, frontier = [], np.asarray(roots, np.int64)
+    for _ in range(left.shape[0] + 1):  # bound: a level per node at most
+        if frontier.size == 0:
+            break
+        out.append(frontier)
+        kids = np.concatenate([left[frontier], right[frontier]])
+        frontier = kids[kids >= 0]
+    return out
+
+
+def _areas(lo, hi):
+    d = np.maximum(np.asarray(hi, np.float64) - np.asarray(lo, np.float64), 0.0)
+    return d[:, 0] * d[:, 1] + d[:, 1] * d[:, 2] + d[:, 2] * d[:, 0]
+
+
+def _subtree_sums(t, levels, area):
+    """Per node: primitives under it, interior area below and at it, SAH ``C`` (float64)."""
+    left, right = t.left.astype(np.int64), t.right.astype(np.int64)
+    count = np.where(t.prim_count > 0, t.prim_count, 0).astype(np.int64)
+    interior_area = np.zeros(left.shape[0])
+    cost = np.where(t.prim_count > 0, t.prim_count.astype(np.float64), 0.0)  # Ci N, Ci = 1
+    for ids in reversed(levels):
+        inner = ids[left[ids] >= 0]
+        a, b = left[inner], right[inner]
+        count[inner] = count[a] + count[b]
+        interior_area[inner] = area[inner] + interior_area[a] + interior_area[b]
+        own = area[inner]
+        weighted = (area[a] * cost[a] + area[b] * cost[b]) / np.where(own > 0, own, 1.0)
+        cost[inner] = 1.0 + np.where(own > 0, weighted, cost[a] + cost[b])  # Ct = 1
+    return count, interior_area, cost
+
+
+@dataclasses.dataclass(frozen=True)
+class _Greedy:
+    """The greedy tree as seen by the trials: its interior nodes' runs and contributions."""
+
+    prim_index: np.ndarray  # [n] primitive of each position
+    start: np.ndarray       # [m] run of each interior node, sorted by (start, -count)
+    count: np.ndarray
+    contribution: np.ndarray  # [m] what the node's subtree adds to the objective
+    weight: np.ndarray        # [m] its weight in the objective (sah: area ratios down to it)
+    base: float               # the objective
+    root_area: float
+
+
+def _greedy(tree, objective) -> _Greedy:
+    t = to_numpy(tree)
+    root = int(t.root)
+    levels = _levels(t.left.astype(np.int64), t.right.astype(np.int64), [root])
+    area = _areas(t.lo, t.hi)
+    count, interior_area, cost = _subtree_sums(t, levels, area)
+    start = np.zeros_like(count)
+    weight = np.zeros(count.shape[0])
+    weight[root] = 1.0
+    for ids in levels:
+        inner = ids[t.left[ids] >= 0]
+        a, b = t.left[inner], t.right[inner]
+        start[a], start[b] = start[inner], start[inner] + count[a]
+        own = area[inner]
+        for c in (a, b):
+            weight[c] = weight[inner] * np.where(own > 0, area[c] / np.where(own > 0, own, 1.0), 1.0)
+    inner = np.flatnonzero(t.left >= 0)
+    inner = inner[np.lexsort((-count[inner], start[inner]))]
+    if objective == "nt":
+        root_area = area[root]
+        # zero root area: the objective counts interior nodes, the same for every tree
+        scale = 1.0 / root_area if root_area > 0 else 0.0
+        contribution, base = interior_area[inner] * scale, interior_area[root] * scale
+        if root_area <= 0:
+            base = float(inner.size)
+        weight_inner = np.ones(inner.size)
+    else:
+        contribution, base, weight_inner = cost[inner], cost[root], weight[inner]
+    return _Greedy(prim_index=np.asarray(t.prim_index), start=start[inner], count=count[inner],
+                   contribution=contribution, weight=weight_inner, base=float(base), root_area=float(area[root]))
+
+
+@jax.jit
+def _first_uniforms(key, trials, start, count):
+    """u0 [T, m] of the greedy tree's interior nodes in trials ``trials`` [T]."""
+    t = jnp.broadcast_to(trials[:, None], (trials.shape[0], start.shape[0]))
+    return split_uniforms(key, t, jnp.broadcast_to(start, t.shape), jnp.broadcast_to(count, t.shape))[..., 0]
+
+
+def _topmost(deviate, start, count):
+    """Indices of the topmost deviating nodes (runs sorted by (start, -count), laminar)."""
+    idx = np.flatnonzero(deviate)
+    if idx.size == 0:
+        return idx
+    end = start[idx] + count[idx]
+    covered = np.concatenate([[-1], np.maximum.accumulate(end)[:-1]])  # furthest end so far
+    return idx[start[idx] >= covered]
+
+
+def _forest_values(forest, tree_of, groups, objective, root_area):
+    """Per tree of the forest: its contribution to the objective (float64 [groups])."""
+    t = to_numpy(forest)
+    area = _areas(t.lo, t.hi)
+    tree_of = np.asarray(tree_of)
+    if objective == "nt":
+        inner = t.left >= 0
+        sums = np.bincount(tree_of[inner], weights=area[inner], minlength=groups)[:groups]
+        return sums / root_area if root_area > 0 else np.zeros(groups)
+    levels = _levels(t.left.astype(np.int64), t.right.astype(np.int64), np.arange(groups))
+    _, _, cost = _subtree_sums(t, levels, area)
+    return cost[:groups]
+
+
+def _forest_capacity(total: int, base: int) -> int:
+    """Capacity of a forest of ``total`` primitives: ``base`` (the scene's) times a power of two.
+
+    Few shapes (compiles) per scene, at most half of the slots padding; the smallest is
+    also the capacity of :func:`randomized_build`.
+    """
+    return base << max(0, math.ceil(math.log2(total / base))) if total > base else base
+
+
+def grasp(key, prim_lo, prim_hi, *, trials: int = 100, noise=None, deviations=None, rcl="axes",
+          objective: str = "nt", chunk_prims: int | None = None, pad: bool = True, dtype=None,
+          on_chunk: Callable[[int, float], None] | None = None) -> GraspResult:
+    """Best of ``trials`` randomized full-sweep builds (module docstring).
+
+    Args:
+      key: ``jax.random`` key of the run.
+      prim_lo, prim_hi: [n, 3] primitive boxes (as for :func:`jaxbvh.builders.topdown`).
+      trials: number of trees built, >= 1.
+      noise: per-node probability of deviating, in [0, 1]; or
+      deviations: expected deviations per tree (``noise = deviations / (n - 1)``); with
+        neither, :data:`DEFAULT_DEVIATIONS`.
+      rcl: ``"axes"`` (default, the paper's first method) or a list length ``k >= 1``.
+      objective: ``"nt"`` (Ng & Trifonov's interior area, default) or ``"sah"``.
+      chunk_prims: most primitives per forest call (default :data:`CHUNK_PRIMS`); a
+        subtree larger than that gets a call of its own.
+      pad, dtype: as for :func:`jaxbvh.builders.topdown`.
+      on_chunk: called after each forest call with (trials done, best objective among
+        them; ``base`` while none is done), and once at the end with (trials, best).
+
+    Returns:
+      A :class:`GraspResult`; its tree is the best trial's (lowest objective, then lowest
+      trial number), built whole.
+    """
+    trials = _check_int("trials", trials)
+    if objective not in OBJECTIVES:
+        raise ValueError(f"objective must be one of {', '.join(OBJECTIVES)}, got {objective!r}")
+    rcl = check_rcl(rcl)
+    mode, k = _mode(rcl)
+    chunk_prims = CHUNK_PRIMS if chunk_prims is None else _check_int("chunk_prims", chunk_prims)
+    lo, hi, n, scale = engine_inputs(prim_lo, prim_hi, pad=pad, dtype=dtype)
+    n = int(n)
+    noise = resolve_noise(n, noise, deviations)
+    lo_np, hi_np = np.asarray(lo)[:n], np.asarray(hi)[:n]
+    dt = lo_np.dtype
+
+    greedy = _greedy(build(prim_lo, prim_hi, method="sweep", pad=pad, dtype=dtype), objective)
+    objectives = np.full(trials, greedy.base)
+    rebuilt = np.zeros(trials, np.int64)
+
+    # the topmost deviating nodes of every trial: (trial, index into greedy's interior nodes)
+    can_deviate = greedy.start.size > 0 and noise > 0 and (mode == "axes" or k >= 2)
+    subs = []
+    # draw in blocks of a few shapes: trials and nodes padded to capacity buckets
+    m = greedy.start.size
+    padded = capacity_bucket(m)
+    per_call = capacity_bucket(min(trials, max(1, _DRAWS_PER_CALL // padded)))
+    start = jnp.zeros(padded, jnp.int32).at[:m].set(jnp.asarray(greedy.start, jnp.int32))
+    count = jnp.zeros(padded, jnp.int32).at[:m].set(jnp.asarray(greedy.count, jnp.int32))
+    for first in range(0, trials if can_deviate else 0, per_call):
+        numbers = np.arange(first, first + per_call)
+        u0 = np.asarray(_first_uniforms(key, jnp.asarray(numbers, jnp.int32), start, count))[:, :m]
+        deviate = u0 < np.float32(noise)
+        for row, t in enumerate(numbers[numbers < trials]):
+            subs += [(int(t), int(i)) for i in _topmost(deviate[row], greedy.start, greedy.count)]
+
+    def run(batch):
+        """Build one forest of subtrees [(trial, node)]; add their effect to the objectives."""
+        nodes = np.array([i for _, i in batch])
+        owner = np.array([t for t, _ in batch])
+        starts, counts = greedy.start[nodes], greedy.count[nodes]
+        groups = np.repeat(np.arange(len(batch)), counts)
+        ids = greedy.prim_index[concat_ranges(starts, counts)]
+        ids = ids[np.lexsort((ids, groups))]  # each group's primitives by id: the tie order
+        total = ids.size
+        cap = max(capacity, _forest_capacity(total, lo.shape[0])) if pad else total
+        lo_f = np.full((cap, 3), np.inf, dt)
+        hi_f = np.full((cap, 3), -np.inf, dt)
+        lo_f[:total], hi_f[:total] = lo_np[ids], hi_np[ids]
+        per_group = np.zeros(cap, np.int32)
+        trial_of, shift = per_group.copy(), per_group.copy()
+        group = np.full(cap, 0, np.int32)
+        group[:total] = groups
+        trial_of[: len(batch)] = owner
+        shift[: len(batch)] = starts - (np.cumsum(counts) - counts)
+        splits = RandomSplits(key, jnp.asarray(group), jnp.asarray(trial_of), jnp.asarray(shift),
+                              jnp.float32(noise), jnp.int32(k))
+        forest, tree_of = _forest(jnp.asarray(lo_f), jnp.asarray(hi_f), jnp.int32(total), scale, splits, rcl=mode)
+        values = _forest_values(forest, tree_of, len(batch), objective, greedy.root_area)
+        np.add.at(objectives, owner, greedy.weight[nodes] * (values - greedy.contribution[nodes]))
+        np.add.at(rebuilt, owner, counts)
+
+    # one forest capacity for the whole run (one compile): room for a full chunk
+    sizes = greedy.count[[i for _, i in subs]] if subs else np.zeros(1, np.int64)
+    capacity = _forest_capacity(min(int(sizes.sum()), max(chunk_prims, int(sizes.max()))), lo.shape[0])
+    batch, size = [], 0
+    for t, i in subs:
+        c = int(greedy.count[i])
+        if batch and size + c > chunk_prims:
+            run(batch)
+            if on_chunk is not None:  # trials before the batch's last one are finished
+                done = batch[-1][0]
+                on_chunk(done, float(np.min(objectives[:done])) if done else greedy.base)
+            batch, size = [], 0
+        batch.append((t, i))
+        size += c
+    if batch:
+        run(batch)
+    best = int(np.argmin(objectives))
+    if on_chunk is not None:
+        on_chunk(trials, float(objectives[best]))
+    tree = randomized_build(key, prim_lo, prim_hi, trial=best, noise=noise, rcl=rcl, pad=pad, dtype=dtype)
+    return GraspResult(tree=tree, objective=float(objectives[best]), objectives=objectives, best_trial=best,
+                       base=greedy.base, noise=noise, rcl=rcl, name=objective, rebuilt=rebuilt)

@@ -1,0 +1,18 @@
+"""Two-level BVHs over objects and instances, with partial re-braiding (Benthin et al. 2017).
+
+=================  =====================================================================
+module             what it holds
+=================  =====================================================================
+``rebraid``        :class:`TwoLevelBVH`, :func:`build`, :func:`flatten`, :func:`sah`
+``objects``        one BVH per object, packed into a forest; instances and world boxes
+``brefs``          the top level over build references that opens overlapping objects
+                   (twin: ``brefs_reference``)
+``traversal``      closest-hit rays through the two levels
+=================  =====================================================================
+"""
+
+from jaxbvh.twolevel.rebraid import TwoLevelBVH, build, build_from, flatten, sah, stored_nodes
+from jaxbvh.twolevel.traversal import brute_force, closest_hit, stack_capacity, step_bound, trace_batch
+
+__all__ = ["TwoLevelBVH", "build", "build_from", "flatten", "sah", "stored_nodes", "brute_force",
+           "closest_hit", "stack_capacity", "step_bound", "trace_batch"]

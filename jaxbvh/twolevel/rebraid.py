@@ -1,0 +1,308 @@
+"""Two-level BVHs over objects and instances, with partial re-braiding (Benthin et al. 2017).
+
+A scene of objects placed by instances (:class:`jaxbvh.io.meshes.Mesh`: ``objects``,
+``instances``) gets
+
+1. one BVH per distinct object, built once by any of our builders (binned SAH by
+   default, as the paper) -- in the object's own frame when several instances share it,
+   in world space otherwise -- and packed into one forest (:mod:`jaxbvh.twolevel.objects`);
+2. a *top level*: a BVH over build references (BRefs: forest node, instance, world box,
+   primitive count) that starts from one BRef per instance and, while splitting,
+   *opens* BRefs that are large relative to their segment, so that overlapping objects
+   are separated inside their own trees (:mod:`jaxbvh.twolevel.brefs`; ``threshold = inf`` gives
+   the plain two-level BVH, which never opens).
+
+A scene with a single instance (a plain mesh is one object with one identity instance)
+needs no top level, and none is built: its top level is one leaf naming the object's root.
+
+Layout of :class:`TwoLevelBVH`
+==============================
+``top`` is a :class:`~jaxbvh.tree.layout.BVH` over the BRefs (layout :mod:`jaxbvh.tree.layout`, boxes
+in the scene frame ``Mesh.frame``): every leaf holds exactly one BRef id. The BRefs
+``bref_node`` / ``bref_instance`` / ``bref_lo`` / ``bref_hi`` / ``bref_prims`` [C] say
+which forest node of which instance a leaf stands for (padding: node -1). ``forest`` and
+``instances`` are :class:`~jaxbvh.twolevel.objects.Forest` and :class:`~jaxbvh.twolevel.objects.Instances`.
+A top-level leaf *is* its BRef's forest node: its box is that node's world box, and
+below it the object's own nodes follow, in the object's frame.
+
+Traversal (:mod:`jaxbvh.twolevel.traversal`)
+=========================================
+:func:`closest_hit` runs one ``while_loop`` per ray whose stack holds ``(node,
+instance)`` pairs: top-level nodes (instance -1) are tested with the world ray; below a
+top-level leaf the ray is mapped into the instance's object frame (``to_object``; the
+direction is not normalised, so ``t`` is the same in both frames) and the object's nodes
+and triangles are tested there. Each step is a node step or a primitive step, counted
+as in :mod:`jaxbvh.rays.traversal` (whose slab and Möller-Trumbore tests it reuses): the root
+box test is one box test, an interior node adds one per child. The loop is bounded by
+the number of steps a ray can take at most (every node and primitive of the flattened
+tree once, plus one); a ray that would need more, or whose stack would overflow, is
+reported and the driver raises. Primitive ids are world triangle ids (``Mesh.triangles``
+order); equal ``t`` goes to the lower id.
+
+Flattening and costs
+====================
+:func:`flatten` copies every BRef's subtree under its instance into one world-space
+:class:`~jaxbvh.tree.layout.BVH` (conservative world boxes, :func:`jaxbvh.twolevel.objects.world_boxes`;
+primitive ids in world order) that validates against ``Mesh.local_boxes()`` and saves in
+the interchange form. :func:`sah` is the SAH of that tree: interior nodes and leaves of
+two-level, re-braided and single BVHs costed on the same footing (the paper's Table 1).
+For instanced nodes the world box is the conservative box of the transformed object box,
+as the top level sees it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any
+
+import jax
+import numpy as np
+
+from jaxbvh.tree.cost import sah as sah_of
+from jaxbvh.tree.layout import BVH, capacity_bucket, concat_ranges, depth, pad_to, to_jax, to_numpy
+from jaxbvh.twolevel import brefs as _brefs
+from jaxbvh.twolevel.objects import Forest, Instances, ObjectTree, build_objects, pack, world_boxes
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class TwoLevelBVH:
+    """A two-level (possibly re-braided) BVH (layout: module docstring).
+
+    ``top``: :class:`~jaxbvh.tree.layout.BVH`; ``bref_node``, ``bref_instance``, ``bref_prims``
+    [C] int32; ``bref_lo``, ``bref_hi`` [C, 3] float; ``bref_count`` int32 scalar;
+    ``forest``: :class:`~jaxbvh.twolevel.objects.Forest`; ``instances``:
+    :class:`~jaxbvh.twolevel.objects.Instances`; ``n_instances`` int32 scalar.
+    """
+
+    top: Any
+    bref_node: Any
+    bref_instance: Any
+    bref_lo: Any
+    bref_hi: Any
+    bref_prims: Any
+    bref_count: Any
+    forest: Any
+    instances: Any
+    n_instances: Any
+
+
+def _world_boxes_jit(lo, hi, to_scene, margin):
+    return world_boxes(lo, hi, to_scene, margin)
+
+
+_world_boxes_jit = jax.jit(_world_boxes_jit)
+
+
+def _single_instance(forest: Forest, instances: Instances) -> TwoLevelBVH:
+    """The top level of a one-instance scene: one leaf naming the object's root (no build)."""
+    root = int(forest.root[instances.object[0]])
+    lo, hi = _world_boxes_jit(forest.lo[root][None], forest.hi[root][None],
+                              instances.to_scene[:1], instances.margin[:1])
+    lo, hi = np.asarray(lo), np.asarray(hi)
+    one = lambda v: np.full(1, v, np.int32)  # noqa: E731
+    top = BVH(left=one(-1), right=one(-1), parent=one(-1), lo=lo, hi=hi, prim_start=one(0),
+              prim_count=one(1), axis=one(-1), prim_index=one(0), root=np.int32(0))
+    return TwoLevelBVH(top=top, bref_node=one(root), bref_instance=one(0), bref_lo=lo, bref_hi=hi,
+                       bref_prims=one(int(forest.subtree_prims[root])), bref_count=np.int32(1),
+                       forest=forest, instances=instances, n_instances=np.int32(1))
+
+
+def build_from(mesh, trees: dict[int, ObjectTree], *, threshold: float = _brefs.DEFAULT_THRESHOLD,
+               budget: float = _brefs.DEFAULT_BUDGET, capacity: int | None = None,
+               top_bins: int = _brefs.DEFAULT_BINS, overlap: float = _brefs.DEFAULT_OVERLAP,
+               estimate: bool = False, timings: dict | None = None,
+               shapes: dict | None = None) -> TwoLevelBVH:
+    """Pack already built object trees and build the top level (see :func:`build`).
+
+    ``timings``, if given, receives ``pack`` and ``top`` seconds (arrays ready);
+    ``shapes``: least array sizes ``{"nodes", "prims", "instances", "brefs"}`` (so that
+    many scenes share one compiled top-level build and traversal).
+    """
+    _brefs.check_options(threshold, budget, top_bins, overlap)
+    start = time.perf_counter()
+    shapes = shapes or {}
+    forest, instances = pack(mesh, trees, capacity=shapes)
+    packed = time.perf_counter()
+    n = len(mesh.instances)
+    if n == 1:
+        tl = _single_instance(forest, instances)
+    else:
+        result = jax.block_until_ready(_brefs.build_top_level(
+            forest, instances, n, threshold=threshold, budget=budget, capacity=capacity,
+            bins=top_bins, overlap=overlap, estimate=estimate, array_size=shapes.get("brefs")))
+        tl = TwoLevelBVH(top=result.top, bref_node=result.node, bref_instance=result.instance,
+                         bref_lo=result.lo, bref_hi=result.hi, bref_prims=result.prims,
+                         bref_count=result.count, forest=forest, instances=instances,
+                         n_instances=np.int32(n))
+    if timings is not None:
+        timings["pack"] = packed - start
+        timings["top"] = time.perf_counter() - packed
+    return tl
+
+
+def build(mesh, *, threshold: float = _brefs.DEFAULT_THRESHOLD, budget: float = _brefs.DEFAULT_BUDGET,
+          capacity: int | None = None, top_bins: int = _brefs.DEFAULT_BINS,
+          overlap: float = _brefs.DEFAULT_OVERLAP, estimate: bool = False, method: str = "binned",
+          max_leaf: int = 1, bins: int = 16, ct: float = 1.0, ci: float = 1.0, dtype=np.float32,
+          world_space: bool = True, timings: dict | None = None) -> TwoLevelBVH:
+    """Two-level BVH of ``mesh`` with re-braiding (module docstring).
+
+    Object BVHs: ``method``, ``max_leaf``, ``bins``, ``ct``, ``ci`` as
+    :func:`jaxbvh.builders.topdown`, in ``dtype`` (float64 needs x64); ``world_space``: build objects
+    placed by a single instance in world space (:mod:`jaxbvh.twolevel.objects`). Top level: ``threshold``
+    (opening threshold; inf: plain two-level), ``budget`` BRef slots per instance (or
+    ``capacity`` in all), ``top_bins``, ``overlap``, ``estimate`` as
+    :func:`jaxbvh.twolevel.brefs.build_top_level`. ``timings``, if given, receives ``objects``,
+    ``pack`` and ``top`` seconds.
+    """
+    _brefs.check_options(threshold, budget, top_bins, overlap)
+    start = time.perf_counter()
+    trees = build_objects(mesh, method=method, max_leaf=max_leaf, bins=bins, ct=ct, ci=ci, dtype=dtype,
+                          world_space=world_space)
+    if timings is not None:
+        timings["objects"] = time.perf_counter() - start
+    return build_from(mesh, trees, threshold=threshold, budget=budget, capacity=capacity,
+                      top_bins=top_bins, overlap=overlap, estimate=estimate, timings=timings)
+
+
+# ----------------------------------------------------------------------------------
+# Flattening and costs
+# ----------------------------------------------------------------------------------
+
+
+def flatten(tl: TwoLevelBVH, *, pad: bool = True) -> BVH:
+    """One world-space (scene-frame) :class:`~jaxbvh.tree.layout.BVH` with the same nodes (NumPy).
+
+    Top-level interior nodes keep their ids; a top-level leaf becomes the copy of its
+    BRef's forest node, and the copies of the nodes below follow. Copies under a
+    non-identity map get ``axis = -1`` (the object's split axis means nothing in world
+    space). Primitive ids are world triangle ids. Padded to capacity buckets unless
+    ``pad=False``.
+    """
+    flat, _ = _flatten(tl)
+    if pad:
+        flat = pad_to(flat, capacity_bucket(flat.left.shape[0]), capacity_bucket(flat.prim_index.shape[0]))
+    return flat
+
+
+def _flatten(tl):
+    """The unpadded flattened tree and its copies: ``(forest node, instance, flat id)`` arrays."""
+    t = to_numpy(tl)
+    top, f, inst = t.top, t.forest, t.instances
+    n_top = top.left.shape[0]
+    top_leaf = np.flatnonzero(top.prim_count > 0)
+    bref_of_leaf = top.prim_index[top.prim_start[top_leaf]]
+    # breadth-first copy of every BRef's subtree: (forest node, instance, flat id)
+    frontier_f = t.bref_node[bref_of_leaf].astype(np.int64)
+    frontier_i = t.bref_instance[bref_of_leaf].astype(np.int64)
+    frontier_id = top_leaf.astype(np.int64)
+    copies_f, copies_i, copies_id, child_rows = [], [], [], []
+    next_id = n_top
+    for _ in range(f.left.shape[0] + 1):
+        if frontier_f.size == 0:
+            break
+        copies_f.append(frontier_f), copies_i.append(frontier_i), copies_id.append(frontier_id)
+        inner = f.left[frontier_f] >= 0
+        k = int(inner.sum())
+        ids_l = next_id + 2 * np.arange(k)
+        next_id += 2 * k
+        child_rows.append((frontier_id[inner], ids_l, ids_l + 1))
+        frontier_f = np.concatenate([f.left[frontier_f[inner]], f.right[frontier_f[inner]]]).astype(np.int64)
+        frontier_i = np.concatenate([frontier_i[inner], frontier_i[inner]])
+        frontier_id = np.concatenate([ids_l, ids_l + 1])
+        order = np.argsort(frontier_id)  # number each level by id, as our builders do
+        frontier_f, frontier_i, frontier_id = frontier_f[order], frontier_i[order], frontier_id[order]
+    cf, ci_, cid = (np.concatenate(a) for a in (copies_f, copies_i, copies_id))
+    n_flat = next_id
+    dtype = top.lo.dtype
+    left = np.full(n_flat, -1, np.int32)
+    right = np.full(n_flat, -1, np.int32)
+    parent = np.full(n_flat, -1, np.int32)
+    axis = np.full(n_flat, -1, np.int32)
+    lo = np.full((n_flat, 3), np.inf, dtype)
+    hi = np.full((n_flat, 3), -np.inf, dtype)
+    # top-level nodes keep their ids (leaves are overwritten by their copies below)
+    left[:n_top], right[:n_top], parent[:n_top], axis[:n_top] = top.left, top.right, top.parent, top.axis
+    lo[:n_top], hi[:n_top] = top.lo, top.hi
+    for rows, ids_l, ids_r in child_rows:
+        left[rows], right[rows] = ids_l, ids_r
+        parent[ids_l], parent[ids_r] = rows, rows
+    size = capacity_bucket(cf.size)  # one compile per bucket
+    pad_f = np.zeros(size, np.int64)
+    pad_i = np.zeros(size, np.int64)
+    pad_f[:cf.size], pad_i[:cf.size] = cf, ci_
+    w_lo, w_hi = _world_boxes_jit(f.lo[pad_f], f.hi[pad_f], inst.to_scene[pad_i], inst.margin[pad_i])
+    lo[cid], hi[cid] = np.asarray(w_lo)[:cf.size], np.asarray(w_hi)[:cf.size]
+    exact = inst.margin[ci_] == 0
+    axis[cid] = np.where(exact & (f.left[cf] >= 0), f.axis[cf], -1)
+    # leaves: runs of world triangle ids
+    count = np.zeros(n_flat, np.int32)
+    start = np.zeros(n_flat, np.int32)
+    is_leaf = f.prim_count[cf] > 0
+    leaf_ids, leaf_f, leaf_i = cid[is_leaf], cf[is_leaf], ci_[is_leaf]
+    counts = f.prim_count[leaf_f].astype(np.int64)
+    count[leaf_ids] = counts
+    start[leaf_ids] = np.cumsum(counts) - counts
+    slots = concat_ranges(f.prim_start[leaf_f], counts)
+    prim_index = (f.prim_index[slots] + np.repeat(inst.prim_shift[leaf_i], counts)).astype(np.int32)
+    flat = BVH(left=left, right=right, parent=parent, lo=lo, hi=hi, prim_start=start, prim_count=count,
+               axis=axis, prim_index=prim_index, root=np.int32(int(top.root)))
+    return flat, (cf, ci_, cid)
+
+
+def sah(tl: TwoLevelBVH, ct: float = 1.0, ci: float = 1.0, *, boxes: str = "world") -> float:
+    """SAH of the two-level tree: interior nodes and leaves, ``Ct``, ``Ci`` as :mod:`jaxbvh.tree.cost`.
+
+    ``boxes="world"`` (the default, the paper's Table 1 footing): the SAH of the
+    flattened tree (:func:`flatten`), every node with its world box, instanced nodes
+    with their conservative boxes. ``boxes="object"``: the cost of the traversal this
+    module runs, which tests the nodes below a top-level leaf in their object frame:
+    such a node is hit by a random line with the probability of its box *as
+    transformed* (a parallelepiped, whose surface area replaces the conservative box's;
+    Cauchy's formula), so this SAH is never above the world one and equals it when every
+    object is built in world space. Zero-area nodes follow :mod:`jaxbvh.tree.cost`.
+    """
+
+    if boxes == "world":
+        return float(sah_of(to_jax(flatten(tl)), ct, ci))
+    if boxes != "object":
+        raise ValueError(f"boxes must be 'world' or 'object', got {boxes!r}")
+    flat, (cf, ci_, cid) = _flatten(tl)
+    t = to_numpy(tl)
+    lo, hi = flat.lo.astype(np.float64), flat.hi.astype(np.float64)
+
+    def half_area(e0, e1, e2):  # edge vectors [n, 3] of parallelepipeds (boxes: axis-aligned)
+        return (np.linalg.norm(np.cross(e0, e1), axis=1) + np.linalg.norm(np.cross(e1, e2), axis=1)
+                + np.linalg.norm(np.cross(e2, e0), axis=1))
+
+    d = np.maximum(hi - lo, 0)
+    area = d[:, 0] * d[:, 1] + d[:, 1] * d[:, 2] + d[:, 2] * d[:, 0]
+    # copies below a BRef's root are tested in their object frame
+    below = np.ones(cid.size, bool)
+    below[: int(np.count_nonzero(t.top.prim_count > 0))] = False  # the first copies are the roots
+    f_lo, f_hi = t.forest.lo[cf[below]].astype(np.float64), t.forest.hi[cf[below]].astype(np.float64)
+    ext = np.maximum(f_hi - f_lo, 0)
+    linear = t.instances.to_scene[ci_[below]][:, :, :3].astype(np.float64)
+    area[cid[below]] = half_area(*(linear[:, :, k] * ext[:, k:k + 1] for k in range(3)))
+    cost = np.where(flat.prim_count > 0, ci * flat.prim_count.astype(np.float64), ct)
+    level = depth(flat)
+    for k in range(int(level.max()), -1, -1):
+        nodes = np.flatnonzero((level == k) & (flat.left >= 0))
+        l, r = flat.left[nodes], flat.right[nodes]
+        own = area[nodes]
+        weighted = (area[l] * cost[l] + area[r] * cost[r]) / np.where(own > 0, own, 1)
+        cost[nodes] = ct + np.where(own > 0, weighted, cost[l] + cost[r])
+    return float(cost[int(flat.root)])
+
+
+def stored_nodes(tl: TwoLevelBVH) -> dict[str, int]:
+    """Nodes kept in memory: ``top`` (real top-level nodes) and ``objects`` (forest nodes)."""
+    t = to_numpy(tl)
+    top = int(np.count_nonzero((t.top.left >= 0) | (t.top.prim_count > 0)))
+    objects = int(np.count_nonzero((t.forest.left >= 0) | (t.forest.prim_count > 0)))
+    return {"top": top, "objects": objects, "total": top + objects}
+
+
+# traversal lives in its own module; re-exported here so jaxbvh.twolevel is the one import

@@ -1,0 +1,578 @@
+"""Adaptive collapsing of a binary BVH into a wide one (Susano Pinto 2010).
+
+Cost model
+==========
+Pinto's ray cost of a wide tree, in root-normalised areas ``a(n) = S(n) / S(root)``
+(``S`` the surface area of the box; ``a = 1`` everywhere when the root has zero area, as
+:mod:`jaxbvh.tree.cost` treats a zero-area node)::
+
+    R = sum over interior nodes m of  a(m) * T(k_m)
+
+``k_m`` is the number of children of ``m`` and ``T(k)`` the cost of testing ``k`` child
+boxes together: ``T(k) = k`` (one box at a time, the paper's R_cost) or
+``T(k) = ceil(k / w)`` (``w``-wide SIMD group test), see :func:`node_test_cost`; any
+function of ``k`` that works on int arrays is accepted. ``R`` is the expected number of
+box tests of a ray that hits the root box and finds every hit (the root's own test is
+not counted). A *collapse* removes interior non-root nodes: a kept node's children
+become its nearest kept descendants. Leaves are never removed (the paper's rule), so
+the primitive tests ``Ci * sum a(leaf) * count(leaf)`` (:func:`leaf_cost`) do not
+change and are reported apart. Only with ``max_leaf > 1`` (beyond the paper, see
+:func:`optimal`) does a collapse change the leaves; the DP then minimises
+``R + leaf_cost``.
+
+Methods
+=======
+* :func:`greedy` — the paper's Algorithm 2, top-down pushup: a child ``c`` of a kept
+  node ``n`` is collapsed into ``n`` when ``1 + P(c|n) k_c >= k_c`` with
+  ``P(c|n) = a(c) / a(n)`` (the condition for constant ``T``; for a binary input
+  ``P >= 1/2``), its children then examined against ``n`` in turn (first in, first
+  out); otherwise ``c`` is kept and pushed up itself. Leaves are always kept. With
+  ``max_children = K`` a collapse that would give ``n`` more than ``K`` children is not
+  taken. The rule is the paper's whatever ``T``; ``T`` only prices the result.
+* :func:`optimal` — the paper's Algorithm 3, the least ``R`` over all collapses with at
+  most ``K`` children per node (``MAX_CHILDS``; default 8, the paper used 15). For every
+  node and every ``t <= K``, ``g(n, t)`` is the least cost of ``n``'s subtree seen by its
+  kept ancestor as *exactly* ``t`` entry points (Pinto's table holds "at most ``t``";
+  "exactly" lets any ``T``, not only a non-decreasing one, be priced right)::
+
+      leaf:      g(n, 1) = 0,  g(n, t > 1) = inf
+      interior:  h(n, t) = min over i of g(L, i) + g(R, t - i)      (n removed)
+                 g(n, 1) = min over t = 2..K of a(n) T(t) + h(n, t)  (n kept)
+                 g(n, t) = h(n, t) for t >= 2
+
+  ``R = g(root, 1)``. The tables are solved bottom-up one depth at a time, every node
+  of a depth at once (a vectorised min-plus product of the two children's [nodes, K+1]
+  tables), and the choices are back-tracked top-down, also one depth at a time
+  (:mod:`jaxbvh.wide.levels`). Work O(nodes K^2), linear in the number of nodes.
+* :func:`qbvh` — the paper's baseline: every interior node at odd depth removed (4-wide).
+
+Tie rule (the NumPy twin :mod:`jaxbvh.wide.collapse_reference` keeps the same one). XLA on
+CPU fuses multiply-adds, so a cost can come out a few ulps apart here and in NumPy; and
+splits in the middle of a box (binned builders) make candidates that are equal in exact
+arithmetic but differ by up to ~10 ulps in float32. Costs within a relative
+:func:`jaxbvh.numerics.min_gain` (``64 eps``: 7.6e-6 in float32, as :mod:`jaxbvh.optimize.rotate`'s margin)
+count as equal and the first candidate wins: the lowest ``i`` of a split, the lowest
+``t`` of a kept node, keeping the node before making it a leaf. A table entry holds the
+value of the choice made (not the minimum), so the DP's ``R`` is the cost of the tree it
+emits (and within ``(1 + tol)^depth`` of the least). Greedy collapses when
+``2 a(c) >= a(n) (1 - tol)``.
+
+Outputs
+=======
+:class:`CollapseResult` holds both forms the paper describes:
+
+* ``tree``: a :class:`~jaxbvh.tree.layout.WideBVH` with ``child`` [N, K], on the *same node
+  ids and capacity* as the input: removed nodes become inert padding, kept nodes keep
+  their boxes and leaves their primitive runs; a node's children are listed left to
+  right (the binary tree's order). :func:`jaxbvh.tree.validate` accepts it and
+  :func:`jaxbvh.save` writes it compacted.
+* ``skip`` [N] bool (section 4.3's fixed-width form): the binary tree kept as it is,
+  with the removed nodes flagged "do not test this box, assume it is hit";
+  :func:`jaxbvh.rays.traversal.trace` honours it (``skip=``) and then makes exactly the box
+  tests of ``tree``, ray by ray, for all-hits queries.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from functools import partial
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxbvh.numerics import extent_scale, half_area, min_gain, take
+from jaxbvh.tree.layout import BVH, WideBVH, to_jax
+from jaxbvh.wide import levels as lv
+from jaxbvh.wide.box_tests import cost_table, node_test_cost  # noqa: F401 (public here)
+
+METHODS = ("greedy", "dp", "qbvh")
+DEFAULT_MAX_CHILDREN = 8
+MAX_CHILDREN_LIMIT = 32  # the DP's step is unrolled over K^2 / 2 pairs (compile time)
+
+
+def _window_width(n: int) -> int:
+    """Window of the level sweeps for ``n`` nodes (speed only; one size, one compiled step).
+
+    About ``n / 64``, a power of two in [64, 4096]: wide enough for the big levels, narrow
+    enough that the nearly empty levels near the root and the deepest leaves, each one
+    window, cost little.
+    """
+    return int(min(4096, max(64, 1 << max(0, (n // 64 - 1)).bit_length())))
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class CollapseResult:
+    """What a collapse returns (see the module docstring, "Outputs").
+
+    ``tree``: the :class:`~jaxbvh.tree.layout.WideBVH`; ``kept`` [N] bool: input nodes still in
+    it (root, kept interior nodes, leaves); ``skip`` [N] bool: the section 4.3 flags for
+    the binary input (None when leaves were merged, which flags cannot express);
+    ``rcost`` / ``rcost_before``: ``R`` of the output / input under the ``T`` used;
+    ``leaf_cost`` / ``leaf_cost_before``: ``Ci sum a(leaf) count``; ``objective``: the
+    DP's own ``g(root, 1)`` (:func:`optimal` only, else None).
+    """
+
+    tree: Any
+    kept: Any
+    skip: Any
+    rcost: Any
+    rcost_before: Any
+    leaf_cost: Any
+    leaf_cost_before: Any
+    objective: Any = None
+
+
+# ----------------------------------------------------------------------------------
+# Costs of any tree
+# ----------------------------------------------------------------------------------
+
+
+def relative_areas(lo, hi, root):
+    """``a(n) = S(n) / S(root)`` [N] (all 1 when the root has zero area); padding 0 or 1."""
+    scale = extent_scale(lo[root], hi[root])
+    area = half_area(lo, hi, scale)
+    root_area = area[root]
+    return jnp.where(root_area > 0, area / jnp.where(root_area > 0, root_area, 1), jnp.ones_like(area))
+
+
+@jax.jit
+def _rcost(child, lo, hi, prim_count, root, table, ci):
+    return _prices(relative_areas(lo, hi, root), child, prim_count, table, jnp.asarray(ci, lo.dtype))
+
+
+def rcost(tree, test_cost: Callable | None = None):
+    """Pinto's ``R`` of a binary or wide tree under ``T = test_cost`` (default ``T(k) = k``).
+
+    A scalar in the tree's float dtype (module docstring; the root's own test is not
+    counted, leaves add nothing).
+    """
+    t = to_jax(tree)
+    table = cost_table(test_cost, int(t.child.shape[1]))
+    return _rcost(t.child, t.lo, t.hi, t.prim_count, t.root, table, 1.0)[0]
+
+
+def leaf_cost(tree, ci: float = 1.0):
+    """Primitive tests ``Ci * sum over leaves of a(leaf) * count(leaf)``."""
+    t = to_jax(tree)
+    table = np.zeros(int(t.child.shape[1]) + 1)
+    return _rcost(t.child, t.lo, t.hi, t.prim_count, t.root, table, ci)[1]
+
+
+# ----------------------------------------------------------------------------------
+# Shared pieces: schedule, layout, emission
+# ----------------------------------------------------------------------------------
+
+
+
+def _links(tree):
+    n = tree.left.shape[0]
+    left = jnp.where(tree.left >= 0, tree.left, n).astype(jnp.int32)
+    right = jnp.where(tree.right >= 0, tree.right, n).astype(jnp.int32)
+    interior = tree.left >= 0
+    real = interior | (tree.prim_count > 0)
+    return left, right, interior, real
+
+
+@jax.jit
+def _schedule(tree):
+    """The interior nodes level by level (:mod:`jaxbvh.wide.levels`); one compile per capacity,
+    shared by the three methods."""
+    left, right, interior, _ = _links(tree)
+    return lv.level_order(left, right, tree.root, interior, (_window_width(tree.left.shape[0]),))
+
+
+@jax.jit
+def _layout(tree, levels, kept):
+    """Anchor (nearest kept proper ancestor) and child slot of every node, from ``kept``;
+    and the most children of a node.
+
+    Bottom-up: ``e(n)`` entry points ``n`` gives its anchor (1 if kept, else the sum of
+    its children's). Top-down: a kept node's children start at slot 0, a removed node's
+    at its own slot; the right child follows the left child's ``e``.
+    """
+    n = tree.left.shape[0]
+    left, right, _, _ = _links(tree)
+
+    def count_up(e, start, valid):
+        x = levels.window(start, valid)
+        total = take(e, left[jnp.minimum(x, n - 1)], 0) + take(e, right[jnp.minimum(x, n - 1)], 0)
+        return e.at[x].set(jnp.where(take(kept, x, True), 1, total), mode="drop")
+
+    e = lv.sweep_up(levels, count_up, jnp.ones(n, jnp.int32))
+
+    def place_down(state, start, valid):
+        anchor, slot = state
+        x = levels.window(start, valid)
+        xs = jnp.minimum(x, n - 1)
+        keep_x = kept[xs]
+        base = jnp.where(keep_x, 0, slot[xs])
+        owner = jnp.where(keep_x, xs, anchor[xs])
+        l, r = jnp.where(x < n, left[xs], n), jnp.where(x < n, right[xs], n)
+        kids = jnp.concatenate([l, r])
+        anchor = anchor.at[kids].set(jnp.concatenate([owner, owner]), mode="drop")
+        slot = slot.at[kids].set(jnp.concatenate([base, base + take(e, l, 0)]), mode="drop")
+        return anchor, slot
+
+    anchor, slot = lv.sweep_down(levels, place_down, (jnp.full(n, -1, jnp.int32), jnp.zeros(n, jnp.int32)))
+    width = jnp.max(jnp.where(kept & (jnp.arange(n) != tree.root), slot, 0)) + 1
+    return anchor, slot, width
+
+
+def _prices(a, child, prim_count, table, ci):
+    """``(R, leaf cost)`` of a tree with relative areas ``a`` (see :func:`rcost`)."""
+    k = jnp.sum(child >= 0, axis=1)
+    per_node = a * jnp.take(table.astype(a.dtype), k, mode="clip")
+    rc = jnp.sum(jnp.where(k > 0, per_node, 0))
+    leaves = jnp.sum(jnp.where(prim_count > 0, a * prim_count.astype(a.dtype), 0)) * ci
+    return rc, leaves
+
+
+@partial(jax.jit, static_argnames=("arity",))
+def _emit(tree, kept, anchor, slot, leaf_count, leaf_start, prim_index, table, ci, *, arity):
+    """The WideBVH on the input's ids (kept nodes linked to their anchors at their
+    slots), and ``(R, leaf cost)`` of it and of the input."""
+    n = tree.left.shape[0]
+    ids = jnp.arange(n, dtype=jnp.int32)
+    linked = kept & (ids != tree.root)
+    rows = jnp.where(linked, anchor, n)
+    child = jnp.full((n, arity), -1, jnp.int32).at[rows, jnp.where(linked, slot, 0)].set(ids, mode="drop")
+    is_leaf = kept & (leaf_count > 0)
+    wide = WideBVH(child=child, parent=jnp.where(linked, anchor, -1).astype(jnp.int32),
+                   lo=jnp.where(kept[:, None], tree.lo, jnp.inf).astype(tree.lo.dtype),
+                   hi=jnp.where(kept[:, None], tree.hi, -jnp.inf).astype(tree.hi.dtype),
+                   prim_start=jnp.where(is_leaf, leaf_start, 0).astype(jnp.int32),
+                   prim_count=jnp.where(is_leaf, leaf_count, 0).astype(jnp.int32),
+                   prim_index=prim_index, root=tree.root)
+    a = relative_areas(tree.lo, tree.hi, tree.root)  # kept boxes are the input's: one area pass
+    ci = jnp.asarray(ci, a.dtype)
+    return wide, _prices(a, child, wide.prim_count, table, ci), _prices(a, tree.child, tree.prim_count, table[:3], ci)
+
+
+def _finish(tree, kept, anchor, slot, arity, table, *, leaf_count=None, leaf_start=None,
+            prim_index=None, merged=False, ci=1.0, objective=None):
+    t = tree
+    wide, (after, leaves_after), (before, leaves_before) = _emit(
+        t, kept, anchor, slot, t.prim_count if leaf_count is None else leaf_count,
+        t.prim_start if leaf_start is None else leaf_start,
+        t.prim_index if prim_index is None else prim_index, table, ci, arity=arity)
+    skip = None if merged else (t.left >= 0) & ~kept
+    return CollapseResult(tree=wide, kept=kept, skip=skip, rcost=after, rcost_before=before,
+                          leaf_cost=leaves_after, leaf_cost_before=leaves_before, objective=objective)
+
+
+def _binary_input(tree) -> BVH:
+    if isinstance(tree, WideBVH) or not hasattr(tree, "left"):
+        k = np.asarray(tree.child).shape[1] if hasattr(tree, "child") else "?"
+        raise ValueError(f"collapsing needs a binary tree (BVH), got a {k}-wide tree")
+    return to_jax(tree)
+
+
+def _check_k(max_children, what="max_children") -> int:
+    k = int(max_children)
+    if not 2 <= k <= MAX_CHILDREN_LIMIT:
+        raise ValueError(f"{what} must be in [2, {MAX_CHILDREN_LIMIT}], got {max_children}")
+    return k
+
+
+# ----------------------------------------------------------------------------------
+# QBVH and greedy pushup
+# ----------------------------------------------------------------------------------
+
+
+@jax.jit
+def _qbvh_decide(tree, levels):
+    _, _, interior, real = _links(tree)
+    return real & ~(interior & (lv.depth_of(levels) % 2 == 1))
+
+
+def qbvh(tree, test_cost: Callable | None = None) -> CollapseResult:
+    """The paper's QBVH baseline: remove every interior node at odd depth (4-wide)."""
+    t = _binary_input(tree)
+    levels = _schedule(t)
+    kept = _qbvh_decide(t, levels)
+    anchor, slot, _ = _layout(t, levels, kept)
+    return _finish(t, kept, anchor, slot, 4, cost_table(test_cost, 4))
+
+
+@partial(jax.jit, static_argnames=("max_children",))
+def _greedy_decide(tree, levels, *, max_children):
+    """The kept nodes [N] bool of the greedy pushup."""
+    n = tree.left.shape[0]
+    left, right, interior, real = _links(tree)
+    a = relative_areas(tree.lo, tree.hi, tree.root)
+    one = jnp.asarray(1 - min_gain(a.dtype), a.dtype)
+
+    def collapsible(c, a_anchor):
+        return take(interior, c, False) & (2 * take(a, c, 0) >= a_anchor * one)
+
+    if max_children is None:
+        def step(state, start, valid):
+            kept, anchor = state
+            x = levels.window(start, valid)
+            xs = jnp.minimum(x, n - 1)
+            owner = jnp.where(kept[xs], xs, anchor[xs])
+            for c in (jnp.where(x < n, left[xs], n), jnp.where(x < n, right[xs], n)):
+                kept = kept.at[c].set(~collapsible(c, a[owner]), mode="drop")
+                anchor = anchor.at[c].set(owner, mode="drop")
+            return kept, anchor
+
+        kept, _ = lv.sweep_down(levels, step, (real, jnp.full(n, -1, jnp.int32)))
+    else:
+        k = max_children
+        q_len = 2 * k - 2  # pops of one pushup: 2 + 2 per collapse, at most k - 2 collapses
+
+        def step(kept, start, valid):
+            x = levels.window(start, valid)
+            xs = jnp.minimum(x, n - 1)
+            w = x.shape[0]
+            active = (x < n) & kept[xs]
+            a_n = a[xs]
+            rows = jnp.arange(w)
+            queue = jnp.full((w, q_len), n, jnp.int32)
+            queue = queue.at[:, 0].set(jnp.where(active, left[xs], n))
+            queue = queue.at[:, 1].set(jnp.where(active, right[xs], n))
+            tail = jnp.where(active, 2, 0)
+
+            def pop(i, s):
+                queue, head, tail, kids, removed = s
+                live = head < tail
+                c = queue[rows, jnp.minimum(head, q_len - 1)]
+                width = kids + tail - head  # children of n if c stays (c counted)
+                pull = live & collapsible(c, a_n) & (width + 1 <= k)
+                at = jnp.where(pull, tail, q_len)
+                queue = queue.at[rows, at].set(take(left, c, n), mode="drop")
+                queue = queue.at[rows, at + 1].set(take(right, c, n), mode="drop")
+                removed = removed.at[:, i].set(jnp.where(pull, c, n))
+                return (queue, head + live, tail + 2 * pull, kids + (live & ~pull), removed)
+
+            state = (queue, jnp.zeros(w, jnp.int32), tail, jnp.zeros(w, jnp.int32),
+                     jnp.full((w, q_len), n, jnp.int32))
+            removed = jax.lax.fori_loop(0, q_len, pop, state)[4]
+            return kept.at[removed.reshape(-1)].set(False, mode="drop")
+
+        kept = lv.sweep_down(levels, step, real)
+    return kept
+
+
+def greedy(tree, *, max_children: int | None = None, test_cost: Callable | None = None) -> CollapseResult:
+    """Pinto's greedy top-down pushup (Algorithm 2); see the module docstring.
+
+    ``max_children``: None (the paper: no limit; ``child`` is then [N, k] with ``k`` the
+    widest node's children rounded up to 4 or a multiple of 8) or ``K`` in [2, 32].
+    ``test_cost`` only prices the result (``rcost``).
+    """
+    t = _binary_input(tree)
+    k = None if max_children is None else _check_k(max_children)
+    levels = _schedule(t)
+    kept = _greedy_decide(t, levels, max_children=k)
+    anchor, slot, width = _layout(t, levels, kept)
+    # no limit: as wide as the widest node, rounded up to 4 or a multiple of 8 (fewer compiles)
+    arity = k if k is not None else (4 if int(width) <= 4 else -(-int(width) // 8) * 8)
+    return _finish(t, kept, anchor, slot, arity, cost_table(test_cost, arity))
+
+
+# ----------------------------------------------------------------------------------
+# The optimal collapse (dynamic programming)
+# ----------------------------------------------------------------------------------
+
+
+def _first_near_min(candidates):
+    """Tie rule over a list of candidate arrays: ``(index, value)`` of the first within
+    :func:`jaxbvh.numerics.min_gain` of the least (elementwise; unrolled, so XLA fuses it into one loop)."""
+    best = candidates[0]
+    for c in candidates[1:]:
+        best = jnp.minimum(best, c)
+    near = best * (1 + min_gain(best.dtype))
+    index = jnp.zeros(best.shape, jnp.int32)
+    value = candidates[-1]
+    for i in range(len(candidates) - 1, -1, -1):  # the last assignment is the first candidate
+        within = candidates[i] <= near
+        index = jnp.where(within, i, index)
+        value = jnp.where(within, candidates[i], value)
+    return index, value
+
+
+def _min_plus(gl, gr):
+    """``h[t] = g_L[i] + g_R[t - i]`` at the first near-least ``i``: ``(h, i)`` [K+1, W].
+
+    Tables are [K+1, W] (one row per ``t``). Unrolled over the ``K (K - 1) / 2`` pairs
+    ``(t, i < t)`` on whole rows, which XLA fuses into one loop (3x faster on CPU than
+    shifting whole tables; compile time grows as K^2, hence :data:`MAX_CHILDREN_LIMIT`).
+    """
+    k1, w = gl.shape
+    h = [jnp.full((w,), jnp.inf, gl.dtype)] * 2
+    split = [jnp.zeros((w,), jnp.int32)] * 2
+    for t in range(2, k1):
+        i, value = _first_near_min([gl[i] + gr[t - i] for i in range(1, t)])
+        h.append(value)
+        split.append(i + 1)
+    return jnp.stack(h), jnp.stack(split).astype(jnp.int8)
+
+
+@partial(jax.jit, static_argnames=("max_children", "merge"))
+def _optimal_decide(tree, levels, table, ci, max_leaf, *, max_children, merge):
+    n = tree.left.shape[0]
+    k = max_children
+    left, right, interior, real = _links(tree)
+    a = relative_areas(tree.lo, tree.hi, tree.root)
+    dtype = a.dtype
+    table = table.astype(dtype)
+    ci = jnp.asarray(ci, dtype)
+    rows_total = levels.order.shape[0]
+    is_leaf = tree.prim_count > 0
+    leaf_value = (a * ci * tree.prim_count.astype(dtype)) if merge else jnp.zeros(n, dtype)
+    t_index = jnp.arange(k + 1)[:, None]
+
+    def child_table(g, prims, c):
+        """Tables [K+1, W] of the children ``c`` [W]: a leaf's from its cost, others from ``g``."""
+        pos = take(levels.position, c, rows_total)
+        leaf = take(is_leaf, c, False)
+        stored = jnp.take(g, pos, axis=1, mode="fill", fill_value=jnp.inf)
+        leaf_table = jnp.where(t_index == 1, take(leaf_value, c, 0)[None, :], jnp.inf)
+        count = jnp.where(leaf, take(tree.prim_count, c, 0), take(prims, pos, 0))
+        return jnp.where(leaf[None, :], leaf_table, stored), count
+
+    def solve(state, start, valid):
+        g, choice, split, prims = state
+        x = levels.window(start, valid)
+        xs = jnp.minimum(x, n - 1)
+        w = x.shape[0]
+        both, counts = child_table(g, prims, jnp.concatenate([left[xs], right[xs]]))  # one gather
+        gl, gr, pl, pr = both[:, :w], both[:, w:], counts[:w], counts[w:]
+        h, i_best = _min_plus(gl, gr)
+        t_best, value = _first_near_min([a[xs] * table[t] + h[t] for t in range(2, k + 1)])
+        t_best = t_best + 2
+        count = pl + pr
+        if merge:
+            as_leaf = jnp.where(count <= max_leaf, a[xs] * ci * count.astype(dtype), jnp.inf)
+            make_leaf = value > as_leaf * (1 + min_gain(dtype))
+            t_best = jnp.where(make_leaf, 0, t_best)
+            value = jnp.where(make_leaf, as_leaf, value)
+        g = jax.lax.dynamic_update_slice(g, h.at[1].set(value), (jnp.int32(0), start))
+        choice = jax.lax.dynamic_update_slice(choice, t_best.astype(jnp.int8), (start,))
+        split = jax.lax.dynamic_update_slice(split, i_best, (jnp.int32(0), start))
+        prims = jax.lax.dynamic_update_slice(prims, count, (start,))
+        return g, choice, split, prims
+
+    state = (jnp.full((k + 1, rows_total), jnp.inf, dtype), jnp.zeros(rows_total, jnp.int8),
+             jnp.zeros((k + 1, rows_total), jnp.int8), jnp.zeros(rows_total, jnp.int32))
+    g, choice, split, prims = lv.sweep_up(levels, solve, state)
+    root_pos = levels.position[tree.root]
+    objective = jnp.where(interior[tree.root], take(g[1], root_pos, jnp.inf), leaf_value[tree.root])
+
+    # back-tracking: tau[n] = entry points n gives its anchor (1: kept, 0: inside a new leaf)
+    def back(state, start, valid):
+        tau, anchor, slot, owner = state
+        x = levels.window(start, valid)
+        xs = jnp.minimum(x, n - 1)
+        live = x < n
+        tau_x = tau[xs]
+        keep_x = tau_x == 1
+        ch = jax.lax.dynamic_slice(choice, (start,), (x.shape[0],)).astype(jnp.int32)
+        sp = jax.lax.dynamic_slice(split, (jnp.int32(0), start), (k + 1, x.shape[0])).astype(jnp.int32)
+        becomes_leaf = keep_x & (ch == 0)
+        inside = tau_x == 0
+        entries = jnp.where(keep_x, ch, tau_x)
+        i = jnp.take_along_axis(sp, jnp.clip(entries, 0, k)[None, :], axis=0)[0]
+        gone = inside | becomes_leaf
+        kids = jnp.concatenate([jnp.where(live, left[xs], n), jnp.where(live, right[xs], n)])
+        base = jnp.where(keep_x, 0, slot[xs])
+        up = jnp.where(keep_x, xs, anchor[xs])
+        new_owner = jnp.where(becomes_leaf, xs, jnp.where(inside, owner[xs], n))
+
+        def both(l_value, r_value):
+            return jnp.concatenate([l_value, r_value])
+
+        tau = tau.at[kids].set(both(jnp.where(gone, 0, i), jnp.where(gone, 0, entries - i)), mode="drop")
+        anchor = anchor.at[kids].set(both(up, up), mode="drop")
+        slot = slot.at[kids].set(both(base, base + i), mode="drop")
+        owner = owner.at[kids].set(both(new_owner, new_owner), mode="drop")
+        return tau, anchor, slot, owner
+
+    tau0 = jnp.zeros(n, jnp.int32).at[tree.root].set(1)
+    tau, anchor, slot, owner = lv.sweep_down(
+        levels, back, (tau0, jnp.full(n, -1, jnp.int32), jnp.zeros(n, jnp.int32), jnp.full(n, n, jnp.int32)))
+    kept = real & (tau == 1)
+    made_leaf = kept & interior
+    if merge:
+        made_leaf = made_leaf & (take(choice, levels.position, 1) == 0)
+    else:
+        made_leaf = jnp.zeros(n, bool)
+    count = jnp.where(made_leaf, take(prims, levels.position, 0), tree.prim_count)
+    return kept, anchor, slot, objective, made_leaf, owner, count
+
+
+@jax.jit
+def _regroup_prims(tree, owner, count):
+    """``prim_index`` with every new leaf's primitives in one run: ``(start, prim_index)``.
+
+    ``owner[leaf]`` is the new leaf that absorbs a binary leaf (``N``: it stays a leaf).
+    Slots are sorted by the leaf that ends up holding them (stable), so runs stay runs.
+    """
+    n = tree.left.shape[0]
+    p = tree.prim_index.shape[0]
+    leaf = tree.prim_count > 0
+    ids = jnp.arange(n, dtype=jnp.int32)
+    slots = jnp.arange(p, dtype=jnp.int32)
+    first = jnp.full(p, -1, jnp.int32).at[jnp.where(leaf, tree.prim_start, p)].set(ids, mode="drop")
+    last_start = jax.lax.cummax(jnp.where(first >= 0, slots, -1))
+    holder = take(first, jnp.where(last_start >= 0, last_start, p), -1)
+    hs = jnp.maximum(holder, 0)
+    used = (holder >= 0) & (slots < tree.prim_start[hs] + tree.prim_count[hs])
+    final = jnp.where(owner[hs] < n, owner[hs], hs)
+    key = jnp.where(used, final, n)
+    key_sorted, order = jax.lax.sort((key, slots), num_keys=1, is_stable=True)
+    prim_index = jnp.where(key_sorted < n, tree.prim_index[order], -1)
+    start = jnp.full(n, p, jnp.int32).at[key_sorted].min(slots, mode="drop")
+    return jnp.where(count > 0, start, 0), prim_index
+
+
+def optimal(tree, *, max_children: int = DEFAULT_MAX_CHILDREN, test_cost: Callable | None = None,
+            max_leaf: int = 1, ci: float = 1.0) -> CollapseResult:
+    """The least-``R`` collapse (Pinto's Algorithm 3, solved level by level).
+
+    ``max_children``: ``K`` in [2, 32], the most children of a node (MAX_CHILDS).
+    ``test_cost``: ``T`` (default ``T(k) = k``; see :func:`node_test_cost`).
+    ``max_leaf`` (beyond the paper): with ``P > 1`` the DP may also turn a subtree of at
+    most ``P`` primitives into one leaf, at cost ``Ci a(n) count``, and then minimises
+    ``R + leaf_cost`` (leaves the input already has stay as they are).
+    """
+    t = _binary_input(tree)
+    k = _check_k(max_children)
+    if int(max_leaf) < 1:
+        raise ValueError(f"max_leaf must be >= 1, got {max_leaf}")
+    if not np.isfinite(ci) or ci < 0:
+        raise ValueError(f"ci must be finite and >= 0, got {ci}")
+    table = cost_table(test_cost, k)
+    merge = int(max_leaf) > 1
+    kept, anchor, slot, objective, made_leaf, owner, count = _optimal_decide(
+        t, _schedule(t), table, ci, jnp.int32(max_leaf), max_children=k, merge=merge)
+    extra = {}
+    if merge:
+        start, prim_index = _regroup_prims(t, owner, count)
+        extra = dict(leaf_count=count, leaf_start=start, prim_index=prim_index, merged=True)
+    return _finish(t, kept, anchor, slot, k, table, ci=ci, objective=objective, **extra)
+
+
+def collapse(tree, method: str = "dp", *, max_children: int | None = None,
+             test_cost: Callable | None = None, max_leaf: int = 1, ci: float = 1.0) -> CollapseResult:
+    """One entry for the three methods (:data:`METHODS`): ``"greedy"``, ``"dp"``, ``"qbvh"``.
+
+    ``max_children`` None means: no limit for greedy, 8 for dp; qbvh is 4-wide by
+    construction (any other value is an error). ``max_leaf`` > 1 needs ``"dp"``.
+    """
+    if method not in METHODS:
+        raise ValueError(f"unknown collapse method {method!r}; choose one of {', '.join(METHODS)}")
+    if int(max_leaf) > 1 and method != "dp":
+        raise ValueError(f"max_leaf > 1 (merging leaves) needs method 'dp', not {method!r}")
+    if method == "greedy":
+        return greedy(tree, max_children=max_children, test_cost=test_cost)
+    if method == "qbvh":
+        if max_children not in (None, 4):
+            raise ValueError(f"qbvh is 4-wide by construction; max_children {max_children} does not apply")
+        return qbvh(tree, test_cost=test_cost)
+    return optimal(tree, max_children=DEFAULT_MAX_CHILDREN if max_children is None else max_children,
+                   test_cost=test_cost, max_leaf=max_leaf, ci=ci)

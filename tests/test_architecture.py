@@ -1,0 +1,128 @@
+"""The package's shape, checked from its source: no import cycles, no hidden imports, one
+place per numerical rule, twins independent of the code they check."""
+
+from __future__ import annotations
+
+import ast
+import re
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / "jaxbvh"
+
+# modules a NumPy twin may import from the library: neutral rules and layouts, other twins
+TWIN_MAY_IMPORT = re.compile(r"^jaxbvh\.(numerics|draws|tree\.(layout|walks|frame|interchange)"
+                             r"|.*_reference|.*_rules|wide\.box_tests)$")
+# numerical rules that live in jaxbvh.numerics only (pattern, what it is)
+RULES = [
+    (r"2\.0 \*\* -20", "the tie tolerance"),
+    (r"64 \* np\.finfo", "the 64 eps margin"),
+    (r"\bj?np\.frexp\(", "the power-of-two area scale"),
+    (r"^def _take\(", "the bounded gather"),
+    (r"^def _?working_dtype\(", "the working dtype"),
+]
+RULE_HOMES = {"numerics.py", "tree/frame.py"}  # frame.py: the frame's own scale (not an area scale)
+
+
+def modules() -> dict[str, Path]:
+    out = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        rel = path.relative_to(PACKAGE.parent).with_suffix("")
+        parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+        out[".".join(parts)] = path
+    return out
+
+
+def imported(tree: ast.AST, names: set[str], top_level_only: bool):
+    """jaxbvh modules imported by ``tree`` (a module's AST): ``(module, line, in_function)``."""
+    def resolve(base, attr):
+        full = f"{base}.{attr}"
+        return full if full in names else base
+
+    def visit(node, in_function):
+        for child in ast.iter_child_nodes(node):
+            inside = in_function or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda))
+            if isinstance(child, ast.ImportFrom) and child.module and child.module.split(".")[0] == "jaxbvh":
+                for alias in child.names:
+                    yield resolve(child.module, alias.name), child.lineno, in_function
+            elif isinstance(child, ast.Import):
+                for alias in child.names:
+                    if alias.name.split(".")[0] == "jaxbvh":
+                        yield alias.name, child.lineno, in_function
+            if not (top_level_only and inside):
+                yield from visit(child, inside)
+
+    yield from visit(tree, False)
+
+
+@pytest.fixture(scope="module")
+def graph():
+    mods = modules()
+    names = set(mods)
+    edges = {}
+    for name, path in mods.items():
+        tree = ast.parse(path.read_text(), str(path))
+        edges[name] = {m for m, _, inside in imported(tree, names, True) if not inside and m in names}
+    return mods, edges
+
+
+def test_no_import_cycles(graph):
+    """Module-level imports form no cycle (a package imports its own ``__init__`` too)."""
+    _, edges = graph
+    state = {}
+    cycle = []
+
+    def dfs(node, stack):
+        state[node] = "open"
+        for nxt in sorted(edges[node]):
+            # a module importing its parent package runs that __init__ first
+            if state.get(nxt) == "open":
+                cycle.append(stack[stack.index(nxt):] + [nxt])
+            elif nxt not in state:
+                dfs(nxt, stack + [nxt])
+        state[node] = "closed"
+
+    for node in sorted(edges):
+        if node not in state:
+            dfs(node, [node])
+    cycles = [c for c in cycle if not (len(c) == 2 and c[0] == c[1])]
+    assert not cycles, "import cycles: " + "; ".join(" -> ".join(c) for c in cycles)
+
+
+def test_no_library_import_inside_a_function():
+    mods = modules()
+    names = set(mods)
+    found = []
+    for name, path in mods.items():
+        tree = ast.parse(path.read_text(), str(path))
+        found += [f"{name}:{line} imports {m}" for m, line, inside in imported(tree, names, False) if inside]
+    assert not found, "\n".join(found)
+
+
+def test_twins_import_no_jax_module(graph):
+    """A twin (``*_reference``) checks its JAX module independently: it imports only
+    neutral rules, layouts and other twins."""
+    _, edges = graph
+    bad = [f"{name} imports {m}" for name, deps in edges.items() if name.endswith("_reference")
+           for m in deps if not TWIN_MAY_IMPORT.match(m)]
+    assert not bad, "\n".join(bad)
+
+
+@pytest.mark.parametrize("pattern, rule", RULES)
+def test_each_rule_is_written_once(pattern, rule):
+    where = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        rel = path.relative_to(PACKAGE).as_posix()
+        if rel in RULE_HOMES:
+            continue
+        for i, line in enumerate(path.read_text().splitlines(), 1):
+            if re.search(pattern, line) and not line.lstrip().startswith(("#", '"', "``")):
+                where.append(f"jaxbvh/{rel}:{i}: {line.strip()}")
+    assert not where, f"{rule} is copied outside jaxbvh.numerics:\n" + "\n".join(where)
+
+
+def test_every_twin_sits_beside_its_module():
+    mods = modules()
+    lonely = [n for n in mods if n.endswith("_reference") and n[: -len("_reference")] not in mods]
+    assert not lonely, f"twins without a module of the same name beside them: {lonely}"
