@@ -173,7 +173,7 @@ def run_trade(args):
                 jaxbvh.validate(result.tree, lo, hi)
                 tree = result.tree
                 row.update(climb_s=climb_wall, climb_cpu_s=climb_cpu, climb_first_s=climb_first,
-                           passes=int(result.passes))
+                           passes=int(result.steps))
             row.update(seconds=row["build_s"] + row.get("climb_s", 0.0),
                        cpu_seconds=row["build_cpu_s"] + row.get("climb_cpu_s", 0.0),
                        sah=float(jaxbvh.sah(tree)), nodes=jaxbvh.tree.node_count(tree),

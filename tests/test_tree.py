@@ -28,6 +28,12 @@ def test_capacity_bucket_is_tight_and_few(n):
     assert b & (b - 1) == 0 or (b % 3 == 0 and (b // 3) & (b // 3 - 1) == 0)
 
 
+def test_capacity_bucket_refuses_a_minimum_that_cannot_grow():
+    # a minimum of 1 never grows (its half is 0): the loop would never end
+    with pytest.raises(ValueError, match="minimum"):
+        jaxbvh.capacity_bucket(5, minimum=1)
+
+
 def shuffled(arrays, rng):
     """The same tree with node ids permuted and leaf runs moved around in prim_index."""
     nodes = arrays["child"].shape[0]

@@ -86,11 +86,13 @@ def test_restructure_equals_reference(case):
     tree, plo, phi = random_tree(*case)
     result = treelet.restructure(tree, split_axes=False)
     expected, info = ref.restructure(tree, max_passes=treelet.DEFAULT_MAX_PASSES)
-    assert result.passes == info["passes"] and result.restructured == info["restructured"]
+    assert result.steps == info["passes"] and result.moves == info["restructured"]
     assert_same_tree(result.tree, expected)
-    np.testing.assert_allclose(result.history, info["history"], rtol=1e-5)
+    history = result.history[: result.steps]
+    np.testing.assert_allclose(history, info["history"], rtol=1e-5)
+    assert np.isnan(result.history[result.steps:]).all()
     sah = check_result(tree, result, plo, phi)
-    assert np.all(np.diff(np.concatenate([[float(result.sah_start)], result.history])) <= 1e-5 * sah)
+    assert np.all(np.diff(np.concatenate([[float(result.sah_start)], history])) <= 1e-5 * sah)
 
 
 def test_smaller_treelets_and_windows():
@@ -108,11 +110,12 @@ def test_smaller_treelets_and_windows():
 def test_time_budget_progress_float64_and_tiny_trees():
     tree, plo, phi = random_tree(12, 60, 1)
     log = []
-    full = treelet.restructure(tree, on_pass=lambda i, sah, changed: log.append((i, sah, changed)))
-    assert [i for i, *_ in log] == list(range(full.passes)) and log[-1][2] == 0
+    full = treelet.restructure(tree, on_step=lambda info: log.append((info.step, info.sah, info.moves)))
+    assert [i for i, *_ in log] == list(range(full.steps)) and log[-1][2] == 0
+    assert bool(full.converged) and [info.stage for info in full.trace] == ["treelet"] * int(full.steps)
     short = treelet.restructure(tree, time_budget=1e-9)
     check_result(tree, short, plo, phi)
-    assert 1 <= short.passes <= 2 < full.passes
+    assert 1 <= short.steps <= 2 < full.steps and not short.converged
     for n in (1, 2, 3):
         small, slo, shi = random_tree(n, n)
         check_result(small, treelet.restructure(small), slo, shi)
@@ -127,7 +130,7 @@ def test_time_budget_progress_float64_and_tiny_trees():
 def test_bad_arguments_raise_value_error():
     tree = random_tree(0, 5)[0]
     for kwargs in (dict(leaves=1), dict(leaves=treelet.MAX_LEAVES + 1), dict(max_passes=-1),
-                   dict(ct=-1.0), dict(windows=()), dict(time_budget=0), dict(on_pass=1),
+                   dict(ct=-1.0), dict(windows=()), dict(time_budget=0), dict(on_step=1),
                    dict(min_gain=-1.0)):
         with pytest.raises(ValueError):
             treelet.restructure(tree, **kwargs)
@@ -139,7 +142,7 @@ def test_real_tree_pass_equals_reference():
     result = treelet.restructure(tree, max_passes=1, split_axes=False)
     expected, info = ref.restructure(tree, max_passes=1)
     assert_same_tree(result.tree, expected)
-    assert result.restructured == info["restructured"] > 0
+    assert result.moves == info["restructured"] > 0
     check_result(tree, result, None, None)
     assert float(result.sah) < float(result.sah_start) - 1.0
     assert NODES  # random trees share one capacity with test_reinsert

@@ -88,9 +88,9 @@ def _run(method, tree, *, key, ct, ci, time_budget, report, options):
                                 **options)
         return out.tree, int(out.iterations), int(out.moves), None
     out = treelet.restructure(tree, ct=ct, ci=ci, split_axes=False, time_budget=time_budget,
-                              on_pass=lambda i, sah, changed: report("treelet", i, sah, changed),
+                              on_step=lambda info: report("treelet", info.step, info.sah, info.moves),
                               **options)
-    return out.tree, int(out.passes), int(out.restructured), None
+    return to_jax(out.tree), int(out.steps), int(out.moves), None
 
 
 def optimize(tree, method: str = "pipeline", *, key=None, ct: float = 1.0, ci: float = 1.0,

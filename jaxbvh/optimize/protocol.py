@@ -73,7 +73,7 @@ def new_progress(sah_start, limit: int, dtype) -> Progress:
 
 def history_length(limit: int) -> int:
     """Entries of the history arrays for a step limit (a capacity bucket: few shapes)."""
-    return capacity_bucket(max(int(limit), 1), minimum=1)
+    return capacity_bucket(max(int(limit), 1))
 
 
 def record(progress: Progress, sah, moves, converged) -> Progress:

@@ -13,7 +13,7 @@ taken when the subtree has no more interior nodes to expand.
 Optimal topology (dynamic programming over subsets)
 ===================================================
 With ``c(x) = S(x) C(x)`` (area-weighted cost; ``S`` the scaled half-area, ``C`` the
-node cost of :mod:`jaxbvh.cost`), an interior node costs ``c(x) = Ct S(x) + c(L) +
+node cost of :mod:`jaxbvh.tree.cost`), an interior node costs ``c(x) = Ct S(x) + c(L) +
 c(R)`` (this holds for zero-area nodes too). The best binary tree over a set ``L`` of
 treelet leaves (a bitmask over the ``k`` leaves) therefore costs
 
@@ -27,7 +27,7 @@ top-down from the chosen splits, reusing the treelet's interior node ids in the 
 the sets are reached breadth first (``r`` keeps the whole set, so its parent link does
 not change); the subset containing the lowest leaf goes left. A treelet is restructured
 only when ``c*`` is below its current cost by more than ``min_gain`` (relative), so no
-move is made on rounding noise (the same rule as :mod:`jaxbvh.rotate`; ``min_gain``
+move is made on rounding noise (the same rule as :mod:`jaxbvh.optimize.rotate`; ``min_gain``
 defaults to ``64 * eps``). Leaves keep their primitives and boxes; interior boxes are
 unions of their leaves' boxes (all interior boxes are refitted tight first).
 
@@ -39,14 +39,14 @@ height have disjoint subtrees, hence disjoint treelets, and are solved together 
 DP vmapped over every treelet of a window of nodes); by the time a node is solved, every
 node below it has been (restructuring only permutes ids inside a subtree). Passes repeat
 until one restructures nothing, ``max_passes`` (the paper uses 3), or ``time_budget``.
-The NumPy twin (:mod:`jaxbvh.reference.treelet`) solves the same treelets one at a time,
+The NumPy twin (:mod:`jaxbvh.optimize.treelet_reference`) solves the same treelets one at a time,
 in the same order, by the same recursion.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from functools import lru_cache, partial
+from functools import lru_cache
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -55,11 +55,24 @@ import numpy as np
 
 from jaxbvh.numerics import extent_scale, half_area, take_clipped
 from jaxbvh.numerics import min_gain as default_min_gain
-from jaxbvh.optimize.budget import TimeBudget
+from jaxbvh.optimize.driver import run
+from jaxbvh.optimize.protocol import (
+    Optimizer,
+    OptimizeResult,
+    OptimizerState,
+    check_config,
+    check_costs,
+    check_tree,
+    float_dtype,
+    keep_if_done,
+    make_result,
+    new_progress,
+    record,
+)
 from jaxbvh.tree.cost import sah as sah_of
-from jaxbvh.tree.layout import BVH, to_jax
+from jaxbvh.tree.layout import to_jax
 from jaxbvh.tree.refit import refit_boxes
-from jaxbvh.tree.split_axes import assign_split_axes
+from jaxbvh.tree.split_axes import apply_split_axes
 
 DEFAULT_LEAVES = 7
 MAX_LEAVES = 10        # 2^n subsets and 3^n splits: beyond this the DP is too large
@@ -67,22 +80,6 @@ DEFAULT_MAX_PASSES = 8
 DEFAULT_WINDOWS = (256,)  # treelets solved at once (speed only; each size is one more compiled copy)
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class TreeletResult:
-    """What :func:`restructure` returns.
-
-    ``tree``: the optimized :class:`~jaxbvh.tree.BVH` (same capacity). ``sah``,
-    ``sah_start``: SAH after and before. ``passes``: passes run. ``restructured``:
-    treelets changed in all. ``history``: SAH after each pass (NumPy).
-    """
-
-    tree: Any
-    sah: Any
-    sah_start: Any
-    passes: Any
-    restructured: Any
-    history: Any
 
 
 # ----------------------------------------------------------------------------------
@@ -313,86 +310,129 @@ def _pass(st: _State, scale, ct, min_gain, *, n, windows):
     return st, changed
 
 
+class Params(NamedTuple):
+    """Settings passed as traced values (changing them does not recompile)."""
+
+    ct: Any        # SAH cost of a traversal step
+    ci: Any        # SAH cost of a primitive test
+    min_gain: Any  # relative margin (module docstring)
+
+
+class Static(NamedTuple):
+    """Settings that fix the compiled program."""
+
+    leaves: int         # treelet size n
+    windows: tuple      # treelets solved at once (speed only)
+    split_axes: bool    # Kensler's final pass in result()
+
+
+class Inner(NamedTuple):
+    """Treelet restructuring's own loop state: the tree's links and boxes, kept tight."""
+
+    tree: Any   # _State: child, parent, lo, hi, area-weighted cost, area
+    scale: Any  # [] the area scale of the root box
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Knobs of treelet restructuring (Karras & Aila 2013), with the paper's defaults.
+
+    ``leaves``: treelet size ``n`` (2 .. :data:`MAX_LEAVES`; the paper's 7; each size
+    compiles its own program). ``max_passes``: most passes (the paper uses 3; 8 lets the
+    last gains in). ``ct``, ``ci``: SAH constants. ``min_gain``: relative margin a
+    change must beat (None: ``64 * eps`` of the tree's float type,
+    :func:`jaxbvh.numerics.min_gain`). ``split_axes``: Kensler's final pass
+    (:func:`jaxbvh.tree.split_axes.assign_split_axes`) in ``result``. ``windows``:
+    treelets solved at once (speed only, never the result).
+    """
+
+    leaves: int = DEFAULT_LEAVES
+    max_passes: int = DEFAULT_MAX_PASSES
+    ct: float = 1.0
+    ci: float = 1.0
+    min_gain: float | None = None
+    split_axes: bool = True
+    windows: tuple = DEFAULT_WINDOWS
+
+    def __post_init__(self):
+        if not 2 <= self.leaves <= MAX_LEAVES:
+            raise ValueError(f"leaves must be in 2 .. {MAX_LEAVES}, got {self.leaves}")
+        if self.max_passes < 0:
+            raise ValueError(f"max_passes must be >= 0, got {self.max_passes}")
+        check_costs(self.ct, self.ci)
+        if self.min_gain is not None and not self.min_gain >= 0:
+            raise ValueError(f"min_gain must be >= 0, got {self.min_gain}")
+        if not self.windows or min(self.windows) < 1:
+            raise ValueError(f"windows must be positive sizes, got {self.windows}")
+        object.__setattr__(self, "windows", tuple(int(w) for w in self.windows))
+
+
 @jax.jit
-def _prepare(tree, ct, ci):
+def _prepare(tree, ct, ci) -> Inner:
     child = jnp.stack([tree.left, tree.right], axis=1).astype(jnp.int32)
     lo, hi = refit_boxes(child, tree.lo, tree.hi)
     scale = extent_scale(lo[tree.root], hi[tree.root])
     area = half_area(lo, hi, scale)
     cost = _costs(child, area, tree.prim_count, ct, ci)
-    return _State(child, tree.parent.astype(jnp.int32), lo, hi, cost, area), scale
+    return Inner(_State(child, tree.parent.astype(jnp.int32), lo, hi, cost, area), scale)
 
 
-@partial(jax.jit, static_argnames=("n", "windows"))
-def _run_pass(st: _State, scale, root, prim_count, ct, ci, min_gain, *, n, windows):
-    """One pass: ``(state, treelets changed, SAH after)``."""
-    st, changed = _pass(st, scale, ct, min_gain, n=n, windows=windows)
+def _sah(st: _State, root, prim_count, ct, ci):
+    """SAH from the area-weighted cost of the root."""
     root_area = st.area[root]
-    flat = ct * jnp.sum(st.child[:, 0] >= 0).astype(st.lo.dtype) + ci * jnp.sum(prim_count).astype(st.lo.dtype)
-    sah = jnp.where(root_area > 0, st.cost[root] / jnp.where(root_area > 0, root_area, 1), flat)
-    return st, changed, sah
+    dtype = st.lo.dtype
+    flat = ct * jnp.sum(st.child[:, 0] >= 0).astype(dtype) + ci * jnp.sum(prim_count).astype(dtype)
+    return jnp.where(root_area > 0, st.cost[root] / jnp.where(root_area > 0, root_area, 1), flat)
 
 
-@jax.jit
-def _to_tree(tree, st: _State):
-    return tree.replace(left=st.child[:, 0], right=st.child[:, 1], parent=st.parent,
-                        lo=st.lo, hi=st.hi)
+def init(tree, config: Config | None = None, key=None) -> OptimizerState:
+    """The state before the first pass: boxes refitted tight, costs of every node.
+
+    ``tree``: a :class:`~jaxbvh.tree.layout.BVH` (NumPy or JAX arrays, any capacity,
+    leaves of any size). ``key``: unused (the method is deterministic).
+    """
+    del key
+    check_tree(tree)
+    config = check_config(config, Config, "treelet")
+    tree = to_jax(tree)
+    dtype = float_dtype(tree)
+    min_gain = default_min_gain(dtype) if config.min_gain is None else config.min_gain
+    params = Params(*(jnp.asarray(x, dtype) for x in (config.ct, config.ci, min_gain)))
+    inner = _prepare(tree, params.ct, params.ci)
+    limit = config.max_passes if config.leaves > 2 else 0  # two-leaf treelets cannot change
+    progress = new_progress(sah_of(tree, config.ct, config.ci), limit, dtype)
+    return OptimizerState(tree, progress, params, inner,
+                          Static(int(config.leaves), config.windows, bool(config.split_axes)))
 
 
-def restructure(tree, *, leaves: int = DEFAULT_LEAVES, ct: float = 1.0, ci: float = 1.0,
-                max_passes: int = DEFAULT_MAX_PASSES, min_gain: float | None = None,
-                split_axes: bool = True, windows=DEFAULT_WINDOWS,
-                on_pass: Callable | None = None,
-                time_budget: float | None = None) -> TreeletResult:
+def step(state: OptimizerState) -> OptimizerState:
+    """One pass over every interior node, lowest first (module docstring)."""
+    p, static, inner = state.params, state.static, state.inner
+    st, changed = _pass(inner.tree, inner.scale, p.ct, p.min_gain, n=static.leaves, windows=static.windows)
+    sah = _sah(st, state.tree.root, state.tree.prim_count, p.ct, p.ci)
+    progress = record(state.progress, sah, changed, converged=changed == 0)
+    return keep_if_done(state, state.replace(inner=inner._replace(tree=st), progress=progress))
+
+
+def result(state: OptimizerState) -> OptimizeResult:
+    """The restructured tree (same capacity as the input) and the run's figures."""
+    st = state.inner.tree
+    out = state.tree.replace(left=st.child[:, 0], right=st.child[:, 1], parent=st.parent, lo=st.lo, hi=st.hi)
+    if state.static.split_axes:
+        out = apply_split_axes(out)
+    progress = state.progress._replace(sah=sah_of(out, state.params.ct, state.params.ci))
+    return make_result(out, progress)
+
+
+TREELET = Optimizer("treelet", Config, init, step, result, paper="Karras & Aila 2013")
+
+
+def restructure(tree, *, time_budget: float | None = None, on_step: Callable | None = None,
+                **config) -> OptimizeResult:
     """Treelet restructuring, pass after pass, until a pass changes nothing (module docstring).
 
-    ``tree``: a :class:`~jaxbvh.tree.BVH` (any capacity; leaves of any size).
-    ``leaves``: treelet size ``n`` (2 .. :data:`MAX_LEAVES`; a static argument: each size
-    compiles its own program). ``max_passes``: most passes. ``min_gain``: relative
-    margin (module docstring). ``split_axes``: run :func:`jaxbvh.rotate.assign_split_axes`
-    at the end. ``windows``: treelets solved at once (speed only). ``on_pass(i, sah,
-    changed)``: called on the host after every pass. ``time_budget``: seconds after which
-    to stop (after a pass) with the tree so far (every pass lowers the SAH); the clock
-    starts after the first pass, which also compiles.
+    ``config``: fields of :class:`Config` (e.g. ``leaves=7``, ``max_passes=8``).
+    ``time_budget``, ``on_step(info)``: as :func:`jaxbvh.optimize.driver.run` (the run
+    stops after a pass with the tree so far: every pass lowers the SAH).
     """
-    if not isinstance(tree, BVH):
-        raise ValueError(f"tree must be a binary jaxbvh.BVH, got {type(tree).__name__}")
-    if not 2 <= leaves <= MAX_LEAVES:
-        raise ValueError(f"leaves must be in 2 .. {MAX_LEAVES}, got {leaves}")
-    if max_passes < 0:
-        raise ValueError(f"max_passes must be >= 0, got {max_passes}")
-    if not ct >= 0 or not ci >= 0:
-        raise ValueError(f"ct and ci must be >= 0, got ct={ct}, ci={ci}")
-    if not windows or min(windows) < 1:
-        raise ValueError(f"windows must be positive sizes, got {windows}")
-    if time_budget is not None and not time_budget > 0:
-        raise ValueError(f"time_budget must be > 0 seconds, got {time_budget}")
-    if on_pass is not None and not callable(on_pass):
-        raise ValueError(f"on_pass must be a function (pass, sah, changed), got {on_pass!r}")
-    tree = to_jax(tree)
-    dtype = np.dtype(tree.lo.dtype)
-    min_gain = default_min_gain(dtype) if min_gain is None else float(min_gain)
-    if not min_gain >= 0:
-        raise ValueError(f"min_gain must be >= 0, got {min_gain}")
-    ct_, ci_, mg = (jnp.asarray(x, dtype) for x in (ct, ci, min_gain))
-    sah_start = sah_of(tree, ct, ci)
-    st, scale = _prepare(tree, ct_, ci_)
-    history, changed_all = [], 0
-    budget = TimeBudget(time_budget)
-    for i in range(max_passes if leaves > 2 else 0):
-        st, changed, sah = _run_pass(st, scale, tree.root, tree.prim_count, ct_, ci_, mg,
-                                     n=int(leaves), windows=tuple(int(w) for w in windows))
-        changed, sah = int(changed), float(sah)
-        history.append(sah)
-        changed_all += changed
-        if on_pass is not None:
-            on_pass(i, sah, changed)
-        if changed == 0:
-            break
-        if budget.spent():
-            break
-    out = _to_tree(tree, st)
-    if split_axes:
-        out = assign_split_axes(out)
-    return TreeletResult(out, sah_of(out, ct, ci), sah_start, len(history), changed_all,
-                         np.asarray(history, dtype))
+    return run(TREELET, tree, Config(**config), time_budget=time_budget, on_step=on_step)

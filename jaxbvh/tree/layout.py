@@ -116,6 +116,8 @@ def capacity_bucket(n: int, minimum: int = 4) -> int:
     """
     if n < 0:
         raise ValueError(f"capacity_bucket: n must be non-negative, got {n}")
+    if minimum < 2:  # 1 would never grow: its half is 0
+        raise ValueError(f"capacity_bucket: minimum must be >= 2, got {minimum}")
     size = minimum
     while size < n:
         half = size // 2
