@@ -1,7 +1,9 @@
 """Ray traversal of binary and wide BVHs, counting box and primitive tests (jitted).
 
-One ray is one ``lax.while_loop`` over a fixed-capacity stack; rays are ``vmap``-ed and
-fed to the device in batches. Every loop step does exactly one of two things:
+One ray is one ``lax.while_loop`` over a fixed-capacity stack (the loop itself lives in
+:mod:`jaxbvh.rays.stack_walk`, shared with the two-level traversal; this module gives it
+the tree and the primitives); rays are ``vmap``-ed and fed to the device in batches.
+Every loop step does exactly one of two things:
 
 * **node step** — pop ``(node, entry)``; if ``entry <= t_best`` the node is *visited*:
   a leaf opens its run of primitives, an interior node tests the boxes of all its real
@@ -58,9 +60,9 @@ box is always tested.
 
 Plugging in other primitives. The traversal never looks at triangles itself: it calls
 ``intersect(prims, prim_id, origin, direction) -> (t, u, v)`` (``t = inf`` for a miss)
-with ``prims`` any pytree passed through ``jit``. A two-level tree will pass the
-instance transforms and the bottom-level trees as ``prims`` and an ``intersect`` that
-transforms the ray and traverses the instance's tree.
+with ``prims`` any pytree passed through ``jit``. A two-level tree needs more than a
+primitive test (the ray changes frame below a top-level leaf, the stack carries the
+instance): :mod:`jaxbvh.twolevel.traversal` gives the shared loop its own hooks.
 """
 
 from __future__ import annotations
@@ -254,49 +256,20 @@ def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t
     """
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-    origin = np.asarray(origin)
-    direction = np.asarray(direction)
-    if origin.ndim != 2 or origin.shape[1] != 3 or direction.shape != origin.shape:
-        raise ValueError(f"origin and direction must both be [R, 3], got {origin.shape} "
-                         f"and {direction.shape}")
+    origin, direction = check_rays(origin, direction)
     if capacity is None:
         capacity = stack_capacity(tree)
     jtree = to_jax(tree)
     dtype = np.dtype(jtree.lo.dtype)
-    if skip is not None:
-        skip = np.asarray(skip, bool)
-        if skip.shape != (jtree.prim_count.shape[0],):
-            raise ValueError(f"skip must be bool [{jtree.prim_count.shape[0]}] (one flag per node), "
-                             f"got shape {skip.shape}")
-        skip = jnp.asarray(skip)
+    skip = _check_skip(skip, jtree.prim_count.shape[0])
     jprims = jax.tree_util.tree_map(jnp.asarray, prims)
-    r = origin.shape[0]
-    batch = max(1, min(batch, r))
-    t_min = np.broadcast_to(np.asarray(t_min, dtype), (r,))
-    t_max = np.broadcast_to(np.asarray(t_max, dtype), (r,))
-    pieces = []
-    for start in range(0, r, batch):
-        stop = min(start + batch, r)
-        n = stop - start
-        o = np.zeros((batch, 3), dtype)
-        d = np.zeros((batch, 3), dtype)
-        d[:, 0] = 1
-        lo_t = np.zeros(batch, dtype)
-        hi_t = np.full(batch, -1, dtype)  # padding rays: empty interval, they stop at once
-        o[:n], d[:n], lo_t[:n], hi_t[:n] = origin[start:stop], direction[start:stop], \
-            t_min[start:stop], t_max[start:stop]
-        pieces.append((n, trace_batch(jtree, jprims, o, d, lo_t, hi_t, skip, intersect=intersect,
-                                      mode=mode, capacity=capacity, max_hits=max_hits)))
-    if not pieces:
-        empty = trace_batch(jtree, jprims, np.zeros((1, 3), dtype), np.ones((1, 3), dtype),
-                            np.zeros(1, dtype), np.full(1, -1, dtype), skip, intersect=intersect,
-                            mode=mode, capacity=capacity, max_hits=max_hits)
-        pieces = [(0, empty)]
-    hits = jax.tree_util.tree_map(
-        lambda *parts: np.concatenate([np.asarray(p)[:n] for (n, _), p in zip(pieces, parts)]),
-        *[h for _, h in pieces])
-    if hits.step_limit.any():
 
+    def run(o, d, lo_t, hi_t):
+        return trace_batch(jtree, jprims, o, d, lo_t, hi_t, skip, intersect=intersect, mode=mode,
+                           capacity=capacity, max_hits=max_hits)
+
+    hits = in_batches(run, origin, direction, t_min, t_max, batch=batch, dtype=dtype)
+    if hits.step_limit.any():
         bad = np.flatnonzero(hits.step_limit)
         raise InvalidTreeError([f"traversal of {bad.size} ray(s) (first: {bad[:5].tolist()}) did not end "
                                 f"within {max_steps(jtree)} steps: the tree has a cycle or a shared node"])
@@ -305,6 +278,55 @@ def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t
         raise RuntimeError(f"traversal stack of {capacity} entries overflowed on {bad.size} "
                            f"ray(s) (first: {bad[:5].tolist()}); pass a larger capacity")
     return hits
+
+
+def check_rays(origin, direction):
+    """``origin``, ``direction`` as NumPy arrays; ``ValueError`` unless both are [R, 3]."""
+    origin = np.asarray(origin)
+    direction = np.asarray(direction)
+    if origin.ndim != 2 or origin.shape[1] != 3 or direction.shape != origin.shape:
+        raise ValueError(f"origin and direction must both be [R, 3], got {origin.shape} "
+                         f"and {direction.shape}")
+    return origin, direction
+
+
+def _check_skip(skip, nodes):
+    """Skip flags as a JAX bool [nodes] array (None stays None); ``ValueError`` on a bad shape."""
+    if skip is None:
+        return None
+    skip = np.asarray(skip, bool)
+    if skip.shape != (nodes,):
+        raise ValueError(f"skip must be bool [{nodes}] (one flag per node), got shape {skip.shape}")
+    return jnp.asarray(skip)
+
+
+def in_batches(run: Callable, origin, direction, t_min, t_max, *, batch: int, dtype) -> Hits:
+    """``run(origin, direction, t_min, t_max)`` on batches of ``batch`` rays; NumPy :class:`Hits` [R].
+
+    ``origin``, ``direction``: NumPy [R, 3]; ``t_min``, ``t_max``: scalars or [R]. The
+    last batch is padded with rays of an empty interval (``t_max = -1``: they stop at
+    once), so every call has the same shapes (one compile); no rays make one padded
+    call of one ray. ``run`` returns :class:`Hits` of the batch; the padding is cut off.
+    """
+    r = origin.shape[0]
+    batch = max(1, min(batch, r))
+    t_min = np.broadcast_to(np.asarray(t_min, dtype), (r,))
+    t_max = np.broadcast_to(np.asarray(t_max, dtype), (r,))
+    pieces = []
+    for start in range(0, max(r, 1), batch):
+        stop = min(start + batch, r)
+        n = stop - start
+        o = np.zeros((batch, 3), dtype)
+        d = np.zeros((batch, 3), dtype)
+        d[:, 0] = 1
+        lo_t = np.zeros(batch, dtype)
+        hi_t = np.full(batch, -1, dtype)
+        o[:n], d[:n], lo_t[:n], hi_t[:n] = origin[start:stop], direction[start:stop], \
+            t_min[start:stop], t_max[start:stop]
+        pieces.append((n, run(o, d, lo_t, hi_t)))
+    return jax.tree_util.tree_map(
+        lambda *parts: np.concatenate([np.asarray(p)[:n] for (n, _), p in zip(pieces, parts)]),
+        *[h for _, h in pieces])
 
 
 def closest_hit(tree, triangles, origin, direction, **kwargs) -> Hits:

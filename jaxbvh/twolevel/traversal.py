@@ -2,8 +2,10 @@
 
 The algorithm, the stack of ``(node, instance)`` pairs and the step bound are described
 in :mod:`jaxbvh.twolevel.rebraid` (section "Traversal"); the tree is a
-:class:`jaxbvh.twolevel.rebraid.TwoLevelBVH`. Slab and Möller-Trumbore tests and the
-:class:`~jaxbvh.rays.traversal.Hits` record come from :mod:`jaxbvh.rays.traversal`.
+:class:`jaxbvh.twolevel.rebraid.TwoLevelBVH`. The loop is :func:`jaxbvh.rays.stack_walk.walk`,
+the one-level traversal's own, with this module's hooks (``_primitive``, ``_expand``);
+slab and Möller-Trumbore tests, ray checks and batching come from
+:mod:`jaxbvh.rays.traversal`.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh.rays.stack_walk import Hits, Hooks, Node, finish, walk
-from jaxbvh.rays.traversal import inverse_direction, moller_trumbore, slab
+from jaxbvh.rays.traversal import check_rays, in_batches, inverse_direction, moller_trumbore, slab
 from jaxbvh.tree.layout import depth, to_jax, to_numpy
 
 
@@ -154,28 +156,15 @@ def closest_hit(tl, origin, direction, *, batch: int = 256,
     ``prim`` a world triangle id (-1: miss). Raises ``RuntimeError`` if a ray overflows
     its stack or its step bound.
     """
-    origin = np.asarray(origin)
-    direction = np.asarray(direction)
-    if origin.ndim != 2 or origin.shape[1] != 3 or direction.shape != origin.shape:
-        raise ValueError(f"origin and direction must both be [R, 3], got {origin.shape} and {direction.shape}")
+    origin, direction = check_rays(origin, direction)
     capacity = stack_capacity(tl) if capacity is None else capacity
     bound = np.int32(step_bound(tl))
     jtl = to_jax(tl)
-    dtype = np.dtype(jtl.top.lo.dtype)
-    r = origin.shape[0]
-    batch = max(1, min(batch, r))
-    pieces = []
-    for start in range(0, max(r, 1), batch):
-        n = min(start + batch, r) - start
-        o = np.zeros((batch, 3), dtype)
-        d = np.zeros((batch, 3), dtype)
-        d[:, 0] = 1
-        t_max = np.full(batch, -1, dtype)  # padding rays: empty interval
-        o[:n], d[:n], t_max[:n] = origin[start:start + n], direction[start:start + n], np.inf
-        pieces.append((n, trace_batch(jtl, o, d, t_max, bound, capacity=capacity)))
-    hits = jax.tree_util.tree_map(lambda *parts: np.concatenate([np.asarray(p)[:n] for (n, _), p in
-                                                                 zip(pieces, parts)]),
-                                  *[h for _, h in pieces])
+
+    def run(o, d, _, t_max):
+        return trace_batch(jtl, o, d, t_max, bound, capacity=capacity)
+
+    hits = in_batches(run, origin, direction, 0.0, np.inf, batch=batch, dtype=np.dtype(jtl.top.lo.dtype))
     if hits.stack_overflow.any():
         bad = np.flatnonzero(hits.stack_overflow)
         raise RuntimeError(f"two-level traversal stack of {capacity} entries overflowed on "
