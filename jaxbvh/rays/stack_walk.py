@@ -149,7 +149,9 @@ def walk(hooks: Hooks, root, root_hit, root_entry, t_min, t_max, *, mode: str, c
         return working(s) & (s.steps < step_limit)
 
     def body(s):
-        in_leaf = s.leaf_pos < s.leaf_end  # this step tests a primitive, else it pops a node
+        # decided once, before the primitive step: a leaf that ends in this step must not
+        # also pop (its stack may be empty; the top entry would then be stale)
+        in_leaf = s.leaf_pos < s.leaf_end
         s = s._replace(steps=s.steps + 1)
         s = _primitive_step(hooks, s, in_leaf, t_min, t_max, mode=mode, max_hits=max_hits)
         return _node_step(hooks, s, ~in_leaf, capacity=capacity)
