@@ -109,6 +109,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh.builders.topdown import check_prim_boxes
+from jaxbvh.configs import integer
 from jaxbvh.numerics import TIE_TOLERANCE, half_area, scene_scale, working_dtype
 from jaxbvh.tree.cost import goldsmith_salmon_cost
 from jaxbvh.tree.layout import WideBVH, capacity_bucket
@@ -128,10 +129,8 @@ def check_order(order, n: int) -> np.ndarray:
 
 
 def check_max_children(max_children) -> int:
-    k = int(max_children)
-    if k < 2:
-        raise ValueError(f"max_children must be >= 2, got {max_children}")
-    return k
+    """``max_children`` as an int after checking that it is an integer >= 2."""
+    return integer(2)("max_children", max_children)
 
 
 def prepare(prim_lo, prim_hi, *, pad: bool = True, capacity: int | None = None, dtype=None):
