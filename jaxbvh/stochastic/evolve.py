@@ -73,7 +73,6 @@ from jaxbvh.numerics import TIE_TOLERANCE
 from jaxbvh.rays.measure import make_rays, stack_capacity, trace
 
 
-
 def _max_children(name, value):
     return insertion.check_max_children(value)  # the insertion build's rule; its message names max_children
 
