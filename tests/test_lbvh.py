@@ -17,7 +17,8 @@ import jaxbvh
 from jaxbvh.builders import lbvh, morton
 from jaxbvh.builders import lbvh_reference as reference
 from jaxbvh.builders import morton_reference as reference_morton
-from jaxbvh.builders.topdown import scene_scale
+from jaxbvh.builders.configs import LBVHConfig
+from jaxbvh.numerics import scene_scale
 from jaxbvh.tree.frame import Frame
 
 SETTINGS = settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -40,8 +41,8 @@ def padded(lo, hi, cap=CAP):
 
 def build(lo, hi, max_leaf=1, morton_bits=30):
     """LBVH at the fixed test capacity (what jaxbvh.build does, padded further)."""
-    return lbvh.build(*padded(lo, hi), lo.shape[0], max_leaf=max_leaf, ct=1.0, ci=1.0,
-                      scale=scene_scale(lo, hi), morton_bits=morton_bits)
+    return lbvh.build(*padded(lo, hi), lo.shape[0], scene_scale(lo, hi),
+                      LBVHConfig(max_leaf=max_leaf, morton_bits=morton_bits))
 
 
 @SETTINGS

@@ -18,15 +18,16 @@ import jaxbvh
 from jaxbvh import cli
 from jaxbvh.builders import ploc
 from jaxbvh.builders import ploc_reference as reference
-from jaxbvh.builders.topdown import scene_scale
+from jaxbvh.builders.configs import PLOCConfig
+from jaxbvh.numerics import scene_scale
 
 SETTINGS = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
 def build(lo, hi, radius, max_leaf=1, morton_bits=30):
     """PLOC at the fixed test capacity (what jaxbvh.build does, padded further)."""
-    return ploc.build(*padded(lo, hi), lo.shape[0], radius=radius, max_leaf=max_leaf, ct=1.0, ci=1.0,
-                      scale=scene_scale(lo, hi), morton_bits=morton_bits)
+    return ploc.build(*padded(lo, hi), lo.shape[0], scene_scale(lo, hi),
+                      PLOCConfig(radius=radius, max_leaf=max_leaf, morton_bits=morton_bits))
 
 
 @SETTINGS
