@@ -155,6 +155,10 @@ def test_run_bookkeeping_and_reproducibility():
     np.testing.assert_array_equal(np.asarray(result.tree.child)[:39], rebuilt.child)
     again = evolve.evolve(jax.random.key(3), lo, hi, population=P, generations=6, mutation=0.1)
     np.testing.assert_array_equal(again.population, result.population)
+    config = evolve.EvolveConfig(population=P, generations=6, mutation=0.1)  # the same run from a Config
+    np.testing.assert_array_equal(evolve.evolve(jax.random.key(3), lo, hi, config).population, result.population)
+    with pytest.raises(TypeError, match="not both"):
+        evolve.evolve(jax.random.key(3), lo, hi, config, generations=1)
     other = evolve.evolve(jax.random.key(4), lo, hi, population=P, generations=6, mutation=0.1)
     assert not np.array_equal(other.population, result.population)
 

@@ -292,6 +292,18 @@ def test_one_primitive():
     assert result.objective == result.base == 0.0
 
 
+def test_a_config_is_the_keyword_form():
+    lo, hi = random_boxes(5, 30)
+    config = grasp.GraspConfig(trials=6, noise=0.4, rcl="3", objective="sah")
+    assert config.rcl == 3  # normalised as check_rcl does
+    by_config = grasp.grasp(jax.random.key(1), lo, hi, config)
+    by_keywords = grasp.grasp(jax.random.key(1), lo, hi, trials=6, noise=0.4, rcl=3, objective="sah")
+    np.testing.assert_array_equal(by_config.objectives, by_keywords.objectives)
+    assert canonical(by_config.tree) == canonical(by_keywords.tree)
+    with pytest.raises(TypeError, match="not both"):
+        grasp.grasp(jax.random.key(1), lo, hi, config, trials=2)
+
+
 @pytest.mark.parametrize("kwargs, message", [
     (dict(trials=0), "trials"),
     (dict(trials=2.5), "trials"),
