@@ -195,7 +195,7 @@ def test_bad_options_get_clear_errors():
 
 @pytest.mark.parametrize("method", ["lbvh", "ploc"])
 def test_build_dispatch_keeps_dtype_padding_and_the_twin(method):
-    """jaxbvh.build (checked, cast and padded by engine_inputs) gives the twin's tree in every mode:
+    """jaxbvh.build (checked, cast and padded by jaxbvh.builders.inputs.prepare) gives the twin's tree in every mode:
     float32 padded to the capacity bucket, unpadded (pad=False), float64 under x64."""
     from jaxbvh.builders import ploc_reference as reference_ploc
 

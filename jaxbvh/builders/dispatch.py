@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from jaxbvh.builders import lbvh, ploc, topdown
 from jaxbvh.builders.configs import BUILDERS, DEFAULT_BUILDER, BuilderConfig, make_config
+from jaxbvh.builders.inputs import prepare
 from jaxbvh.tree.layout import BVH
 
 __all__ = ["BUILDERS", "DEFAULT_BUILDER", "build"]
@@ -57,5 +58,5 @@ def build(prim_lo, prim_hi, config: BuilderConfig | str | None = None, *, method
     elif not isinstance(config, BuilderConfig) or config.method not in BUILDERS:
         raise TypeError(f"config must be one of {', '.join(c.__name__ for c in BUILDERS.values())}, "
                         f"got {type(config).__name__}")
-    lo, hi, n, scale = topdown.engine_inputs(prim_lo, prim_hi, pad=config.pad, dtype=config.dtype)
+    lo, hi, n, scale = prepare(prim_lo, prim_hi, pad=config.pad, dtype=config.dtype)
     return _ON_PREPARED[config.method](lo, hi, n, scale, config)

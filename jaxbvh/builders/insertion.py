@@ -108,11 +108,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxbvh.builders.topdown import check_prim_boxes
+from jaxbvh.builders.inputs import prepare
 from jaxbvh.configs import integer
-from jaxbvh.numerics import TIE_TOLERANCE, half_area, scene_scale, working_dtype
+from jaxbvh.numerics import TIE_TOLERANCE, half_area
 from jaxbvh.tree.cost import goldsmith_salmon_cost
-from jaxbvh.tree.layout import WideBVH, capacity_bucket
+from jaxbvh.tree.layout import WideBVH
 
 DEFAULT_MAX_CHILDREN = 8  # see the table in the module docstring
 
@@ -131,27 +131,6 @@ def check_order(order, n: int) -> np.ndarray:
 def check_max_children(max_children) -> int:
     """``max_children`` as an int after checking that it is an integer >= 2."""
     return integer(2)("max_children", max_children)
-
-
-def prepare(prim_lo, prim_hi, *, pad: bool = True, capacity: int | None = None, dtype=None):
-    """Checked, padded device inputs for :func:`insert_batch`: ``(lo, hi, n, scale)``.
-
-    ``lo``, ``hi``: [capacity, 3] with empty boxes (``+inf``, ``-inf``) past ``n``;
-    ``scale``: the scene's power-of-two area scale (module docstring). The capacity is
-    ``capacity`` if given (>= n; one compile for inputs of many sizes), else the
-    capacity bucket of ``n`` (``pad=True``) or ``n``.
-    """
-    lo, hi = check_prim_boxes(prim_lo, prim_hi)
-    dt = working_dtype(dtype, lo.dtype)
-    lo, hi = lo.astype(dt), hi.astype(dt)
-    n = lo.shape[0]
-    cap = int(capacity) if capacity is not None else (capacity_bucket(n) if pad else n)
-    if cap < n:
-        raise ValueError(f"capacity {cap} is below the {n} primitives")
-    lo_p = np.full((cap, 3), np.inf, dt)
-    hi_p = np.full((cap, 3), -np.inf, dt)
-    lo_p[:n], hi_p[:n] = lo, hi
-    return jnp.asarray(lo_p), jnp.asarray(hi_p), jnp.int32(n), jnp.asarray(scene_scale(lo, hi), dt)
 
 
 def pad_order(order, capacity: int) -> np.ndarray:

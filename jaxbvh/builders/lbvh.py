@@ -186,7 +186,7 @@ def build(lo, hi, n, scale, config: LBVHConfig) -> BVH:
 
     ``scale``: the scene's area scale (:func:`jaxbvh.numerics.scene_scale`); ``config``:
     the knobs (``max_leaf``, ``ct``, ``ci``, ``morton_bits``; :func:`jaxbvh.build` makes
-    these inputs with :func:`jaxbvh.builders.topdown.engine_inputs`). Returns a
+    these inputs with :func:`jaxbvh.builders.inputs.prepare`). Returns a
     :class:`~jaxbvh.tree.layout.BVH` of JAX arrays (layout: module docstring).
     """
     bits = config.morton_bits

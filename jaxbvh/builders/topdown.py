@@ -80,35 +80,8 @@ import numpy as np
 
 from jaxbvh.builders.configs import BuilderConfig
 from jaxbvh.draws import split_uniforms
-from jaxbvh.numerics import TIE_TOLERANCE, half_area, scene_scale, working_dtype
+from jaxbvh.numerics import TIE_TOLERANCE, half_area
 from jaxbvh.tree.layout import BVH, capacity_bucket
-from jaxbvh.tree.validate import few_ids
-
-
-def check_prim_boxes(prim_lo, prim_hi, what: str = "primitive boxes"):
-    """Host-side check of ``prim_lo``, ``prim_hi`` [n, 3]; returns them as NumPy arrays.
-
-    Raises ``ValueError`` naming the problem: wrong shape, no primitives, NaN/inf
-    (with how many and which), or ``lo > hi``.
-    """
-    lo = np.asarray(prim_lo)
-    hi = np.asarray(prim_hi)
-    if lo.ndim != 2 or lo.shape[-1] != 3 or lo.shape != hi.shape:
-        raise ValueError(f"{what}: lo and hi must both have shape [n, 3], got {lo.shape} and {hi.shape}")
-    if lo.shape[0] == 0:
-        raise ValueError(f"{what}: no primitives (n = 0); a BVH needs at least one")
-    if not (np.issubdtype(lo.dtype, np.floating) and np.issubdtype(hi.dtype, np.floating)):
-        lo, hi = lo.astype(np.float64), hi.astype(np.float64)
-    bad = ~(np.isfinite(lo).all(1) & np.isfinite(hi).all(1))
-    if bad.any():
-        ids = np.flatnonzero(bad)
-        raise ValueError(f"{what}: {ids.size} of {lo.shape[0]} have NaN or infinite coordinates "
-                         f"(first: {few_ids(ids)})")
-    inverted = (lo > hi).any(1)
-    if inverted.any():
-        ids = np.flatnonzero(inverted)
-        raise ValueError(f"{what}: {ids.size} have lo > hi (first: {few_ids(ids)})")
-    return lo, hi
 
 
 class RandomSplits(NamedTuple):
@@ -132,7 +105,7 @@ class RandomSplits(NamedTuple):
 def build(lo, hi, n, scale, config: BuilderConfig) -> BVH:
     """The top-down tree of ``config`` (a Sweep, Binned or Median Config) over prepared inputs.
 
-    ``lo``, ``hi``, ``n``, ``scale``: as from :func:`engine_inputs`. Returns a
+    ``lo``, ``hi``, ``n``, ``scale``: as from :func:`jaxbvh.builders.inputs.prepare`. Returns a
     :class:`~jaxbvh.tree.layout.BVH` of JAX arrays, nodes numbered level by level, root 0.
     """
     if config.method not in RULES:
@@ -149,7 +122,7 @@ def build(lo, hi, n, scale, config: BuilderConfig) -> BVH:
 def randomized_forest(lo, hi, n, scale, splits: RandomSplits, *, rcl: str):
     """Randomized full-sweep forest (module docstring), one primitive per leaf.
 
-    ``lo``, ``hi``, ``n``, ``scale``: as from :func:`engine_inputs`; ``scale`` must be
+    ``lo``, ``hi``, ``n``, ``scale``: as from :func:`jaxbvh.builders.inputs.prepare`; ``scale`` must be
     the whole scene's (areas of every tree on one scale). ``rcl``: ``"axes"`` or
     ``"list"``. Returns ``(forest, tree_of)``: a :class:`BVH` whose nodes ``0 .. G - 1``
     are the roots (``root`` is 0, ``prim_index`` holds slots of ``lo``), and ``tree_of``
@@ -161,24 +134,6 @@ def randomized_forest(lo, hi, n, scale, splits: RandomSplits, *, rcl: str):
     scene = _Scene(lo, hi, _centres(lo, hi, n), scale, jnp.int32(1), one, one)
     state = _grow(scene, _forest_state(scene, n, splits), method="sweep", bins=0, rcl=rcl, splits=splits)
     return _tree(state, n), state.tree_of
-
-
-def engine_inputs(prim_lo, prim_hi, *, pad: bool = True, dtype=None):
-    """Checked, cast and padded engine inputs ``(lo, hi, n, scale)``.
-
-    ``lo``, ``hi``: [capacity, 3] JAX arrays (padding: the empty box); ``n``: int32
-    primitive count; ``scale``: the scene's power-of-two area scale. ``pad``, ``dtype``
-    and errors as :func:`jaxbvh.build`.
-    """
-    lo, hi = check_prim_boxes(prim_lo, prim_hi)
-    dt = working_dtype(dtype, lo.dtype)
-    lo, hi = lo.astype(dt), hi.astype(dt)
-    n = lo.shape[0]
-    cap = capacity_bucket(n) if pad else n
-    lo_p = np.full((cap, 3), np.inf, dt)
-    hi_p = np.full((cap, 3), -np.inf, dt)
-    lo_p[:n], hi_p[:n] = lo, hi
-    return jnp.asarray(lo_p), jnp.asarray(hi_p), jnp.int32(n), jnp.asarray(scene_scale(lo, hi), dt)
 
 
 # ----------------------------------------------------------------------------------
@@ -571,7 +526,7 @@ def _tree(s: _State, n) -> BVH:
 
 @partial(jax.jit, static_argnames=("method", "bins"))
 def engine(lo, hi, n, max_leaf, ct, ci, scale, *, method: str, bins: int = 0) -> BVH:
-    """The greedy engine on prepared inputs (:func:`engine_inputs`); jitted, vmappable.
+    """The greedy engine on prepared inputs (:func:`jaxbvh.builders.inputs.prepare`); jitted, vmappable.
 
     ``max_leaf``: int32; ``ct``, ``ci``: scalars in the boxes' dtype; ``method``: one of
     :data:`RULES` (static); ``bins``: bins per axis for ``"binned"`` (static, else 0).

@@ -74,7 +74,8 @@ import numpy as np
 
 from jaxbvh.builders.configs import SweepConfig
 from jaxbvh.builders.dispatch import build
-from jaxbvh.builders.topdown import RandomSplits, engine_inputs, randomized_forest
+from jaxbvh.builders.inputs import prepare
+from jaxbvh.builders.topdown import RandomSplits, randomized_forest
 from jaxbvh.configs import Checked, integer, knob, one_of, optional, real
 from jaxbvh.draws import split_uniforms
 from jaxbvh.tree.layout import capacity_bucket, concat_ranges, to_numpy
@@ -216,7 +217,7 @@ def randomized_build(key, prim_lo, prim_hi, *, trial: int = 0, noise: float, rcl
     mode, k = _mode(check_rcl(rcl))
     trial = integer(0)("trial", trial)
     noise = resolve_noise(2, noise=noise)  # checks it
-    lo, hi, n, scale = engine_inputs(prim_lo, prim_hi, pad=pad, dtype=dtype)
+    lo, hi, n, scale = prepare(prim_lo, prim_hi, pad=pad, dtype=dtype)
     cap = lo.shape[0]
     zeros = jnp.zeros(cap, jnp.int32)
     splits = RandomSplits(key, zeros, zeros.at[0].set(trial), zeros, jnp.float32(noise), jnp.int32(k))
@@ -372,7 +373,7 @@ def grasp(key, prim_lo, prim_hi, config: GraspConfig | None = None, *,
     trials, objective, rcl, pad, dtype = config.trials, config.objective, config.rcl, config.pad, config.dtype
     mode, k = _mode(rcl)
     chunk_prims = CHUNK_PRIMS if config.chunk_prims is None else config.chunk_prims
-    lo, hi, n, scale = engine_inputs(prim_lo, prim_hi, pad=pad, dtype=dtype)
+    lo, hi, n, scale = prepare(prim_lo, prim_hi, pad=pad, dtype=dtype)
     n = int(n)
     noise = resolve_noise(n, config.noise, config.deviations)
     lo_np, hi_np = np.asarray(lo)[:n], np.asarray(hi)[:n]
