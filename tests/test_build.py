@@ -46,7 +46,7 @@ def test_every_build_is_valid(tri, method, max_leaf):
 def test_jax_builder_equals_reference(data, method, max_leaf, bins):
     lo, hi = data
     got = jaxbvh.build(lo, hi, method=method, max_leaf=max_leaf, bins=bins)
-    want = reference.build(lo, hi, method=method, max_leaf=max_leaf, bins=bins)
+    want = reference.build(lo, hi, configs.make_config(method, max_leaf=max_leaf, bins=bins))
     jaxbvh.validate(want, lo, hi)
     assert canonical(got) == canonical(want)
 
@@ -56,7 +56,7 @@ def test_jax_builder_equals_reference(data, method, max_leaf, bins):
 def test_jax_builder_equals_reference_on_extreme_soups(tri, method):
     lo, hi = local_boxes(tri)
     got = jaxbvh.build(lo, hi, method=method, max_leaf=2, bins=8)
-    want = reference.build(lo, hi, method=method, max_leaf=2, bins=8)
+    want = reference.build(lo, hi, configs.make_config(method, max_leaf=2, bins=8))
     assert canonical(got) == canonical(want)
 
 
@@ -67,7 +67,7 @@ def test_float64_builder_equals_reference(data, method):
         lo, hi = (a.astype(np.float64) for a in data)
         got = jaxbvh.build(lo, hi, method=method, dtype=np.float64)
         assert got.lo.dtype == np.float64
-        want = reference.build(lo, hi, method=method)
+        want = reference.build(lo, hi, configs.make_config(method))
         jaxbvh.validate(got, lo, hi)
         assert canonical(got) == canonical(want)
 
@@ -180,7 +180,7 @@ def test_build_takes_a_config_or_the_keyword_form():
     hi = lo + rng.random((40, 3)).astype(np.float32) * np.float32(0.2)
     by_config = jaxbvh.build(lo, hi, configs.BinnedConfig(max_leaf=3, bins=4))
     assert canonical(by_config) == canonical(jaxbvh.build(lo, hi, method="binned", max_leaf=3, bins=4, radius=2))
-    assert canonical(by_config) == canonical(reference.build(lo, hi, method="binned", max_leaf=3, bins=4))
+    assert canonical(by_config) == canonical(reference.build(lo, hi, configs.BinnedConfig(max_leaf=3, bins=4)))
     assert canonical(jaxbvh.build(lo, hi, "median")) == canonical(jaxbvh.build(lo, hi, configs.MedianConfig()))
     assert canonical(jaxbvh.build(lo, hi)) == canonical(jaxbvh.build(lo, hi, configs.SweepConfig()))
     with pytest.raises(TypeError, match="not both"):
@@ -243,7 +243,7 @@ TIED_LEAF_BOXES = np.array([
 def test_a_leaf_that_ties_its_split_stays_a_leaf():
     lo, hi = TIED_LEAF_BOXES[:, :3], TIED_LEAF_BOXES[:, 3:]
     got = jaxbvh.build(lo, hi, method="binned", max_leaf=3, bins=4)
-    want = reference.build(lo, hi, method="binned", max_leaf=3, bins=4)
+    want = reference.build(lo, hi, configs.BinnedConfig(max_leaf=3, bins=4))
     assert canonical(got) == canonical(want)
     leaves = jaxbvh.to_numpy(got).prim_count
     assert (leaves == 2).any()  # the tied pair is one leaf

@@ -36,7 +36,7 @@ def test_ploc_equals_reference(data, radius, max_leaf):
     lo, hi = data
     got = build(lo, hi, radius, max_leaf)
     jaxbvh.validate(got, lo, hi)
-    want = reference.build(lo, hi, radius=radius, max_leaf=max_leaf)
+    want = reference.build(lo, hi, PLOCConfig(radius=radius, max_leaf=max_leaf))
     jaxbvh.validate(want, lo, hi)
     assert canonical(got) == canonical(want)
     assert np.asarray(got.prim_count).max() <= max_leaf
@@ -49,7 +49,8 @@ def test_ploc_equals_reference_on_extreme_soups(tri, bits, max_leaf):
     lo, hi = local_boxes(tri)
     got = build(lo, hi, 3, max_leaf, bits)
     jaxbvh.validate(got, lo, hi)
-    assert canonical(got) == canonical(reference.build(lo, hi, radius=3, max_leaf=max_leaf, morton_bits=bits))
+    want = reference.build(lo, hi, PLOCConfig(radius=3, max_leaf=max_leaf, morton_bits=bits))
+    assert canonical(got) == canonical(want)
 
 
 @settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -60,7 +61,7 @@ def test_float64_ploc_equals_reference(data):
         got = build(lo, hi, 3, 2)
         assert got.lo.dtype == np.float64
         jaxbvh.validate(got, lo, hi)
-        assert canonical(got) == canonical(reference.build(lo, hi, radius=3, max_leaf=2))
+        assert canonical(got) == canonical(reference.build(lo, hi, PLOCConfig(radius=3, max_leaf=2)))
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 48, 64])
@@ -102,7 +103,7 @@ def test_no_mutual_pair_falls_back_to_exact_comparisons(monkeypatch):
         got = jaxbvh.build(lo, hi, method="ploc", radius=2)
     finally:
         ploc._cluster.clear_cache()
-    want = reference.build(lo, hi, radius=2)
+    want = reference.build(lo, hi, PLOCConfig(radius=2))
     assert any(exact_calls)
     jaxbvh.validate(got, lo, hi)
     assert canonical(got) == canonical(want)
