@@ -947,6 +947,9 @@ def step(state: OptimizerState) -> OptimizerState:
 def result(state: OptimizerState) -> OptimizeResult:
     """The best chain's tree (same capacity as the input) and its figures.
 
+    The best chain is the first whose final SAH is within ``min_gain`` (relative) of
+    the least (the margin of the module docstring).
+
     ``steps``, ``moves``, ``converged``, ``history``, ``history_moves`` are the best
     chain's; ``chain_sah`` [K] every chain's final SAH when K > 1 (else None).
     ``sah``: the SAH of the returned tree (``keep_best``: the least seen).
@@ -958,7 +961,10 @@ def result(state: OptimizerState) -> OptimizeResult:
     else:
         st = inner.forest
         final_cost = st.cost[tree.root + cap * jnp.arange(chains, dtype=jnp.int32)]
-    k = jnp.argmin(final_cost)
+    # the first chain within the margin of the least: an ulp of noise in the costs (another
+    # fusion, e.g. under vmap) must not pick another chain
+    least = jnp.min(final_cost)
+    k = jnp.argmax(final_cost <= least + state.params.min_gain * jnp.abs(least))
     out = _to_tree(tree, _chain_of(st, k, chains))
     if static.split_axes:
         out = apply_split_axes(out)
