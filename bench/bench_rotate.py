@@ -185,7 +185,7 @@ def write_big(row, reference, args):
                                        "jax": jax.__version__})
     path.write_text(json.dumps(data, indent=1))
     r = row
-    lines = ["", f"## Hill climbing on the >= 1M-triangle input (`--big`)", "",
+    lines = ["", "## Hill climbing on the >= 1M-triangle input (`--big`)", "",
              f"{r['input']}: {r['triangles']:,} triangles, {r['nodes']:,} nodes (capacity "
              f"{r['capacity']:,}). Build (default sweep builder): {r['build_seconds_warm']:.2f} s warm, "
              f"{r['build_seconds_cold']:.2f} s cold. Seconds are warm, median of {args.repeat}; compile "

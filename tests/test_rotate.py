@@ -26,7 +26,7 @@ from hypothesis import strategies as st
 import jaxbvh
 from jaxbvh.draws import annealing_draws
 from jaxbvh.numerics import min_gain
-from jaxbvh.optimize import driver, rotate
+from jaxbvh.optimize import driver, rotate, rotate_passes
 from jaxbvh.optimize import rotate_reference as ref
 from jaxbvh.optimize.rotate import ANNEAL, HILL_CLIMB, AnnealConfig, HillClimbConfig
 from jaxbvh.optimize.schedules import EXPONENTIAL_FINAL, constant_schedule, kensler_schedule
@@ -150,14 +150,14 @@ def test_work_sizes_do_not_change_the_result(monkeypatch):
     assert_same_tree(b.tree, c.tree)
     check_result(c, plo, phi)
     # the short-queue walk (normally 4096 wide) next to the full-width one
-    monkeypatch.setattr(rotate, "_SMALL_QUEUE", 3)
+    monkeypatch.setattr(rotate_passes, "SMALL_QUEUE", 3)
     for frontier in (5, 7):
         d = rotate.hill_climb(tree, windows=(2, 5), frontier=frontier)
         assert_same_tree(d.tree, c.tree)
         assert int(d.steps) == int(c.steps) and int(d.moves) == int(c.moves)
     key = jax.random.key(5)
     e = rotate.anneal(key, tree, steps=12, period=6, frontier=7)
-    monkeypatch.setattr(rotate, "_SMALL_QUEUE", 4096)
+    monkeypatch.setattr(rotate_passes, "SMALL_QUEUE", 4096)
     f = rotate.anneal(key, tree, steps=12, period=6, frontier=1)
     assert_same_tree(e.tree, f.tree)
 
