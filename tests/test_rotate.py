@@ -325,6 +325,28 @@ def test_anneal_with_optax_schedules_equals_reference(name, case, key_seed):
     check_result(result, plo, phi)
 
 
+def test_float64_trees_stay_float64_and_equal_the_reference():
+    """x64 mode: boxes and costs stay float64 (an optax schedule's float64 too), links
+    int32, and both methods still equal the twin."""
+    with jax.enable_x64(True):
+        tree, plo, phi = random_tree(4, 30, 2, dtype=np.float64)
+        hc = rotate.hill_climb(tree, ct=0.3, split_axes=False)
+        expected, info = ref.hill_climb(tree, ct=0.3)
+        assert_same_tree(hc.tree, expected)
+        assert int(hc.steps) == info["passes"]
+        key = jax.random.key(1)
+        schedule = optax.cosine_decay_schedule(0.4, 16)
+        sa = rotate.anneal(key, tree, schedule=schedule, steps=16, split_axes=False)
+        expected, info = ref.anneal(tree, lambda i: np.asarray(annealing_draws(key, i, NODES, np.float64)),
+                                    schedule, 16)
+        assert_same_tree(sa.tree, expected)
+        assert int(sa.steps) == info["passes"]
+        for out in (hc, sa):
+            assert np.asarray(out.tree.lo).dtype == np.float64 and np.asarray(out.sah).dtype == np.float64
+            assert np.asarray(out.tree.left).dtype == np.int32
+            jaxbvh.validate(out.tree, plo, phi)
+
+
 def test_kensler_schedule_composes_under_optax_join():
     """Kensler's schedule as a piece of an optax composition: followed by a constant 0 it
     is the default run; a composition that starts later shifts it (other trees)."""

@@ -428,7 +428,7 @@ def step(state: OptimizerState) -> OptimizerState:
     inner = Inner(forest, inner.keys, inner.done | ((moves == 0) & cold), inner.passes + running,
                   inner.moves + moves, inner.history.at[:, i].set(jnp.where(running, cost, jnp.nan), mode="drop"),
                   inner.history_moves.at[:, i].set(jnp.where(running, moves, 0), mode="drop"), best)
-    progress = record(state.progress, jnp.min(jnp.where(running, cost, jnp.inf)), jnp.sum(moves),
+    progress = record(state.progress, jnp.min(jnp.where(running, cost, jnp.inf)), jnp.sum(moves, dtype=jnp.int32),
                       converged=jnp.all(inner.done))
     progress = progress._replace(sah=jnp.min(best[0] if static.keep_best else cost))
     return keep_if_done(state, state.replace(inner=inner, progress=progress))
@@ -454,7 +454,7 @@ def result(state: OptimizerState) -> OptimizeResult:
     # the first chain within the margin of the least: an ulp of noise in the costs (another
     # fusion, e.g. under vmap) must not pick another chain
     least = jnp.min(final_cost)
-    k = jnp.argmax(final_cost <= least + state.params.min_gain * jnp.abs(least))
+    k = jnp.argmax(final_cost <= least + state.params.min_gain * jnp.abs(least)).astype(jnp.int32)
     out = to_tree(tree, chain_of(st, k, chains))
     if static.split_axes:
         out = apply_split_axes(out)

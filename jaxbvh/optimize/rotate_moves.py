@@ -145,7 +145,7 @@ def _choose_greedy(cand, cur, legal, tol):
     improving = legal & (cand < (cur - tol)[:, None])
     least = jnp.min(jnp.where(improving, cand, jnp.inf), axis=1)
     near = improving & (cand <= (least + tol)[:, None])
-    return jnp.where(jnp.any(improving, axis=1), jnp.argmax(near, axis=1), -1)
+    return jnp.where(jnp.any(improving, axis=1), jnp.argmax(near, axis=1).astype(jnp.int32), -1)
 
 
 def _choose_annealing(cand, cur, legal, tol, temperature, draws):

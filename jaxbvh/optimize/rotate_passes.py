@@ -200,7 +200,7 @@ def run_pass(st, interior, scale, ct, min_gain, temperature, draws, collect=True
             nodes = jnp.where(start + jnp.arange(width) < end, nodes, cap)
             st, made, moved = process_window(st, nodes, scale, ct, min_gain, temperature, draws,
                                        annealing, chains)
-            log = jax.lax.dynamic_update_slice(log, moved, (start, 0))
+            log = jax.lax.dynamic_update_slice(log, moved, (start, jnp.int32(0)))
             return st, log, start + jnp.minimum(width, end - start), end, moves + made
 
         return jax.lax.while_loop(cond, body, carry)
@@ -220,7 +220,7 @@ def run_pass(st, interior, scale, ct, min_gain, temperature, draws, collect=True
     moves = jnp.zeros(chains, jnp.int32)
     st, log, _, moves = jax.lax.while_loop(cond, body, (st, log, jnp.int32(0), moves))
     capacity = st.queue.shape[0]
-    queued = 3 * jnp.sum(moves)
+    queued = 3 * jnp.sum(moves, dtype=jnp.int32)
     # no queue is needed when it overflows or the next pass visits everything anyway
     queue = jax.lax.cond(collect & (queued <= capacity),
                          lambda: _collect_moved(log, count, capacity, cap), lambda: st.queue)
