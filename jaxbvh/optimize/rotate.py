@@ -350,16 +350,16 @@ def _start(tree, params: Params, keys, *, chains, frontier, keep_best, history):
     return inner, start_cost
 
 
-def _init_state(tree, config, keys, static: Static, steps: int, limit: int) -> OptimizerState:
-    """The state of either method before its first pass (host code; ``config`` checked)."""
+def _init_state(tree, config, keys, static: Static, *, limit: int, steps: int = 0,
+                period: float = KENSLER_PERIOD, hottest: float = DEFAULT_HOTTEST) -> OptimizerState:
+    """The state of either method before its first pass (host code; ``config`` checked;
+    ``steps``, ``period``, ``hottest``: the schedule's numbers, unused by hill climbing)."""
     check_tree(tree)
     tree = to_jax(tree)
     dtype = float_dtype(tree)
     min_gain = default_min_gain(dtype) if config.min_gain is None else config.min_gain
     params = Params(jnp.asarray(config.ct, dtype), jnp.asarray(config.ci, dtype),
-                    jnp.asarray(min_gain, dtype), jnp.int32(steps),
-                    jnp.float32(getattr(config, "period", KENSLER_PERIOD)),
-                    jnp.float32(getattr(config, "hottest", DEFAULT_HOTTEST)))
+                    jnp.asarray(min_gain, dtype), jnp.int32(steps), jnp.float32(period), jnp.float32(hottest))
     inner, start_cost = _start(tree, params, keys, chains=static.chains, frontier=static.frontier,
                                keep_best=static.keep_best, history=history_length(limit))
     return OptimizerState(tree, new_progress(start_cost, limit, dtype), params, inner, static)
@@ -376,7 +376,7 @@ def init_hill_climb(tree, config: HillClimbConfig | None = None, key=None) -> Op
     config = check_config(config, HillClimbConfig, "hc")
     static = Static(annealing=False, schedule=None, keep_best=False, chains=1, windows=config.windows,
                     frontier=int(config.frontier), split_axes=bool(config.split_axes))
-    return _init_state(tree, config, None, static, 0, config.max_passes)
+    return _init_state(tree, config, None, static, limit=config.max_passes)
 
 
 def init_anneal(tree, config: AnnealConfig | None = None, key=None) -> OptimizerState:
@@ -399,7 +399,8 @@ def init_anneal(tree, config: AnnealConfig | None = None, key=None) -> Optimizer
             max(int(config.steps), 1), float(config.hottest), int(config.period))
     static = Static(annealing=True, schedule=schedule, keep_best=bool(config.keep_best), chains=chains,
                     windows=windows, frontier=int(config.frontier), split_axes=bool(config.split_axes))
-    return _init_state(tree, config, keys, static, int(config.steps), config.steps + config.max_quench)
+    return _init_state(tree, config, keys, static, limit=config.steps + config.max_quench,
+                       steps=int(config.steps), period=config.period, hottest=config.hottest)
 
 
 def step(state: OptimizerState) -> OptimizerState:
