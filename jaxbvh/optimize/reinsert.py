@@ -663,7 +663,7 @@ class Config:
     ct: float = dataclasses.field(default=1.0, metadata=dict(help="SAH traversal cost"))
     ci: float = dataclasses.field(default=1.0, metadata=dict(help="SAH intersection cost"))
     min_gain: float | None = dataclasses.field(default=None, metadata=dict(
-        help="relative margin a move must beat (default: 64 eps of the tree's float type)",
+        help="relative margin a move must beat (automatic: 64 eps of the tree's float type)",
         metavar="G"))
     split_axes: bool = dataclasses.field(default=True, metadata=dict(
         help="Kensler's split-axis pass on the result"))
