@@ -625,7 +625,9 @@ def widen(octaves, taken, count, nodes, before, after, escalate):
     One more after an iteration that took moves but lowered the SAH (``before`` ->
     ``after``) by at most ``escalate`` (relative), four more after one that took none,
     every node from 64 octaves on; unchanged once every node (``count == nodes``) is
-    searched or while the gains stay large.
+    searched or while the gains stay large. The comparison runs in the tree's float type
+    (the host loop it replaces, and the twin, compare the same two SAH values in
+    float64: they can differ only when the drop lies within rounding of the threshold).
     """
     small = (taken == 0) | (before - after <= escalate * before)
     grown = jnp.where(octaves < FIRST_OCTAVES_TRIED, octaves + jnp.where(taken > 0, 1, 4), ALL_OCTAVES)
