@@ -46,8 +46,11 @@ def test_cli_defaults_are_the_config_defaults(method):
 
 
 def _shown(value):
-    return {True: "on", False: "off", None: "automatic"}.get(value, f"{value:g}" if isinstance(value, float)
-                                                             else str(value))
+    if isinstance(value, bool):
+        return "on" if value else "off"
+    if value is None:
+        return "automatic"
+    return f"{value:g}" if isinstance(value, float) else str(value)
 
 
 def test_treelet_max_passes_default_is_the_library_s():
