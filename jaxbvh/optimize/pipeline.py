@@ -129,6 +129,7 @@ class Params(NamedTuple):
     max_rounds: Any  # [] int32: most rounds
     need_first: Any  # [] int32: first candidates of the first round's reinsertion
     need_later: Any  # [] int32: the same in later rounds (every node)
+    split_axes: Any  # [] bool: Kensler's final pass in result()
 
 
 class Static(NamedTuple):
@@ -136,7 +137,6 @@ class Static(NamedTuple):
 
     treelet: Any          # treelet.Config of the treelet stages (hashable)
     reinsert_limit: int   # most iterations of a reinsertion stage
-    split_axes: bool      # Kensler's final pass in result()
 
 
 class Inner(NamedTuple):
@@ -159,7 +159,7 @@ def _start_reinsertion(inner: Inner, params: Params, static: Static) -> Inner:
     tree = treelet.result(inner.treelet).tree
     sub = inner.reinsert
     need = jnp.where(inner.round == 0, params.need_first, params.need_later)
-    sub = reinsert.restart(sub.params._replace(need=need), sub.static, tree, static.reinsert_limit)
+    sub = reinsert.restart(sub.params._replace(need=need), tree, static.reinsert_limit)
     return inner._replace(reinsert=sub, stage=jnp.int32(REINSERTION))
 
 
@@ -230,12 +230,13 @@ def init(tree, config: Config | None = None, key=None) -> OptimizerState:
     nodes = int(jnp.sum(tree.parent >= 0))
     params = Params(ct=jnp.asarray(config.ct, dtype), ci=jnp.asarray(config.ci, dtype),
                     round_gain=jnp.asarray(config.round_gain, dtype), max_rounds=jnp.int32(config.max_rounds),
-                    need_first=reinsertion.params.need, need_later=jnp.int32(candidates_needed(1.0, nodes)))
+                    need_first=reinsertion.params.need, need_later=jnp.int32(candidates_needed(1.0, nodes)),
+                    split_axes=jnp.bool_(config.split_axes))
     treelet_limit, reinsert_limit = int(treelets.progress.limit), int(reinsertion.progress.limit)
     progress = new_progress(sah_of(tree, config.ct, config.ci),
                             config.max_rounds * (treelet_limit + reinsert_limit), dtype)
     inner = Inner(treelets, reinsertion, jnp.int32(TREELETS), jnp.int32(0), progress.sah_start)
-    static = Static(config.treelet, reinsert_limit, bool(config.split_axes))
+    static = Static(config.treelet, reinsert_limit)
     return _settle_at_init(OptimizerState(tree, progress, params, inner, static))
 
 
@@ -268,8 +269,7 @@ def result(state: OptimizerState) -> OptimizeResult:
     inner = state.inner
     out = jax.lax.cond(inner.stage == TREELETS, lambda i: treelet.result(i.treelet).tree,
                        lambda i: reinsert.result(i.reinsert).tree, inner)
-    if state.static.split_axes:
-        out = apply_split_axes(out)
+    out = jax.lax.cond(state.params.split_axes, apply_split_axes, lambda t: t, out)
     progress = state.progress._replace(sah=sah_of(out, state.params.ct, state.params.ci))
     return make_result(out, progress)
 

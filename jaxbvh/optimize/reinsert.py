@@ -693,12 +693,7 @@ class Params(NamedTuple):
     escalate: Any   # [] tree dtype: relative drop that widens the candidates
     max_steps: Any  # [] int32: search steps per node and iteration
     need: Any       # [] int32: candidates of the first iteration (reinsert_rules.candidates_needed)
-
-
-class Static(NamedTuple):
-    """Settings that fix the compiled program."""
-
-    split_axes: bool  # Kensler's final pass in result()
+    split_axes: Any  # [] bool: Kensler's final pass in result() (traced: no program of its own)
 
 
 class Inner(NamedTuple):
@@ -726,9 +721,10 @@ def init(tree, config: Config | None = None, key=None) -> OptimizerState:
     nodes = int(jnp.sum(tree.parent >= 0))
     params = Params(*(jnp.asarray(x, dtype) for x in (config.ct, config.ci, min_gain, config.escalate)),
                     max_steps=jnp.int32(config.max_steps),
-                    need=jnp.int32(candidates_needed(config.first_fraction, nodes)))
+                    need=jnp.int32(candidates_needed(config.first_fraction, nodes)),
+                    split_axes=jnp.bool_(config.split_axes))
     limit = config.max_iterations if config.ct > 0 else 0  # with Ct = 0 no move changes the SAH
-    return restart(params, Static(bool(config.split_axes)), tree, limit)
+    return restart(params, tree, limit)
 
 
 @jax.jit
@@ -738,11 +734,12 @@ def _start(tree, need) -> Inner:
     return Inner(st, octaves, jnp.sum(st.parent >= 0, dtype=jnp.int32))
 
 
-def restart(params: Params, static: Static, tree, limit: int) -> OptimizerState:
+def restart(params: Params, tree, limit: int) -> OptimizerState:
     """The state of a fresh run on ``tree`` (a JAX BVH) with these settings (traceable:
     the pipeline starts each reinsertion stage with it). ``limit``: most iterations."""
     progress = new_progress(sah_of(tree, params.ct, params.ci), limit, float_dtype(tree))
-    return OptimizerState(tree, progress, params, _start(tree, params.need), static)
+    # every setting is traced (no static part): one compiled program for every config
+    return OptimizerState(tree, progress, params, _start(tree, params.need), None)
 
 
 def step(state: OptimizerState) -> OptimizerState:
@@ -759,8 +756,7 @@ def step(state: OptimizerState) -> OptimizerState:
 def result(state: OptimizerState) -> OptimizeResult:
     """The optimized tree (same capacity as the input) and the run's figures."""
     out = _to_tree(state.tree, state.inner.tree)
-    if state.static.split_axes:
-        out = apply_split_axes(out)
+    out = jax.lax.cond(state.params.split_axes, apply_split_axes, lambda t: t, out)
     progress = state.progress._replace(sah=sah_of(out, state.params.ct, state.params.ci))
     return make_result(out, progress)
 
