@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+from typing import Any
 
 import pytest
 
@@ -122,6 +123,7 @@ class Outer:
     """Outer knobs. ``scale``: a factor. ``sizes``: work sizes."""
 
     scale: float | None = None
+    seed: Any = dataclasses.field(default=None, metadata=dict(type=int, help="a seed"))
     on: bool = True
     sizes: tuple = (1, 2)
     inner: Inner = dataclasses.field(default_factory=Inner)
@@ -142,14 +144,17 @@ def test_the_helper_on_a_nested_config():
         ConfigOptions({"m": Outer})
     parser = argparse.ArgumentParser()
     options = add_config_options(parser, Outer, exclude=("sizes",), flags={"inner.label": "--name"}, name="m")
-    assert set(options.knobs) == {"--scale", "--on", "--depth", "--mode", "--name"}
+    assert set(options.knobs) == {"--scale", "--seed", "--on", "--depth", "--mode", "--name"}
     assert options.config("m", parser.parse_args([])) == Outer()
-    args = parser.parse_args(["--scale", "0.5", "--no-on", "--depth", "4", "--mode", "slow", "--name", "y"])
-    assert options.config("m", args) == Outer(0.5, False, inner=Inner(4, "slow", "y"))
+    args = parser.parse_args(["--scale", "0.5", "--no-on", "--depth", "4", "--mode", "slow", "--name", "y",
+                              "--seed", "3"])
+    assert options.config("m", args) == Outer(0.5, 3, False, inner=Inner(4, "slow", "y"))
     assert "m (inner): how deep to go, in levels (default: 3)" in options.help("--depth")
     with pytest.raises(SystemExit):
         parser.parse_args(["--mode", "medium"])
     with pytest.raises(SystemExit):
         parser.parse_args(["--scale", "big"])  # float from the annotation
+    with pytest.raises(SystemExit):
+        parser.parse_args(["--seed", "0.5"])  # int from the metadata's type
     with pytest.raises(ValueError, match="^--scale: scale must be >= 0"):
         options.config("m", parser.parse_args(["--scale", "-1"]))

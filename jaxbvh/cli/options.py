@@ -6,8 +6,8 @@ the fields of their configs as options, via :class:`ConfigOptions`:
 * the flag is the field's name (``max_steps`` -> ``--max-steps``) unless a rename
   says otherwise (the command keeps its established spellings);
 * the type comes from the default (``int``, ``float``, ``str``; a ``bool`` becomes a
-  ``--x/--no-x`` pair) or, for a default of None, from the annotation
-  (``float | None``);
+  ``--x/--no-x`` pair) or, for a default of None, from the field's metadata ``type``
+  (:func:`jaxbvh.configs.knob`) or its annotation (``float | None``);
 * help, choices and metavar come from ``dataclasses.field(metadata=dict(help=...,
   choices=..., metavar=...))``, else the help from the Config's docstring, whose
   fields are written ``name``: text (the house style);
@@ -72,6 +72,8 @@ def _kind(field: dataclasses.Field, default, hints: dict):
         if isinstance(default, kind):
             return kind
     if default is None:
+        if field.metadata.get("type") in _TYPES:  # jaxbvh.configs.knob(None, type=...)
+            return field.metadata["type"]
         hint = hints.get(field.name)
         args = set(typing.get_args(hint)) - {type(None)}
         if len(args) == 1 and next(iter(args)) in _TYPES:
