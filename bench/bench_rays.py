@@ -132,7 +132,7 @@ def main(argv=None):
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
-    lines = [f"# Ray traversal throughput (closest hit)\n",
+    lines = ["# Ray traversal throughput (closest hit)\n",
              f"{meta['machine']}, {meta['cpus']} CPUs, JAX {meta['jax']} ({meta['backend']}), "
              f"{args.rays} rays per set, batch {args.batch}, median of {args.repeat}. "
              "Embree: embreex `run` on the same rays (its own BVH).\n",

@@ -139,7 +139,7 @@ def run_big(args):
     row = {"input": f"big: {args.big_copies} bunnies + {args.big_walls} walls (jaxbvh sweep)",
            "triangles": int(len(lo)), "nodes": nodes, "capacity": tree.capacity,
            "start_sah": start_sah, "method": "hc", "steps": 0, "chains": 1,
-           "sah": float(res.sah), "passes": int(res.passes), "moves": int(res.moves),
+           "sah": float(res.sah), "passes": int(res.steps), "moves": int(res.moves),
            "seconds": warm, "compile_seconds": compile_s, "split_axes": False,
            "build_seconds_cold": build_cold, "build_seconds_warm": build_warm}
     print(row, file=sys.stderr)
@@ -185,7 +185,7 @@ def write_big(row, reference, args):
                                        "jax": jax.__version__})
     path.write_text(json.dumps(data, indent=1))
     r = row
-    lines = ["", f"## Hill climbing on the >= 1M-triangle input (`--big`)", "",
+    lines = ["", "## Hill climbing on the >= 1M-triangle input (`--big`)", "",
              f"{r['input']}: {r['triangles']:,} triangles, {r['nodes']:,} nodes (capacity "
              f"{r['capacity']:,}). Build (default sweep builder): {r['build_seconds_warm']:.2f} s warm, "
              f"{r['build_seconds_cold']:.2f} s cold. Seconds are warm, median of {args.repeat}; compile "
@@ -217,7 +217,7 @@ def run(args):
             base["tinybvh_sah"], base["tinybvh_seconds"] = TINYBVH[tiny][1], TINYBVH[tiny][2]
         res, warm, compile_s = timed(lambda: rotate.hill_climb(tj), args.repeat)
         rows.append({**base, "method": "hc", "steps": 0, "chains": 1, "sah": float(res.sah),
-                     "passes": int(res.passes), "moves": int(res.moves), "seconds": warm,
+                     "passes": int(res.steps), "moves": int(res.moves), "seconds": warm,
                      "compile_seconds": compile_s})
         print(rows[-1], file=sys.stderr)
         for steps in args.steps:
@@ -229,7 +229,7 @@ def run(args):
                     lambda: rotate.anneal(key, tj, steps=steps, chains=chains), args.repeat)
                 rows.append({**base, "method": "sa", "steps": steps, "chains": chains,
                              "hottest": rotate.DEFAULT_HOTTEST,
-                             "sah": float(res.sah), "passes": int(res.passes),
+                             "sah": float(res.sah), "passes": int(res.steps),
                              "moves": int(res.moves), "seconds": warm, "compile_seconds": compile_s})
                 print(rows[-1], file=sys.stderr)
         for hottest in args.sweep_hottest:
@@ -238,7 +238,7 @@ def run(args):
                                                       hottest=hottest))
             rows.append({**base, "method": "sa", "steps": args.sweep_steps, "chains": 1,
                          "hottest": hottest, "sweep": True, "sah": float(res.sah),
-                         "passes": int(res.passes), "moves": int(res.moves)})
+                         "passes": int(res.steps), "moves": int(res.moves)})
             print(rows[-1], file=sys.stderr)
     reference = None
     if args.reference:

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from helpers import canonical
@@ -11,7 +14,9 @@ from hypothesis import strategies as st
 from strategies import box_sets, boxes, triangle_soups
 
 import jaxbvh
+from jaxbvh.builders import configs, topdown
 from jaxbvh.builders import topdown_reference as reference
+from jaxbvh.numerics import scene_scale
 from jaxbvh.tree.frame import Frame
 
 SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -41,7 +46,7 @@ def test_every_build_is_valid(tri, method, max_leaf):
 def test_jax_builder_equals_reference(data, method, max_leaf, bins):
     lo, hi = data
     got = jaxbvh.build(lo, hi, method=method, max_leaf=max_leaf, bins=bins)
-    want = reference.build(lo, hi, method=method, max_leaf=max_leaf, bins=bins)
+    want = reference.build(lo, hi, configs.make_config(method, max_leaf=max_leaf, bins=bins))
     jaxbvh.validate(want, lo, hi)
     assert canonical(got) == canonical(want)
 
@@ -51,7 +56,7 @@ def test_jax_builder_equals_reference(data, method, max_leaf, bins):
 def test_jax_builder_equals_reference_on_extreme_soups(tri, method):
     lo, hi = local_boxes(tri)
     got = jaxbvh.build(lo, hi, method=method, max_leaf=2, bins=8)
-    want = reference.build(lo, hi, method=method, max_leaf=2, bins=8)
+    want = reference.build(lo, hi, configs.make_config(method, max_leaf=2, bins=8))
     assert canonical(got) == canonical(want)
 
 
@@ -62,7 +67,7 @@ def test_float64_builder_equals_reference(data, method):
         lo, hi = (a.astype(np.float64) for a in data)
         got = jaxbvh.build(lo, hi, method=method, dtype=np.float64)
         assert got.lo.dtype == np.float64
-        want = reference.build(lo, hi, method=method)
+        want = reference.build(lo, hi, configs.make_config(method))
         jaxbvh.validate(got, lo, hi)
         assert canonical(got) == canonical(want)
 
@@ -96,16 +101,14 @@ def test_sah_builders_beat_median_split():
 
 
 def test_sizes_in_one_capacity_bucket_compile_once():
-    from jaxbvh.builders.topdown import _build
-
     rng = np.random.default_rng(1)
     sizes = [13, 14, 15, 16]
     assert {jaxbvh.capacity_bucket(n) for n in sizes} == {16}
-    start = _build._cache_size()
+    start = topdown.engine._cache_size()
     for n in sizes:
         lo = rng.random((n, 3)).astype(np.float32)
         jaxbvh.build(lo, lo + 0.1, max_leaf=n % 3 + 1)  # leaf size is not a static argument
-    assert _build._cache_size() - start <= 1
+    assert topdown.engine._cache_size() - start <= 1
 
 
 @pytest.mark.parametrize("bad, message", [
@@ -125,25 +128,78 @@ def test_bad_options_get_clear_errors():
         jaxbvh.build(lo, lo, method="octree")
     with pytest.raises(ValueError, match="max_leaf"):
         jaxbvh.build(lo, lo, max_leaf=0)
+    with pytest.raises(ValueError, match="bins"):
+        jaxbvh.build(lo, lo, method="binned", bins=1)
+    with pytest.raises(ValueError, match="ct"):
+        jaxbvh.build(lo, lo, ct=-1.0)
     with pytest.raises(ValueError, match="lo > hi"):
         jaxbvh.build(lo, lo - 1)
     with pytest.raises(ValueError, match="x64"):
         jaxbvh.build(lo, lo, dtype=np.float64)
 
 
+# ----------------------------------------------------------------------------------
+# Configs: one per builder, the keyword form makes the same one
+# ----------------------------------------------------------------------------------
+
+
+def test_builders_map_methods_to_their_configs():
+    assert list(jaxbvh.BUILDERS) == ["sweep", "binned", "median", "lbvh", "ploc"]
+    for method, cls in jaxbvh.BUILDERS.items():
+        assert cls.method == method and cls.__doc__ and dataclasses.is_dataclass(cls)
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            cls().max_leaf = 2
+    assert configs.DEFAULT_BUILDER in jaxbvh.BUILDERS
+
+
+@settings(max_examples=60, deadline=None)
+@given(method=st.sampled_from(jaxbvh.BUILDERS),
+       knob=st.sampled_from(["max_leaf", "ct", "ci", "bins", "radius", "morton_bits"]),
+       value=st.one_of(st.integers(-2, 70), st.floats(-1, 40, allow_nan=False), st.just(True)))
+def test_the_keyword_form_makes_the_methods_config(method, knob, value):
+    """``build(lo, hi, method=m, **kw)`` is ``build(lo, hi, BUILDERS[m](**own kw))``: a
+    knob of another builder is ignored, a knob of this one is checked by its Config
+    (a ValueError naming it) and otherwise kept."""
+    cls = jaxbvh.BUILDERS[method]
+    own = knob in {f.name for f in dataclasses.fields(cls)}
+    try:
+        made = configs.make_config(method, **{knob: value})
+    except ValueError as exc:
+        assert own and knob in str(exc)
+        with pytest.raises(ValueError, match=knob):
+            cls(**{knob: value})
+        return
+    assert made == (cls(**{knob: value}) if own else cls())
+    if own:
+        assert getattr(made, knob) == value
+
+
+def test_build_takes_a_config_or_the_keyword_form():
+    rng = np.random.default_rng(3)
+    lo = rng.random((40, 3)).astype(np.float32)
+    hi = lo + rng.random((40, 3)).astype(np.float32) * np.float32(0.2)
+    by_config = jaxbvh.build(lo, hi, configs.BinnedConfig(max_leaf=3, bins=4))
+    assert canonical(by_config) == canonical(jaxbvh.build(lo, hi, method="binned", max_leaf=3, bins=4, radius=2))
+    assert canonical(by_config) == canonical(reference.build(lo, hi, configs.BinnedConfig(max_leaf=3, bins=4)))
+    assert canonical(jaxbvh.build(lo, hi, "median")) == canonical(jaxbvh.build(lo, hi, configs.MedianConfig()))
+    assert canonical(jaxbvh.build(lo, hi)) == canonical(jaxbvh.build(lo, hi, configs.SweepConfig()))
+    with pytest.raises(TypeError, match="not both"):
+        jaxbvh.build(lo, hi, configs.SweepConfig(), max_leaf=2)
+    with pytest.raises(TypeError, match="unknown builder option"):
+        jaxbvh.build(lo, hi, max_leaves=2)
+    with pytest.raises(TypeError, match="config must be"):
+        jaxbvh.build(lo, hi, configs.BuilderConfig())
+
+
 def test_builder_vmaps_over_trials():
     """The level-synchronous engine runs under vmap (random trials build in one call)."""
-    import jax.numpy as jnp
-
-    from jaxbvh.builders.topdown import _build, scene_scale
-
     rng = np.random.default_rng(7)
     lo = rng.random((3, 20, 3)).astype(np.float32)
     hi = lo + np.float32(0.05)
 
     def one(lo_i, hi_i):
-        return _build(lo_i, hi_i, jnp.int32(20), jnp.int32(1), jnp.float32(1), jnp.float32(1),
-                      jnp.float32(scene_scale(lo, hi)), method="sweep", bins=0)
+        return topdown.engine(lo_i, hi_i, jnp.int32(20), jnp.int32(1), jnp.float32(1), jnp.float32(1),
+                              jnp.float32(scene_scale(lo, hi)), method="sweep")
 
     trees = jax.vmap(one)(jnp.asarray(lo), jnp.asarray(hi))
     for b in range(3):
@@ -187,7 +243,7 @@ TIED_LEAF_BOXES = np.array([
 def test_a_leaf_that_ties_its_split_stays_a_leaf():
     lo, hi = TIED_LEAF_BOXES[:, :3], TIED_LEAF_BOXES[:, 3:]
     got = jaxbvh.build(lo, hi, method="binned", max_leaf=3, bins=4)
-    want = reference.build(lo, hi, method="binned", max_leaf=3, bins=4)
+    want = reference.build(lo, hi, configs.BinnedConfig(max_leaf=3, bins=4))
     assert canonical(got) == canonical(want)
     leaves = jaxbvh.to_numpy(got).prim_count
     assert (leaves == 2).any()  # the tied pair is one leaf

@@ -309,7 +309,7 @@ def test_node_order_and_root_do_not_matter():
     jaxbvh.validate(b, lo, hi)
     assert int(b.root) != int(a.root)
     for method in ("dp", "greedy", "qbvh"):
-        ra, rb = collapse.collapse(a, method), collapse.collapse(b, method)
+        ra, rb = collapse.collapse(a, method), collapse.collapse(b, collapse.CollapseConfig(method=method))
         assert float(ra.rcost) == pytest.approx(float(rb.rcost), rel=1e-6)
         assert sorted(new[np.flatnonzero(np.asarray(ra.kept))].tolist()) == \
             np.flatnonzero(np.asarray(rb.kept)).tolist()
@@ -432,6 +432,20 @@ def test_skip_flags_of_the_wrong_shape():
 # ----------------------------------------------------------------------------------
 # Bad input, retracing
 # ----------------------------------------------------------------------------------
+
+
+def test_the_config_says_how_wide():
+    """CollapseConfig's ``widest`` is the width of the result: K, 8 for dp without one, 4
+    for qbvh, no limit for greedy without one."""
+    tree, _, _ = random_tree(3, 40)
+    for config in (collapse.CollapseConfig(), collapse.CollapseConfig(max_children=3),
+                   collapse.CollapseConfig(method="qbvh"), collapse.CollapseConfig(method="greedy", max_children=5)):
+        result = collapse.collapse(tree, config)
+        assert np.asarray(result.tree.child).shape[1] == config.widest
+    assert collapse.CollapseConfig(method="greedy").widest is None
+    assert collapse.CollapseConfig().widest == collapse.DEFAULT_MAX_CHILDREN
+    with pytest.raises(TypeError, match="not both"):
+        collapse.collapse(tree, collapse.CollapseConfig(), max_children=4)
 
 
 def test_bad_input_is_named():

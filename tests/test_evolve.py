@@ -43,7 +43,7 @@ def boxes(seed, n):
 
 
 def draws_of(key, n, generations, crossover, mutation, population=P):
-    swaps = evolve.max_swaps(insertion.capacity_bucket(n), mutation)
+    swaps = evolve.max_swaps(jaxbvh.capacity_bucket(n), mutation)
     return [evolve.generation_draws(evolve.generation_key(key, g), population, n, swaps, crossover, mutation)
             for g in range(1, generations + 1)]
 
@@ -62,9 +62,10 @@ def test_run_equals_reference_generation_by_generation(seed, n, crossover, mutat
     generations = 3
     result = evolve.evolve(key, lo, hi, population=P, generations=generations, crossover=crossover,
                            mutation=mutation)
-    capacity = insertion.capacity_bucket(n)
+    capacity = jaxbvh.capacity_bucket(n)
     start = np.asarray(evolve.initial_population(evolve.generation_key(key, 0), P, n, capacity))[:, :n]
-    populations, costs = ref.evolve(lo, hi, start, draws_of(key, n, generations, crossover, mutation))
+    populations, costs = ref.evolve(lo, hi, start, draws_of(key, n, generations, crossover, mutation),
+                                    max_children=evolve.EvolveConfig().max_children)
     np.testing.assert_array_equal(np.asarray(populations[-1]), result.population)
     np.testing.assert_allclose(costs[-1], result.costs, rtol=1e-5)
     np.testing.assert_allclose([min(c) for c in costs], result.history, rtol=1e-5)
@@ -96,7 +97,7 @@ def test_order_crossover_is_the_papers(seed, n, cut):
 @given(seed=st.integers(0, 2**31), n=st.integers(17, 24))
 def test_next_population_keeps_the_elite_and_makes_permutations(seed, n):
     key = jax.random.key(seed)
-    capacity = insertion.capacity_bucket(n)
+    capacity = jaxbvh.capacity_bucket(n)
     pop = evolve.initial_population(key, P, n, capacity)
     costs = jnp.asarray(np.random.default_rng(seed).permutation(P).astype(np.float32))
     draws = draws_of(key, n, 1, 0.7, 0.2)[0]
@@ -148,13 +149,19 @@ def test_run_bookkeeping_and_reproducibility():
     assert result.initial_best == result.history[0] and result.best <= result.random_median
     assert sorted(result.order.tolist()) == list(range(20))
     assert result.elites.shape == (7, 20) and (result.elites[-1] == result.order).all()
-    np.testing.assert_allclose([ref.fitness(lo, hi, e) for e in result.elites], result.history, rtol=1e-5)
+    k = evolve.EvolveConfig().max_children  # the run's (default) node width
+    np.testing.assert_allclose([ref.fitness(lo, hi, e, max_children=k) for e in result.elites], result.history,
+                               rtol=1e-5)
     jaxbvh.validate(result.tree, lo, hi)
     assert float(jaxbvh.goldsmith_salmon_cost(result.tree)) == pytest.approx(result.best, rel=1e-6)
-    rebuilt = ref_insertion.build(lo, hi, result.order, max_children=insertion.DEFAULT_MAX_CHILDREN)
+    rebuilt = ref_insertion.build(lo, hi, result.order, max_children=k)
     np.testing.assert_array_equal(np.asarray(result.tree.child)[:39], rebuilt.child)
     again = evolve.evolve(jax.random.key(3), lo, hi, population=P, generations=6, mutation=0.1)
     np.testing.assert_array_equal(again.population, result.population)
+    config = evolve.EvolveConfig(population=P, generations=6, mutation=0.1)  # the same run from a Config
+    np.testing.assert_array_equal(evolve.evolve(jax.random.key(3), lo, hi, config).population, result.population)
+    with pytest.raises(TypeError, match="not both"):
+        evolve.evolve(jax.random.key(3), lo, hi, config, generations=1)
     other = evolve.evolve(jax.random.key(4), lo, hi, population=P, generations=6, mutation=0.1)
     assert not np.array_equal(other.population, result.population)
 

@@ -248,7 +248,7 @@ def test_forest_trees_equal_whole_trials():
     key = jax.random.key(11)
     splits = engine.RandomSplits(key, jnp.asarray(group), jnp.asarray(trial), jnp.asarray(shift),
                                  jnp.float32(0.5), jnp.int32(3))
-    scale = jnp.float32(engine.scene_scale(lo, hi))
+    scale = jnp.float32(numerics.scene_scale(lo, hi))
     forest, tree_of = engine.randomized_forest(jnp.asarray(lo_f), jnp.asarray(hi_f), jnp.int32(30), scale,
                                                splits, rcl="list")
     forest, tree_of = jaxbvh.to_numpy(forest), np.asarray(tree_of)
@@ -290,6 +290,19 @@ def test_one_primitive():
     result = grasp.grasp(jax.random.key(0), lo, lo + 1, trials=2, noise=1.0)
     jaxbvh.validate(result.tree, lo, lo + 1)
     assert result.objective == result.base == 0.0
+
+
+def test_a_config_is_the_keyword_form():
+    lo, hi = random_boxes(8, 21)  # as test_chunking_and_trial_count_do_not_change_trials: compiled programs shared
+    config = grasp.GraspConfig(trials=6, noise=0.4, rcl="3", objective="sah", chunk_prims=CHUNK)
+    assert config.rcl == 3  # normalised as check_rcl does
+    by_config = grasp.grasp(jax.random.key(5), lo, hi, config)
+    by_keywords = grasp.grasp(jax.random.key(5), lo, hi, trials=6, noise=0.4, rcl=3, objective="sah",
+                              chunk_prims=CHUNK)
+    np.testing.assert_array_equal(by_config.objectives, by_keywords.objectives)
+    assert canonical(by_config.tree) == canonical(by_keywords.tree)
+    with pytest.raises(TypeError, match="not both"):
+        grasp.grasp(jax.random.key(5), lo, hi, config, trials=2)
 
 
 @pytest.mark.parametrize("kwargs, message", [

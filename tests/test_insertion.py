@@ -102,7 +102,7 @@ def test_tie_goes_to_the_nearest_centre():
     for c, partner in ((([1.3] * 3), 0), (([1.7] * 3), 1)):
         lo = np.array([a[0], b[0], c], np.float32)
         hi = np.array([a[1], b[1], np.add(c, 0.2)], np.float32)
-        for tree in (insertion.build(lo, hi, [0, 1, 2]), ref.build(lo, hi, [0, 1, 2])):
+        for tree in (insertion.build(lo, hi, [0, 1, 2]), ref.build(lo, hi, [0, 1, 2], max_children=insertion.DEFAULT_MAX_CHILDREN)):
             t = jaxbvh.to_numpy(tree)
             # root (node 3) pairs a and b; c pairs with its partner under node 4, in the partner's slot
             assert int(t.root) == 3
@@ -114,7 +114,7 @@ def test_child_beats_pair_for_an_object_that_fills_the_node():
     """A box as large as the root joins the root (cost A(root)) rather than pairing (2 A)."""
     lo = np.array([[0, 0, 0], [1, 0, 0], [0, 0, 0]], np.float32)
     hi = np.array([[1, 1, 1], [2, 1, 1], [2, 1, 1]], np.float32)
-    for tree in (insertion.build(lo, hi), ref.build(lo, hi)):
+    for tree in (insertion.build(lo, hi), ref.build(lo, hi, max_children=insertion.DEFAULT_MAX_CHILDREN)):
         t = jaxbvh.to_numpy(tree)
         assert int(t.root) == 3 and t.child[3, :3].tolist() == [0, 1, 2]
 

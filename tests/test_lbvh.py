@@ -17,7 +17,8 @@ import jaxbvh
 from jaxbvh.builders import lbvh, morton
 from jaxbvh.builders import lbvh_reference as reference
 from jaxbvh.builders import morton_reference as reference_morton
-from jaxbvh.builders.topdown import scene_scale
+from jaxbvh.builders.configs import LBVHConfig, make_config
+from jaxbvh.numerics import scene_scale
 from jaxbvh.tree.frame import Frame
 
 SETTINGS = settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -40,8 +41,8 @@ def padded(lo, hi, cap=CAP):
 
 def build(lo, hi, max_leaf=1, morton_bits=30):
     """LBVH at the fixed test capacity (what jaxbvh.build does, padded further)."""
-    return lbvh.build(*padded(lo, hi), lo.shape[0], max_leaf=max_leaf, ct=1.0, ci=1.0,
-                      scale=scene_scale(lo, hi), morton_bits=morton_bits)
+    return lbvh.build(*padded(lo, hi), lo.shape[0], scene_scale(lo, hi),
+                      LBVHConfig(max_leaf=max_leaf, morton_bits=morton_bits))
 
 
 @SETTINGS
@@ -50,7 +51,7 @@ def test_lbvh_equals_reference(data, bits, max_leaf):
     lo, hi = data
     got = build(lo, hi, max_leaf, bits)
     jaxbvh.validate(got, lo, hi)
-    want = reference.build(lo, hi, max_leaf=max_leaf, morton_bits=bits)
+    want = reference.build(lo, hi, LBVHConfig(max_leaf=max_leaf, morton_bits=bits))
     jaxbvh.validate(want, lo, hi)
     assert canonical(got) == canonical(want)
     assert np.asarray(got.prim_count).max() <= max_leaf
@@ -63,7 +64,7 @@ def test_lbvh_equals_reference_on_extreme_soups(tri, bits, max_leaf):
     lo, hi = local_boxes(tri)
     got = build(lo, hi, max_leaf, bits)
     jaxbvh.validate(got, lo, hi)
-    assert canonical(got) == canonical(reference.build(lo, hi, max_leaf=max_leaf, morton_bits=bits))
+    assert canonical(got) == canonical(reference.build(lo, hi, LBVHConfig(max_leaf=max_leaf, morton_bits=bits)))
 
 
 @settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -74,7 +75,7 @@ def test_float64_lbvh_equals_reference(data, bits):
         got = build(lo, hi, 2, bits)
         assert got.lo.dtype == np.float64
         jaxbvh.validate(got, lo, hi)
-        assert canonical(got) == canonical(reference.build(lo, hi, max_leaf=2, morton_bits=bits))
+        assert canonical(got) == canonical(reference.build(lo, hi, LBVHConfig(max_leaf=2, morton_bits=bits)))
 
 
 @settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -167,7 +168,7 @@ def test_a_leaf_that_costs_what_its_split_costs_stays_a_leaf(method):
         tree = jaxbvh.build(lo, hi, method=method, max_leaf=max_leaf)
         jaxbvh.validate(tree, lo, hi)
         assert jaxbvh.tree.node_count(tree) == nodes
-        assert jaxbvh.tree.node_count(reference.build(lo, hi, max_leaf=max_leaf)) == nodes
+        assert jaxbvh.tree.node_count(reference.build(lo, hi, LBVHConfig(max_leaf=max_leaf))) == nodes
 
 
 def test_sizes_in_one_capacity_bucket_compile_once():
@@ -194,7 +195,7 @@ def test_bad_options_get_clear_errors():
 
 @pytest.mark.parametrize("method", ["lbvh", "ploc"])
 def test_build_dispatch_keeps_dtype_padding_and_the_twin(method):
-    """jaxbvh.build (checked, cast and padded by engine_inputs) gives the twin's tree in every mode:
+    """jaxbvh.build (checked, cast and padded by jaxbvh.builders.inputs.prepare) gives the twin's tree in every mode:
     float32 padded to the capacity bucket, unpadded (pad=False), float64 under x64."""
     from jaxbvh.builders import ploc_reference as reference_ploc
 
@@ -204,7 +205,8 @@ def test_build_dispatch_keeps_dtype_padding_and_the_twin(method):
     twin = reference.build if method == "lbvh" else reference_ploc.build
     options = dict(morton_bits=63, max_leaf=2) if method == "lbvh" else dict(radius=3, max_leaf=2)
     lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)
-    want32 = canonical(twin(lo32, hi32, **options))
+    config = make_config(method, **options)
+    want32 = canonical(twin(lo32, hi32, config))
     for pad, slots in ((True, 2 * jaxbvh.capacity_bucket(37)), (False, 2 * 37)):
         tree = jaxbvh.build(lo, hi, method=method, pad=pad, **options)  # float64 input, x64 off: float32
         assert tree.lo.dtype == np.float32 and tree.lo.shape == (slots, 3) and tree.left.shape == (slots,)
@@ -214,4 +216,4 @@ def test_build_dispatch_keeps_dtype_padding_and_the_twin(method):
         tree = jaxbvh.build(lo, hi, method=method, **options)
         assert tree.lo.dtype == np.float64
         jaxbvh.validate(tree, lo, hi)
-        assert canonical(tree) == canonical(twin(lo, hi, **options))
+        assert canonical(tree) == canonical(twin(lo, hi, config))

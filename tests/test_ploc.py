@@ -18,15 +18,16 @@ import jaxbvh
 from jaxbvh import cli
 from jaxbvh.builders import ploc
 from jaxbvh.builders import ploc_reference as reference
-from jaxbvh.builders.topdown import scene_scale
+from jaxbvh.builders.configs import PLOCConfig
+from jaxbvh.numerics import scene_scale
 
 SETTINGS = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
 def build(lo, hi, radius, max_leaf=1, morton_bits=30):
     """PLOC at the fixed test capacity (what jaxbvh.build does, padded further)."""
-    return ploc.build(*padded(lo, hi), lo.shape[0], radius=radius, max_leaf=max_leaf, ct=1.0, ci=1.0,
-                      scale=scene_scale(lo, hi), morton_bits=morton_bits)
+    return ploc.build(*padded(lo, hi), lo.shape[0], scene_scale(lo, hi),
+                      PLOCConfig(radius=radius, max_leaf=max_leaf, morton_bits=morton_bits))
 
 
 @SETTINGS
@@ -35,7 +36,7 @@ def test_ploc_equals_reference(data, radius, max_leaf):
     lo, hi = data
     got = build(lo, hi, radius, max_leaf)
     jaxbvh.validate(got, lo, hi)
-    want = reference.build(lo, hi, radius=radius, max_leaf=max_leaf)
+    want = reference.build(lo, hi, PLOCConfig(radius=radius, max_leaf=max_leaf))
     jaxbvh.validate(want, lo, hi)
     assert canonical(got) == canonical(want)
     assert np.asarray(got.prim_count).max() <= max_leaf
@@ -48,7 +49,8 @@ def test_ploc_equals_reference_on_extreme_soups(tri, bits, max_leaf):
     lo, hi = local_boxes(tri)
     got = build(lo, hi, 3, max_leaf, bits)
     jaxbvh.validate(got, lo, hi)
-    assert canonical(got) == canonical(reference.build(lo, hi, radius=3, max_leaf=max_leaf, morton_bits=bits))
+    want = reference.build(lo, hi, PLOCConfig(radius=3, max_leaf=max_leaf, morton_bits=bits))
+    assert canonical(got) == canonical(want)
 
 
 @settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -59,7 +61,7 @@ def test_float64_ploc_equals_reference(data):
         got = build(lo, hi, 3, 2)
         assert got.lo.dtype == np.float64
         jaxbvh.validate(got, lo, hi)
-        assert canonical(got) == canonical(reference.build(lo, hi, radius=3, max_leaf=2))
+        assert canonical(got) == canonical(reference.build(lo, hi, PLOCConfig(radius=3, max_leaf=2)))
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 48, 64])
@@ -101,7 +103,7 @@ def test_no_mutual_pair_falls_back_to_exact_comparisons(monkeypatch):
         got = jaxbvh.build(lo, hi, method="ploc", radius=2)
     finally:
         ploc._cluster.clear_cache()
-    want = reference.build(lo, hi, radius=2)
+    want = reference.build(lo, hi, PLOCConfig(radius=2))
     assert any(exact_calls)
     jaxbvh.validate(got, lo, hi)
     assert canonical(got) == canonical(want)

@@ -1,10 +1,13 @@
 """Tree rotations (jaxbvh.rotate) against the sequential NumPy twin and the invariants.
 
-Random trees are padded to one capacity so every jitted function compiles once.
+Random trees are padded to one capacity so every jitted function compiles once. Both
+methods are optimizers of the protocol (HILL_CLIMB, ANNEAL: init / step / result) run by
+the shared driver; the tests use the public step.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import subprocess
 import sys
@@ -14,15 +17,19 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 from helpers import random_tree
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 import jaxbvh
-from jaxbvh.optimize import rotate
+from jaxbvh.draws import annealing_draws
+from jaxbvh.numerics import min_gain
+from jaxbvh.optimize import driver, rotate, rotate_passes
 from jaxbvh.optimize import rotate_reference as ref
-from jaxbvh.optimize.schedules import constant_schedule, kensler_schedule
+from jaxbvh.optimize.rotate import ANNEAL, HILL_CLIMB, AnnealConfig, HillClimbConfig
+from jaxbvh.optimize.schedules import EXPONENTIAL_FINAL, constant_schedule, kensler_schedule
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 NODES, PRIMS = 128, 64  # one capacity for all random trees
@@ -57,15 +64,14 @@ trees = st.builds(lambda seed, n, leaf, grid: (seed, n, leaf, grid),
 
 
 def _apply_move(tree, n, move):
-    """Move ``move`` at node ``n`` done by hand (NumPy), boxes recomputed."""
+    """Move ``move`` at node ``n`` done by hand (NumPy) from its name in
+    :data:`rotate.MOVES` (``"A<->B"``: swap the contents of slots A and B), boxes recomputed."""
     t = jaxbvh.to_numpy(tree)
     child = np.stack([t.left, t.right], 1).copy()
     parent, lo, hi = t.parent.copy(), t.lo.copy(), t.hi.copy()
     L, R = child[n]
-    a_code, a_side = rotate._SLOT_A[move]
-    b_code, b_side = rotate._SLOT_B[move]
-    fam = (n, L, R)
-    (na, nb) = fam[a_code], fam[b_code]
+    slots = {"L": (n, 0), "R": (n, 1), "LL": (L, 0), "LR": (L, 1), "RL": (R, 0), "RR": (R, 1)}
+    (na, a_side), (nb, b_side) = (slots[name] for name in rotate.MOVES[move].split("<->"))
     x, y = child[na, a_side], child[nb, b_side]
     child[na, a_side], child[nb, b_side] = y, x
     parent[y], parent[x] = na, nb
@@ -110,7 +116,8 @@ def test_hill_climb_equals_reference_pass_by_pass(case):
     tree, plo, phi = random_tree(seed, n, leaf, grid)
     full = rotate.hill_climb(tree, split_axes=False)
     expected, info = ref.hill_climb(tree)
-    assert int(full.passes) == info["passes"] and int(full.moves) == info["moves"]
+    assert int(full.steps) == info["passes"] and int(full.moves) == info["moves"]
+    assert bool(full.converged) == (info["passes"] < 1000)
     assert_same_tree(full.tree, expected)
     np.testing.assert_allclose(np.asarray(full.history)[: info["passes"]], info["history"], rtol=1e-5)
     assert np.isnan(np.asarray(full.history)[info["passes"]:]).all()
@@ -143,20 +150,20 @@ def test_work_sizes_do_not_change_the_result(monkeypatch):
     assert_same_tree(b.tree, c.tree)
     check_result(c, plo, phi)
     # the short-queue walk (normally 4096 wide) next to the full-width one
-    monkeypatch.setattr(rotate, "_SMALL_QUEUE", 3)
+    monkeypatch.setattr(rotate_passes, "SMALL_QUEUE", 3)
     for frontier in (5, 7):
         d = rotate.hill_climb(tree, windows=(2, 5), frontier=frontier)
         assert_same_tree(d.tree, c.tree)
-        assert int(d.passes) == int(c.passes) and int(d.moves) == int(c.moves)
+        assert int(d.steps) == int(c.steps) and int(d.moves) == int(c.moves)
     key = jax.random.key(5)
     e = rotate.anneal(key, tree, steps=12, period=6, frontier=7)
-    monkeypatch.setattr(rotate, "_SMALL_QUEUE", 4096)
+    monkeypatch.setattr(rotate_passes, "SMALL_QUEUE", 4096)
     f = rotate.anneal(key, tree, steps=12, period=6, frontier=1)
     assert_same_tree(e.tree, f.tree)
 
 
 def test_progress_reports_every_pass_and_chunks_change_nothing(monkeypatch):
-    """With ``on_pass`` the run goes in chunks of passes; chunk sizes never change the result."""
+    """With ``on_step`` the driver runs in chunks of passes; chunk sizes never change the result."""
     tree, plo, phi = random_tree(11, 50, 2)
     key = jax.random.key(3)
     runs = {
@@ -166,24 +173,28 @@ def test_progress_reports_every_pass_and_chunks_change_nothing(monkeypatch):
     }
     for name, run in runs.items():
         whole = run()
-        for max_chunk in (1, 3, rotate.MAX_CHUNK):
-            monkeypatch.setattr(rotate, "MAX_CHUNK", max_chunk)
+        for max_chunk in (1, 3, driver.MAX_CHUNK):
+            monkeypatch.setattr(driver, "MAX_CHUNK", max_chunk)
             log = []
-            chunked = run(on_pass=lambda i, sah, moves, t: log.append((i, float(sah), int(moves), float(t))))
+            chunked = run(on_step=log.append)
             assert_same_tree(chunked.tree, whole.tree)
             check_result(chunked, plo, phi)
-            assert int(chunked.passes) == int(whole.passes) and int(chunked.moves) == int(whole.moves)
+            assert int(chunked.steps) == int(whole.steps) and int(chunked.moves) == int(whole.moves)
             assert float(chunked.sah) == float(whole.sah), name
+            np.testing.assert_array_equal(chunked.history, whole.history)
             if whole.chain_sah is not None:
                 np.testing.assert_array_equal(np.asarray(chunked.chain_sah), np.asarray(whole.chain_sah))
             # one report per pass, in order, that agrees with the history
-            assert [i for i, *_ in log] == list(range(len(log)))
-            assert len(log) >= int(whole.passes)
-            if name != "sa chains":
-                history = np.asarray(whole.history)[: int(whole.passes)]
-                np.testing.assert_array_equal([sah for _, sah, _, _ in log], history)
-                assert sum(moves for _, _, moves, _ in log) == int(whole.moves)
-            assert all(t == 0 for *_, t in log[10:]) and (name == "hc" or any(t > 0 for *_, t in log))
+            assert [info.step for info in log] == list(range(len(log)))
+            assert {(info.method, info.stage) for info in log} == {(name[:2],) * 2}
+            assert len(log) >= int(whole.steps) and tuple(log) == chunked.trace
+            if name != "sa chains":  # several chains: the least SAH and all chains' moves
+                assert len(log) == int(whole.steps)
+                history = np.asarray(whole.history)[: int(whole.steps)]
+                np.testing.assert_array_equal([info.sah for info in log], history)
+                assert sum(info.moves for info in log) == int(whole.moves)
+                np.testing.assert_array_equal([info.moves for info in log],
+                                              np.asarray(whole.history_moves)[: int(whole.steps)])
 
 
 def test_time_budget_stops_early_with_a_valid_tree():
@@ -191,7 +202,7 @@ def test_time_budget_stops_early_with_a_valid_tree():
     full = rotate.anneal(jax.random.key(1), tree, steps=400, period=20)
     short = rotate.anneal(jax.random.key(1), tree, steps=400, period=20, time_budget=1e-9)
     check_result(short, plo, phi)
-    assert 1 <= int(short.passes) < int(full.passes)  # the first chunk (one pass), then the budget
+    assert 1 <= int(short.steps) < int(full.steps)  # the first chunk (one pass), then the budget
     assert float(short.sah) <= float(short.sah_start) * (1 + 1e-6)  # keep_best: never worse
     hc = rotate.hill_climb(tree, time_budget=60.0)  # a budget it does not reach: the same tree
     assert_same_tree(hc.tree, rotate.hill_climb(tree).tree)
@@ -199,12 +210,20 @@ def test_time_budget_stops_early_with_a_valid_tree():
         rotate.hill_climb(tree, time_budget=0)
 
 
-def test_no_retrace_for_trees_of_one_capacity():
-    rotate.hill_climb(random_tree(1, 20)[0])
-    before = rotate._run_one._cache_size()
-    for seed in range(2, 5):
-        rotate.hill_climb(random_tree(seed, 30, 2)[0])
-    assert rotate._run_one._cache_size() == before
+def test_no_recompile_for_trees_of_one_capacity_and_traced_settings(caplog):
+    """Other trees of one capacity, and other costs, margins, pass limits (in one history
+    bucket) and Kensler numbers (steps, period, hottest) reuse every compiled program."""
+    tree = random_tree(1, 20)[0]
+    rotate.hill_climb(tree)
+    rotate.anneal(jax.random.key(0), tree, steps=8, period=4)
+    with jax.log_compiles(), caplog.at_level(logging.WARNING):
+        for seed in range(2, 4):
+            tree = random_tree(seed, 30, 2)[0]
+            rotate.hill_climb(tree, ct=0.5 * seed, ci=2.0, min_gain=1e-5 * seed, max_passes=900 + seed)
+            rotate.anneal(jax.random.key(seed), tree, steps=8 + seed, period=3 + seed, hottest=0.1 * seed,
+                          ct=0.5 * seed, max_quench=990)
+    compiled = [r.getMessage() for r in caplog.records if "ompil" in r.getMessage()]
+    assert not compiled
 
 
 def test_leaf_root_and_tiny_trees():
@@ -228,6 +247,25 @@ def test_bad_arguments_raise_value_error():
     with pytest.raises(ValueError):
         rotate.hill_climb(jaxbvh.from_interchange({**jaxbvh.to_interchange(tree),
                                                    "child": np.full((9, 3), -1, np.int32)}))
+    for knob, value in [("schedule", "warm"), ("schedule", 3.0), ("steps", -1), ("period", 0),
+                        ("hottest", -0.1), ("max_quench", 0), ("min_gain", -1.0), ("windows", ()),
+                        ("frontier", 0)]:
+        with pytest.raises(ValueError, match=knob):
+            AnnealConfig(**{knob: value})
+    with pytest.raises(ValueError, match="config"):
+        HILL_CLIMB.init(tree, AnnealConfig())
+
+
+def test_configs_keep_the_documented_defaults():
+    assert HillClimbConfig() == HillClimbConfig(ct=1.0, ci=1.0, max_passes=1000, min_gain=None,
+                                                split_axes=True, windows=rotate.DEFAULT_WINDOWS,
+                                                frontier=rotate.DEFAULT_FRONTIER)
+    assert AnnealConfig() == AnnealConfig(schedule="kensler", steps=1250, hottest=rotate.DEFAULT_HOTTEST,
+                                          period=50, chains=1, keep_best=True, max_quench=1000,
+                                          ct=1.0, ci=1.0, min_gain=None, split_axes=True, windows=None,
+                                          frontier=rotate.DEFAULT_FRONTIER)
+    assert (HILL_CLIMB.name, ANNEAL.name) == ("hc", "sa")
+    assert (HILL_CLIMB.Config, ANNEAL.Config) == (HillClimbConfig, AnnealConfig)
 
 
 # ----------------------------------------------------------------------------------
@@ -245,9 +283,9 @@ def test_anneal_equals_reference_fed_the_same_draws(case, key_seed, keep_best):
     steps, period, hottest = 24, 8, 1.5
     result = rotate.anneal(key, tree, steps=steps, period=period, hottest=hottest,
                            keep_best=keep_best, split_axes=False)
-    expected, info = ref.anneal(tree, lambda i: np.asarray(rotate.annealing_draws(key, i, NODES)),
+    expected, info = ref.anneal(tree, lambda i: np.asarray(annealing_draws(key, i, NODES)),
                                 kensler_schedule(steps, period, hottest), steps, keep_best=keep_best)
-    assert int(result.passes) == info["passes"] and int(result.moves) == info["moves"]
+    assert int(result.steps) == info["passes"] and int(result.moves) == info["moves"]
     assert_same_tree(result.tree, expected)
     np.testing.assert_allclose(np.asarray(result.history)[: info["passes"]], info["history"], rtol=1e-5)
     sah = check_result(result, plo, phi)
@@ -256,16 +294,80 @@ def test_anneal_equals_reference_fed_the_same_draws(case, key_seed, keep_best):
         assert sah <= np.nanmin(np.asarray(result.history)) * (1 + 1e-6)
 
 
-def test_anneal_accepts_optax_schedules():
-    optax = pytest.importorskip("optax")
-    tree, plo, phi = random_tree(3, 30, 2)
-    key = jax.random.key(5)
-    schedule = optax.linear_schedule(1.0, 0.0, 10)
-    result = rotate.anneal(key, tree, schedule=schedule, steps=10, split_axes=False)
-    expected, info = ref.anneal(tree, lambda i: np.asarray(rotate.annealing_draws(key, i, NODES)),
-                                schedule, 10)
+# (schedule for anneal, the same temperatures for the twin), made once: a schedule is
+# static, so every new function object compiles the run again. The names of SCHEDULES
+# are made from the run's steps and hottest: they are the optax schedules beside them.
+STEPS, HOTTEST = 16, 0.4
+OPTAX_SCHEDULES = {
+    "cosine": ("cosine", optax.cosine_decay_schedule(HOTTEST, STEPS)),
+    "exponential": ("exponential", optax.exponential_decay(HOTTEST, STEPS, EXPONENTIAL_FINAL)),
+    "join kensler, cosine": (optax.join_schedules(
+        [kensler_schedule(STEPS // 2, 4, 4 * HOTTEST), optax.cosine_decay_schedule(HOTTEST, STEPS // 2)],
+        [STEPS // 2]),) * 2,
+    "linear": (optax.linear_schedule(HOTTEST, 0.0, STEPS),) * 2,
+}
+
+
+@pytest.mark.parametrize("name", list(OPTAX_SCHEDULES))
+@settings(**{**SETTINGS, "max_examples": 5})
+@given(case=trees, key_seed=st.integers(0, 2**31))
+def test_anneal_with_optax_schedules_equals_reference(name, case, key_seed):
+    seed, n, leaf, grid = case
+    tree, plo, phi = random_tree(seed, n, leaf, grid)
+    key = jax.random.key(key_seed)
+    schedule, twin_schedule = OPTAX_SCHEDULES[name]
+    result = rotate.anneal(key, tree, schedule=schedule, steps=STEPS, hottest=HOTTEST, split_axes=False)
+    expected, info = ref.anneal(tree, lambda i: np.asarray(annealing_draws(key, i, NODES)),
+                                twin_schedule, STEPS)
+    assert int(result.steps) == info["passes"] and int(result.moves) == info["moves"]
     assert_same_tree(result.tree, expected)
+    np.testing.assert_allclose(np.asarray(result.history)[: info["passes"]], info["history"], rtol=1e-5)
     check_result(result, plo, phi)
+
+
+def test_float64_trees_stay_float64_and_equal_the_reference():
+    """x64 mode: boxes and costs stay float64 (an optax schedule's float64 too), links
+    int32, and both methods still equal the twin."""
+    with jax.enable_x64(True):
+        tree, plo, phi = random_tree(4, 30, 2, dtype=np.float64)
+        hc = rotate.hill_climb(tree, ct=0.3, split_axes=False)
+        expected, info = ref.hill_climb(tree, ct=0.3)
+        assert_same_tree(hc.tree, expected)
+        assert int(hc.steps) == info["passes"]
+        key = jax.random.key(1)
+        schedule = optax.cosine_decay_schedule(0.4, 16)
+        sa = rotate.anneal(key, tree, schedule=schedule, steps=16, split_axes=False)
+        expected, info = ref.anneal(tree, lambda i: np.asarray(annealing_draws(key, i, NODES, np.float64)),
+                                    schedule, 16)
+        assert_same_tree(sa.tree, expected)
+        assert int(sa.steps) == info["passes"]
+        for out in (hc, sa):
+            assert np.asarray(out.tree.lo).dtype == np.float64 and np.asarray(out.sah).dtype == np.float64
+            assert np.asarray(out.tree.left).dtype == np.int32
+            jaxbvh.validate(out.tree, plo, phi)
+
+
+def test_kensler_schedule_composes_under_optax_join():
+    """Kensler's schedule as a piece of an optax composition: followed by a constant 0 it
+    is the default run; a composition that starts later shifts it (other trees)."""
+    tree, plo, phi = random_tree(8, 40, 1)
+    key = jax.random.key(2)
+    steps, period, hottest = 12, 6, 0.5
+    kensler = kensler_schedule(steps, period, hottest)
+    joined = optax.join_schedules([kensler, optax.constant_schedule(0.0)], boundaries=[steps])
+    default = rotate.anneal(key, tree, steps=steps, period=period, hottest=hottest)
+    composed = rotate.anneal(key, tree, schedule=joined, steps=steps)
+    assert_same_tree(composed.tree, default.tree)
+    np.testing.assert_array_equal(composed.history, default.history)
+    assert int(composed.steps) == int(default.steps) and int(composed.moves) == int(default.moves)
+    # kensler second: cold for 5 passes, then its ramped sine shifted by 5
+    late = optax.join_schedules([optax.constant_schedule(0.0), kensler], boundaries=[5])
+    shifted = rotate.anneal(key, tree, schedule=late, steps=steps + 5, split_axes=False)
+    expected, info = ref.anneal(tree, lambda i: np.asarray(annealing_draws(key, i, NODES)),
+                                lambda i: kensler(i - 5) if i >= 5 else 0.0, steps + 5)
+    assert_same_tree(shifted.tree, expected)
+    assert int(shifted.steps) == info["passes"]
+    check_result(shifted, plo, phi)
 
 
 def test_cold_annealing_is_greedy_descent():
@@ -276,21 +378,7 @@ def test_cold_annealing_is_greedy_descent():
     # the first-better rule and the best-move rule may reach different local minima,
     # but a cold run never makes the tree worse and converges
     assert float(cold.sah) <= float(cold.sah_start) * (1 + 1e-6)
-    assert int(cold.passes) < 5 + 1000 and int(hc.passes) < 1000
-
-
-def test_kensler_schedule_values():
-    s = kensler_schedule(1250, 50, 1.5)
-    i = np.arange(0, 1300)
-    expected = np.maximum(0, -np.sin(2 * np.pi * i / 50)) * np.maximum(0, 1250 - i) * 1.5 / 1250
-    got = np.array([float(s(k)) for k in (0, 10, 25, 37, 40, 600, 1249, 1260)])
-    np.testing.assert_allclose(got, expected[[0, 10, 25, 37, 40, 600, 1249, 1260]], atol=1e-5)
-    assert float(s(0)) == 0.0 and float(s(1260)) == 0.0  # starts cold, ends cold
-    assert float(s(25)) == 0.0 and float(s(50 * 7 + 25)) == 0.0  # exactly cold at sin(pi)
-    assert float(jax.jit(s)(jnp.int32(37))) == pytest.approx(expected[37], rel=1e-5)
-    assert kensler_schedule(1250, 50, 1.5) is s  # same function object: jit caches hit
-    with pytest.raises(ValueError):
-        kensler_schedule(0)
+    assert int(cold.steps) < 5 + 1000 and int(hc.steps) < 1000 and bool(cold.converged)
 
 
 def test_chains_return_the_best_chain():
@@ -298,9 +386,14 @@ def test_chains_return_the_best_chain():
     key = jax.random.key(3)
     many = rotate.anneal(key, tree, steps=16, period=8, chains=3)
     singles = [rotate.anneal(k, tree, steps=16, period=8) for k in jax.random.split(key, 3)]
-    np.testing.assert_allclose(np.asarray(many.chain_sah), [float(r.sah) for r in singles], rtol=1e-6)
-    best = int(np.argmin([float(r.sah) for r in singles]))
+    sahs = np.array([float(r.sah) for r in singles], np.float32)
+    np.testing.assert_allclose(np.asarray(many.chain_sah), sahs, rtol=1e-6)
+    # the best: the first chain within the margin of the least (ulps must not choose)
+    best = int(np.argmax(sahs <= sahs.min() * (1 + min_gain(np.float32))))
     assert_same_tree(many.tree, singles[best].tree)
+    # the other fields describe the best chain
+    for field in ("steps", "moves", "converged", "history", "history_moves"):
+        np.testing.assert_array_equal(getattr(many, field), getattr(singles[best], field), err_msg=field)
     check_result(many, plo, phi)
 
 
@@ -315,6 +408,46 @@ def test_batch_of_trees_equals_one_by_one():
     out = rotate.optimize_batch(batch, keys, method="sa", steps=8, period=4)
     for (tree, _, _), key, got in zip(cases, keys, jaxbvh.tree.unstack_trees(out.tree)):
         assert_same_tree(got, rotate.anneal(key, tree, steps=8, period=4).tree)
+
+
+def _plain(a):
+    """An array of the state as NumPy (keys as their data)."""
+    return np.asarray(jax.random.key_data(a) if jnp.issubdtype(a.dtype, jax.dtypes.prng_key) else a)
+
+
+@pytest.mark.parametrize("optimizer, config", [
+    (HILL_CLIMB, HillClimbConfig()),
+    (ANNEAL, AnnealConfig(steps=10, period=4, hottest=0.5, chains=2)),
+], ids=["hc", "sa"])
+def test_vmapped_step_gives_each_tree_its_own_result(optimizer, config):
+    """The protocol's step, vmapped over two different trees of one capacity: each tree
+    stops when it is done (a done state is a fixed point), and each gets exactly its
+    single-tree result, node for node."""
+    cases = [random_tree(4, 12, 2), random_tree(9, 45, 1, "grid")]
+    batch = jaxbvh.tree.stack_trees([t for t, _, _ in cases])
+    keys = jax.random.split(jax.random.key(7), 2)
+    states = jax.vmap(lambda tree, key: optimizer.init(tree, config, key))(jaxbvh.to_jax(batch), keys)
+    step = jax.jit(jax.vmap(optimizer.step))
+    while not bool(np.all(states.progress.done)):
+        states = step(states)
+    again = step(states)  # done states do not change
+    for a, b in zip(jax.tree_util.tree_leaves(states), jax.tree_util.tree_leaves(again)):
+        np.testing.assert_array_equal(_plain(a), _plain(b))
+    results = jax.vmap(optimizer.result)(states)
+    steps = []
+    for k, ((tree, plo, phi), got) in enumerate(zip(cases, jaxbvh.tree.unstack_trees(results.tree))):
+        alone = driver.run(optimizer, tree, config, key=keys[k])
+        assert_same_tree(got, alone.tree)
+        jaxbvh.validate(got, plo, phi)
+        for field in ("steps", "moves", "converged", "history_moves"):
+            np.testing.assert_array_equal(np.asarray(getattr(results, field))[k], getattr(alone, field))
+        # costs are summed in another fusion under vmap: the last bit may differ
+        for field in ("sah", "sah_start", "history", "chain_sah"):
+            if getattr(alone, field) is not None:
+                np.testing.assert_allclose(np.asarray(getattr(results, field))[k], getattr(alone, field),
+                                           rtol=1e-6, err_msg=field)
+        steps.append(int(alone.steps))
+    assert steps[0] != steps[1]  # the trees stop at different passes
 
 
 # ----------------------------------------------------------------------------------
@@ -366,7 +499,7 @@ _SUBPROCESS = textwrap.dedent("""
     else:
         res = rotate.optimize_batch(batch)
     out["hc"] = np.asarray(res.tree.left).tolist()
-    out["passes"] = np.asarray(res.passes).tolist()
+    out["passes"] = np.asarray(res.steps).tolist()
     print("RESULT" + json.dumps(out))
 """)
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -161,21 +162,46 @@ def _damage(kind, t, rng):
         arrays["prim_count"][leaf] = 0
     elif kind == "one_child":
         arrays["right"][node] = -1
+    elif kind == "parent_outside":
+        arrays["parent"][arrays["left"][node]] = arrays["parent"].shape[0] + 3
     return jaxbvh.BVH(**arrays)
+
+
+# the problem each damage must produce (a pattern of its line in the error)
+DAMAGE_NAMED = {
+    "duplicate_prim": r"primitive\(s\) \d+.* referenced more than once",
+    "wrong_parent": r"parent of node\(s\) \d+.* does not name the node that lists them",
+    "shrunk_box": r"box of node\(s\) \d+.* does not contain the box of child",
+    "leaf_misses_prim": r"leaf box\(es\) \d+.* do not contain primitive",
+    "cycle": r"node\(s\) \d+.* reached more than once from the root",
+    "shared_child": r"node\(s\) \d+.* reached more than once from the root",  # names the shared child
+    "lost_leaf": r"primitive\(s\) \d+.* referenced by no leaf",
+    "one_child": r"interior node\(s\) \d+.* have only one child",
+    "parent_outside": r"node\(s\) \d+.* name a parent outside the \d+ nodes",  # not an IndexError
+}
 
 
 @SETTINGS
 @given(data=box_sets(min_size=4, max_size=30), seed=st.integers(0, 2**31),
-       kind=st.sampled_from(["duplicate_prim", "wrong_parent", "shrunk_box", "leaf_misses_prim", "cycle",
-                             "shared_child", "lost_leaf", "one_child"]))
+       kind=st.sampled_from(sorted(DAMAGE_NAMED)))
 def test_validate_catches_damage(data, seed, kind):
     lo, hi = data
     hi = hi + np.float32(0.01)  # no zero-extent boxes: every damage is visible
     tree = jaxbvh.build(lo, hi)
     jaxbvh.validate(tree, lo, hi)
     broken = _damage(kind, tree, np.random.default_rng(seed))
-    with pytest.raises(jaxbvh.InvalidTreeError):
+    with pytest.raises(jaxbvh.InvalidTreeError, match=DAMAGE_NAMED[kind]):
         jaxbvh.validate(broken, lo, hi)
+
+
+@pytest.mark.parametrize("kind", sorted(DAMAGE_NAMED))
+def test_validate_names_each_damage(kind):
+    """Every kind of damage, every time (the property test above samples them)."""
+    rng = np.random.default_rng(7)
+    lo = rng.uniform(-1, 1, (12, 3)).astype(np.float32)
+    hi = lo + rng.uniform(0.01, 0.5, (12, 3)).astype(np.float32)
+    broken = _damage(kind, jaxbvh.build(lo, hi), rng)
+    assert any(re.search(DAMAGE_NAMED[kind], line) for line in jaxbvh.check(broken, lo, hi)), kind
 
 
 # --- trees from another library -------------------------------------------------------

@@ -3,7 +3,10 @@
 =================  =====================================================================
 module             what it holds
 =================  =====================================================================
-``dispatch``       :func:`build` and :data:`BUILDERS`, the one entry point
+``dispatch``       :func:`build`, the one entry point: a Config in, a tree out
+``configs``        one frozen Config per builder (:data:`BUILDERS`: method -> Config),
+                   the only place their defaults are written
+``inputs``         primitive boxes checked, cast and padded, as every builder takes them
 ``topdown``        the level-synchronous top-down engine: full-sweep SAH, binned SAH,
                    object median, and the randomized split hook GRASP uses
 ``morton``         Morton codes of box centres
@@ -16,6 +19,17 @@ module             what it holds
 Each module's NumPy twin sits beside it as ``<module>_reference``.
 """
 
-from jaxbvh.builders.dispatch import BUILDERS, build
+from jaxbvh.builders.configs import (
+                                     BUILDERS,
+                                     DEFAULT_BUILDER,
+                                     BinnedConfig,
+                                     BuilderConfig,
+                                     LBVHConfig,
+                                     MedianConfig,
+                                     PLOCConfig,
+                                     SweepConfig,
+)
+from jaxbvh.builders.dispatch import build
 
-__all__ = ["BUILDERS", "build"]
+__all__ = ["BUILDERS", "DEFAULT_BUILDER", "BuilderConfig", "SweepConfig", "BinnedConfig", "MedianConfig",
+           "LBVHConfig", "PLOCConfig", "build"]

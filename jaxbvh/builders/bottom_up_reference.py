@@ -55,7 +55,7 @@ def passes_leaf_test(node: Node, scale, max_leaf: int, ct, ci) -> bool:
     return bool(ci * dtype.type(count) <= estimate)
 
 
-def to_bvh(root: Node, prim_lo, prim_hi, *, max_leaf=1, ct=1.0, ci=1.0) -> BVH:
+def to_bvh(root: Node, prim_lo, prim_hi, *, max_leaf, ct, ci) -> BVH:
     """The BVH of the tree under ``root``, small subtrees collapsed; depth-first, unpadded."""
     dtype = np.asarray(prim_lo).dtype
     ct, ci = dtype.type(ct), dtype.type(ci)

@@ -1,41 +1,43 @@
-"""Which builder builds a tree: :func:`build` dispatches to the top-down engine
-(:mod:`jaxbvh.builders.topdown`: sweep, binned, median) or a bottom-up builder
-(:mod:`jaxbvh.builders.lbvh`, :mod:`jaxbvh.builders.ploc`)."""
+"""Which builder builds a tree: :func:`build` takes a Config (:mod:`jaxbvh.builders.configs`)
+and hands the checked, padded boxes to the top-down engine (:mod:`jaxbvh.builders.topdown`:
+sweep, binned, median) or a bottom-up builder (:mod:`jaxbvh.builders.lbvh`,
+:mod:`jaxbvh.builders.ploc`)."""
 
 from __future__ import annotations
 
-import jax.numpy as jnp
-
 from jaxbvh.builders import lbvh, ploc, topdown
-from jaxbvh.tree.layout import BVH, capacity_bucket
+from jaxbvh.builders.configs import BUILDERS, DEFAULT_BUILDER, BuilderConfig, make_config
+from jaxbvh.builders.inputs import prepare
+from jaxbvh.tree.layout import BVH
 
-BUILDERS = ("sweep", "binned", "median", "lbvh", "ploc")
+__all__ = ["BUILDERS", "DEFAULT_BUILDER", "build"]
+
+# method -> its builder on prepared inputs: (lo, hi, n, scale, config) -> BVH
+_ON_PREPARED = {"sweep": topdown.build, "binned": topdown.build, "median": topdown.build,
+                "lbvh": lbvh.build, "ploc": ploc.build}
 
 
-def build(prim_lo, prim_hi, *, method: str = "sweep", max_leaf: int = 1, bins: int = 16,
-          ct: float = 1.0, ci: float = 1.0, pad: bool = True, dtype=None, radius: int = 16,
-          morton_bits: int = 30) -> BVH:
+def build(prim_lo, prim_hi, config: BuilderConfig | str | None = None, *, method: str | None = None,
+          **options) -> BVH:
     """Build a binary BVH over primitive boxes.
 
-    ``"sweep"``, ``"binned"`` and ``"median"`` run the top-down engine below;
-    ``"lbvh"`` (:mod:`jaxbvh.builders.lbvh`, Karras' radix tree over Morton codes) and ``"ploc"``
-    (:mod:`jaxbvh.builders.ploc`, Meister & Bittner's clustering) build bottom-up, far faster on
-    large inputs, at some cost in SAH.
+    ``jaxbvh.build(lo, hi, BinnedConfig(bins=8))`` builds with a Config; the keyword form
+    ``jaxbvh.build(lo, hi, method="binned", bins=8)`` makes that Config first
+    (:func:`jaxbvh.builders.configs.make_config`: knobs of other builders are ignored).
+    ``"sweep"``, ``"binned"`` and ``"median"`` run the top-down engine; ``"lbvh"``
+    (Karras' radix tree over Morton codes) and ``"ploc"`` (Meister & Bittner's
+    clustering) build bottom-up, far faster on large inputs, at some cost in SAH.
 
     Args:
       prim_lo, prim_hi: [n, 3] primitive boxes (any frame; pass scene-relative
         coordinates, e.g. ``jaxbvh.io.Mesh.local_boxes()``, for float32 accuracy far
         from the origin).
-      method: ``"sweep"`` (full-sweep SAH), ``"binned"``, ``"median"``, ``"lbvh"`` or
-        ``"ploc"``.
-      max_leaf: largest leaf; 1 (default) splits down to single primitives.
-      bins: bins per axis for ``"binned"``.
-      ct, ci: SAH traversal and intersection costs (leaf termination only).
-      pad: pad arrays to a capacity bucket (fewer recompiles) or size them exactly.
-      dtype: float32 (default) or float64 (needs x64); boxes are cast to it, so validate
-        the tree against boxes cast the same way.
-      radius: neighbours on each side a ``"ploc"`` cluster looks at (effort knob; static).
-      morton_bits: 30 or 63, the Morton codes ``"lbvh"`` and ``"ploc"`` sort by.
+      config: a Config of :data:`BUILDERS` (its knobs and defaults are documented
+        there), a method name, or None: ``method`` and ``options``.
+      method: a name in :data:`BUILDERS` (default :data:`DEFAULT_BUILDER`), with
+      options: the Config's knobs (``max_leaf``, ``bins``, ``ct``, ``ci``, ``pad``,
+        ``dtype``, ``radius``, ``morton_bits``). ``dtype`` float64 needs x64; the boxes
+        are cast to it, so validate the tree against boxes cast the same way.
 
     Returns:
       A :class:`~jaxbvh.tree.layout.BVH` of JAX arrays with ``2 * capacity`` node slots, root 0
@@ -44,25 +46,17 @@ def build(prim_lo, prim_hi, *, method: str = "sweep", max_leaf: int = 1, bins: i
       (parents before children for ``"ploc"``), then leaves in Morton order, ``axis`` the
       Morton bit's axis (``"lbvh"``) or -1 (``"ploc"``).
     """
-    if method not in BUILDERS:
-        raise ValueError(f"unknown builder {method!r}; choose one of {', '.join(BUILDERS)}")
-    if int(max_leaf) < 1:
-        raise ValueError(f"max_leaf must be >= 1, got {max_leaf}")
-    if method == "ploc" and int(radius) < 1:
-        raise ValueError(f"radius must be >= 1, got {radius}")
-    if method in ("lbvh", "ploc") and int(morton_bits) not in (30, 63):
-        raise ValueError(f"morton_bits must be 30 or 63, got {morton_bits}")
-    if method == "binned" and int(bins) < 2:
-        raise ValueError(f"bins must be >= 2, got {bins}")
-    lo_p, hi_p, n, scale = topdown.engine_inputs(prim_lo, prim_hi, pad=pad, dtype=dtype)
-    if method == "binned" and capacity_bucket(int(n)) * int(bins) >= 2**31:
-        raise ValueError(f"binned build of {int(n)} primitives with {bins} bins needs keys past int32; "
-                         "use fewer bins")
-    if method in ("lbvh", "ploc"):
-        options = dict(max_leaf=int(max_leaf), ct=ct, ci=ci, scale=scale, morton_bits=int(morton_bits))
-        if method == "lbvh":
-            return lbvh.build(lo_p, hi_p, int(n), **options)
-        return ploc.build(lo_p, hi_p, int(n), radius=int(radius), **options)
-    dt = lo_p.dtype
-    return topdown._build(lo_p, hi_p, n, jnp.int32(max_leaf), jnp.asarray(ct, dt), jnp.asarray(ci, dt), scale,
-                  method=method, bins=int(bins) if method == "binned" else 0)
+    if isinstance(config, str):
+        if method is not None:
+            raise TypeError(f"method given twice: {config!r} and method={method!r}")
+        config, method = None, config
+    if config is None:
+        config = make_config(DEFAULT_BUILDER if method is None else method, **options)
+    elif method is not None or options:
+        raise TypeError("give a builder Config or method and keyword options, not both "
+                        "(config.replace(...) changes a Config)")
+    elif not isinstance(config, BuilderConfig) or config.method not in BUILDERS:
+        raise TypeError(f"config must be one of {', '.join(c.__name__ for c in BUILDERS.values())}, "
+                        f"got {type(config).__name__}")
+    lo, hi, n, scale = prepare(prim_lo, prim_hi, pad=config.pad, dtype=config.dtype)
+    return _ON_PREPARED[config.method](lo, hi, n, scale, config)

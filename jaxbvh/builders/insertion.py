@@ -102,15 +102,17 @@ and each tree's result is exactly what it would be alone. This is how
 from __future__ import annotations
 
 from functools import partial
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxbvh.builders.topdown import check_prim_boxes
-from jaxbvh.numerics import TIE_TOLERANCE, half_area, scene_scale, working_dtype
+from jaxbvh.builders.inputs import prepare
+from jaxbvh.configs import integer
+from jaxbvh.numerics import TIE_TOLERANCE, half_area
 from jaxbvh.tree.cost import goldsmith_salmon_cost
-from jaxbvh.tree.layout import WideBVH, capacity_bucket
+from jaxbvh.tree.layout import WideBVH
 
 DEFAULT_MAX_CHILDREN = 8  # see the table in the module docstring
 
@@ -127,31 +129,8 @@ def check_order(order, n: int) -> np.ndarray:
 
 
 def check_max_children(max_children) -> int:
-    k = int(max_children)
-    if k < 2:
-        raise ValueError(f"max_children must be >= 2, got {max_children}")
-    return k
-
-
-def prepare(prim_lo, prim_hi, *, pad: bool = True, capacity: int | None = None, dtype=None):
-    """Checked, padded device inputs for :func:`insert_batch`: ``(lo, hi, n, scale)``.
-
-    ``lo``, ``hi``: [capacity, 3] with empty boxes (``+inf``, ``-inf``) past ``n``;
-    ``scale``: the scene's power-of-two area scale (module docstring). The capacity is
-    ``capacity`` if given (>= n; one compile for inputs of many sizes), else the
-    capacity bucket of ``n`` (``pad=True``) or ``n``.
-    """
-    lo, hi = check_prim_boxes(prim_lo, prim_hi)
-    dt = working_dtype(dtype, lo.dtype)
-    lo, hi = lo.astype(dt), hi.astype(dt)
-    n = lo.shape[0]
-    cap = int(capacity) if capacity is not None else (capacity_bucket(n) if pad else n)
-    if cap < n:
-        raise ValueError(f"capacity {cap} is below the {n} primitives")
-    lo_p = np.full((cap, 3), np.inf, dt)
-    hi_p = np.full((cap, 3), -np.inf, dt)
-    lo_p[:n], hi_p[:n] = lo, hi
-    return jnp.asarray(lo_p), jnp.asarray(hi_p), jnp.int32(n), jnp.asarray(scene_scale(lo, hi), dt)
+    """``max_children`` as an int after checking that it is an integer >= 2."""
+    return integer(2)("max_children", max_children)
 
 
 def pad_order(order, capacity: int) -> np.ndarray:
@@ -238,8 +217,198 @@ def _holds(box_lo, box_hi, b_lo, b_hi):
     return jnp.all(box_lo <= b_lo, axis=-1) & jnp.all(box_hi >= b_hi, axis=-1)
 
 
-def _insert(t, s, lo, hi, orders, scale, max_children, nodes):
-    """Insert primitive ``orders[:, t]`` into every tree of the state ``s`` (module docstring).
+class _Trees(NamedTuple):
+    """The trees of a batch while they are built (the ``fori_loop`` carry)."""
+
+    child: Any    # [B * N, K] int32: children of each row's node, in arrival order (-1: none)
+    parent: Any   # [B * N] int32: each node's parent (-1: root or unused)
+    table: Any    # [B * N, 8]: box lo, box hi, area, child count (_row)
+    root: Any     # [B] int32: each tree's root
+    next_id: Any  # [B] int32: the id the next interior node of each tree gets
+
+
+class _Insertion(NamedTuple):
+    """The insertion of one primitive into every tree: what the walks read."""
+
+    p: Any         # [B] int32: the primitive, ``orders[:, t]``
+    b_lo: Any      # [B, 3] its box
+    b_hi: Any
+    b_centre: Any  # [B, 3] lo + hi (twice the centre: no multiplication, exact ties)
+    row0: Any      # [B] int32: first row of each tree
+    near: Any      # 1 + TIE_TOLERANCE in the boxes' dtype
+    scale: Any     # the scene's area scale
+
+
+class _Walk(NamedTuple):
+    """The walk down, per tree [B] (module docstring, Insertion)."""
+
+    x: Any          # the current node
+    x_parent: Any   # its parent (-1 at the root) and its slot there
+    x_slot: Any
+    inherited: Any  # I: how much the terms of the nodes above x grow
+    best: Any       # the cheapest candidate so far (inf: none yet)
+    m: Any          # that candidate's node, its parent and slot there, its child count
+    m_parent: Any
+    m_slot: Any
+    m_count: Any
+    m_area: Any     # A(m + b) and the box m + b
+    m_lo: Any
+    m_hi: Any
+    done: Any       # bool: the walk has ended for this tree
+    steps: Any      # int32 scalar: steps taken (bounded by the node count)
+
+
+class _Climb(NamedTuple):
+    """The walk up, per tree [B], first part: up to ``_UP_LIST`` grown boxes listed, not written."""
+
+    a: Any        # the node whose box is grown next
+    listed: Any   # [B, _UP_LIST] int32: rows grown so far (first loop), ``flat`` when none
+    rows: Any     # [B, _UP_LIST, 8]: their grown table rows
+    steps: Any    # int32 scalar: steps taken
+    active: Any   # bool: a still needs growing
+
+
+class _Growing(NamedTuple):
+    """The walk up past the listed boxes (rare), per tree [B]: it writes as it goes."""
+
+    a: Any       # the node whose box is grown next
+    table: Any   # the node table (the carry: written every step)
+    steps: Any   # int32 scalar: steps taken (bounded by the node count)
+    active: Any  # bool: a still needs growing
+
+
+def _grow_by(rows, b_lo, b_hi, scale):
+    """``(box + b lo, hi, A(x+b), dA(x))`` of table rows [..., 8]; dA is 0 when x holds b."""
+    x_lo, x_hi = rows[..., :3], rows[..., 3:6]
+    u_lo, u_hi = jnp.minimum(x_lo, b_lo), jnp.maximum(x_hi, b_hi)
+    grown = half_area(u_lo, u_hi, scale)
+    holds = _holds(x_lo, x_hi, b_lo, b_hi)
+    return u_lo, u_hi, grown, jnp.where(holds, jnp.zeros_like(grown), grown - rows[..., _AREA])
+
+
+def _walk_down(trees: _Trees, ins: _Insertion, max_children, nodes) -> _Walk:
+    """The cheapest insertion point of every tree (module docstring); reads only."""
+    child, table = trees.child, trees.table
+    batch = ins.p.shape[0]
+    dtype = table.dtype
+    inf = jnp.asarray(jnp.inf, dtype)
+
+    def step(w: _Walk) -> _Walk:
+        r = ins.row0 + w.x
+        rows = table[r]
+        u_lo, u_hi, grown, delta = _grow_by(rows, ins.b_lo, ins.b_hi, ins.scale)
+        kf = rows[:, _COUNT]
+        k = kf.astype(jnp.int32)
+        leaf = k == 0
+        own = kf * delta
+        # the candidate here: a pair (leaf) or one more child (interior node with room)
+        candidate = jnp.where(leaf, w.inherited + 2 * grown, (w.inherited + own) + grown)
+        better = ~w.done & (leaf | (k < max_children)) & (candidate * ins.near < w.best)
+
+        def pick(value, kept):
+            return jnp.where(better if value.ndim == 1 else better[:, None], value, kept)
+
+        w = w._replace(best=pick(candidate, w.best), m=pick(w.x, w.m), m_parent=pick(w.x_parent, w.m_parent),
+                       m_slot=pick(w.x_slot, w.m_slot), m_count=pick(k, w.m_count), m_area=pick(grown, w.m_area),
+                       m_lo=pick(u_lo, w.m_lo), m_hi=pick(u_hi, w.m_hi))
+        # the child whose term rises least; then the nearest centre; then the lowest slot
+        kids = child[r]  # [B, K]
+        kid_rows = table[ins.row0[:, None] + jnp.maximum(kids, 0)]  # [B, K, 8]
+        _, _, c_grown, c_delta = _grow_by(kid_rows, ins.b_lo[:, None], ins.b_hi[:, None], ins.scale)
+        ck = kid_rows[..., _COUNT]
+        rise = jnp.where(kids < 0, inf, jnp.where(ck == 0, 2 * c_grown, ck * c_delta))
+        tied = rise <= jnp.min(rise, axis=1, keepdims=True) * ins.near
+        d = jnp.abs((kid_rows[..., :3] + kid_rows[..., 3:6]) - ins.b_centre[:, None])
+        slot = jnp.argmin(jnp.where(tied, (d[..., 0] + d[..., 1]) + d[..., 2], inf), axis=1).astype(jnp.int32)
+        inherited = jnp.where(w.done, w.inherited, w.inherited + own)
+        go = ~w.done & ~leaf
+        return w._replace(x_parent=jnp.where(go, w.x, w.x_parent), x_slot=jnp.where(go, slot, w.x_slot),
+                          x=jnp.where(go, jnp.take_along_axis(kids, slot[:, None], axis=1)[:, 0], w.x),
+                          inherited=inherited, done=w.done | leaf | (inherited * ins.near >= w.best),
+                          steps=w.steps + 1)
+
+    minus = jnp.full(batch, -1, jnp.int32)
+    zero_i = jnp.zeros(batch, jnp.int32)
+    empty = jnp.zeros((batch, 3), dtype)
+    start = _Walk(x=trees.root, x_parent=minus, x_slot=zero_i, inherited=jnp.zeros(batch, dtype),
+                  best=jnp.full(batch, jnp.inf, dtype), m=trees.root, m_parent=minus, m_slot=zero_i,
+                  m_count=zero_i, m_area=jnp.zeros(batch, dtype), m_lo=empty, m_hi=empty,
+                  done=jnp.zeros(batch, bool), steps=jnp.int32(0))
+    return jax.lax.while_loop(lambda w: jnp.any(~w.done) & (w.steps < nodes), step, start)
+
+
+def _place(trees: _Trees, ins: _Insertion, w: _Walk) -> _Trees:
+    """Insert b at the walk's winner m: a pair (m was a leaf) or one more child of m; writes only."""
+    child, parent, table = trees.child, trees.parent, trees.table
+    flat = table.shape[0]  # out-of-range row: scatters to it are dropped
+    m, pm, count, p = w.m, w.m_parent, w.m_count, ins.p
+    rm = ins.row0 + m
+    pair = count == 0
+    v = trees.next_id
+    rv = jnp.where(pair, ins.row0 + v, flat)
+    child = child.at[rv, 0].set(m, mode="drop")
+    child = child.at[rv, 1].set(p, mode="drop")
+    child = child.at[jnp.where(pair & (pm >= 0), ins.row0 + pm, flat), w.m_slot].set(v, mode="drop")
+    child = child.at[jnp.where(pair, flat, rm), count].set(p, mode="drop")
+    parent = parent.at[ins.row0 + p].set(jnp.where(pair, v, m))
+    parent = parent.at[rv].set(pm, mode="drop")
+    parent = parent.at[jnp.where(pair, rm, flat)].set(v, mode="drop")
+    # the new node of a pair gets m's box grown by b; an m that takes b as a child
+    # gets one more child (its box grows on the walk up)
+    new_count = jnp.where(pair, 2, count + 1).astype(table.dtype)
+    table = table.at[jnp.where(pair, rv, rm), _COUNT].set(new_count)
+    table = table.at[rv, :_AREA].set(jnp.concatenate([w.m_lo, w.m_hi], axis=1), mode="drop")
+    table = table.at[rv, _AREA].set(w.m_area, mode="drop")
+    return _Trees(child=child, parent=parent, table=table, root=jnp.where(pair & (m == trees.root), v, trees.root),
+                  next_id=trees.next_id + pair.astype(jnp.int32))
+
+
+def _walk_up(trees: _Trees, ins: _Insertion, start, nodes) -> _Trees:
+    """Grow the boxes from ``start`` [B] up until one already holds b.
+
+    The first loop only reads: it lists up to ``_UP_LIST`` grown rows per tree, written
+    after it; the second grows any further ones (rare), carrying the table.
+    """
+    parent, table = trees.parent, trees.table
+    batch = ins.p.shape[0]
+    flat = table.shape[0]
+
+    def needs_growing(a, table):
+        rows = table[ins.row0 + jnp.maximum(a, 0)]
+        return (a >= 0) & ~_holds(rows[:, :3], rows[:, 3:6], ins.b_lo, ins.b_hi)
+
+    def grown_rows(a, table):
+        rows = table[ins.row0 + jnp.maximum(a, 0)]
+        u_lo, u_hi = jnp.minimum(rows[:, :3], ins.b_lo), jnp.maximum(rows[:, 3:6], ins.b_hi)
+        return _row(u_lo, u_hi, rows[:, _COUNT], ins.scale)
+
+    def up(a, active):
+        return jnp.where(active, parent[ins.row0 + jnp.maximum(a, 0)], a)
+
+    def list_step(c: _Climb) -> _Climb:
+        listed = c.listed.at[:, c.steps].set(jnp.where(c.active, ins.row0 + c.a, flat))
+        rows = c.rows.at[:, c.steps].set(grown_rows(c.a, table))
+        a = up(c.a, c.active)
+        return _Climb(a=a, listed=listed, rows=rows, steps=c.steps + 1, active=c.active & needs_growing(a, table))
+
+    climb = _Climb(a=start, listed=jnp.full((batch, _UP_LIST), flat, jnp.int32),
+                   rows=jnp.zeros((batch, _UP_LIST, 8), table.dtype), steps=jnp.int32(0),
+                   active=needs_growing(start, table))
+    climb = jax.lax.while_loop(lambda c: jnp.any(c.active) & (c.steps < _UP_LIST), list_step, climb)
+    table = table.at[climb.listed].set(climb.rows, mode="drop")
+
+    def more_step(g: _Growing) -> _Growing:
+        table = g.table.at[jnp.where(g.active, ins.row0 + g.a, flat)].set(grown_rows(g.a, g.table), mode="drop")
+        a = up(g.a, g.active)
+        return _Growing(a=a, table=table, steps=g.steps + 1, active=g.active & needs_growing(a, table))
+
+    more = _Growing(a=climb.a, table=table, steps=jnp.int32(0), active=climb.active)
+    more = jax.lax.while_loop(lambda g: jnp.any(g.active) & (g.steps < nodes), more_step, more)
+    return trees._replace(table=more.table)
+
+
+def _insert(t, trees: _Trees, lo, hi, orders, scale, max_children, nodes) -> _Trees:
+    """Insert primitive ``orders[:, t]`` into every tree of the batch (module docstring).
 
     XLA updates the tree arrays in place only when every read of an array is ordered
     before every write to it by data dependence; otherwise it copies the arrays at
@@ -248,139 +417,15 @@ def _insert(t, s, lo, hi, orders, scale, max_children, nodes):
     itself), the insertion only writes, and the walk up lists the grown boxes before
     they are written.
     """
-    child, parent, table, root, next_id = s
     batch = orders.shape[0]
-    dtype = lo.dtype
-    near = jnp.asarray(1 + TIE_TOLERANCE, dtype)
-    inf = jnp.asarray(jnp.inf, dtype)
-    row0 = jnp.arange(batch, dtype=jnp.int32) * nodes  # first row of each tree
-    flat = nodes * batch  # out-of-range row: scatters to it are dropped
     p = orders[:, t]
     b_lo, b_hi = lo[p], hi[p]  # [B, 3]
-    b_centre = b_lo + b_hi
-
-    def grow(rows, b_lo, b_hi):
-        """``(box + b lo, hi, A(x+b), dA(x))`` of table rows [..., 8]; dA is 0 when x holds b."""
-        x_lo, x_hi = rows[..., :3], rows[..., 3:6]
-        u_lo, u_hi = jnp.minimum(x_lo, b_lo), jnp.maximum(x_hi, b_hi)
-        grown = half_area(u_lo, u_hi, scale)
-        holds = _holds(x_lo, x_hi, b_lo, b_hi)
-        return u_lo, u_hi, grown, jnp.where(holds, jnp.zeros_like(grown), grown - rows[..., _AREA])
-
-    # --- walk down, per tree: node x, its parent and slot there, the inherited cost,
-    # and the cheapest candidate so far (its node, parent, slot, child count, box + b)
-    def down_cond(w):
-        return jnp.any(~w["done"]) & (w["steps"] < nodes)
-
-    def down_body(w):
-        w = dict(w)
-        x, done = w["x"], w["done"]
-        r = row0 + x
-        rows = table[r]
-        u_lo, u_hi, grown, delta = grow(rows, b_lo, b_hi)
-        kf = rows[:, _COUNT]
-        k = kf.astype(jnp.int32)
-        leaf = k == 0
-        own = kf * delta
-        inherited = w["inherited"]
-        candidate = jnp.where(leaf, inherited + 2 * grown, (inherited + own) + grown)
-        better = ~done & (leaf | (k < max_children)) & (candidate * near < w["best"])
-        for name, value in (("best", candidate), ("m", x), ("m_parent", w["x_parent"]),
-                            ("m_slot", w["x_slot"]), ("m_count", k), ("m_area", grown)):
-            w[name] = jnp.where(better, value, w[name])
-        for name, value in (("m_lo", u_lo), ("m_hi", u_hi)):
-            w[name] = jnp.where(better[:, None], value, w[name])
-        # the child whose term rises least; then the nearest centre; then the lowest slot
-        kids = child[r]  # [B, K]
-        kid_rows = table[row0[:, None] + jnp.maximum(kids, 0)]  # [B, K, 8]
-        _, _, c_grown, c_delta = grow(kid_rows, b_lo[:, None], b_hi[:, None])
-        ck = kid_rows[..., _COUNT]
-        rise = jnp.where(kids < 0, inf, jnp.where(ck == 0, 2 * c_grown, ck * c_delta))
-        tied = rise <= jnp.min(rise, axis=1, keepdims=True) * near
-        d = jnp.abs((kid_rows[..., :3] + kid_rows[..., 3:6]) - b_centre[:, None])
-        slot = jnp.argmin(jnp.where(tied, (d[..., 0] + d[..., 1]) + d[..., 2], inf), axis=1).astype(jnp.int32)
-        inherited = jnp.where(done, inherited, inherited + own)
-        go = ~done & ~leaf
-        w["x_parent"] = jnp.where(go, x, w["x_parent"])
-        w["x_slot"] = jnp.where(go, slot, w["x_slot"])
-        w["x"] = jnp.where(go, jnp.take_along_axis(kids, slot[:, None], axis=1)[:, 0], x)
-        w["inherited"] = inherited
-        w["done"] = done | leaf | (inherited * near >= w["best"])
-        w["steps"] = w["steps"] + 1
-        return w
-
-    minus = jnp.full(batch, -1, jnp.int32)
-    zero_i = jnp.zeros(batch, jnp.int32)
-    empty = jnp.zeros((batch, 3), dtype)
-    walk = dict(x=root, x_parent=minus, x_slot=zero_i, inherited=jnp.zeros(batch, dtype),
-                best=jnp.full(batch, jnp.inf, dtype), m=root, m_parent=minus, m_slot=zero_i,
-                m_count=zero_i, m_area=jnp.zeros(batch, dtype), m_lo=empty, m_hi=empty,
-                done=jnp.zeros(batch, bool), steps=jnp.int32(0))
-    w = jax.lax.while_loop(down_cond, down_body, walk)
-    m, pm, count = w["m"], w["m_parent"], w["m_count"]
-
-    # --- insert at m: a pair (m was a leaf) or one more child of m; writes only
-    rm = row0 + m
-    pair = count == 0
-    v = next_id
-    rv = jnp.where(pair, row0 + v, flat)
-    child = child.at[rv, 0].set(m, mode="drop")
-    child = child.at[rv, 1].set(p, mode="drop")
-    child = child.at[jnp.where(pair & (pm >= 0), row0 + pm, flat), w["m_slot"]].set(v, mode="drop")
-    child = child.at[jnp.where(pair, flat, rm), count].set(p, mode="drop")
-    parent = parent.at[row0 + p].set(jnp.where(pair, v, m))
-    parent = parent.at[rv].set(pm, mode="drop")
-    parent = parent.at[jnp.where(pair, rm, flat)].set(v, mode="drop")
-    # the new node of a pair gets m's box grown by b; an m that takes b as a child
-    # gets one more child (its box grows on the walk up)
-    new_count = jnp.where(pair, 2, count + 1).astype(dtype)
-    table = table.at[jnp.where(pair, rv, rm), _COUNT].set(new_count)
-    table = table.at[rv, :_AREA].set(jnp.concatenate([w["m_lo"], w["m_hi"]], axis=1), mode="drop")
-    table = table.at[rv, _AREA].set(w["m_area"], mode="drop")
-    root = jnp.where(pair & (m == root), v, root)
-    next_id = next_id + pair.astype(jnp.int32)
-
-    # --- walk up: grow boxes until one already holds b. The first loop only reads:
-    # it lists up to _UP_LIST grown rows per tree, written after it; the second grows
-    # any further ones (rare), carrying the table.
-    start = jnp.where(pair, pm, m)
-
-    def needs_growing(a, table):
-        rows = table[row0 + jnp.maximum(a, 0)]
-        return (a >= 0) & ~_holds(rows[:, :3], rows[:, 3:6], b_lo, b_hi)
-
-    def grown_rows(a, table):
-        rows = table[row0 + jnp.maximum(a, 0)]
-        u_lo, u_hi = jnp.minimum(rows[:, :3], b_lo), jnp.maximum(rows[:, 3:6], b_hi)
-        return _row(u_lo, u_hi, rows[:, _COUNT], scale)
-
-    def list_cond(u):
-        return jnp.any(u[4]) & (u[3] < _UP_LIST)
-
-    def list_body(u):
-        a, listed, rows, steps, active = u
-        listed = listed.at[:, steps].set(jnp.where(active, row0 + a, flat))
-        rows = rows.at[:, steps].set(grown_rows(a, table))
-        a = jnp.where(active, parent[row0 + jnp.maximum(a, 0)], a)
-        return a, listed, rows, steps + 1, active & needs_growing(a, table)
-
-    listed = jnp.full((batch, _UP_LIST), flat, jnp.int32)
-    rows = jnp.zeros((batch, _UP_LIST, 8), dtype)
-    active = needs_growing(start, table)
-    a, listed, rows, _, active = jax.lax.while_loop(list_cond, list_body, (start, listed, rows, jnp.int32(0), active))
-    table = table.at[listed].set(rows, mode="drop")
-
-    def more_cond(u):
-        return jnp.any(u[3]) & (u[2] < nodes)
-
-    def more_body(u):
-        a, table, steps, active = u
-        table = table.at[jnp.where(active, row0 + a, flat)].set(grown_rows(a, table), mode="drop")
-        a = jnp.where(active, parent[row0 + jnp.maximum(a, 0)], a)
-        return a, table, steps + 1, active & needs_growing(a, table)
-
-    _, table, _, _ = jax.lax.while_loop(more_cond, more_body, (a, table, jnp.int32(0), active))
-    return child, parent, table, root, next_id
+    ins = _Insertion(p=p, b_lo=b_lo, b_hi=b_hi, b_centre=b_lo + b_hi,
+                     row0=jnp.arange(batch, dtype=jnp.int32) * nodes,
+                     near=jnp.asarray(1 + TIE_TOLERANCE, lo.dtype), scale=scale)
+    w = _walk_down(trees, ins, max_children, nodes)
+    placed = _place(trees, ins, w)
+    return _walk_up(placed, ins, jnp.where(w.m_count == 0, w.m_parent, w.m), nodes)
 
 
 @partial(jax.jit, static_argnames=("max_children",))
@@ -397,11 +442,13 @@ def insert_batch(lo, hi, orders, n, scale, *, max_children: int = DEFAULT_MAX_CH
     one_lo = jnp.full((nodes, 3), jnp.inf, dtype).at[:cap].set(lo)
     one_hi = jnp.full((nodes, 3), -jnp.inf, dtype).at[:cap].set(hi)
     one = _row(one_lo, one_hi, jnp.zeros(nodes, jnp.int32), scale)
-    state = (jnp.full((batch * nodes, max_children), -1, jnp.int32), jnp.full(batch * nodes, -1, jnp.int32),
-             jnp.tile(one, (batch, 1)), orders[:, 0], jnp.full(batch, n, jnp.int32))
+    # every tree starts as its first primitive, a leaf; interior nodes get ids from n
+    state = _Trees(child=jnp.full((batch * nodes, max_children), -1, jnp.int32),
+                   parent=jnp.full(batch * nodes, -1, jnp.int32), table=jnp.tile(one, (batch, 1)),
+                   root=orders[:, 0], next_id=jnp.full(batch, n, jnp.int32))
 
-    def body(t, s):
-        return _insert(t, s, lo, hi, orders, scale, max_children, nodes)
+    def body(t, trees):
+        return _insert(t, trees, lo, hi, orders, scale, max_children, nodes)
 
     child, parent, table, root, _ = jax.lax.fori_loop(1, n, body, state)
     ids = jnp.arange(nodes, dtype=jnp.int32)

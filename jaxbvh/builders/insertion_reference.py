@@ -15,7 +15,7 @@ from jaxbvh.numerics import TIE_TOLERANCE, half_area, scene_scale
 from jaxbvh.tree.layout import WideBVH
 
 
-def build(prim_lo, prim_hi, order=None, *, max_children: int = 8, trace: list | None = None) -> WideBVH:
+def build(prim_lo, prim_hi, order=None, *, max_children: int, trace: list | None = None) -> WideBVH:
     """Goldsmith–Salmon tree over ``prim_lo``, ``prim_hi`` [n, 3], inserting in ``order``.
 
     ``order``: a permutation of ``0 .. n-1`` (default: ``0 .. n-1``). Returns an

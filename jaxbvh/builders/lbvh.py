@@ -47,6 +47,7 @@ import numpy as np
 
 from jaxbvh.builders import morton
 from jaxbvh.builders.bottom_up import Linked, to_bvh
+from jaxbvh.builders.configs import LBVHConfig
 from jaxbvh.numerics import exclusive_sum, take
 from jaxbvh.tree.layout import BVH
 
@@ -180,20 +181,22 @@ def window_size(cap: int) -> int:
     return int(min(max(cap // 64, 64), 8192))
 
 
-def build(lo: np.ndarray, hi: np.ndarray, n: int, *, max_leaf: int, ct: float, ci: float, scale: float,
-          morton_bits: int = 30) -> BVH:
-    """LBVH over padded boxes ``lo``, ``hi`` [cap, 3] (NumPy or JAX, first ``n`` real); :func:`jaxbvh.builders.topdown` calls it.
+def build(lo, hi, n, scale, config: LBVHConfig) -> BVH:
+    """LBVH over padded boxes ``lo``, ``hi`` [cap, 3] (NumPy or JAX, first ``n`` real).
 
-    ``scale``: the scene's area scale (:func:`jaxbvh.builders.topdown.scene_scale`). Returns a
+    ``scale``: the scene's area scale (:func:`jaxbvh.numerics.scene_scale`); ``config``:
+    the knobs (``max_leaf``, ``ct``, ``ci``, ``morton_bits``; :func:`jaxbvh.build` makes
+    these inputs with :func:`jaxbvh.builders.inputs.prepare`). Returns a
     :class:`~jaxbvh.tree.layout.BVH` of JAX arrays (layout: module docstring).
     """
-    bits = morton.check_code_bits(morton_bits)
+    bits = config.morton_bits
     dtype = lo.dtype
     lo_j, hi_j = jnp.asarray(lo), jnp.asarray(hi)
+    n = int(n)
     origin, grid = morton.quantization(lo_j, hi_j, n, bits)
     with morton.x64():
         order, left, right, first, count, axis = _topology(lo_j, hi_j, jnp.int32(n), jnp.asarray(origin),
                                                            jnp.asarray(grid), bits=bits)
-    return _finish(lo_j, hi_j, jnp.int32(n), order, left, right, first, count, axis, jnp.int32(max_leaf),
-                   jnp.asarray(ct, dtype), jnp.asarray(ci, dtype), jnp.asarray(scale, dtype),
-                   window=window_size(lo.shape[0]), collapse=int(max_leaf) > 1)
+    return _finish(lo_j, hi_j, jnp.int32(n), order, left, right, first, count, axis, jnp.int32(config.max_leaf),
+                   jnp.asarray(config.ct, dtype), jnp.asarray(config.ci, dtype), jnp.asarray(scale, dtype),
+                   window=window_size(lo.shape[0]), collapse=config.max_leaf > 1)

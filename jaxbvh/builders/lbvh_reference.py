@@ -31,8 +31,10 @@ def radix_tree(keys: list[int], ids: list[int], lo, hi, bits: int) -> Node:
     return make(0, n - 1)  # depth <= 64: the keys are 64-bit and distinct
 
 
-def build(prim_lo, prim_hi, *, max_leaf=1, ct=1.0, ci=1.0, morton_bits=30) -> BVH:
-    """Reference LBVH; boxes used in their dtype. Unpadded NumPy BVH, depth-first."""
+def build(prim_lo, prim_hi, config) -> BVH:
+    """Reference LBVH of ``config`` (read for ``max_leaf``, ``ct``, ``ci``, ``morton_bits``);
+    boxes used in their dtype. Unpadded NumPy BVH, depth-first."""
     lo, hi = np.asarray(prim_lo), np.asarray(prim_hi)
-    keys, ids = morton.sorted_keys(lo, hi, morton_bits)
-    return to_bvh(radix_tree(keys, ids, lo, hi, morton_bits), lo, hi, max_leaf=max_leaf, ct=ct, ci=ci)
+    keys, ids = morton.sorted_keys(lo, hi, config.morton_bits)
+    return to_bvh(radix_tree(keys, ids, lo, hi, config.morton_bits), lo, hi, max_leaf=config.max_leaf,
+                  ct=config.ct, ci=config.ci)

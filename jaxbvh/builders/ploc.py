@@ -49,14 +49,13 @@ from functools import partial
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from jaxbvh.builders import morton
 from jaxbvh.builders.bottom_up import Linked, to_bvh
+from jaxbvh.builders.configs import PLOCConfig
 from jaxbvh.numerics import TIE_TOLERANCE, exclusive_sum, half_area
 from jaxbvh.tree.layout import BVH
 
-DEFAULT_RADIUS = 16
 SMALLEST_STAGE = 2048
 
 
@@ -214,20 +213,19 @@ def _cluster(lo, hi, n, order, max_leaf, ct, ci, scale, *, radius, stages, colla
     return to_bvh(linked, max_leaf, ct, ci, scale, collapse=collapse)
 
 
-def build(lo: np.ndarray, hi: np.ndarray, n: int, *, radius: int = DEFAULT_RADIUS, max_leaf: int, ct: float,
-          ci: float, scale: float, morton_bits: int = 30) -> BVH:
-    """PLOC over padded boxes ``lo``, ``hi`` [cap, 3] (NumPy or JAX, first ``n`` real); :func:`jaxbvh.builders.topdown` calls it.
+def build(lo, hi, n, scale, config: PLOCConfig) -> BVH:
+    """PLOC over padded boxes ``lo``, ``hi`` [cap, 3] (NumPy or JAX, first ``n`` real).
 
-    ``radius``: neighbours looked at on each side (static: one compile per value).
-    ``scale``: the scene's area scale. Returns a :class:`~jaxbvh.tree.layout.BVH` of JAX arrays.
+    ``scale``: the scene's area scale; ``config``: the knobs (``radius``: neighbours
+    looked at on each side, static: one compile per value; ``max_leaf``, ``ct``, ``ci``,
+    ``morton_bits``). Returns a :class:`~jaxbvh.tree.layout.BVH` of JAX arrays.
     """
-    if int(radius) < 1:
-        raise ValueError(f"radius must be >= 1, got {radius}")
-    bits = morton.check_code_bits(morton_bits)
+    bits = config.morton_bits
     dtype = lo.dtype
     lo_j, hi_j = jnp.asarray(lo), jnp.asarray(hi)
+    n = int(n)
     origin, grid = morton.quantization(lo_j, hi_j, n, bits)
     order = morton.morton_order(lo_j, hi_j, n, jnp.asarray(origin), jnp.asarray(grid), bits=bits)
-    return _cluster(lo_j, hi_j, jnp.int32(n), order, jnp.int32(max_leaf), jnp.asarray(ct, dtype),
-                    jnp.asarray(ci, dtype), jnp.asarray(scale, dtype), radius=int(radius),
-                    stages=stage_sizes(lo.shape[0]), collapse=int(max_leaf) > 1)
+    return _cluster(lo_j, hi_j, jnp.int32(n), order, jnp.int32(config.max_leaf), jnp.asarray(config.ct, dtype),
+                    jnp.asarray(config.ci, dtype), jnp.asarray(scale, dtype), radius=config.radius,
+                    stages=stage_sizes(lo.shape[0]), collapse=config.max_leaf > 1)

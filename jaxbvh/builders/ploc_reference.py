@@ -59,10 +59,11 @@ def cluster(clusters: list[Node], radius: int, scale) -> Node:
     return clusters[0]
 
 
-def build(prim_lo, prim_hi, *, radius=16, max_leaf=1, ct=1.0, ci=1.0, morton_bits=30) -> BVH:
-    """Reference PLOC; boxes used in their dtype. Unpadded NumPy BVH, depth-first."""
+def build(prim_lo, prim_hi, config) -> BVH:
+    """Reference PLOC of ``config`` (read for ``radius``, ``max_leaf``, ``ct``, ``ci``,
+    ``morton_bits``); boxes used in their dtype. Unpadded NumPy BVH, depth-first."""
     lo, hi = np.asarray(prim_lo), np.asarray(prim_hi)
-    _, ids = morton.sorted_keys(lo, hi, morton_bits)
+    _, ids = morton.sorted_keys(lo, hi, config.morton_bits)
     scale = lo.dtype.type(scene_scale(lo, hi))
-    root = cluster([Node.leaf(p, lo, hi) for p in ids], int(radius), scale)
-    return to_bvh(root, lo, hi, max_leaf=max_leaf, ct=ct, ci=ci)
+    root = cluster([Node.leaf(p, lo, hi) for p in ids], int(config.radius), scale)
+    return to_bvh(root, lo, hi, max_leaf=config.max_leaf, ct=config.ct, ci=config.ci)

@@ -78,38 +78,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxbvh.builders.configs import BuilderConfig
 from jaxbvh.draws import split_uniforms
-from jaxbvh.numerics import TIE_TOLERANCE, half_area, scene_scale, working_dtype
+from jaxbvh.numerics import TIE_TOLERANCE, half_area
 from jaxbvh.tree.layout import BVH, capacity_bucket
-from jaxbvh.tree.validate import few_ids
-
-
-def check_prim_boxes(prim_lo, prim_hi, what: str = "primitive boxes"):
-    """Host-side check of ``prim_lo``, ``prim_hi`` [n, 3]; returns them as NumPy arrays.
-
-    Raises ``ValueError`` naming the problem: wrong shape, no primitives, NaN/inf
-    (with how many and which), or ``lo > hi``.
-    """
-    lo = np.asarray(prim_lo)
-    hi = np.asarray(prim_hi)
-    if lo.ndim != 2 or lo.shape[-1] != 3 or lo.shape != hi.shape:
-        raise ValueError(f"{what}: lo and hi must both have shape [n, 3], got {lo.shape} and {hi.shape}")
-    if lo.shape[0] == 0:
-        raise ValueError(f"{what}: no primitives (n = 0); a BVH needs at least one")
-    if not (np.issubdtype(lo.dtype, np.floating) and np.issubdtype(hi.dtype, np.floating)):
-        lo, hi = lo.astype(np.float64), hi.astype(np.float64)
-    bad = ~(np.isfinite(lo).all(1) & np.isfinite(hi).all(1))
-    if bad.any():
-        ids = np.flatnonzero(bad)
-        raise ValueError(f"{what}: {ids.size} of {lo.shape[0]} have NaN or infinite coordinates "
-                         f"(first: {few_ids(ids)})")
-    inverted = (lo > hi).any(1)
-    if inverted.any():
-        ids = np.flatnonzero(inverted)
-        raise ValueError(f"{what}: {ids.size} have lo > hi (first: {few_ids(ids)})")
-    return lo, hi
-
-
 
 
 class RandomSplits(NamedTuple):
@@ -130,10 +102,27 @@ class RandomSplits(NamedTuple):
     k: Any
 
 
+def build(lo, hi, n, scale, config: BuilderConfig) -> BVH:
+    """The top-down tree of ``config`` (a Sweep, Binned or Median Config) over prepared inputs.
+
+    ``lo``, ``hi``, ``n``, ``scale``: as from :func:`jaxbvh.builders.inputs.prepare`. Returns a
+    :class:`~jaxbvh.tree.layout.BVH` of JAX arrays, nodes numbered level by level, root 0.
+    """
+    if config.method not in RULES:
+        raise ValueError(f"the top-down engine builds {', '.join(RULES)}, not {config.method!r}")
+    bins = config.bins if config.method == "binned" else 0
+    if bins and capacity_bucket(int(n)) * bins >= 2**31:
+        raise ValueError(f"binned build of {int(n)} primitives with {bins} bins needs keys past int32; "
+                         "use fewer bins")
+    dt = lo.dtype
+    return engine(lo, hi, n, jnp.int32(config.max_leaf), jnp.asarray(config.ct, dt), jnp.asarray(config.ci, dt),
+                  scale, method=config.method, bins=bins)
+
+
 def randomized_forest(lo, hi, n, scale, splits: RandomSplits, *, rcl: str):
     """Randomized full-sweep forest (module docstring), one primitive per leaf.
 
-    ``lo``, ``hi``, ``n``, ``scale``: as from :func:`engine_inputs`; ``scale`` must be
+    ``lo``, ``hi``, ``n``, ``scale``: as from :func:`jaxbvh.builders.inputs.prepare`; ``scale`` must be
     the whole scene's (areas of every tree on one scale). ``rcl``: ``"axes"`` or
     ``"list"``. Returns ``(forest, tree_of)``: a :class:`BVH` whose nodes ``0 .. G - 1``
     are the roots (``root`` is 0, ``prim_index`` holds slots of ``lo``), and ``tree_of``
@@ -142,90 +131,134 @@ def randomized_forest(lo, hi, n, scale, splits: RandomSplits, *, rcl: str):
     if rcl not in SPLIT_CHOICES:
         raise ValueError(f"rcl must be one of {', '.join(SPLIT_CHOICES)}, got {rcl!r}")
     one = jnp.ones((), lo.dtype)
-    return _build(lo, hi, n, jnp.int32(1), one, one, scale, splits, method="sweep", bins=0, rcl=rcl)
-
-
-def engine_inputs(prim_lo, prim_hi, *, pad: bool = True, dtype=None):
-    """Checked, cast and padded engine inputs ``(lo, hi, n, scale)`` for ``_build``.
-
-    ``lo``, ``hi``: [capacity, 3] JAX arrays (padding: the empty box); ``n``: int32
-    primitive count; ``scale``: the scene's power-of-two area scale. Arguments and errors
-    as :func:`build`.
-    """
-    lo, hi = check_prim_boxes(prim_lo, prim_hi)
-    dt = working_dtype(dtype, lo.dtype)
-    lo, hi = lo.astype(dt), hi.astype(dt)
-    n = lo.shape[0]
-    cap = capacity_bucket(n) if pad else n
-    lo_p = np.full((cap, 3), np.inf, dt)
-    hi_p = np.full((cap, 3), -np.inf, dt)
-    lo_p[:n], hi_p[:n] = lo, hi
-    return jnp.asarray(lo_p), jnp.asarray(hi_p), jnp.int32(n), jnp.asarray(scene_scale(lo, hi), dt)
+    scene = _Scene(lo, hi, _centres(lo, hi, n), scale, jnp.int32(1), one, one)
+    state = _grow(scene, _forest_state(scene, n, splits), method="sweep", bins=0, rcl=rcl, splits=splits)
+    return _tree(state, n), state.tree_of
 
 
 # ----------------------------------------------------------------------------------
-# the engine
+# The engine: one while_loop step per level (_level), made of the steps below
 # ----------------------------------------------------------------------------------
 
-_NO_CODE = np.iinfo(np.int32).max  # tie-rule code of "no candidate"
+RULES = ("sweep", "binned", "median")  # the split rules of the engine (module docstring)
 SPLIT_CHOICES = ("axes", "list")  # randomized split rules (module docstring)
+_NO_CODE = np.iinfo(np.int32).max  # tie-rule code of "no candidate"
 
 
+class _Scene(NamedTuple):
+    """What every level reads and no level changes."""
 
-def _sweep_split_of(code, count):
-    """(axis, N_L) of the sweep split with tie-rule code ``code`` in a node of ``count``."""
-    gap, upper = (code // 3) // 2, (code // 3) % 2
-    return code % 3, jnp.where(upper == 1, count + gap, count - gap) // 2
+    lo: Any        # [capacity, 3] primitive boxes (padding: the empty box)
+    hi: Any
+    centre: Any    # [capacity, 3] box centres (padding: +inf, so it sorts last)
+    scale: Any     # the scene's power-of-two area scale
+    max_leaf: Any  # int32: nodes of at most this many primitives may become leaves
+    ct: Any        # SAH traversal and intersection costs (leaf test only)
+    ci: Any
 
 
-def _least_code(cost, code, seg, num_segments):
-    """Tie-rule winner per segment: least cost, then least ``code`` within TIE_TOLERANCE.
+class _State(NamedTuple):
+    """The loop state: the tree so far and the runs of the open nodes.
 
-    ``cost``, ``code``, ``seg``: equal shapes (``inf`` cost = not a candidate). Returns
-    the winner's code [num_segments], ``_NO_CODE`` for a segment without candidates.
+    Node arrays have ``2 capacity`` slots; ``none`` (= that count) is the out-of-range
+    node id, so scatters to it are dropped.
     """
-    best = jax.ops.segment_min(cost.ravel(), seg.ravel(), num_segments=num_segments)
-    near = (best * (1 + TIE_TOLERANCE)).at[seg].get(mode="fill", fill_value=jnp.inf)
-    ok = (cost <= near) & (cost < jnp.inf)
-    return jax.ops.segment_min(jnp.where(ok, code, _NO_CODE).ravel(), seg.ravel(),
-                               num_segments=num_segments)
+
+    orders: Any      # [3, capacity] int32: per axis, the primitive at each position; runs sorted by centre
+    pos_node: Any    # [capacity] int32: the node whose run holds each position (none: padding, or done)
+    start: Any       # [nodes] int32: first position of each node's run
+    count: Any       # [nodes] int32: primitives in each node's run
+    frontier: Any    # [nodes] bool: the open nodes, all on the level being built
+    left: Any        # [nodes] int32: children (-1: leaf or unused), parent (-1: a root)
+    right: Any
+    parent: Any
+    axis: Any        # [nodes] int32: the split axis (-1: leaf)
+    prim_start: Any  # [nodes] int32: a leaf's run of positions (0, 0 for interior nodes)
+    prim_count: Any
+    lo: Any          # [nodes, 3] boxes, written when a node is on the frontier
+    hi: Any
+    next_free: Any   # int32: the first node id not yet used
+    tree_of: Any     # [nodes] int32: the tree (group) of each node in a forest, -1 unused; None: one tree
 
 
-def _randomized_split(rcl, cost3, code3, seg3, greedy_code, count, open_node, uniforms, noise, k):
-    """Split (axis, N_L) [nodes] of every node under the randomized rule (module docstring).
+class _Runs(NamedTuple):
+    """Where each position stands on the current level, all [capacity]."""
 
-    ``cost3``, ``code3``, ``seg3``: [3, P] candidate costs (inf: none), tie-rule codes and
-    node ids (``nodes`` = none); ``greedy_code``: [nodes] the greedy split's code;
-    ``open_node``: [nodes] nodes split on this level; ``uniforms``: [nodes, 2].
-    """
-    nodes = count.shape[0]
-    greedy_axis, greedy_left = _sweep_split_of(greedy_code, count)
-    deviate = open_node & (count >= 2) & (uniforms[:, 0] < noise)
-    u1 = uniforms[:, 1]
-    if rcl == "axes":
-        axis_seg = seg3 + (nodes + 1) * jnp.arange(3, dtype=jnp.int32)[:, None]
-        per_axis = _least_code(cost3, code3, axis_seg, 3 * (nodes + 1)).reshape(3, nodes + 1)[:, :nodes]
-        alt_axis = (greedy_axis + jnp.where(u1 < 0.5, 1, 2)) % 3
-        alt_code = jnp.take_along_axis(per_axis, alt_axis[None, :], axis=0)[0]
-    else:
-        size = jnp.minimum(k, 3 * (count - 1))  # the list: the node's best min(k, 3 (N - 1))
-        others = jnp.maximum(size - 1, 0)
-        pick = jnp.minimum(jnp.floor(u1 * others.astype(jnp.float32)).astype(jnp.int32), others - 1)
-        rank = jnp.where(deviate & (others > 0), 1 + pick, 0)
-        deviate = rank > 0
+    active: Any   # bool: in the run of an open node
+    seg: Any      # int32: that node, none when not active (segment ids of the scans)
+    start: Any    # int32: the first position of its run
+    count: Any    # int32: its run's length
+    offset: Any   # int32: position - start
+    first: Any    # bool: first / last position of its run
+    last: Any
 
-        def next_rank(state):  # rank j: the greedy split among those not yet ranked
-            j, taken, chosen = state
-            code_j = _least_code(jnp.where(taken, jnp.inf, cost3), code3, seg3, nodes + 1)[:nodes]
-            taken = taken | (code3 == code_j.at[seg3].get(mode="fill", fill_value=_NO_CODE))
-            return j + 1, taken, jnp.where(rank == j, code_j, chosen)
 
-        taken = code3 == greedy_code.at[seg3].get(mode="fill", fill_value=_NO_CODE)
-        last = jnp.max(rank)  # at most k - 1: the loop's bound
-        _, _, alt_code = jax.lax.while_loop(lambda s: s[0] <= last, next_rank,
-                                            (jnp.int32(1), taken, greedy_code))
-    alt_axis, alt_left = _sweep_split_of(alt_code, count)
-    return jnp.where(deviate, alt_axis, greedy_axis), jnp.where(deviate, alt_left, greedy_left)
+def _centres(lo, hi, n):
+    """Box centres [capacity, 3]; padding +inf (sorted last)."""
+    return jnp.where((jnp.arange(lo.shape[0]) < n)[:, None], 0.5 * lo + 0.5 * hi, jnp.inf)
+
+
+def _greedy_state(scene: _Scene, n) -> _State:
+    """One tree: every primitive in the root's run."""
+    cap = scene.lo.shape[0]
+    nodes = 2 * cap
+    dtype = scene.lo.dtype
+    is_prim = jnp.arange(cap, dtype=jnp.int32) < n
+    # one permutation per axis, each run sorted by centre (stable: equal centres by id)
+    orders = jnp.stack([jnp.argsort(scene.centre[:, a], stable=True).astype(jnp.int32) for a in range(3)])
+    int_nodes = jnp.full(nodes, -1, jnp.int32)
+    return _State(
+        orders=orders, pos_node=jnp.where(is_prim, 0, nodes).astype(jnp.int32),
+        start=jnp.zeros(nodes, jnp.int32), count=jnp.zeros(nodes, jnp.int32).at[0].set(n),
+        frontier=jnp.zeros(nodes, bool).at[0].set(True),
+        left=int_nodes, right=int_nodes, parent=int_nodes, axis=int_nodes,
+        prim_start=jnp.zeros(nodes, jnp.int32), prim_count=jnp.zeros(nodes, jnp.int32),
+        lo=jnp.full((nodes, 3), jnp.inf, dtype), hi=jnp.full((nodes, 3), -jnp.inf, dtype),
+        next_free=jnp.int32(1), tree_of=None)
+
+
+def _forest_state(scene: _Scene, n, splits: RandomSplits) -> _State:
+    """A forest: group g's primitives take the run ``[offset_g, offset_g + count_g)`` of
+    every axis order, sorted by centre inside it (stable sorts keep ids in order); the
+    roots are nodes ``0 .. G - 1``."""
+    s = _greedy_state(scene, n)
+    cap = scene.lo.shape[0]
+    nodes = 2 * cap
+    is_prim = jnp.arange(cap, dtype=jnp.int32) < n
+    group = jnp.where(is_prim, splits.group, cap)
+    orders = jnp.stack([o[jnp.argsort(group[o], stable=True)] for o in s.orders])
+    size = jax.ops.segment_sum(is_prim.astype(jnp.int32), group, num_segments=cap + 1)[:cap]
+    root = jnp.arange(cap, dtype=jnp.int32)
+    return s._replace(
+        orders=orders,
+        pos_node=jnp.where(is_prim, group[orders[0]], nodes).astype(jnp.int32),
+        start=jnp.zeros(nodes, jnp.int32).at[root].set(jnp.cumsum(size) - size),
+        count=jnp.zeros(nodes, jnp.int32).at[root].set(size),
+        frontier=jnp.zeros(nodes, bool).at[root].set(size > 0),
+        next_free=jnp.sum(size > 0, dtype=jnp.int32),
+        tree_of=jnp.full(nodes, -1, jnp.int32).at[root].set(jnp.where(size > 0, root, -1)))
+
+
+def _runs(s: _State) -> _Runs:
+    """Each position's node and run on this level."""
+    cap = s.pos_node.shape[0]
+    none = s.count.shape[0]
+    pos = jnp.arange(cap, dtype=jnp.int32)
+    active = s.frontier.at[s.pos_node].get(mode="fill", fill_value=False)
+    start = s.start.at[s.pos_node].get(mode="fill", fill_value=0)
+    count = s.count.at[s.pos_node].get(mode="fill", fill_value=0)
+    offset = pos - start
+    return _Runs(active=active, seg=jnp.where(active, s.pos_node, none), start=start, count=count,
+                 offset=offset, first=offset == 0, last=offset == count - 1)
+
+
+def _node_boxes(scene: _Scene, s: _State, runs: _Runs):
+    """Boxes [nodes, 3] of the nodes on this level (others keep theirs)."""
+    nodes = s.count.shape[0]
+    prim0 = s.orders[0]
+    box_lo = jax.ops.segment_min(scene.lo[prim0], runs.seg, num_segments=nodes + 1)[:nodes]
+    box_hi = jax.ops.segment_max(scene.hi[prim0], runs.seg, num_segments=nodes + 1)[:nodes]
+    return jnp.where(s.frontier[:, None], box_lo, s.lo), jnp.where(s.frontier[:, None], box_hi, s.hi)
 
 
 def _segmented_box_scan(lo, hi, starts):
@@ -245,19 +278,18 @@ def _segmented_box_scan(lo, hi, starts):
     return run_lo, run_hi
 
 
-def _split_costs(lo_pos, hi_pos, first, last, n_left, n_right, scale):
-    """Cost ``A_L N_L + A_R N_R`` of splitting each run after each position.
-
-    ``*_pos``: boxes in position order, one row per axis order [3, P, 3];
-    ``first`` / ``last``: [P] run boundaries; ``n_left``/``n_right``: [P] counts of
-    the two sides when splitting after the position. Returns [3, P].
-    """
+def _split_costs(scene: _Scene, orders, runs: _Runs):
+    """Cost ``A_L N_L + A_R N_R`` [3, P] of splitting each run after each position, per
+    axis order; ``inf`` where that is no split (the last position, or not active)."""
+    lo_pos, hi_pos = scene.lo[orders], scene.hi[orders]  # boxes in position order [3, P, 3]
+    n_left = runs.offset + 1
+    n_right = runs.count - n_left
     axes = lo_pos.shape[0]
     # forward sweeps (left sides) and backward sweeps (right sides) in one scan
     seq_lo = jnp.concatenate([lo_pos, lo_pos[:, ::-1]])
     seq_hi = jnp.concatenate([hi_pos, hi_pos[:, ::-1]])
-    starts = jnp.concatenate([jnp.broadcast_to(first, (axes,) + first.shape),
-                              jnp.broadcast_to(last[::-1], (axes,) + last.shape)])
+    starts = jnp.concatenate([jnp.broadcast_to(runs.first, (axes,) + runs.first.shape),
+                              jnp.broadcast_to(runs.last[::-1], (axes,) + runs.last.shape)])
     run_lo, run_hi = _segmented_box_scan(seq_lo, seq_hi, starts)
     fwd_lo, fwd_hi = run_lo[:axes], run_hi[:axes]
     # the right side of a split after p is the backward run starting at p + 1
@@ -265,195 +297,240 @@ def _split_costs(lo_pos, hi_pos, first, last, n_left, n_right, scale):
     right_lo = jnp.concatenate([run_lo[axes:, ::-1][:, 1:], empty], axis=1)
     right_hi = jnp.concatenate([run_hi[axes:, ::-1][:, 1:], -empty], axis=1)
     dtype = lo_pos.dtype
-    return (half_area(fwd_lo, fwd_hi, scale) * n_left.astype(dtype)
-            + half_area(right_lo, right_hi, scale) * n_right.astype(dtype))
+    cost = (half_area(fwd_lo, fwd_hi, scene.scale) * n_left.astype(dtype)
+            + half_area(right_lo, right_hi, scene.scale) * n_right.astype(dtype))
+    return jnp.where(runs.active & (n_right > 0), cost, jnp.inf)
 
 
-@partial(jax.jit, static_argnames=("method", "bins", "rcl"))
-def _build(lo, hi, n, max_leaf, ct, ci, scale, splits=None, *, method, bins, rcl=None):
-    """The engine. ``rcl`` (None: greedy, or one of SPLIT_CHOICES) with ``method="sweep"``
-    and ``splits`` (:class:`RandomSplits`) builds the randomized forest and returns
-    ``(BVH, tree_of)`` (:func:`randomized_forest`); otherwise one tree, a ``BVH``."""
-    cap = lo.shape[0]
-    nodes = 2 * cap
-    none = nodes  # out-of-range node id: scatters to it are dropped
-    dtype = lo.dtype
+def _sweep_candidates(scene: _Scene, s: _State, runs: _Runs):
+    """Every split position of every axis: ``(cost3, code3)`` [3, P], the code ranking
+    equal costs by the sweep's tie rule (``|2 N_L - N|``, its sign, the axis)."""
+    two_k = 2 * (runs.offset + 1)
+    code3 = (jnp.abs(two_k - runs.count) * 2 + (two_k > runs.count))[None, :] * 3 \
+        + jnp.arange(3, dtype=jnp.int32)[:, None]
+    return _split_costs(scene, s.orders, runs), code3
+
+
+def _binned_candidates(scene: _Scene, s: _State, runs: _Runs, bins: int):
+    """The planes between bins (Wald's candidates): ``(cost3, code3)`` [3, P], the code
+    ranking equal costs by axis, then plane.
+
+    The per-axis orders are sorted by centre, so bins never decrease along a run: the
+    planes between occupied bins are the positions where the bin changes.
+    """
+    nodes = s.count.shape[0]
+    dtype = scene.lo.dtype
+    c_pos = scene.centre[s.orders[0]]
+    cmin = jax.ops.segment_min(c_pos, runs.seg, num_segments=nodes + 1)[:nodes]
+    cmax = jax.ops.segment_max(c_pos, runs.seg, num_segments=nodes + 1)[:nodes]
+    span = (cmax - cmin).at[s.pos_node].get(mode="fill", fill_value=0).T  # [3, P]
+    low = cmin.at[s.pos_node].get(mode="fill", fill_value=0).T
+    c_sorted = jnp.stack([scene.centre[s.orders[a], a] for a in range(3)])
+    binsf = jnp.asarray(bins, dtype)
+    raw = jnp.floor((c_sorted - low) * binsf / jnp.where(span > 0, span, 1))
+    bin_sorted = jnp.where(runs.active & (span > 0), jnp.clip(raw, 0, binsf - 1), 0).astype(jnp.int32)
+    next_bin = jnp.concatenate([bin_sorted[:, 1:], jnp.full((3, 1), -1, jnp.int32)], axis=1)
+    cost3 = jnp.where(bin_sorted != next_bin, _split_costs(scene, s.orders, runs), jnp.inf)
+    return cost3, jnp.arange(3, dtype=jnp.int32)[:, None] * bins + bin_sorted
+
+
+def _tie_winner(cost, code, seg, num_segments):
+    """Tie-rule winner per segment: least cost, then least ``code`` within TIE_TOLERANCE.
+
+    ``cost``, ``code``, ``seg``: equal shapes (``inf`` cost = not a candidate). Returns
+    ``(best, winner, near_best)``: the least cost [num_segments], the winner's code
+    [num_segments] (``_NO_CODE`` for a segment without candidates), and which
+    candidates are within the tolerance of their segment's least.
+    """
+    best = jax.ops.segment_min(cost.ravel(), seg.ravel(), num_segments=num_segments)
+    near = (best * (1 + TIE_TOLERANCE)).at[seg].get(mode="fill", fill_value=jnp.inf)
+    near_best = (cost <= near) & (cost < jnp.inf)
+    winner = jax.ops.segment_min(jnp.where(near_best, code, _NO_CODE).ravel(), seg.ravel(),
+                                 num_segments=num_segments)
+    return best, winner, near_best
+
+
+def _sweep_split_of(code, count):
+    """(axis, N_L) of the sweep split with tie-rule code ``code`` in a node of ``count``."""
+    gap, upper = (code // 3) // 2, (code // 3) % 2
+    return code % 3, jnp.where(upper == 1, count + gap, count - gap) // 2
+
+
+def _binned_split_of(code, found, near_best, code3, seg3, runs: _Runs, count, bins: int):
+    """(axis, N_L) of the winning plane; a node with no plane on any axis (all centres in
+    one point, ``found`` False) is split into halves by id, which is the order of every
+    axis then."""
+    nodes = count.shape[0]
+    at_best = near_best & (code3 == code.at[seg3].get(mode="fill", fill_value=-1))
+    n_left3 = jnp.where(at_best, (runs.offset + 1)[None, :], 0)
+    n_left = jax.ops.segment_max(n_left3.ravel(), seg3.ravel(), num_segments=nodes + 1)[:nodes]
+    return jnp.where(found, code // bins, 0), jnp.where(found, n_left, count // 2)
+
+
+def _node_uniforms(s: _State, runs: _Runs, splits: RandomSplits):
+    """The two uniforms [nodes, 2] of every open node (module docstring: named by the
+    node's trial and run, drawn at its run's first position)."""
+    nodes = s.count.shape[0]
+    tree_p = jnp.maximum(s.tree_of.at[s.pos_node].get(mode="fill", fill_value=0), 0)
+    drawn = split_uniforms(splits.key, splits.trial[tree_p], runs.start + splits.shift[tree_p], runs.count)
+    at_first = jnp.where(runs.first & runs.active, s.pos_node, nodes)
+    return jnp.zeros((nodes, 2), jnp.float32).at[at_first].set(drawn, mode="drop")
+
+
+def _randomized_split(rcl, cost3, code3, seg3, greedy_code, count, open_node, uniforms, noise, k):
+    """Split (axis, N_L) [nodes] of every node under the randomized rule (module docstring).
+
+    ``cost3``, ``code3``, ``seg3``: [3, P] candidate costs (inf: none), tie-rule codes and
+    node ids (``nodes`` = none); ``greedy_code``: [nodes] the greedy split's code;
+    ``open_node``: [nodes] nodes split on this level; ``uniforms``: [nodes, 2].
+    """
+    nodes = count.shape[0]
+    greedy_axis, greedy_left = _sweep_split_of(greedy_code, count)
+    deviate = open_node & (count >= 2) & (uniforms[:, 0] < noise)
+    u1 = uniforms[:, 1]
+    if rcl == "axes":
+        axis_seg = seg3 + (nodes + 1) * jnp.arange(3, dtype=jnp.int32)[:, None]
+        _, per_axis, _ = _tie_winner(cost3, code3, axis_seg, 3 * (nodes + 1))
+        per_axis = per_axis.reshape(3, nodes + 1)[:, :nodes]
+        alt_axis = (greedy_axis + jnp.where(u1 < 0.5, 1, 2)) % 3
+        alt_code = jnp.take_along_axis(per_axis, alt_axis[None, :], axis=0)[0]
+    else:
+        size = jnp.minimum(k, 3 * (count - 1))  # the list: the node's best min(k, 3 (N - 1))
+        others = jnp.maximum(size - 1, 0)
+        pick = jnp.minimum(jnp.floor(u1 * others.astype(jnp.float32)).astype(jnp.int32), others - 1)
+        rank = jnp.where(deviate & (others > 0), 1 + pick, 0)
+        deviate = rank > 0
+
+        def next_rank(state):  # rank j: the greedy split among those not yet ranked
+            j, taken, chosen = state
+            code_j = _tie_winner(jnp.where(taken, jnp.inf, cost3), code3, seg3, nodes + 1)[1][:nodes]
+            taken = taken | (code3 == code_j.at[seg3].get(mode="fill", fill_value=_NO_CODE))
+            return j + 1, taken, jnp.where(rank == j, code_j, chosen)
+
+        taken = code3 == greedy_code.at[seg3].get(mode="fill", fill_value=_NO_CODE)
+        last = jnp.max(rank)  # at most k - 1: the loop's bound
+        _, _, alt_code = jax.lax.while_loop(lambda s: s[0] <= last, next_rank,
+                                            (jnp.int32(1), taken, greedy_code))
+    alt_axis, alt_left = _sweep_split_of(alt_code, count)
+    return jnp.where(deviate, alt_axis, greedy_axis), jnp.where(deviate, alt_left, greedy_left)
+
+
+def _sah_leaf(scene: _Scene, best, node_area, count, found):
+    """Whether a node costs no more as a leaf than split at its best, within the tie
+    tolerance (an exact tie, e.g. a point inside its sibling's box, must not hang on
+    rounding); a node without a candidate split is a leaf too."""
+    ct, ci = scene.ct, scene.ci
+    count_f = count.astype(scene.lo.dtype)
+    split_est = ct + jnp.where(node_area > 0, ci * best / jnp.where(node_area > 0, node_area, 1), ci * count_f)
+    return (ci * count_f <= split_est * (1 + TIE_TOLERANCE)) | ~found
+
+
+def _choose_splits(scene: _Scene, s: _State, runs: _Runs, node_lo, node_hi, *, method, bins, rcl, splits):
+    """``(axis, N_L, sah_leaf)`` [nodes] of every node on this level under ``method``."""
+    nodes = s.count.shape[0]
+    count = s.count
+    if method == "median":  # the first longest axis, the lower half (by centre, then id) left
+        split_axis = jnp.argmax(node_hi - node_lo, axis=1).astype(jnp.int32)
+        return split_axis, count // 2, jnp.ones(nodes, bool)
+    if method == "sweep":
+        cost3, code3 = _sweep_candidates(scene, s, runs)
+    else:
+        cost3, code3 = _binned_candidates(scene, s, runs, bins)
+    seg3 = jnp.broadcast_to(runs.seg, cost3.shape)
+    best, code, near_best = _tie_winner(cost3, code3, seg3, nodes + 1)
+    best, code = best[:nodes], code[:nodes]
+    found = best < jnp.inf
+    if method == "sweep":
+        split_axis, n_left = _sweep_split_of(code, count)
+        if rcl is not None:
+            split_axis, n_left = _randomized_split(
+                rcl, cost3, code3, seg3, code, count, s.frontier & (count >= 2),
+                _node_uniforms(s, runs, splits), splits.noise, splits.k)
+    else:
+        split_axis, n_left = _binned_split_of(code, found, near_best, code3, seg3, runs, count, bins)
+    return split_axis, n_left, _sah_leaf(scene, best, half_area(node_lo, node_hi, scene.scale), count, found)
+
+
+def _partition(s: _State, runs: _Runs, split, split_axis, n_left, left_id, right_id):
+    """Move the primitives of split nodes into their children's runs, stably in every
+    axis order: ``(orders, pos_node)`` of the next level."""
+    cap = s.pos_node.shape[0]
+    none = s.count.shape[0]
     pos = jnp.arange(cap, dtype=jnp.int32)
-    is_prim = pos < n
-    centre = jnp.where(is_prim[:, None], 0.5 * lo + 0.5 * hi, jnp.inf)
-    # one permutation per axis, each run sorted by centre (stable: equal centres by id)
-    orders = jnp.stack([jnp.argsort(centre[:, a], stable=True).astype(jnp.int32) for a in range(3)])
+    pos_split = runs.active & split.at[s.pos_node].get(mode="fill", fill_value=False)
+    axis_p = split_axis.at[s.pos_node].get(mode="fill", fill_value=0)
+    n_left_at = n_left.at[s.pos_node].get(mode="fill", fill_value=0)
+    # which primitives go left: the first N_L of the run in the split axis' order
+    prim_at = jnp.take_along_axis(s.orders, axis_p[None, :], axis=0)[0]
+    goes_left = runs.offset < n_left_at
+    left_prim = jnp.zeros(cap, bool).at[jnp.where(pos_split, prim_at, cap)].set(goes_left, mode="drop")
+    rows = []
+    for a in range(3):
+        flag = left_prim[s.orders[a]] & pos_split
+        before = jnp.cumsum(flag.astype(jnp.int32)) - flag
+        rank_left = before - before.at[runs.start].get(mode="fill", fill_value=0)
+        rank_right = runs.offset - rank_left
+        target = jnp.where(flag, runs.start + rank_left, runs.start + n_left_at + rank_right)
+        target = jnp.where(pos_split, target, pos)
+        rows.append(jnp.zeros(cap, jnp.int32).at[target].set(s.orders[a]))
+    # a primitive's new node follows from its new position
+    child_of_pos = jnp.where(runs.offset < n_left_at, left_id.at[s.pos_node].get(mode="fill", fill_value=none),
+                             right_id.at[s.pos_node].get(mode="fill", fill_value=none))
+    return jnp.stack(rows), jnp.where(pos_split, child_of_pos, s.pos_node)
 
-    int_nodes = jnp.full(nodes, -1, jnp.int32)
-    state = dict(
-        orders=orders,
-        pos_node=jnp.where(is_prim, 0, none).astype(jnp.int32),
-        start=jnp.zeros(nodes, jnp.int32),
-        count=jnp.zeros(nodes, jnp.int32).at[0].set(n),
-        frontier=jnp.zeros(nodes, bool).at[0].set(True),
-        left=int_nodes, right=int_nodes, parent=int_nodes, axis=int_nodes,
-        prim_start=jnp.zeros(nodes, jnp.int32), prim_count=jnp.zeros(nodes, jnp.int32),
-        lo=jnp.full((nodes, 3), jnp.inf, dtype), hi=jnp.full((nodes, 3), -jnp.inf, dtype),
-        next_free=jnp.int32(1),
-    )
-    if rcl is not None:
-        # a forest: group g's primitives take the run [offset_g, offset_g + count_g) of
-        # every axis order, sorted by centre inside it (stable sorts keep ids in order)
-        group = jnp.where(is_prim, splits.group, cap)
-        orders = jnp.stack([o[jnp.argsort(group[o], stable=True)] for o in orders])
-        size = jax.ops.segment_sum(is_prim.astype(jnp.int32), group, num_segments=cap + 1)[:cap]
-        trees = jnp.sum(size > 0, dtype=jnp.int32)
-        root = jnp.arange(cap, dtype=jnp.int32)
-        state.update(
-            orders=orders,
-            pos_node=jnp.where(is_prim, group[orders[0]], none).astype(jnp.int32),
-            start=jnp.zeros(nodes, jnp.int32).at[root].set(jnp.cumsum(size) - size),
-            count=jnp.zeros(nodes, jnp.int32).at[root].set(size),
-            frontier=jnp.zeros(nodes, bool).at[root].set(size > 0),
-            next_free=trees,
-            tree_of=jnp.full(nodes, -1, jnp.int32).at[root].set(jnp.where(size > 0, root, -1)),
-        )
+
+def _level(scene: _Scene, s: _State, *, method, bins, rcl, splits) -> _State:
+    """Build one level: every open node becomes a leaf or is split, its children open."""
+    nodes = s.count.shape[0]
     node_ids = jnp.arange(nodes, dtype=jnp.int32)
+    runs = _runs(s)
+    node_lo, node_hi = _node_boxes(scene, s, runs)
+    split_axis, n_left, sah_leaf = _choose_splits(scene, s, runs, node_lo, node_hi, method=method, bins=bins,
+                                                  rcl=rcl, splits=splits)
+    count = s.count
+    leaf = s.frontier & ((count <= 1) | ((count <= scene.max_leaf) & sah_leaf))
+    split = s.frontier & ~leaf
+    # children ids: two per split node, in node order, from next_free
+    rank = jnp.cumsum(split.astype(jnp.int32)) - split
+    left_id = jnp.where(split, s.next_free + 2 * rank, nodes)
+    right_id = jnp.where(split, left_id + 1, nodes)
+    n_left = jnp.where(split, n_left, 0)
+    orders, pos_node = _partition(s, runs, split, split_axis, n_left, left_id, right_id)
 
-    def level(s):
-        orders, pos_node, frontier = s["orders"], s["pos_node"], s["frontier"]
-        active = frontier.at[pos_node].get(mode="fill", fill_value=False)
-        seg = jnp.where(active, pos_node, none)
-        start_p = s["start"].at[pos_node].get(mode="fill", fill_value=0)
-        count_p = s["count"].at[pos_node].get(mode="fill", fill_value=0)
-        offset = pos - start_p
-        first = offset == 0
-        last = offset == count_p - 1
-        count = s["count"]
+    def to_children(values, left_value, right_value):
+        return values.at[left_id].set(left_value, mode="drop").at[right_id].set(right_value, mode="drop")
 
-        # boxes of the nodes on this level
-        prim0 = orders[0]
-        box_lo = jax.ops.segment_min(lo[prim0], seg, num_segments=nodes + 1)[:nodes]
-        box_hi = jax.ops.segment_max(hi[prim0], seg, num_segments=nodes + 1)[:nodes]
-        node_lo = jnp.where(frontier[:, None], box_lo, s["lo"])
-        node_hi = jnp.where(frontier[:, None], box_hi, s["hi"])
-        node_area = half_area(node_lo, node_hi, scale)
+    tree_of = None if s.tree_of is None else to_children(s.tree_of, s.tree_of, s.tree_of)  # the parent's tree
+    return _State(
+        orders=orders, pos_node=pos_node,
+        start=to_children(s.start, s.start, s.start + n_left), count=to_children(count, n_left, count - n_left),
+        frontier=to_children(jnp.zeros(nodes, bool), True, True),
+        left=jnp.where(split, left_id, s.left), right=jnp.where(split, right_id, s.right),
+        parent=to_children(s.parent, node_ids, node_ids), axis=jnp.where(split, split_axis, s.axis),
+        prim_start=jnp.where(leaf, s.start, s.prim_start), prim_count=jnp.where(leaf, count, s.prim_count),
+        lo=node_lo, hi=node_hi, next_free=s.next_free + 2 * jnp.sum(split, dtype=jnp.int32), tree_of=tree_of)
 
-        n_left_p = offset + 1
-        n_right_p = count_p - n_left_p
-        if method == "median":
-            extent = node_hi - node_lo
-            split_axis = jnp.argmax(extent, axis=1).astype(jnp.int32)
-            n_left = count // 2
-            best = jnp.zeros(nodes, dtype)
-            sah_leaf = jnp.ones(nodes, bool)
-        elif method == "sweep":
-            cost3 = _split_costs(lo[orders], hi[orders], first, last, n_left_p, n_right_p, scale)
-            cost3 = jnp.where(active & (n_right_p > 0), cost3, jnp.inf)  # [3, P]
-            two_k = 2 * n_left_p
-            key3 = (jnp.abs(two_k - count_p) * 2 + (two_k > count_p))[None, :] * 3 + jnp.arange(3, dtype=jnp.int32)[:, None]
-            cost3_all, code3 = cost3, key3  # before the greedy choice masks key3
-        else:  # binned
-            # the per-axis orders are sorted by centre, so bins never decrease along a run:
-            # the planes between occupied bins are the positions where the bin changes
-            c_pos = centre[prim0]
-            cmin = jax.ops.segment_min(c_pos, seg, num_segments=nodes + 1)[:nodes]
-            cmax = jax.ops.segment_max(c_pos, seg, num_segments=nodes + 1)[:nodes]
-            span = (cmax - cmin).at[pos_node].get(mode="fill", fill_value=0).T  # [3, P]
-            low = cmin.at[pos_node].get(mode="fill", fill_value=0).T
-            c_sorted = jnp.stack([centre[orders[a], a] for a in range(3)])
-            binsf = jnp.asarray(bins, dtype)
-            raw = jnp.floor((c_sorted - low) * binsf / jnp.where(span > 0, span, 1))
-            bin_sorted = jnp.where(active & (span > 0), jnp.clip(raw, 0, binsf - 1), 0).astype(jnp.int32)
-            cost3 = _split_costs(lo[orders], hi[orders], first, last, n_left_p, n_right_p, scale)
-            next_bin = jnp.concatenate([bin_sorted[:, 1:], jnp.full((3, 1), -1, jnp.int32)], axis=1)
-            cost3 = jnp.where(active & (n_right_p > 0) & (bin_sorted != next_bin), cost3, jnp.inf)
-            key3 = jnp.arange(3, dtype=jnp.int32)[:, None] * bins + bin_sorted  # lowest axis, then plane
-        if method != "median":
-            seg3 = jnp.broadcast_to(seg, (3, cap))
-            best = jax.ops.segment_min(cost3.ravel(), seg3.ravel(), num_segments=nodes + 1)[:nodes]
-            near = best * (1 + TIE_TOLERANCE)
-            is_best = (cost3 <= near.at[seg3].get(mode="fill", fill_value=jnp.inf)) & (cost3 < jnp.inf)
-            key3 = jnp.where(is_best, key3, jnp.iinfo(jnp.int32).max)
-            best_key = jax.ops.segment_min(key3.ravel(), seg3.ravel(), num_segments=nodes + 1)[:nodes]
-            found = best < jnp.inf
-            if method == "sweep":
-                # the key names the split: |2 N_L - N|, its sign and the axis
-                split_axis = best_key % 3
-                gap, upper = (best_key // 3) // 2, (best_key // 3) % 2
-                n_left = jnp.where(upper == 1, count + gap, count - gap) // 2
-                if rcl is not None:
-                    tree_p = jnp.maximum(s["tree_of"].at[pos_node].get(mode="fill", fill_value=0), 0)
-                    drawn = split_uniforms(splits.key, splits.trial[tree_p], start_p + splits.shift[tree_p],
-                                           count_p)
-                    at_first = jnp.where(first & active, pos_node, none)
-                    uniforms = jnp.zeros((nodes, 2), jnp.float32).at[at_first].set(drawn, mode="drop")
-                    split_axis, n_left = _randomized_split(
-                        rcl, cost3_all, code3, seg3, best_key, count, s["frontier"] & (count >= 2),
-                        uniforms, splits.noise, splits.k)
-            else:
-                split_axis = jnp.where(found, best_key // bins, 0)
-                at_best = is_best & (key3 == best_key.at[seg3].get(mode="fill", fill_value=-1))
-                n_left3 = jnp.where(at_best, n_left_p[None, :], 0)
-                n_left = jax.ops.segment_max(n_left3.ravel(), seg3.ravel(), num_segments=nodes + 1)[:nodes]
-                # no plane on any axis (all centres in one point): halves by id, which
-                # is the order of every axis when all centres are equal
-                n_left = jnp.where(found, n_left, count // 2)
-            count_f = count.astype(dtype)
-            split_est = ct + jnp.where(node_area > 0, ci * best / jnp.where(node_area > 0, node_area, 1),
-                                       ci * count_f)
-            # a leaf when it costs no more than the split, within the tie tolerance (an
-            # exact tie, e.g. a point inside its sibling's box, must not hang on rounding)
-            sah_leaf = (ci * count_f <= split_est * (1 + TIE_TOLERANCE)) | ~found
 
-        leaf = frontier & ((count <= 1) | ((count <= max_leaf) & sah_leaf))
-        split = frontier & ~leaf
-        rank = jnp.cumsum(split.astype(jnp.int32)) - split
-        left_id = jnp.where(split, s["next_free"] + 2 * rank, none)
-        right_id = jnp.where(split, left_id + 1, none)
-        n_left = jnp.where(split, n_left, 0)
+def _grow(scene: _Scene, state: _State, *, method, bins, rcl=None, splits=None) -> _State:
+    """Levels until no node is open."""
+    return jax.lax.while_loop(lambda s: jnp.any(s.frontier),
+                              partial(_level, scene, method=method, bins=bins, rcl=rcl, splits=splits), state)
 
-        # move primitives into the children's runs
-        pos_split = active & split.at[pos_node].get(mode="fill", fill_value=False)
-        axis_p = split_axis.at[pos_node].get(mode="fill", fill_value=0)
-        n_left_at = n_left.at[pos_node].get(mode="fill", fill_value=0)
-        prim_at = jnp.take_along_axis(orders, axis_p[None, :], axis=0)[0]
-        goes_left = offset < n_left_at
-        left_prim = jnp.zeros(cap, bool).at[jnp.where(pos_split, prim_at, cap)].set(goes_left, mode="drop")
-        flags = [left_prim[orders[a]] & pos_split for a in range(3)]
-        rows = []
-        for a in range(3):
-            flag = flags[a]
-            before = jnp.cumsum(flag.astype(jnp.int32)) - flag
-            rank_left = before - before.at[start_p].get(mode="fill", fill_value=0)
-            rank_right = offset - rank_left
-            target = jnp.where(flag, start_p + rank_left, start_p + n_left_at + rank_right)
-            target = jnp.where(pos_split, target, pos)
-            rows.append(jnp.zeros(cap, jnp.int32).at[target].set(orders[a]))
-        new_orders = jnp.stack(rows)
-        # a primitive's new node follows from its new position
-        child_of_pos = jnp.where(offset < n_left_at, left_id.at[pos_node].get(mode="fill", fill_value=none),
-                                 right_id.at[pos_node].get(mode="fill", fill_value=none))
-        new_pos_node = jnp.where(pos_split, child_of_pos, pos_node)
 
-        start, cnt = s["start"], s["count"]
-        new_start = start.at[left_id].set(start, mode="drop").at[right_id].set(start + n_left, mode="drop")
-        new_count = cnt.at[left_id].set(n_left, mode="drop").at[right_id].set(cnt - n_left, mode="drop")
-        parent = s["parent"].at[left_id].set(node_ids, mode="drop").at[right_id].set(node_ids, mode="drop")
-        new_frontier = jnp.zeros(nodes, bool).at[left_id].set(True, mode="drop").at[right_id].set(True, mode="drop")
-        more = {}
-        if rcl is not None:  # children belong to their parent's tree
-            tree_of = s["tree_of"]
-            more["tree_of"] = tree_of.at[left_id].set(tree_of, mode="drop").at[right_id].set(tree_of, mode="drop")
-        return dict(
-            **more,
-            orders=new_orders, pos_node=new_pos_node, start=new_start, count=new_count,
-            frontier=new_frontier,
-            left=jnp.where(split, left_id, s["left"]), right=jnp.where(split, right_id, s["right"]),
-            parent=parent, axis=jnp.where(split, split_axis, s["axis"]),
-            prim_start=jnp.where(leaf, start, s["prim_start"]),
-            prim_count=jnp.where(leaf, cnt, s["prim_count"]),
-            lo=node_lo, hi=node_hi,
-            next_free=s["next_free"] + 2 * jnp.sum(split, dtype=jnp.int32),
-        )
+def _tree(s: _State, n) -> BVH:
+    is_prim = jnp.arange(s.orders.shape[1], dtype=jnp.int32) < n
+    return BVH(left=s.left, right=s.right, parent=s.parent, lo=s.lo, hi=s.hi, prim_start=s.prim_start,
+               prim_count=s.prim_count, axis=s.axis, prim_index=jnp.where(is_prim, s.orders[0], -1),
+               root=jnp.int32(0))
 
-    s = jax.lax.while_loop(lambda s: jnp.any(s["frontier"]), level, state)
-    tree = BVH(left=s["left"], right=s["right"], parent=s["parent"], lo=s["lo"], hi=s["hi"],
-               prim_start=s["prim_start"], prim_count=s["prim_count"], axis=s["axis"],
-               prim_index=jnp.where(is_prim, s["orders"][0], -1), root=jnp.int32(0))
-    return tree if rcl is None else (tree, s["tree_of"])
+
+@partial(jax.jit, static_argnames=("method", "bins"))
+def engine(lo, hi, n, max_leaf, ct, ci, scale, *, method: str, bins: int = 0) -> BVH:
+    """The greedy engine on prepared inputs (:func:`jaxbvh.builders.inputs.prepare`); jitted, vmappable.
+
+    ``max_leaf``: int32; ``ct``, ``ci``: scalars in the boxes' dtype; ``method``: one of
+    :data:`RULES` (static); ``bins``: bins per axis for ``"binned"`` (static, else 0).
+    Returns a :class:`~jaxbvh.tree.layout.BVH` (``2 capacity`` node slots, level by level).
+    """
+    scene = _Scene(lo, hi, _centres(lo, hi, n), scale, max_leaf, ct, ci)
+    return _tree(_grow(scene, _greedy_state(scene, n), method=method, bins=bins), n)

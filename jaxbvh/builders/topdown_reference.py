@@ -89,20 +89,21 @@ def _binned_split(ids, lo, hi, centre, scale, bins):
     return best, axis, left, right
 
 
-def build(prim_lo, prim_hi, *, method="sweep", max_leaf=1, bins=16, ct=1.0, ci=1.0, radius=16,
-          morton_bits=30) -> BVH:
-    """Reference build; same arguments as :func:`jaxbvh.builders.topdown`, boxes used in their dtype.
+def build(prim_lo, prim_hi, config) -> BVH:
+    """Reference build of ``config`` (a builder Config of :mod:`jaxbvh.builders.configs`, read
+    for its ``method`` and knobs only), boxes used in their dtype.
 
     Returns an unpadded NumPy :class:`~jaxbvh.tree.layout.BVH` in depth-first order. The
     bottom-up builders have twins of their own (:mod:`jaxbvh.builders.lbvh_reference`,
     :mod:`jaxbvh.builders.ploc_reference`), which this dispatches to.
     """
-    if method in ("lbvh", "ploc"):
-
-        options = dict(max_leaf=max_leaf, ct=ct, ci=ci, morton_bits=morton_bits)
-        if method == "lbvh":
-            return lbvh.build(prim_lo, prim_hi, **options)
-        return ploc.build(prim_lo, prim_hi, radius=radius, **options)
+    method = config.method
+    if method == "lbvh":
+        return lbvh.build(prim_lo, prim_hi, config)
+    if method == "ploc":
+        return ploc.build(prim_lo, prim_hi, config)
+    max_leaf, ct, ci = config.max_leaf, config.ct, config.ci
+    bins = config.bins if method == "binned" else None
     lo = np.asarray(prim_lo)
     hi = np.asarray(prim_hi)
     dtype = lo.dtype

@@ -200,7 +200,7 @@ def anneal(tree, draws, schedule, steps, *, ct=1.0, ci=1.0, keep_best=True, max_
 
 
 def assign_split_axes(tree):
-    """Kensler's final pass, one node at a time (rule: :func:`jaxbvh.optimize.rotate.split_axis_rule`)."""
+    """Kensler's final pass, one node at a time (rule: :func:`jaxbvh.tree.split_axes.split_axis_rule`)."""
     t = to_numpy(tree)
     left, right, axis = t.left.copy(), t.right.copy(), np.full_like(t.axis, -1)
     for n in range(left.shape[0]):

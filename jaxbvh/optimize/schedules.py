@@ -1,9 +1,18 @@
 """Annealing temperature schedules, optax style: a schedule is a function ``step -> T``.
 
 Anything that takes a schedule (:func:`jaxbvh.optimize.rotate.anneal`) accepts every optax
-schedule as well (``optax.linear_schedule``, ``optax.cosine_decay_schedule``, ...), and
-the schedules here can be handed to code that expects optax schedules. ``step`` may be
-a Python int or a traced int32 scalar; the result is a float32 scalar.
+schedule as well (``optax.linear_schedule``, ``optax.cosine_decay_schedule``,
+``optax.join_schedules``, ...), and the schedules here are plain functions built from
+``jnp``, so optax can compose them: ``optax.join_schedules([kensler_schedule(1250),
+optax.constant_schedule(0.0)], [1250])`` is Kensler's schedule followed by a quench.
+``step`` may be a Python int or a traced int32 scalar; the result is a float scalar
+(float32 for the schedules here).
+
+:data:`SCHEDULES` names the schedules the command line offers (``--schedule``): each
+entry is a *maker* ``make(steps, hottest, period) -> schedule`` for an annealing run of
+``steps`` passes with peak temperature ``hottest`` (the makers that have no period
+ignore it). Makers are cached, so equal arguments give the same function object and
+compiled programs are reused.
 """
 
 from __future__ import annotations
@@ -11,6 +20,7 @@ from __future__ import annotations
 from functools import lru_cache
 
 import jax.numpy as jnp
+import optax
 
 KENSLER_STEPS = 1250
 KENSLER_PERIOD = 50
@@ -73,3 +83,47 @@ def constant_schedule(value: float):
         return jnp.asarray(value, jnp.float32)
 
     return schedule
+
+
+# ----------------------------------------------------------------------------------
+# Named schedule makers (the command line's --schedule)
+# ----------------------------------------------------------------------------------
+
+#: the exponential schedule falls to this fraction of ``hottest`` at the end of the
+#: schedule (``T(i) = hottest * EXPONENTIAL_FINAL ** (i / steps)``: 1 % after ``steps``)
+EXPONENTIAL_FINAL = 0.01
+
+
+def _check_maker(name: str, steps: int, hottest: float) -> None:
+    if steps < 1:
+        raise ValueError(f"{name} schedule: steps must be >= 1, got {steps}")
+    if not hottest >= 0:
+        raise ValueError(f"{name} schedule: hottest must be >= 0, got {hottest}")
+
+
+def make_kensler(steps: int, hottest: float, period: int):
+    """Kensler's clamped, ramped sine (:func:`kensler_schedule`) in the makers' argument order."""
+    return kensler_schedule(steps, period, hottest)
+
+
+@lru_cache(maxsize=64)
+def make_cosine(steps: int, hottest: float, period: int):
+    """``optax.cosine_decay_schedule(hottest, steps)``: from ``hottest`` at pass 0 down to
+    0 at pass ``steps`` along half a cosine (``period`` unused)."""
+    del period
+    _check_maker("cosine", steps, hottest)
+    return optax.cosine_decay_schedule(hottest, steps)
+
+
+@lru_cache(maxsize=64)
+def make_exponential(steps: int, hottest: float, period: int):
+    """``optax.exponential_decay(hottest, steps, EXPONENTIAL_FINAL)``: ``T(i) = hottest *
+    0.01 ** (i / steps)`` (:data:`EXPONENTIAL_FINAL`), smooth (not staircase); ``period``
+    unused."""
+    del period
+    _check_maker("exponential", steps, hottest)
+    return optax.exponential_decay(hottest, transition_steps=steps, decay_rate=EXPONENTIAL_FINAL)
+
+
+#: named schedule makers ``make(steps, hottest, period) -> schedule`` (module docstring)
+SCHEDULES = {"kensler": make_kensler, "cosine": make_cosine, "exponential": make_exponential}

@@ -1,8 +1,9 @@
 """Rays: generation, traversal and the measured cost of a tree.
 
 ``generation``: random, camera and bounce rays; ``traversal``: closest, any and all hits
-through a BVH (twin: ``traversal_reference``); ``measure``: traversal steps as an
-empirical cost beside the SAH.
+through a BVH (twin: ``traversal_reference``); ``stack_walk``: the bounded traversal loop
+that ``traversal`` and :mod:`jaxbvh.twolevel.traversal` share; ``measure``: traversal
+steps as an empirical cost beside the SAH.
 """
 
 from jaxbvh.rays.generation import bounce_rays, camera_rays, random_rays

@@ -1,7 +1,9 @@
 """Ray traversal of binary and wide BVHs, counting box and primitive tests (jitted).
 
-One ray is one ``lax.while_loop`` over a fixed-capacity stack; rays are ``vmap``-ed and
-fed to the device in batches. Every loop step does exactly one of two things:
+One ray is one ``lax.while_loop`` over a fixed-capacity stack (the loop itself lives in
+:mod:`jaxbvh.rays.stack_walk`, shared with the two-level traversal; this module gives it
+the tree and the primitives); rays are ``vmap``-ed and fed to the device in batches.
+Every loop step does exactly one of two things:
 
 * **node step** — pop ``(node, entry)``; if ``entry <= t_best`` the node is *visited*:
   a leaf opens its run of primitives, an interior node tests the boxes of all its real
@@ -58,55 +60,26 @@ box is always tested.
 
 Plugging in other primitives. The traversal never looks at triangles itself: it calls
 ``intersect(prims, prim_id, origin, direction) -> (t, u, v)`` (``t = inf`` for a miss)
-with ``prims`` any pytree passed through ``jit``. A two-level tree will pass the
-instance transforms and the bottom-level trees as ``prims`` and an ``intersect`` that
-transforms the ray and traverses the instance's tree.
+with ``prims`` any pytree passed through ``jit``. A two-level tree needs more than a
+primitive test (the ray changes frame below a top-level leaf, the stack carries the
+instance): :mod:`jaxbvh.twolevel.traversal` gives the shared loop its own hooks.
 """
 
 from __future__ import annotations
 
-import dataclasses
 from functools import partial
-from typing import Any, Callable
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh.numerics import INV_BIG, robust_factor
+from jaxbvh.rays.stack_walk import Hits, Hooks, Node, finish, walk
 from jaxbvh.tree.layout import BVH, depth, to_jax
 from jaxbvh.tree.validate import InvalidTreeError
 
 MODES = ("closest", "any", "all")
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class Hits:
-    """Per-ray results, every array [R].
-
-    ``t`` float (``inf`` for a miss; in any-hit mode the first hit found), ``prim``
-    int32 (-1 for a miss), ``u``, ``v`` barycentrics of the hit; counters int32
-    ``box_tests``, ``prim_tests``, ``nodes_visited``, ``leaves_visited``;
-    ``stack_overflow`` and ``step_limit`` bool (module docstring). All-hits mode adds ``hit_count`` int32 [R],
-    ``hit_prims`` int32 [R, H] (-1 past the end), ``hit_t`` float [R, H] and
-    ``hits_overflow`` bool [R]; the other modes leave them None.
-    """
-
-    t: Any
-    prim: Any
-    u: Any
-    v: Any
-    box_tests: Any
-    prim_tests: Any
-    nodes_visited: Any
-    leaves_visited: Any
-    stack_overflow: Any
-    step_limit: Any
-    hit_count: Any = None
-    hit_prims: Any = None
-    hit_t: Any = None
-    hits_overflow: Any = None
 
 
 # ----------------------------------------------------------------------------------
@@ -191,9 +164,7 @@ def max_steps(tree) -> int:
 
 def _trace_one(tree, prims, skip, origin, direction, t_min, t_max, *, intersect, mode,
                capacity, max_hits):
-    child = tree.child  # [N, k]
-    k = child.shape[1]
-    axis = tree.axis if isinstance(tree, BVH) else None
+    """One ray through ``tree`` (scalars and [3] vectors); returns its :class:`Hits`."""
     dtype = tree.lo.dtype
     origin = origin.astype(dtype)
     direction = direction.astype(dtype)
@@ -203,122 +174,43 @@ def _trace_one(tree, prims, skip, origin, direction, t_min, t_max, *, intersect,
     root = tree.root
     root_hit, root_entry = slab(tree.lo[root], tree.hi[root], origin, inv_dir, t_min, t_max)
     n_slots = tree.prim_index.shape[0]
-    slot_ids = jnp.arange(k)
-    i32 = jnp.int32
 
-    state = dict(
-        sp=jnp.where(root_hit, 1, 0).astype(i32),
-        stack_node=jnp.zeros(capacity, i32).at[0].set(root),
-        stack_entry=jnp.full(capacity, jnp.inf, dtype).at[0].set(root_entry),
-        leaf_pos=i32(0), leaf_end=i32(0),
-        t=t_max, prim=i32(-1), u=jnp.zeros((), dtype), v=jnp.zeros((), dtype),
-        box_tests=i32(1), prim_tests=i32(0), nodes_visited=i32(0), leaves_visited=i32(0),
-        stack_overflow=jnp.zeros((), bool), done=jnp.zeros((), bool), steps=i32(0),
-    )
-    step_limit = max_steps(tree)
-    if mode == "all":
-        state.update(best=t_max, hit_count=i32(0), hit_prims=jnp.full(max_hits, -1, i32),
-                     hit_t=jnp.full(max_hits, jnp.inf, dtype))
-
-    def working(s):
-        return ~s["done"] & ((s["sp"] > 0) | (s["leaf_pos"] < s["leaf_end"]))
-
-    def cond(s):
-        return working(s) & (s["steps"] < step_limit)
-
-    def body(s):
-        s = dict(s)
-        s["steps"] = s["steps"] + 1
-        in_leaf = s["leaf_pos"] < s["leaf_end"]
-
-        # primitive step
-        prim = tree.prim_index[jnp.minimum(s["leaf_pos"], n_slots - 1)]
+    def primitive(slot, _):
+        prim = tree.prim_index[jnp.minimum(slot, n_slots - 1)]
         t, u, v = intersect(prims, prim, origin, direction)
-        valid = in_leaf & (t > t_min) & (t < t_max)
-        # closest and any hits shrink the interval (s["t"]); all hits keep it whole and
-        # track the closest hit in s["best"]
-        best = s["best"] if mode == "all" else s["t"]
-        if mode == "any":
-            take = valid
-        else:
-            take = valid & ((t < best) | ((t == best) & (prim < s["prim"])))
-        if mode == "all":
-            s["best"] = jnp.where(take, t, best)
-            n = s["hit_count"]
-            slot = jnp.where(valid & (n < max_hits), n, max_hits)
-            s["hit_prims"] = s["hit_prims"].at[slot].set(prim, mode="drop")
-            s["hit_t"] = s["hit_t"].at[slot].set(t, mode="drop")
-            s["hit_count"] = n + valid.astype(i32)
-        else:
-            s["t"] = jnp.where(take, t, s["t"])
-        s["prim"] = jnp.where(take, prim, s["prim"])
-        s["u"] = jnp.where(take, u, s["u"])
-        s["v"] = jnp.where(take, v, s["v"])
-        if mode == "any":
-            s["done"] = valid
-        s["prim_tests"] = s["prim_tests"] + in_leaf.astype(i32)
-        s["leaf_pos"] = s["leaf_pos"] + in_leaf.astype(i32)
+        return t, u, v, prim
 
-        # node step
-        pop = ~in_leaf
-        top = jnp.maximum(s["sp"] - 1, 0)
-        node = s["stack_node"][top]
-        # closest: cull against the best hit; any/all: s["t"] stays t_max
-        visit = pop & (s["stack_entry"][top] <= s["t"])
-        count = tree.prim_count[node]
-        is_leaf = count > 0
-        counted = visit if skip is None else visit & ~skip[node]
-        s["nodes_visited"] = s["nodes_visited"] + counted.astype(i32)
-        open_leaf = visit & is_leaf
-        s["leaves_visited"] = s["leaves_visited"] + open_leaf.astype(i32)
-        s["leaf_pos"] = jnp.where(open_leaf, tree.prim_start[node], s["leaf_pos"])
-        s["leaf_end"] = jnp.where(open_leaf, tree.prim_start[node] + count, s["leaf_end"])
+    def node(ref, _, entry, t_far):
+        return _expand(tree, skip, ref, entry, origin, direction, inv_dir, t_min, t_far)
 
-        kids = child[node]
-        real = kids >= 0
-        safe = jnp.maximum(kids, 0)
-        kid_hit, kid_entry = slab(tree.lo[safe], tree.hi[safe], origin, inv_dir[None, :],
-                                  t_min, s["t"])
-        expand = visit & ~is_leaf
-        tested = real
-        if skip is not None:  # assumed hit, entered where this node was
-            skipped = real & skip[safe]
-            kid_hit = kid_hit | skipped
-            kid_entry = jnp.where(skipped, s["stack_entry"][top], kid_entry)
-            tested = real & ~skipped
-        kid_hit = kid_hit & real & expand
-        s["box_tests"] = s["box_tests"] + jnp.where(expand, jnp.sum(tested), 0).astype(i32)
-        if axis is not None:
-            split = axis[node]
-            lower_first = direction[jnp.maximum(split, 0)] >= 0
-            by_axis = jnp.where(lower_first, slot_ids, k - 1 - slot_ids).astype(dtype)
-            key = jnp.where(split >= 0, by_axis, kid_entry)
-        else:
-            key = kid_entry
-        before = (key[:, None] < key[None, :]) | (
-            (key[:, None] == key[None, :]) & (slot_ids[:, None] < slot_ids[None, :]))
-        rank = jnp.sum(kid_hit[:, None] & before, axis=0)  # visiting position of each kid
-        n_push = jnp.sum(kid_hit).astype(i32)
-        pos = top + n_push - 1 - rank  # nearest on top
-        fits = pos < capacity
-        pos = jnp.where(kid_hit & fits, pos, capacity)
-        s["stack_node"] = s["stack_node"].at[pos].set(kids, mode="drop")
-        s["stack_entry"] = s["stack_entry"].at[pos].set(kid_entry, mode="drop")
-        s["stack_overflow"] = s["stack_overflow"] | jnp.any(kid_hit & ~fits)
-        s["sp"] = jnp.where(pop, jnp.minimum(top + n_push, capacity), s["sp"])
-        return s
+    end = walk(Hooks(primitive, node), root, root_hit, root_entry, t_min, t_max, mode=mode,
+               capacity=capacity, max_hits=max_hits, step_limit=max_steps(tree))
+    return finish(end, mode=mode, max_hits=max_hits)
 
-    s = jax.lax.while_loop(cond, body, state)
-    hit = s["prim"] >= 0
-    best = s["best"] if mode == "all" else s["t"]
-    out = dict(t=jnp.where(hit, best, jnp.inf), prim=s["prim"], u=s["u"], v=s["v"],
-               box_tests=s["box_tests"], prim_tests=s["prim_tests"],
-               nodes_visited=s["nodes_visited"], leaves_visited=s["leaves_visited"],
-               stack_overflow=s["stack_overflow"], step_limit=working(s))
-    if mode == "all":
-        out.update(hit_count=s["hit_count"], hit_prims=s["hit_prims"], hit_t=s["hit_t"],
-                   hits_overflow=s["hit_count"] > max_hits)
-    return Hits(**out)
+
+def _expand(tree, skip, ref, entry, origin, direction, inv_dir, t_min, t_far) -> Node:
+    """The ``node`` hook of a binary or wide tree: node ``ref`` entered at ``entry``.
+
+    With skip flags a flagged child is not tested but assumed hit, entered where this
+    node was; a flagged node's own visit is not counted.
+    """
+    count = tree.prim_count[ref]
+    kids = tree.child[ref]  # [k]
+    real = kids >= 0
+    safe = jnp.maximum(kids, 0)
+    kid_hit, kid_entry = slab(tree.lo[safe], tree.hi[safe], origin, inv_dir[None, :], t_min, t_far)
+    tested = real
+    assumed = None
+    if skip is not None:
+        assumed = skip[ref]
+        skipped = real & skip[safe]
+        kid_hit = kid_hit | skipped
+        kid_entry = jnp.where(skipped, entry, kid_entry)
+        tested = real & ~skipped
+    return Node(is_leaf=count > 0, leaf_start=tree.prim_start[ref], leaf_count=count, leaf_tag=None,
+                assumed=assumed, kids=kids, kid_tags=None, kid_hit=kid_hit & real,
+                kid_entry=kid_entry, tested=tested,
+                split=tree.axis[ref] if isinstance(tree, BVH) else None, direction=direction)
 
 
 @partial(jax.jit, static_argnames=("intersect", "mode", "capacity", "max_hits"))
@@ -364,49 +256,20 @@ def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t
     """
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-    origin = np.asarray(origin)
-    direction = np.asarray(direction)
-    if origin.ndim != 2 or origin.shape[1] != 3 or direction.shape != origin.shape:
-        raise ValueError(f"origin and direction must both be [R, 3], got {origin.shape} "
-                         f"and {direction.shape}")
+    origin, direction = check_rays(origin, direction)
     if capacity is None:
         capacity = stack_capacity(tree)
     jtree = to_jax(tree)
     dtype = np.dtype(jtree.lo.dtype)
-    if skip is not None:
-        skip = np.asarray(skip, bool)
-        if skip.shape != (jtree.prim_count.shape[0],):
-            raise ValueError(f"skip must be bool [{jtree.prim_count.shape[0]}] (one flag per node), "
-                             f"got shape {skip.shape}")
-        skip = jnp.asarray(skip)
+    skip = _check_skip(skip, jtree.prim_count.shape[0])
     jprims = jax.tree_util.tree_map(jnp.asarray, prims)
-    r = origin.shape[0]
-    batch = max(1, min(batch, r))
-    t_min = np.broadcast_to(np.asarray(t_min, dtype), (r,))
-    t_max = np.broadcast_to(np.asarray(t_max, dtype), (r,))
-    pieces = []
-    for start in range(0, r, batch):
-        stop = min(start + batch, r)
-        n = stop - start
-        o = np.zeros((batch, 3), dtype)
-        d = np.zeros((batch, 3), dtype)
-        d[:, 0] = 1
-        lo_t = np.zeros(batch, dtype)
-        hi_t = np.full(batch, -1, dtype)  # padding rays: empty interval, they stop at once
-        o[:n], d[:n], lo_t[:n], hi_t[:n] = origin[start:stop], direction[start:stop], \
-            t_min[start:stop], t_max[start:stop]
-        pieces.append((n, trace_batch(jtree, jprims, o, d, lo_t, hi_t, skip, intersect=intersect,
-                                      mode=mode, capacity=capacity, max_hits=max_hits)))
-    if not pieces:
-        empty = trace_batch(jtree, jprims, np.zeros((1, 3), dtype), np.ones((1, 3), dtype),
-                            np.zeros(1, dtype), np.full(1, -1, dtype), skip, intersect=intersect,
-                            mode=mode, capacity=capacity, max_hits=max_hits)
-        pieces = [(0, empty)]
-    hits = jax.tree_util.tree_map(
-        lambda *parts: np.concatenate([np.asarray(p)[:n] for (n, _), p in zip(pieces, parts)]),
-        *[h for _, h in pieces])
-    if hits.step_limit.any():
 
+    def run(o, d, lo_t, hi_t):
+        return trace_batch(jtree, jprims, o, d, lo_t, hi_t, skip, intersect=intersect, mode=mode,
+                           capacity=capacity, max_hits=max_hits)
+
+    hits = in_batches(run, origin, direction, t_min, t_max, batch=batch, dtype=dtype)
+    if hits.step_limit.any():
         bad = np.flatnonzero(hits.step_limit)
         raise InvalidTreeError([f"traversal of {bad.size} ray(s) (first: {bad[:5].tolist()}) did not end "
                                 f"within {max_steps(jtree)} steps: the tree has a cycle or a shared node"])
@@ -415,6 +278,55 @@ def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t
         raise RuntimeError(f"traversal stack of {capacity} entries overflowed on {bad.size} "
                            f"ray(s) (first: {bad[:5].tolist()}); pass a larger capacity")
     return hits
+
+
+def check_rays(origin, direction):
+    """``origin``, ``direction`` as NumPy arrays; ``ValueError`` unless both are [R, 3]."""
+    origin = np.asarray(origin)
+    direction = np.asarray(direction)
+    if origin.ndim != 2 or origin.shape[1] != 3 or direction.shape != origin.shape:
+        raise ValueError(f"origin and direction must both be [R, 3], got {origin.shape} "
+                         f"and {direction.shape}")
+    return origin, direction
+
+
+def _check_skip(skip, nodes):
+    """Skip flags as a JAX bool [nodes] array (None stays None); ``ValueError`` on a bad shape."""
+    if skip is None:
+        return None
+    skip = np.asarray(skip, bool)
+    if skip.shape != (nodes,):
+        raise ValueError(f"skip must be bool [{nodes}] (one flag per node), got shape {skip.shape}")
+    return jnp.asarray(skip)
+
+
+def in_batches(run: Callable, origin, direction, t_min, t_max, *, batch: int, dtype) -> Hits:
+    """``run(origin, direction, t_min, t_max)`` on batches of ``batch`` rays; NumPy :class:`Hits` [R].
+
+    ``origin``, ``direction``: NumPy [R, 3]; ``t_min``, ``t_max``: scalars or [R]. The
+    last batch is padded with rays of an empty interval (``t_max = -1``: they stop at
+    once), so every call has the same shapes (one compile); no rays make one padded
+    call of one ray. ``run`` returns :class:`Hits` of the batch; the padding is cut off.
+    """
+    r = origin.shape[0]
+    batch = max(1, min(batch, r))
+    t_min = np.broadcast_to(np.asarray(t_min, dtype), (r,))
+    t_max = np.broadcast_to(np.asarray(t_max, dtype), (r,))
+    pieces = []
+    for start in range(0, max(r, 1), batch):
+        stop = min(start + batch, r)
+        n = stop - start
+        o = np.zeros((batch, 3), dtype)
+        d = np.zeros((batch, 3), dtype)
+        d[:, 0] = 1
+        lo_t = np.zeros(batch, dtype)
+        hi_t = np.full(batch, -1, dtype)
+        o[:n], d[:n], lo_t[:n], hi_t[:n] = origin[start:stop], direction[start:stop], \
+            t_min[start:stop], t_max[start:stop]
+        pieces.append((n, run(o, d, lo_t, hi_t)))
+    return jax.tree_util.tree_map(
+        lambda *parts: np.concatenate([np.asarray(p)[:n] for (n, _), p in zip(pieces, parts)]),
+        *[h for _, h in pieces])
 
 
 def closest_hit(tree, triangles, origin, direction, **kwargs) -> Hits:

@@ -8,6 +8,9 @@ brute-force closest hit over every triangle, the independent check of the hits.
 
 from __future__ import annotations
 
+import dataclasses
+from typing import Any, NamedTuple
+
 import numpy as np
 
 from jaxbvh.numerics import INV_BIG, robust_factor
@@ -61,13 +64,55 @@ def moller_trumbore(v0, v1, v2, origin, direction):
     return np.inf, u, v
 
 
-def _tree_arrays(tree, skip=None):
-    child = np.asarray(tree.child)
-    axis = np.asarray(tree.axis) if hasattr(tree, "axis") else None
-    return dict(child=child, axis=axis, lo=np.asarray(tree.lo), hi=np.asarray(tree.hi),
-                start=np.asarray(tree.prim_start), count=np.asarray(tree.prim_count),
-                prim_index=np.asarray(tree.prim_index), root=int(np.asarray(tree.root)),
-                skip=None if skip is None else np.asarray(skip, bool))
+class _Tree(NamedTuple):
+    """A tree's arrays in NumPy."""
+
+    child: np.ndarray       # int [N, k], -1: none
+    axis: Any               # int [N] split axis (binary trees) or None (wide trees)
+    lo: np.ndarray          # float [N, 3]
+    hi: np.ndarray          # float [N, 3]
+    start: np.ndarray       # int [N] prim_start
+    count: np.ndarray       # int [N] prim_count
+    prim_index: np.ndarray  # int [P]
+    root: int
+    skip: Any               # bool [N] "assume hit" flags or None
+
+
+def _tree_arrays(tree, skip=None) -> _Tree:
+    return _Tree(child=np.asarray(tree.child), axis=np.asarray(tree.axis) if hasattr(tree, "axis") else None,
+                 lo=np.asarray(tree.lo), hi=np.asarray(tree.hi), start=np.asarray(tree.prim_start),
+                 count=np.asarray(tree.prim_count), prim_index=np.asarray(tree.prim_index),
+                 root=int(np.asarray(tree.root)), skip=None if skip is None else np.asarray(skip, bool))
+
+
+@dataclasses.dataclass
+class _Ray:
+    """One ray's state while it walks the tree (changed in place)."""
+
+    origin: np.ndarray     # float [3]
+    direction: np.ndarray  # float [3]
+    inv_dir: np.ndarray    # float [3]
+    t_min: Any             # float: open interval start
+    t_max: Any             # float: open interval end
+    robust: Any            # float: the slab test's robust factor
+    interval_end: Any      # float: culling distance (closest: the best hit so far)
+    best_t: Any            # float: the closest hit so far
+    steps_left: int        # the JAX loop's bound: a node pop or a primitive test is one step
+    t: Any = np.inf        # the hit reported (closest, or first in any-hit mode)
+    prim: int = -1
+    u: Any = 0.0
+    v: Any = 0.0
+    box_tests: int = 1     # the root's box
+    prim_tests: int = 0
+    nodes_visited: int = 0
+    leaves_visited: int = 0
+    stack_overflow: bool = False
+    step_limit: bool = False
+    hit_count: int = 0     # all-hits mode: hits seen
+    hit_list: list = dataclasses.field(default_factory=list)  # all-hits mode: (prim, t), first max_hits
+
+    def slab(self, tree: _Tree, node, t_max):
+        return _slab(tree.lo[node], tree.hi[node], self.origin, self.inv_dir, self.t_min, t_max, self.robust)
 
 
 def trace_ray(tree, triangles, origin, direction, *, mode="closest", t_min=0.0,
@@ -77,105 +122,105 @@ def trace_ray(tree, triangles, origin, direction, *, mode="closest", t_min=0.0,
     ``skip``: optional [N] bool, nodes whose box is not tested but assumed hit (entered
     where the node that lists them was); they are not counted as visited.
     """
-    a = tree if isinstance(tree, dict) else _tree_arrays(tree, skip)
-    skip = a["skip"]
-    dtype = a["lo"].dtype
+    a = tree if isinstance(tree, _Tree) else _tree_arrays(tree, skip)
+    dtype = a.lo.dtype
     f = dtype.type
     origin = np.asarray(origin, dtype)
     direction = np.asarray(direction, dtype)
-    t_min, t_max = f(t_min), f(t_max)
-    robust = f(robust_factor(dtype))
-    inv_dir = _inverse_direction(direction)
-    child, axis = a["child"], a["axis"]
-    k = child.shape[1]
+    ray = _Ray(origin=origin, direction=direction, inv_dir=_inverse_direction(direction), t_min=f(t_min),
+               t_max=f(t_max), robust=f(robust_factor(dtype)), interval_end=f(t_max), best_t=f(t_max),
+               steps_left=a.child.shape[0] + a.prim_index.shape[0] + 1, t=f(np.inf), u=f(0), v=f(0))
     capacity = capacity if capacity is not None else 1 << 30
-    out = dict(t=f(np.inf), prim=-1, u=f(0), v=f(0), box_tests=1, prim_tests=0,
-               nodes_visited=0, leaves_visited=0, stack_overflow=False, step_limit=False)
-    # the JAX loop's bound: a node pop or a primitive test is one step
-    steps_left = child.shape[0] + a["prim_index"].shape[0] + 1
-    hit_list = []
-    hit_count = 0
-    best_t = t_max  # the closest hit so far; also the interval's end except in "all" mode
-    interval_end = t_max
-
-    root = a["root"]
-    hit, entry = _slab(a["lo"][root], a["hi"][root], origin, inv_dir, t_min, t_max, robust)
-    stack = [(root, entry)] if hit else []
+    hit, entry = ray.slab(a, a.root, ray.t_max)
+    stack = [(a.root, entry)] if hit else []
     while stack:
-        steps_left -= 1
-        if steps_left < 0:
-            out["step_limit"] = True
+        ray.steps_left -= 1
+        if ray.steps_left < 0:
+            ray.step_limit = True
             break
         node, entry = stack.pop()
-        if not entry <= interval_end:
+        if not entry <= ray.interval_end:
             continue  # entered beyond the closest hit found since it was pushed
-        if skip is None or not skip[node]:
-            out["nodes_visited"] += 1
-        count = a["count"][node]
-        if count > 0:
-            out["leaves_visited"] += 1
-            for slot in range(a["start"][node], a["start"][node] + count):
-                steps_left -= 1
-                prim = int(a["prim_index"][slot])
-                tri = triangles[prim]
-                t, u, v = moller_trumbore(tri[0], tri[1], tri[2], origin, direction)
-                out["prim_tests"] += 1
-                if not (t > t_min and t < t_max):
-                    continue
-                if mode == "any":
-                    out.update(t=t, prim=prim, u=u, v=v)
-                    return _finish(out, mode, hit_list, hit_count, max_hits)
-                if mode == "all":
-                    hit_count += 1
-                    if len(hit_list) < max_hits:
-                        hit_list.append((prim, t))
-                if t < best_t or (t == best_t and prim < out["prim"]):
-                    best_t = t
-                    out.update(t=t, prim=prim, u=u, v=v)
-                    if mode == "closest":
-                        interval_end = t
+        if a.skip is None or not a.skip[node]:
+            ray.nodes_visited += 1
+        if a.count[node] > 0:
+            ray.leaves_visited += 1
+            if _visit_leaf(a, triangles, ray, node, mode, max_hits):
+                break  # any-hit mode: the first hit ends the ray
             continue
-        kids = []
-        for slot in range(k):
-            c = int(child[node, slot])
-            if c < 0:
-                continue
-            if skip is not None and skip[c]:
-                hit, entry_c = True, entry  # not tested: assumed hit where this node was
-            else:
-                out["box_tests"] += 1
-                hit, entry_c = _slab(a["lo"][c], a["hi"][c], origin, inv_dir, t_min,
-                                     interval_end, robust)
-            if not hit:
-                continue
-            if axis is not None and axis[node] >= 0:
-                lower_first = direction[axis[node]] >= 0
-                key = slot if lower_first else k - 1 - slot
-            else:
-                key = entry_c
-            kids.append((key, slot, c, entry_c))
-        kids.sort(key=lambda item: (item[0], item[1]))  # visiting order
-        for _, _, c, entry_c in reversed(kids):  # nearest on top
+        for c, entry_c in reversed(_children_hit(a, ray, node, entry)):  # nearest on top
             if len(stack) >= capacity:
-                out["stack_overflow"] = True
+                ray.stack_overflow = True
                 continue
             stack.append((c, entry_c))
-    return _finish(out, mode, hit_list, hit_count, max_hits)
+    return _finish(ray, mode, max_hits)
 
 
-def _finish(out, mode, hit_list, hit_count, max_hits):
+def _visit_leaf(a: _Tree, triangles, ray: _Ray, node, mode, max_hits) -> bool:
+    """Test the leaf's primitives in order; True when an any-hit ray found its hit."""
+    for slot in range(a.start[node], a.start[node] + a.count[node]):
+        ray.steps_left -= 1
+        prim = int(a.prim_index[slot])
+        tri = triangles[prim]
+        t, u, v = moller_trumbore(tri[0], tri[1], tri[2], ray.origin, ray.direction)
+        ray.prim_tests += 1
+        if not (t > ray.t_min and t < ray.t_max):
+            continue
+        if mode == "any":
+            ray.t, ray.prim, ray.u, ray.v = t, prim, u, v
+            return True
+        if mode == "all":
+            ray.hit_count += 1
+            if len(ray.hit_list) < max_hits:
+                ray.hit_list.append((prim, t))
+        if t < ray.best_t or (t == ray.best_t and prim < ray.prim):
+            ray.best_t = t
+            ray.t, ray.prim, ray.u, ray.v = t, prim, u, v
+            if mode == "closest":
+                ray.interval_end = t
+    return False
+
+
+def _children_hit(a: _Tree, ray: _Ray, node, entry) -> list:
+    """The children of ``node`` the ray enters, as ``(child, entry)`` in visiting order."""
+    k = a.child.shape[1]
+    kids = []
+    for slot in range(k):
+        c = int(a.child[node, slot])
+        if c < 0:
+            continue
+        if a.skip is not None and a.skip[c]:
+            hit, entry_c = True, entry  # not tested: assumed hit where this node was
+        else:
+            ray.box_tests += 1
+            hit, entry_c = ray.slab(a, c, ray.interval_end)
+        if not hit:
+            continue
+        if a.axis is not None and a.axis[node] >= 0:
+            lower_first = ray.direction[a.axis[node]] >= 0
+            key = slot if lower_first else k - 1 - slot
+        else:
+            key = entry_c
+        kids.append((key, slot, c, entry_c))
+    kids.sort(key=lambda item: (item[0], item[1]))  # visiting order
+    return [(c, entry_c) for _, _, c, entry_c in kids]
+
+
+def _finish(ray: _Ray, mode, max_hits) -> dict:
+    """The ray's result record (the fields of :class:`jaxbvh.rays.traversal.Hits`)."""
+    out = dict(t=ray.t, prim=ray.prim, u=ray.u, v=ray.v, box_tests=ray.box_tests, prim_tests=ray.prim_tests,
+               nodes_visited=ray.nodes_visited, leaves_visited=ray.leaves_visited,
+               stack_overflow=ray.stack_overflow, step_limit=ray.step_limit)
     if mode == "all":
-        out["hit_count"] = hit_count
-        out["hit_prims"] = [p for p, _ in hit_list]
-        out["hit_t"] = [t for _, t in hit_list]
-        out["hits_overflow"] = hit_count > max_hits
+        out.update(hit_count=ray.hit_count, hit_prims=[p for p, _ in ray.hit_list],
+                   hit_t=[t for _, t in ray.hit_list], hits_overflow=ray.hit_count > max_hits)
     return out
 
 
 def trace(tree, triangles, origin, direction, *, skip=None, **kwargs) -> list[dict]:
     """:func:`trace_ray` for every ray of ``origin``, ``direction`` [R, 3]."""
     a = _tree_arrays(tree, skip)
-    triangles = np.asarray(triangles, a["lo"].dtype)
+    triangles = np.asarray(triangles, a.lo.dtype)
     return [trace_ray(a, triangles, o, d, **kwargs) for o, d in zip(origin, direction)]
 
 

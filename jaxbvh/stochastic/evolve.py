@@ -68,13 +68,39 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh.builders import insertion
+from jaxbvh.configs import Checked, integer, knob, real
 from jaxbvh.numerics import TIE_TOLERANCE
 from jaxbvh.rays.measure import make_rays, stack_capacity, trace
 
-DEFAULT_POPULATION = 50
-DEFAULT_GENERATIONS = 100
-DEFAULT_CROSSOVER = 0.7
-DEFAULT_MUTATION = 1 / 500  # expected swaps per individual and generation, as a fraction of n
+
+def _max_children(name, value):
+    return insertion.check_max_children(value)  # the insertion build's rule; its message names max_children
+
+
+@dataclasses.dataclass(frozen=True)
+class EvolveConfig(Checked):
+    """Knobs of the genetic algorithm (Ng & Trifonov 2003, §4; module docstring).
+
+    ``population``: individuals P (>= 2; the paper's 50). ``generations``: G (>= 0; 0
+    only prices random orders). ``crossover``: probability that a pair of parents
+    crosses (the paper's 0.7). ``mutation``: expected swaps per individual and
+    generation as a fraction of n (the paper's "about 1/500th of the length").
+    ``max_children``: most children per node of the insertion build
+    (:data:`jaxbvh.builders.insertion.DEFAULT_MAX_CHILDREN`). ``dtype``: float32 (None)
+    or float64 (needs x64).
+    """
+
+    population: int = knob(50, check=integer(2), metavar="P", help="insertion orders per generation, >= 2")
+    generations: int = knob(100, check=integer(0), metavar="G",
+                            help="generations after the random first one, >= 0")
+    crossover: float = knob(0.7, check=real(0, 1), metavar="R",
+                            help="probability that a pair of parents crosses, in [0, 1]")
+    mutation: float = knob(1 / 500, check=real(0, 1), metavar="F",
+                           help="expected swaps per individual and generation as a fraction of the "
+                                "primitives, in [0, 1] (the paper's 1/500)")
+    max_children: int = knob(insertion.DEFAULT_MAX_CHILDREN, check=_max_children, metavar="K",
+                             help="most children of a node, >= 2 (see jaxbvh.insertion)")
+    dtype: Any = knob(None, help="float32 (None) or float64 (needs x64)")
 
 
 class Draws(NamedTuple):
@@ -119,18 +145,6 @@ class EvolveResult:
     costs: np.ndarray
     seconds: float
     elites: np.ndarray | None = None
-
-
-def check_options(population: int, generations: int, crossover: float, mutation: float) -> None:
-    """Raise ``ValueError`` naming the first bad option."""
-    if int(population) != population or population < 2:
-        raise ValueError(f"population must be an integer >= 2, got {population}")
-    if int(generations) != generations or generations < 0:
-        raise ValueError(f"generations must be an integer >= 0, got {generations}")
-    if not 0 <= crossover <= 1:
-        raise ValueError(f"crossover rate must be in [0, 1], got {crossover}")
-    if not 0 <= mutation <= 1:
-        raise ValueError(f"mutation rate must be in [0, 1] (expected swaps / length), got {mutation}")
 
 
 def max_swaps(capacity: int, mutation: float) -> int:
@@ -296,23 +310,18 @@ def population_costs(lo, hi, orders, n, scale, *, max_children: int, mesh=None):
 # ----------------------------------------------------------------------------------
 
 
-def evolve(key, prim_lo, prim_hi, *, population: int = DEFAULT_POPULATION,
-           generations: int = DEFAULT_GENERATIONS, crossover: float = DEFAULT_CROSSOVER,
-           mutation: float = DEFAULT_MUTATION, max_children: int = insertion.DEFAULT_MAX_CHILDREN,
-           devices=None, dtype=None,
+def evolve(key, prim_lo, prim_hi, config: EvolveConfig | None = None, *, devices=None,
            on_generation: Callable[[int, float], None] | None = None,
-           keep_elites: bool = False) -> EvolveResult:
+           keep_elites: bool = False, **options) -> EvolveResult:
     """Search insertion orders of ``prim_lo``, ``prim_hi`` [n, 3] with the genetic algorithm.
 
     Args:
       key: ``jax.random`` key; the same key gives the same run.
-      population: individuals P (>= 2). generations: G (>= 0; 0 only prices random orders).
-      crossover: probability that a pair of parents crosses. mutation: expected swaps
-        per individual and generation as a fraction of n (module docstring).
-      max_children: most children per node of the insertion build.
+      config: an :class:`EvolveConfig` (its knobs and defaults: population, generations,
+        crossover, mutation, max_children, dtype); or None and
+      options: those knobs as keywords.
       devices: None (one device), a number of devices, or a list of devices to split
         the population over (P must be a multiple of their number).
-      dtype: float32 (default) or float64 (needs x64).
       on_generation: called as ``on_generation(g, best_cost)`` after each generation
         (g = 0 .. G), e.g. for a progress bar.
       keep_elites: also return the best order of every generation (``elites``).
@@ -320,10 +329,14 @@ def evolve(key, prim_lo, prim_hi, *, population: int = DEFAULT_POPULATION,
     Returns:
       :class:`EvolveResult`.
     """
-    check_options(population, generations, crossover, mutation)
-    k = insertion.check_max_children(max_children)
+    if config is None:
+        config = EvolveConfig(**options)
+    elif options:
+        raise TypeError("give an EvolveConfig or keyword options, not both (config.replace(...) changes one)")
+    population, generations = config.population, config.generations
+    crossover, mutation, k = config.crossover, config.mutation, config.max_children
     start = time.perf_counter()
-    lo, hi, n_dev, scale = insertion.prepare(prim_lo, prim_hi, dtype=dtype)
+    lo, hi, n_dev, scale = insertion.prepare(prim_lo, prim_hi, dtype=config.dtype)
     n, capacity = int(n_dev), int(lo.shape[0])
     mesh = _mesh(devices, population)
 

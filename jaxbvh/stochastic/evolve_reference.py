@@ -52,13 +52,13 @@ def next_population(population, costs, draws) -> list[list[int]]:
     return new
 
 
-def fitness(prim_lo, prim_hi, order, *, max_children: int = 8) -> float:
+def fitness(prim_lo, prim_hi, order, *, max_children: int) -> float:
     """The G&S cost of the reference insertion tree of ``order``."""
     tree = ref_insertion.build(prim_lo, prim_hi, order, max_children=max_children)
     return ref_cost.goldsmith_salmon_cost(tree)
 
 
-def evolve(prim_lo, prim_hi, population, draws_per_generation, *, max_children: int = 8):
+def evolve(prim_lo, prim_hi, population, draws_per_generation, *, max_children: int):
     """Run the algorithm from the initial ``population`` (P orders of length n) with the
     given draws (one :class:`jaxbvh.stochastic.evolve.Draws` per generation).
 

@@ -72,8 +72,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxbvh.builders.configs import SweepConfig
 from jaxbvh.builders.dispatch import build
-from jaxbvh.builders.topdown import RandomSplits, engine_inputs, randomized_forest
+from jaxbvh.builders.inputs import prepare
+from jaxbvh.builders.topdown import RandomSplits, randomized_forest
+from jaxbvh.configs import Checked, integer, knob, one_of, optional, real
 from jaxbvh.draws import split_uniforms
 from jaxbvh.tree.layout import capacity_bucket, concat_ranges, to_numpy
 
@@ -139,34 +142,58 @@ def check_rcl(rcl):
     return int(rcl)
 
 
+@dataclasses.dataclass(frozen=True)
+class GraspConfig(Checked):
+    """Knobs of a GRASP run (Ng & Trifonov 2003, §3.4; module docstring).
+
+    ``trials``: randomized trees built (>= 1). ``noise``: the per-node probability of
+    deviating from the greedy split, in [0, 1]; or ``deviations``: the expected
+    deviations per tree (``noise = deviations / (n - 1)``); with neither,
+    :data:`DEFAULT_DEVIATIONS`. ``rcl``: ``"axes"`` (the paper's first method) or a list
+    length ``k >= 1``. ``objective``: ``"nt"`` (Ng & Trifonov's interior area) or
+    ``"sah"``. ``chunk_prims``: most primitives per forest call (None:
+    :data:`CHUNK_PRIMS`; a subtree larger than that gets a call of its own). ``pad``,
+    ``dtype``: as for :class:`jaxbvh.builders.configs.SweepConfig`.
+    """
+
+    trials: int = knob(100, check=integer(1), metavar="T", help="randomized trees to build, >= 1")
+    noise: float | None = knob(None, check=optional(real(0, 1)), type=float, metavar="P",
+                               help="probability in [0, 1] that a node deviates from the greedy split")
+    deviations: float | None = knob(None, check=optional(real(0)), type=float, metavar="D",
+                                    help="instead of noise: expected deviations per tree, "
+                                         "noise = D / (n - 1)")
+    rcl: Any = knob("axes", check=lambda name, value: check_rcl(value), metavar="axes|K",
+                    help="candidates of a deviation: 'axes' (the other axes' best splits, the paper's "
+                         "first method) or K (the K - 1 next-best splits)")
+    objective: str = knob("nt", check=one_of(OBJECTIVES), choices=OBJECTIVES,
+                          help="nt: total interior box area / root area (the paper's); sah: SAH")
+    chunk_prims: int | None = knob(None, check=optional(integer(1)), type=int,
+                                   help="most primitives per forest call (memory bound)")
+    pad: bool = knob(True, help="pad arrays to a capacity bucket (fewer recompiles)")
+    dtype: Any = knob(None, help="float32 (None) or float64 (needs x64)")
+
+    def _check_together(self):
+        if self.noise is not None and self.deviations is not None:
+            raise ValueError("give noise or deviations, not both")
+
+
 def resolve_noise(n: int, noise=None, deviations=None) -> float:
     """The per-node noise for ``n`` primitives from ``noise`` or ``deviations`` (one of them).
 
     ``deviations``: expected deviations per tree, ``noise = deviations / (n - 1)`` capped
     at 1 (0 for one primitive). Neither given: :data:`DEFAULT_DEVIATIONS`. Raises
-    ``ValueError`` for both given, noise outside [0, 1], or negative deviations.
+    ``ValueError`` (:class:`GraspConfig`'s checks) for both given, noise outside [0, 1],
+    or negative deviations.
     """
-    if noise is not None and deviations is not None:
-        raise ValueError("give noise or deviations, not both")
-    if noise is not None:
-        noise = float(noise)
-        if not 0.0 <= noise <= 1.0:
-            raise ValueError(f"noise must be in [0, 1], got {noise}")
-        return noise
-    deviations = DEFAULT_DEVIATIONS if deviations is None else float(deviations)
-    if not deviations >= 0.0 or math.isinf(deviations):
-        raise ValueError(f"deviations must be a finite number >= 0, got {deviations}")
+    config = GraspConfig(noise=noise, deviations=deviations)
+    if config.noise is not None:
+        return config.noise
+    deviations = DEFAULT_DEVIATIONS if config.deviations is None else config.deviations
     return min(1.0, deviations / (n - 1)) if n > 1 else 0.0
 
 
 def _mode(rcl):
     return ("axes", 0) if rcl == "axes" else ("list", int(rcl))
-
-
-def _check_int(name, value, minimum=1):
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
-    return int(value)
 
 
 _forest = jax.jit(randomized_forest, static_argnames=("rcl",))
@@ -188,9 +215,9 @@ def randomized_build(key, prim_lo, prim_hi, *, trial: int = 0, noise: float, rcl
       A :class:`~jaxbvh.tree.layout.BVH` (one primitive per leaf, nodes level by level, root 0).
     """
     mode, k = _mode(check_rcl(rcl))
-    trial = _check_int("trial", trial, 0)
+    trial = integer(0)("trial", trial)
     noise = resolve_noise(2, noise=noise)  # checks it
-    lo, hi, n, scale = engine_inputs(prim_lo, prim_hi, pad=pad, dtype=dtype)
+    lo, hi, n, scale = prepare(prim_lo, prim_hi, pad=pad, dtype=dtype)
     cap = lo.shape[0]
     zeros = jnp.zeros(cap, jnp.int32)
     splits = RandomSplits(key, zeros, zeros.at[0].set(trial), zeros, jnp.float32(noise), jnp.int32(k))
@@ -322,23 +349,16 @@ def _forest_capacity(total: int, base: int) -> int:
     return base << max(0, math.ceil(math.log2(total / base))) if total > base else base
 
 
-def grasp(key, prim_lo, prim_hi, *, trials: int = 100, noise=None, deviations=None, rcl="axes",
-          objective: str = "nt", chunk_prims: int | None = None, pad: bool = True, dtype=None,
-          on_chunk: Callable[[int, float], None] | None = None) -> GraspResult:
-    """Best of ``trials`` randomized full-sweep builds (module docstring).
+def grasp(key, prim_lo, prim_hi, config: GraspConfig | None = None, *,
+          on_chunk: Callable[[int, float], None] | None = None, **options) -> GraspResult:
+    """Best of ``config.trials`` randomized full-sweep builds (module docstring).
 
     Args:
       key: ``jax.random`` key of the run.
-      prim_lo, prim_hi: [n, 3] primitive boxes (as for :func:`jaxbvh.builders.topdown`).
-      trials: number of trees built, >= 1.
-      noise: per-node probability of deviating, in [0, 1]; or
-      deviations: expected deviations per tree (``noise = deviations / (n - 1)``); with
-        neither, :data:`DEFAULT_DEVIATIONS`.
-      rcl: ``"axes"`` (default, the paper's first method) or a list length ``k >= 1``.
-      objective: ``"nt"`` (Ng & Trifonov's interior area, default) or ``"sah"``.
-      chunk_prims: most primitives per forest call (default :data:`CHUNK_PRIMS`); a
-        subtree larger than that gets a call of its own.
-      pad, dtype: as for :func:`jaxbvh.builders.topdown`.
+      prim_lo, prim_hi: [n, 3] primitive boxes (as for :func:`jaxbvh.build`).
+      config: a :class:`GraspConfig` (its knobs and defaults); or None and
+      options: its knobs as keywords (``trials``, ``noise`` or ``deviations``, ``rcl``,
+        ``objective``, ``chunk_prims``, ``pad``, ``dtype``).
       on_chunk: called after each forest call with (trials done, best objective among
         them; ``base`` while none is done), and once at the end with (trials, best).
 
@@ -346,19 +366,20 @@ def grasp(key, prim_lo, prim_hi, *, trials: int = 100, noise=None, deviations=No
       A :class:`GraspResult`; its tree is the best trial's (lowest objective, then lowest
       trial number), built whole.
     """
-    trials = _check_int("trials", trials)
-    if objective not in OBJECTIVES:
-        raise ValueError(f"objective must be one of {', '.join(OBJECTIVES)}, got {objective!r}")
-    rcl = check_rcl(rcl)
+    if config is None:
+        config = GraspConfig(**options)
+    elif options:
+        raise TypeError("give a GraspConfig or keyword options, not both (config.replace(...) changes one)")
+    trials, objective, rcl, pad, dtype = config.trials, config.objective, config.rcl, config.pad, config.dtype
     mode, k = _mode(rcl)
-    chunk_prims = CHUNK_PRIMS if chunk_prims is None else _check_int("chunk_prims", chunk_prims)
-    lo, hi, n, scale = engine_inputs(prim_lo, prim_hi, pad=pad, dtype=dtype)
+    chunk_prims = CHUNK_PRIMS if config.chunk_prims is None else config.chunk_prims
+    lo, hi, n, scale = prepare(prim_lo, prim_hi, pad=pad, dtype=dtype)
     n = int(n)
-    noise = resolve_noise(n, noise, deviations)
+    noise = resolve_noise(n, config.noise, config.deviations)
     lo_np, hi_np = np.asarray(lo)[:n], np.asarray(hi)[:n]
     dt = lo_np.dtype
 
-    greedy = _greedy(build(prim_lo, prim_hi, method="sweep", pad=pad, dtype=dtype), objective)
+    greedy = _greedy(build(prim_lo, prim_hi, SweepConfig(pad=pad, dtype=dtype)), objective)
     objectives = np.full(trials, greedy.base)
     rebuilt = np.zeros(trials, np.int64)
 

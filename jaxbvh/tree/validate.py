@@ -12,9 +12,16 @@ A valid tree (binary or wide; layout in :mod:`jaxbvh.tree.layout`):
    exactly once.
 6. Every real box is well formed (``lo <= hi``, finite) and contains its children's
    boxes and, for a leaf, the boxes of its primitives (exactly, no tolerance).
+
+:func:`check` first makes sure the arrays agree in shape and that the root and child
+ids index them (if not, that is the only problem reported: the invariants index with
+those ids), then runs one function per invariant (``_root_problems`` ...
+``_box_problems``) and lists their problems in this order.
 """
 
 from __future__ import annotations
+
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -38,113 +45,198 @@ def few_ids(ids, limit=5) -> str:
     return text + (f", ... ({ids.size} in all)" if ids.size > limit else "")
 
 
+class _Arrays(NamedTuple):
+    """A tree's arrays on the host, ids as int64."""
+
+    child: np.ndarray       # int64 [N, k], -1: no child
+    parent: np.ndarray      # int64 [N], -1: none
+    count: np.ndarray       # int64 [N] prim_count
+    start: np.ndarray       # int64 [N] prim_start
+    prim_index: np.ndarray  # int64 [P]
+    lo: np.ndarray          # float [N, 3]
+    hi: np.ndarray          # float [N, 3]
+    root: int               # root node id
+
+
+class _Links(NamedTuple):
+    """What several invariants read, derived once the arrays' shapes and ids are sane."""
+
+    n_child: np.ndarray  # int64 [N]: children listed per node
+    real: np.ndarray     # bool [N]: the node has a child or a primitive (not padding)
+    rows: np.ndarray     # int64 [E]: parent end of every child link
+    kids: np.ndarray     # int64 [E]: child end of every child link
+    visits: np.ndarray   # int64 [N]: times the walk from the root reached each node
+    repeated: Any        # int64 [M] or None: nodes the walk reached again, where it stopped
+
+
+class _Runs(NamedTuple):
+    """The primitive slots of the reached leaves whose runs lie inside ``prim_index``."""
+
+    past_end: np.ndarray  # int64 [L']: reached leaves whose run leaves prim_index
+    leaves: np.ndarray    # int64 [L]: the other reached leaves
+    owner: np.ndarray     # int64 [S]: leaf of each slot
+    slots: np.ndarray     # int64 [S]: prim_index slots, leaf by leaf
+    prims: np.ndarray     # int64 [S]: primitive ids in those slots
+
+
 def check(tree, prim_lo=None, prim_hi=None, n_prims: int | None = None) -> list[str]:
     """All invariant violations of ``tree`` as readable lines (empty list: valid).
 
     ``prim_lo``, ``prim_hi``: [n, 3] primitive boxes in the tree's frame (optional; the
     leaf-contains-primitive check and the primitive count come from them).
     ``n_prims``: number of primitives when no boxes are given (default: the number the
-    leaves reference).
+    leaves reference). Problems come invariant by invariant (module docstring); arrays
+    of the wrong shape, or ids that do not index them, are reported alone.
     """
-    t = to_numpy(tree)
-    child = np.asarray(t.child).astype(np.int64)
-    parent = np.asarray(t.parent).astype(np.int64)
-    count = np.asarray(t.prim_count).astype(np.int64)
-    start = np.asarray(t.prim_start).astype(np.int64)
-    prim_index = np.asarray(t.prim_index).astype(np.int64)
-    lo, hi = np.asarray(t.lo), np.asarray(t.hi)
-    nodes = child.shape[0]
-    problems: list[str] = []
+    a = _arrays(tree)
+    broken = _layout_problems(a)
+    if broken:
+        return broken
+    links = _links(a)
+    runs = _runs(a, links.visits)
+    if prim_lo is not None:
+        n_prims = int(np.asarray(prim_lo).shape[0])
+    if n_prims is None:
+        n_prims = int(runs.slots.size)
+    return (_root_problems(a, links) + _reach_problems(a, links) + _parent_problems(a, links)
+            + _kind_problems(a, links) + _primitive_problems(a, runs, n_prims)
+            + _box_problems(a, links, runs, n_prims, prim_lo, prim_hi))
 
-    if parent.shape != (nodes,) or count.shape != (nodes,) or start.shape != (nodes,) \
-            or lo.shape != (nodes, 3) or hi.shape != (nodes, 3):
-        return [f"array shapes disagree: child {child.shape}, parent {parent.shape}, "
-                f"prim_count {count.shape}, prim_start {start.shape}, lo {lo.shape}, hi {hi.shape}"]
-    root = int(np.asarray(t.root))
-    if not 0 <= root < nodes:
-        return [f"root {root} is outside the {nodes} nodes"]
-    bad_ids = (child < -1) | (child >= nodes)
+
+def _arrays(tree) -> _Arrays:
+    t = to_numpy(tree)
+    ids = lambda x: np.asarray(x).astype(np.int64)  # noqa: E731
+    return _Arrays(child=ids(t.child), parent=ids(t.parent), count=ids(t.prim_count), start=ids(t.prim_start),
+                   prim_index=ids(t.prim_index), lo=np.asarray(t.lo), hi=np.asarray(t.hi),
+                   root=int(np.asarray(t.root)))
+
+
+def _layout_problems(a: _Arrays) -> list[str]:
+    """Arrays of one node count, a root and child ids inside it (else nothing else is
+    checked: the invariants index with these ids)."""
+    nodes = a.child.shape[0]
+    if a.parent.shape != (nodes,) or a.count.shape != (nodes,) or a.start.shape != (nodes,) \
+            or a.lo.shape != (nodes, 3) or a.hi.shape != (nodes, 3):
+        return [f"array shapes disagree: child {a.child.shape}, parent {a.parent.shape}, "
+                f"prim_count {a.count.shape}, prim_start {a.start.shape}, lo {a.lo.shape}, hi {a.hi.shape}"]
+    if not 0 <= a.root < nodes:
+        return [f"root {a.root} is outside the {nodes} nodes"]
+    bad_ids = (a.child < -1) | (a.child >= nodes)
     if bad_ids.any():
         return [f"child ids out of range at node(s) {few_ids(np.flatnonzero(bad_ids.any(1)))}"]
+    return []
 
-    has_child = child >= 0
+
+def _links(a: _Arrays) -> _Links:
+    """The child links, and a walk from the root level by level (bounded by the node
+    count) that stops where a node is reached a second time."""
+    has_child = a.child >= 0
     n_child = has_child.sum(axis=1)
-    real = (n_child > 0) | (count > 0)
-    if not real[root]:
-        problems.append(f"root {root} is padding (no children, no primitives)")
-    if parent[root] != -1:
-        problems.append(f"parent of root {root} is {parent[root]}, expected -1")
-
-    # 2. reachability, each node once
+    rows, cols = np.nonzero(has_child)
+    nodes = a.child.shape[0]
     visits = np.zeros(nodes, np.int64)
-    frontier = np.array([root])
+    repeated = None
+    frontier = np.array([a.root])
     for _ in range(nodes + 1):
         if frontier.size == 0:
             break
         np.add.at(visits, frontier, 1)
-        nxt = child[frontier].ravel()
+        nxt = a.child[frontier].ravel()
         nxt = nxt[nxt >= 0]
-        if (visits[nxt] > 0).any() or len(np.unique(nxt)) < len(nxt):
-            problems.append(f"node(s) {few_ids(np.unique(nxt[visits[nxt] > 0]))} reached more than "
-                            "once from the root (cycle or shared child)")
+        ids, times = np.unique(nxt, return_counts=True)
+        if (visits[nxt] > 0).any() or (times > 1).any():  # reached before, or twice in this level
+            repeated = np.union1d(nxt[visits[nxt] > 0], ids[times > 1])
             break
         frontier = nxt
-    if (visits > 1).any():
-        problems.append(f"node(s) {few_ids(np.flatnonzero(visits > 1))} reached more than once")
-    unreached = real & (visits == 0)
-    if unreached.any():
-        problems.append(f"real node(s) {few_ids(np.flatnonzero(unreached))} not reachable from root {root}")
-    pad = ~real
-    if pad.any():
-        pad_box = np.isfinite(lo[pad]).any(1) | np.isfinite(hi[pad]).any(1)
-        if pad_box.any() or (parent[pad] != -1).any():
-            problems.append(f"padding node(s) {few_ids(np.flatnonzero(pad)[pad_box | (parent[pad] != -1)])} "
-                            "are not inert (need parent -1 and the empty box)")
+    return _Links(n_child=n_child, real=(n_child > 0) | (a.count > 0), rows=rows, kids=a.child[rows, cols],
+                  visits=visits, repeated=repeated)
 
-    # 3. parent links
-    rows, cols = np.nonzero(has_child)
-    kids = child[rows, cols]
-    wrong = parent[kids] != rows
+
+def _root_problems(a: _Arrays, links: _Links) -> list[str]:
+    """1. The root is a real node without a parent."""
+    problems = []
+    if not links.real[a.root]:
+        problems.append(f"root {a.root} is padding (no children, no primitives)")
+    if a.parent[a.root] != -1:
+        problems.append(f"parent of root {a.root} is {a.parent[a.root]}, expected -1")
+    return problems
+
+
+def _reach_problems(a: _Arrays, links: _Links) -> list[str]:
+    """2. The walk from the root reaches every real node exactly once; padding is inert
+    and unlinked."""
+    problems = []
+    if links.repeated is not None:
+        problems.append(f"node(s) {few_ids(links.repeated)} reached more than "
+                        "once from the root (cycle or shared child)")
+    if (links.visits > 1).any():
+        problems.append(f"node(s) {few_ids(np.flatnonzero(links.visits > 1))} reached more than once")
+    unreached = links.real & (links.visits == 0)
+    if unreached.any():
+        problems.append(f"real node(s) {few_ids(np.flatnonzero(unreached))} not reachable from root {a.root}")
+    pad = ~links.real
+    if pad.any():
+        pad_box = np.isfinite(a.lo[pad]).any(1) | np.isfinite(a.hi[pad]).any(1)
+        if pad_box.any() or (a.parent[pad] != -1).any():
+            problems.append(f"padding node(s) {few_ids(np.flatnonzero(pad)[pad_box | (a.parent[pad] != -1)])} "
+                            "are not inert (need parent -1 and the empty box)")
+    return problems
+
+
+def _parent_problems(a: _Arrays, links: _Links) -> list[str]:
+    """3. ``parent`` names the node that lists a node as its child, both ways."""
+    problems = []
+    wrong = a.parent[links.kids] != links.rows
     if wrong.any():
-        problems.append(f"parent of node(s) {few_ids(kids[wrong])} does not name the node that lists them as child")
-    orphan = real & (parent >= 0)
+        problems.append(f"parent of node(s) {few_ids(links.kids[wrong])} does not name the node that lists "
+                        "them as child")
+    beyond = links.real & (a.parent >= a.parent.shape[0])
+    if beyond.any():
+        problems.append(f"node(s) {few_ids(np.flatnonzero(beyond))} name a parent outside the "
+                        f"{a.parent.shape[0]} nodes")
+    orphan = links.real & (a.parent >= 0) & ~beyond
     if orphan.any():
-        p = parent[orphan]
-        listed = (child[p] == np.flatnonzero(orphan)[:, None]).any(1)
+        listed = (a.child[a.parent[orphan]] == np.flatnonzero(orphan)[:, None]).any(1)
         if (~listed).any():
             problems.append(f"node(s) {few_ids(np.flatnonzero(orphan)[~listed])} name a parent that "
                             "does not list them as a child")
+    return problems
 
-    # 4. node kinds
-    both = (n_child > 0) & (count > 0)
+
+def _kind_problems(a: _Arrays, links: _Links) -> list[str]:
+    """4. Interior (two or more children, no primitives) or leaf (no children, count >= 1)."""
+    problems = []
+    both = (links.n_child > 0) & (a.count > 0)
     if both.any():
         problems.append(f"node(s) {few_ids(np.flatnonzero(both))} have both children and primitives")
-    single = n_child == 1
+    single = links.n_child == 1
     if single.any():
         problems.append(f"interior node(s) {few_ids(np.flatnonzero(single))} have only one child")
-    if (count < 0).any():
-        problems.append(f"negative prim_count at node(s) {few_ids(np.flatnonzero(count < 0))}")
+    if (a.count < 0).any():
+        problems.append(f"negative prim_count at node(s) {few_ids(np.flatnonzero(a.count < 0))}")
+    return problems
 
-    # 5. primitives exactly once
-    leaves = np.flatnonzero((count > 0) & (visits > 0))
-    if prim_lo is not None:
-        n_prims = int(np.asarray(prim_lo).shape[0])
-    out_of_range = (start[leaves] < 0) | (start[leaves] + count[leaves] > prim_index.shape[0])
-    if out_of_range.any():
-        problems.append(f"leaf/leaves {few_ids(leaves[out_of_range])} run past prim_index "
-                        f"({prim_index.shape[0]} slots)")
-        leaves = leaves[~out_of_range]
-    total = int(count[leaves].sum())
-    if total:
-        leaf_of_slot = np.repeat(leaves, count[leaves])
-        slots = concat_ranges(start[leaves], count[leaves])
-        prims = prim_index[slots]
-    else:
-        leaf_of_slot = slots = prims = np.zeros(0, np.int64)
-    if n_prims is None:
-        n_prims = total
-    if len(np.unique(slots)) != len(slots):
+
+def _runs(a: _Arrays, visits) -> _Runs:
+    leaves = np.flatnonzero((a.count > 0) & (visits > 0))
+    past_end = (a.start[leaves] < 0) | (a.start[leaves] + a.count[leaves] > a.prim_index.shape[0])
+    past, leaves = leaves[past_end], leaves[~past_end]
+    if int(a.count[leaves].sum()):
+        slots = concat_ranges(a.start[leaves], a.count[leaves])
+        return _Runs(past, leaves, np.repeat(leaves, a.count[leaves]), slots, a.prim_index[slots])
+    none = np.zeros(0, np.int64)
+    return _Runs(past, leaves, none, none, none)
+
+
+def _primitive_problems(a: _Arrays, runs: _Runs, n_prims: int) -> list[str]:
+    """5. The reached leaves' runs name every primitive ``0 .. n_prims-1`` exactly once."""
+    problems = []
+    if runs.past_end.size:
+        problems.append(f"leaf/leaves {few_ids(runs.past_end)} run past prim_index "
+                        f"({a.prim_index.shape[0]} slots)")
+    if len(np.unique(runs.slots)) != len(runs.slots):
         problems.append("leaves share prim_index slots")
+    prims = runs.prims
     bad_prim = (prims < 0) | (prims >= n_prims)
     if bad_prim.any():
         problems.append(f"leaves reference primitive ids outside [0, {n_prims}): {few_ids(prims[bad_prim])}")
@@ -153,20 +245,27 @@ def check(tree, prim_lo=None, prim_hi=None, n_prims: int | None = None) -> list[
         problems.append(f"primitive(s) {few_ids(np.flatnonzero(seen > 1))} referenced more than once")
     if (seen == 0).any():
         problems.append(f"primitive(s) {few_ids(np.flatnonzero(seen == 0))} referenced by no leaf")
+    return problems
 
-    # 6. boxes
-    r = np.flatnonzero(real)
+
+def _box_problems(a: _Arrays, links: _Links, runs: _Runs, n_prims: int, prim_lo, prim_hi) -> list[str]:
+    """6. Real boxes are finite and not inverted, and contain their children's boxes and
+    their primitives' boxes (when given), exactly."""
+    problems = []
+    r = np.flatnonzero(links.real)
+    lo, hi = a.lo, a.hi
     malformed = ~(np.isfinite(lo[r]).all(1) & np.isfinite(hi[r]).all(1) & (lo[r] <= hi[r]).all(1))
     if malformed.any():
         problems.append(f"node(s) {few_ids(r[malformed])} have non-finite or inverted boxes")
+    rows, kids = links.rows, links.kids
     out = (lo[kids] < lo[rows]).any(1) | (hi[kids] > hi[rows]).any(1)
     if out.any():
         problems.append(f"box of node(s) {few_ids(rows[out])} does not contain the box of child(ren) "
                         f"{few_ids(kids[out])}")
-    if prim_lo is not None and prim_hi is not None and total:
+    if prim_lo is not None and prim_hi is not None and runs.slots.size:
         plo, phi = np.asarray(prim_lo), np.asarray(prim_hi)
-        ok = ~bad_prim
-        p, owner = prims[ok], leaf_of_slot[ok]
+        ok = (runs.prims >= 0) & (runs.prims < n_prims)
+        p, owner = runs.prims[ok], runs.owner[ok]
         outside = (plo[p] < lo[owner]).any(1) | (phi[p] > hi[owner]).any(1)
         if outside.any():
             problems.append(f"leaf box(es) {few_ids(np.unique(owner[outside]))} do not contain "

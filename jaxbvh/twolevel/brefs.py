@@ -72,7 +72,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from functools import partial
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -237,222 +237,372 @@ def _best_planes(sid, bin_p, lo, hi, prims, *, bins, cap):
     return best, best_key
 
 
+# ----------------------------------------------------------------------------------
+# loop state and the steps of one level
+# ----------------------------------------------------------------------------------
+
+
+class _Refs(NamedTuple):
+    """The BRef array, by slot ([C]; empty slots: node -1, the empty box)."""
+
+    node: Any   # int32 [C]: forest node, -1 empty
+    inst: Any   # int32 [C]: instance, -1 empty
+    lo: Any     # float [C, 3]: scene-frame box (conservative world box)
+    hi: Any     # float [C, 3]
+    prims: Any  # int32 [C]: primitive count (exact or estimated)
+
+
+class _Segments(NamedTuple):
+    """The segments of the current level; per-segment arrays are keyed by the segment's start."""
+
+    of: Any     # int32 [C]: start of the segment each slot belongs to, C: none
+    end: Any    # int32 [C]: end of the segment's BRefs ([start, end))
+    extra: Any  # int32 [C]: end of its spare room ([end, extra))
+    node: Any   # int32 [C]: top-level node the segment becomes
+    live: Any   # bool [C]: a segment starts here on this level
+
+
+class _TopTree(NamedTuple):
+    """The top-level tree as it grows, ``M = 2 C`` node slots, ids level by level."""
+
+    left: Any        # int32 [M], -1: none
+    right: Any       # int32 [M]
+    parent: Any      # int32 [M]
+    axis: Any        # int32 [M]: split axis, -1 for a leaf or a split without a plane
+    prim_start: Any  # int32 [M]: a leaf's BRef slot (array order, before compaction)
+    prim_count: Any  # int32 [M]: 1 for a leaf, else 0
+    lo: Any          # float [M, 3]: node box (union of its BRefs' boxes)
+    hi: Any          # float [M, 3]
+
+
+class _Build(NamedTuple):
+    """Loop state of the level-synchronous build."""
+
+    refs: _Refs      # the BRef array
+    segs: _Segments  # segments still to split
+    top: _TopTree    # the top-level tree so far
+    next_free: Any   # int32 []: first unused top-level node id
+    level: Any       # int32 []: levels done (bounded by C)
+
+
+class _View(NamedTuple):
+    """One level's segments as seen from the slots (per slot) and as sets (per segment start)."""
+
+    seg: Any      # int32 [C] per slot: its segment's start, C: none
+    in_live: Any  # bool [C] per slot: it lies in a live segment
+    end: Any      # int32 [C] per slot: its segment's end
+    is_ref: Any   # bool [C] per slot: it holds a BRef of a live segment
+    sid: Any      # int32 [C] per slot: ``seg`` where ``is_ref``, else C (segment-op key)
+    count: Any    # int32 [C] per segment: BRefs
+    lo: Any       # float [C, 3] per segment: union of its BRefs' boxes
+    hi: Any       # float [C, 3]
+    leaf: Any     # bool [C] per segment: live with one BRef (becomes a leaf)
+    split: Any    # bool [C] per segment: live with two or more (splits)
+
+
+class _Binned(NamedTuple):
+    """The split segments' BRefs after opening, binned, and each segment's best plane."""
+
+    is_ref: Any  # bool [C] per slot: holds a BRef of a split segment
+    sid: Any     # int32 [C] per slot: its segment where ``is_ref``, else C
+    count: Any   # int32 [C] per segment: BRefs after opening
+    bin_p: Any   # int32 [C, 3] per slot: bin of the BRef's centre on each axis
+    found: Any   # bool [C] per segment: a plane exists
+    axis: Any    # int32 [C] per segment: the best plane's axis
+    plane: Any   # int32 [C] per segment: the best plane (left: bins <= plane)
+
+
+class _Halves(NamedTuple):
+    """The partition of every split segment (step 5)."""
+
+    goes_left: Any    # bool [C] per slot: the BRef goes to the left half
+    rank_left: Any    # int32 [C] per slot: its rank among its segment's left BRefs
+    rank_right: Any   # int32 [C] per slot: its rank among the right ones (where not left)
+    n_left: Any       # int32 [C] per segment: BRefs going left
+    n_right: Any      # int32 [C] per segment: BRefs going right
+    right_start: Any  # int32 [C] per segment: first slot of the right half
+
+
 @partial(jax.jit, static_argnames=("cap", "bins", "estimate"))
 def _build(forest, instances, n_inst, slots, threshold, overlap, *, cap, bins, estimate):
-    C = cap
-    M = 2 * C
-    NF = forest.left.shape[0]
-    n_inst_cap = instances.object.shape[0]
+    """The engine of :func:`build_top_level` (module docstring): ``cap`` slots, ``bins`` bins."""
+    state = _initial(forest, instances, n_inst, slots, cap=cap)
+
+    def level(s):
+        return _level(forest, instances, s, threshold, overlap, cap=cap, bins=bins, estimate=estimate)
+
+    s = jax.lax.while_loop(lambda s: jnp.any(s.segs.live) & (s.level <= cap), level, state)
+    return _compact(s, cap=cap)
+
+
+def _child_box(forest, instances, node, inst):
+    """World boxes of forest nodes under instances (padding: the empty box)."""
+    inf = jnp.asarray(jnp.inf, forest.lo.dtype)
+    ok = (node >= 0) & (inst >= 0)
+    n = jnp.where(ok, node, 0)
+    k = jnp.where(ok, inst, 0)
+    lo, hi = world_boxes(forest.lo[n], forest.hi[n], instances.to_scene[k], instances.margin[k])
+    return jnp.where(ok[:, None], lo, inf), jnp.where(ok[:, None], hi, -inf)
+
+
+def _interior(forest, node):
+    """The forest nodes ``node`` (-1: none) have children."""
+    nf = forest.left.shape[0]
+    return take(forest.left, jnp.where(node >= 0, node, nf), -1) >= 0
+
+
+def _initial(forest, instances, n_inst, slots, *, cap) -> _Build:
+    """The instances' BRefs at ``[0, n_inst)``, one root segment ``[0, slots)``."""
+    C, M = cap, 2 * cap
     dtype = forest.lo.dtype
     i32 = jnp.int32
     pos = jnp.arange(C, dtype=i32)
     inf = jnp.asarray(jnp.inf, dtype)
-
-    def child_box(node, inst):
-        """World boxes of forest nodes under instances (padding: the empty box)."""
-        ok = (node >= 0) & (inst >= 0)
-        n = jnp.where(ok, node, 0)
-        k = jnp.where(ok, inst, 0)
-        lo, hi = world_boxes(forest.lo[n], forest.hi[n], instances.to_scene[k], instances.margin[k])
-        return jnp.where(ok[:, None], lo, inf), jnp.where(ok[:, None], hi, -inf)
-
-    # the instances' BRefs at [0, n_inst)
     first = pos < n_inst
     inst0 = jnp.where(first, pos, -1)
-    root = forest.root[instances.object[jnp.minimum(pos, n_inst_cap - 1)]]
+    root = forest.root[instances.object[jnp.minimum(pos, instances.object.shape[0] - 1)]]
     node0 = jnp.where(first, root, -1)
-    lo0, hi0 = child_box(node0, inst0)
-    state = dict(
-        node=node0, inst=inst0, lo=lo0, hi=hi0,
-        prims=jnp.where(first, take(forest.subtree_prims, jnp.where(first, root, NF), 0), 0),
-        seg_of=jnp.where(pos < slots, 0, C).astype(i32),
-        seg_end=jnp.zeros(C, i32).at[0].set(n_inst),
-        seg_extra=jnp.zeros(C, i32).at[0].set(slots),
-        seg_node=jnp.zeros(C, i32),
-        seg_live=jnp.zeros(C, bool).at[0].set(n_inst > 0),
-        left=jnp.full(M, -1, i32), right=jnp.full(M, -1, i32), parent=jnp.full(M, -1, i32),
-        axis=jnp.full(M, -1, i32), prim_start=jnp.zeros(M, i32), prim_count=jnp.zeros(M, i32),
-        top_lo=jnp.full((M, 3), inf, dtype), top_hi=jnp.full((M, 3), -inf, dtype),
-        next_free=i32(1), level=i32(0),
-    )
+    lo0, hi0 = _child_box(forest, instances, node0, inst0)
+    prims0 = jnp.where(first, take(forest.subtree_prims, jnp.where(first, root, forest.left.shape[0]), 0), 0)
+    segs = _Segments(of=jnp.where(pos < slots, 0, C).astype(i32), end=jnp.zeros(C, i32).at[0].set(n_inst),
+                     extra=jnp.zeros(C, i32).at[0].set(slots), node=jnp.zeros(C, i32),
+                     live=jnp.zeros(C, bool).at[0].set(n_inst > 0))
+    none = jnp.full(M, -1, i32)
+    top = _TopTree(left=none, right=none, parent=none, axis=none, prim_start=jnp.zeros(M, i32),
+                   prim_count=jnp.zeros(M, i32), lo=jnp.full((M, 3), inf, dtype), hi=jnp.full((M, 3), -inf, dtype))
+    return _Build(refs=_Refs(node=node0, inst=inst0, lo=lo0, hi=hi0, prims=prims0), segs=segs, top=top,
+                  next_free=i32(1), level=i32(0))
 
-    def interior(node):
-        return take(forest.left, jnp.where(node >= 0, node, NF), -1) >= 0
 
-    def level(s):
-        seg = s["seg_of"]
-        live = s["seg_live"]
-        in_live = take(live, seg, False)
-        end = take(s["seg_end"], seg, 0)
-        is_ref = in_live & (pos < end)
-        sid = jnp.where(is_ref, seg, C)
-        count = _segment(jax.ops.segment_sum, is_ref.astype(i32), sid, C)
-        lo, hi, node, inst = s["lo"], s["hi"], s["node"], s["inst"]
-        seg_lo = _segment(jax.ops.segment_min, lo, sid, C)
-        seg_hi = _segment(jax.ops.segment_max, hi, sid, C)
-        leaf_seg = live & (count == 1)
-        split_seg = live & (count >= 2)
+def _level(forest, instances, s: _Build, threshold, overlap, *, cap, bins, estimate) -> _Build:
+    """One level: every live segment becomes a leaf or opens (steps 2-3), bins (4) and
+    splits in two (5); its halves are the next level's segments."""
+    view = _view(s.refs, s.segs, cap=cap)
+    may_open = _may_open(s.refs, s.segs, view, overlap, cap=cap)
+    refs, seg_end, extra = _open(forest, instances, s.refs, s.segs, view, may_open, threshold,
+                                 cap=cap, estimate=estimate)
+    binned = _bin(refs, view, seg_end, cap=cap, bins=bins)
+    halves = _partition(forest, refs, view, binned, seg_end, extra, threshold, cap=cap)
+    refs, seg_of = _move(refs, view, binned, halves, extra, cap=cap)
+    segs, top, next_free = _grow(s, view, binned, halves, extra, cap=cap)
+    return _Build(refs=refs, segs=segs._replace(of=seg_of), top=top, next_free=next_free, level=s.level + 1)
 
-        # 2. termination of opening
-        same = (_segment(jax.ops.segment_min, inst, sid, C)
-                == _segment(jax.ops.segment_max, inst, sid, C))
-        small_p = take(count, seg, 0) <= SMALL_SEGMENT
-        overlaps = jnp.zeros(C, bool)
-        for j in range(SMALL_SEGMENT):
-            q = seg + j
-            other = is_ref & small_p & (q < end) & (q != pos)
-            qs = jnp.where(other, q, C)
-            q_lo, q_hi = take(lo, qs, 0), take(hi, qs, 0)
-            shorter = jnp.minimum(hi - lo, q_hi - q_lo)
-            shared = jnp.minimum(hi, q_hi) - jnp.maximum(lo, q_lo)
-            overlaps = overlaps | (other & jnp.all(shared >= overlap * shorter, axis=1))
-        any_overlap = _segment(jax.ops.segment_max, overlaps.astype(i32), sid, C) > 0
-        barely = (count <= SMALL_SEGMENT) & ~any_overlap
-        may_open = split_seg & (s["seg_extra"] > s["seg_end"]) & ~same & ~barely
 
-        # 3. opening
-        ext = seg_hi - seg_lo
-        dim = jnp.argmax(ext, axis=1).astype(i32)
-        ext_dim = jnp.take_along_axis(ext, dim[:, None], axis=1)[:, 0]
-        dim_p = take(dim, seg, 0)
-        width = (jnp.take_along_axis(hi, dim_p[:, None], axis=1)
-                 - jnp.take_along_axis(lo, dim_p[:, None], axis=1))[:, 0]
-        candidate = is_ref & interior(node) & (width > threshold * take(ext_dim, seg, 0))
-        n_cand = _segment(jax.ops.segment_sum, candidate.astype(i32), sid, C)
-        do_open = may_open & (n_cand > 0) & (n_cand <= s["seg_extra"] - s["seg_end"])
-        opens = candidate & take(do_open, seg, False)
-        slot = jnp.where(opens, end + _exclusive_rank(opens, jnp.minimum(seg, C - 1)), C)
-        safe = jnp.where(opens, node, NF)
-        kid_l = take(forest.left, safe, -1)
-        kid_r = take(forest.right, safe, -1)
-        l_lo, l_hi = child_box(jnp.where(opens, kid_l, -1), inst)
-        r_lo, r_hi = child_box(jnp.where(opens, kid_r, -1), inst)
-        if estimate:
-            half = jnp.maximum(s["prims"] // 2, 1)
-            l_prims = r_prims = half
-        else:
-            l_prims = take(forest.subtree_prims, jnp.where(opens, kid_l, NF), 0)
-            r_prims = take(forest.subtree_prims, jnp.where(opens, kid_r, NF), 0)
-        node = jnp.where(opens, kid_l, node).at[slot].set(kid_r, mode="drop")
-        inst = inst.at[slot].set(inst, mode="drop")
-        lo = jnp.where(opens[:, None], l_lo, lo).at[slot].set(r_lo, mode="drop")
-        hi = jnp.where(opens[:, None], l_hi, hi).at[slot].set(r_hi, mode="drop")
-        prims = jnp.where(opens, l_prims, s["prims"]).at[slot].set(r_prims, mode="drop")
-        seg_end = s["seg_end"] + jnp.where(do_open, n_cand, 0)
-        extra = jnp.where(may_open, s["seg_extra"], seg_end)  # dropped room stays unused
+def _view(refs: _Refs, segs: _Segments, *, cap) -> _View:
+    C = cap
+    pos = jnp.arange(C, dtype=jnp.int32)
+    seg = segs.of
+    in_live = take(segs.live, seg, False)
+    end = take(segs.end, seg, 0)
+    is_ref = in_live & (pos < end)
+    sid = jnp.where(is_ref, seg, C)
+    count = _segment(jax.ops.segment_sum, is_ref.astype(jnp.int32), sid, C)
+    return _View(seg=seg, in_live=in_live, end=end, is_ref=is_ref, sid=sid, count=count,
+                 lo=_segment(jax.ops.segment_min, refs.lo, sid, C), hi=_segment(jax.ops.segment_max, refs.hi, sid, C),
+                 leaf=segs.live & (count == 1), split=segs.live & (count >= 2))
 
-        # 4. binning over the BRefs of the split segments
-        end = take(seg_end, seg, 0)
-        is_ref = in_live & (pos < end) & take(split_seg, seg, False)
-        sid = jnp.where(is_ref, seg, C)
-        count = jnp.where(split_seg, _segment(jax.ops.segment_sum, is_ref.astype(i32), sid, C), count)
-        centre = 0.5 * lo + 0.5 * hi
-        c_min = _segment(jax.ops.segment_min, jnp.where(is_ref[:, None], centre, inf), sid, C)
-        c_max = _segment(jax.ops.segment_max, jnp.where(is_ref[:, None], centre, -inf), sid, C)
-        span = c_max - c_min
-        span_p = take(span, seg, 0)
-        low_p = take(c_min, seg, 0)
-        nb = jnp.asarray(bins, dtype)
-        raw = jnp.floor((centre - low_p) * nb / jnp.where(span_p > 0, span_p, 1))
-        bin_p = jnp.where(span_p > 0, jnp.clip(raw, 0, nb - 1), 0).astype(i32)  # [C, 3]
-        best, best_key = _best_planes(sid, bin_p, lo, hi, prims, bins=bins, cap=C)
-        found = best < inf
-        best_axis = best_key // bins
-        best_plane = best_key % bins
 
-        # 5. partition and spare split
-        offset = pos - seg
-        axis_p = take(best_axis, seg, 0)
-        plane_p = take(best_plane, seg, 0)
-        by_plane = jnp.take_along_axis(bin_p, axis_p[:, None], axis=1)[:, 0] <= plane_p
-        goes_left = is_ref & jnp.where(take(found, seg, False), by_plane,
-                                       offset < take(count, seg, 0) // 2)
-        n_left = _segment(jax.ops.segment_sum, goes_left.astype(i32), sid, C)
-        n_right = count - n_left
-        rank_left = _exclusive_rank(goes_left, jnp.minimum(seg, C - 1))
-        rank_right = offset - rank_left
-        key2 = jnp.where(is_ref, 2 * seg + jnp.where(goes_left, 0, 1), 2 * C)
-        ch_lo = _segment(jax.ops.segment_min, lo, key2, 2 * C).reshape(C, 2, 3)
-        ch_hi = _segment(jax.ops.segment_max, hi, key2, 2 * C).reshape(C, 2, 3)
-        ch_ext = ch_hi - ch_lo
-        ch_dim = jnp.argmax(ch_ext, axis=2).astype(i32)
-        ch_ext_dim = jnp.take_along_axis(ch_ext, ch_dim[..., None], axis=2)[..., 0]
-        k2 = jnp.minimum(key2, 2 * C - 1)
-        d2 = ch_dim.reshape(-1)[k2]
-        w2 = (jnp.take_along_axis(hi, d2[:, None], axis=1) - jnp.take_along_axis(lo, d2[:, None], axis=1))[:, 0]
-        meets = is_ref & interior(node) & (w2 > threshold * ch_ext_dim.reshape(-1)[k2])
-        weight = _segment(jax.ops.segment_sum, meets.astype(i32), key2, 2 * C).reshape(C, 2)
-        none = weight.sum(axis=1) == 0
-        w_l = jnp.where(none, n_left, weight[:, 0])
-        w_r = jnp.where(none, n_right, weight[:, 1])
-        spare = jnp.maximum(extra - seg_end, 0)
-        f32 = jnp.float32
-        share = jnp.floor(w_l.astype(f32) / jnp.maximum(w_l + w_r, 1).astype(f32) * spare.astype(f32))
-        spare_l = jnp.minimum(share.astype(i32), spare)
-        right_start = pos + n_left + spare_l  # per segment start
+def _may_open(refs: _Refs, segs: _Segments, view: _View, overlap, *, cap):
+    """Step 2, termination of opening: split segments with spare room that hold more than
+    one instance and are not a few barely overlapping BRefs (bool [C] per segment)."""
+    C = cap
+    pos = jnp.arange(C, dtype=jnp.int32)
+    seg, sid, is_ref, lo, hi = view.seg, view.sid, view.is_ref, refs.lo, refs.hi
+    same = (_segment(jax.ops.segment_min, refs.inst, sid, C)
+            == _segment(jax.ops.segment_max, refs.inst, sid, C))
+    small_p = take(view.count, seg, 0) <= SMALL_SEGMENT
+    overlaps = jnp.zeros(C, bool)
+    for j in range(SMALL_SEGMENT):
+        q = seg + j
+        other = is_ref & small_p & (q < view.end) & (q != pos)
+        qs = jnp.where(other, q, C)
+        q_lo, q_hi = take(lo, qs, 0), take(hi, qs, 0)
+        shorter = jnp.minimum(hi - lo, q_hi - q_lo)
+        shared = jnp.minimum(hi, q_hi) - jnp.maximum(lo, q_lo)
+        overlaps = overlaps | (other & jnp.all(shared >= overlap * shorter, axis=1))
+    any_overlap = _segment(jax.ops.segment_max, overlaps.astype(jnp.int32), sid, C) > 0
+    barely = (view.count <= SMALL_SEGMENT) & ~any_overlap
+    return view.split & (segs.extra > segs.end) & ~same & ~barely
 
-        # move the BRefs of split segments into their halves
-        split_p = take(split_seg, seg, False)
-        valid_ref = node >= 0
-        new_pos = jnp.where(goes_left, seg + rank_left, take(right_start, seg, 0) + rank_right)
-        target = jnp.where(valid_ref, jnp.where(is_ref, new_pos, pos), C)
-        empty_i = jnp.full(C, -1, i32)
-        node_n = empty_i.at[target].set(node, mode="drop")
-        inst_n = empty_i.at[target].set(inst, mode="drop")
-        prims_n = jnp.zeros(C, i32).at[target].set(prims, mode="drop")
-        lo_n = jnp.full((C, 3), inf, dtype).at[target].set(lo, mode="drop")
-        hi_n = jnp.full((C, 3), -inf, dtype).at[target].set(hi, mode="drop")
-        rs_p = take(right_start, seg, C)
-        seg_of = jnp.where(split_p, jnp.where(pos < rs_p, seg, jnp.where(pos < take(extra, seg, 0), rs_p, C)), C)
-        seg_of = jnp.where(in_live, seg_of, C)
 
-        # the top-level nodes of this level
-        nid = jnp.where(live, s["seg_node"], M)
-        rank = jnp.cumsum(split_seg.astype(i32)) - split_seg.astype(i32)
-        left_id = jnp.where(split_seg, s["next_free"] + 2 * rank, M)
-        right_id = jnp.where(split_seg, left_id + 1, M)
-        starts_l = jnp.where(split_seg, pos, C)
-        starts_r = jnp.where(split_seg, right_start, C)
-        new_end = jnp.zeros(C, i32).at[starts_l].set(pos + n_left, mode="drop").at[starts_r].set(
-            right_start + n_right, mode="drop")
-        new_extra = jnp.zeros(C, i32).at[starts_l].set(right_start, mode="drop").at[starts_r].set(
-            extra, mode="drop")
-        new_node = jnp.zeros(C, i32).at[starts_l].set(left_id, mode="drop").at[starts_r].set(
-            right_id, mode="drop")
-        new_live = jnp.zeros(C, bool).at[starts_l].set(True, mode="drop").at[starts_r].set(True, mode="drop")
-        node_ids = s["seg_node"]
-        return dict(
-            node=node_n, inst=inst_n, lo=lo_n, hi=hi_n, prims=prims_n, seg_of=seg_of.astype(i32),
-            seg_end=new_end, seg_extra=new_extra, seg_node=new_node, seg_live=new_live,
-            left=s["left"].at[jnp.where(split_seg, nid, M)].set(left_id, mode="drop"),
-            right=s["right"].at[jnp.where(split_seg, nid, M)].set(right_id, mode="drop"),
-            parent=s["parent"].at[left_id].set(node_ids, mode="drop").at[right_id].set(node_ids, mode="drop"),
-            axis=s["axis"].at[jnp.where(split_seg, nid, M)].set(jnp.where(found, best_axis, -1), mode="drop"),
-            prim_start=s["prim_start"].at[jnp.where(leaf_seg, nid, M)].set(pos, mode="drop"),
-            prim_count=s["prim_count"].at[jnp.where(leaf_seg, nid, M)].set(1, mode="drop"),
-            top_lo=s["top_lo"].at[nid].set(seg_lo, mode="drop"),
-            top_hi=s["top_hi"].at[nid].set(seg_hi, mode="drop"),
-            next_free=s["next_free"] + 2 * jnp.sum(split_seg, dtype=i32),
-            level=s["level"] + 1,
-        )
+def _open(forest, instances, refs: _Refs, segs: _Segments, view: _View, may_open, threshold, *, cap,
+          estimate):
+    """Step 3, opening: all candidates of a segment or none. Returns the BRefs, each
+    segment's new end and its room's end (dropped room: the new end)."""
+    C = cap
+    NF = forest.left.shape[0]
+    seg = view.seg
+    ext = view.hi - view.lo
+    dim = jnp.argmax(ext, axis=1).astype(jnp.int32)
+    ext_dim = jnp.take_along_axis(ext, dim[:, None], axis=1)[:, 0]
+    dim_p = take(dim, seg, 0)
+    width = (jnp.take_along_axis(refs.hi, dim_p[:, None], axis=1)
+             - jnp.take_along_axis(refs.lo, dim_p[:, None], axis=1))[:, 0]
+    candidate = view.is_ref & _interior(forest, refs.node) & (width > threshold * take(ext_dim, seg, 0))
+    n_cand = _segment(jax.ops.segment_sum, candidate.astype(jnp.int32), view.sid, C)
+    do_open = may_open & (n_cand > 0) & (n_cand <= segs.extra - segs.end)
+    opens = candidate & take(do_open, seg, False)
+    slot = jnp.where(opens, view.end + _exclusive_rank(opens, jnp.minimum(seg, C - 1)), C)
+    safe = jnp.where(opens, refs.node, NF)
+    kid_l = take(forest.left, safe, -1)
+    kid_r = take(forest.right, safe, -1)
+    l_lo, l_hi = _child_box(forest, instances, jnp.where(opens, kid_l, -1), refs.inst)
+    r_lo, r_hi = _child_box(forest, instances, jnp.where(opens, kid_r, -1), refs.inst)
+    if estimate:
+        half = jnp.maximum(refs.prims // 2, 1)
+        l_prims = r_prims = half
+    else:
+        l_prims = take(forest.subtree_prims, jnp.where(opens, kid_l, NF), 0)
+        r_prims = take(forest.subtree_prims, jnp.where(opens, kid_r, NF), 0)
+    opened = _Refs(node=jnp.where(opens, kid_l, refs.node).at[slot].set(kid_r, mode="drop"),
+                   inst=refs.inst.at[slot].set(refs.inst, mode="drop"),
+                   lo=jnp.where(opens[:, None], l_lo, refs.lo).at[slot].set(r_lo, mode="drop"),
+                   hi=jnp.where(opens[:, None], l_hi, refs.hi).at[slot].set(r_hi, mode="drop"),
+                   prims=jnp.where(opens, l_prims, refs.prims).at[slot].set(r_prims, mode="drop"))
+    seg_end = segs.end + jnp.where(do_open, n_cand, 0)
+    extra = jnp.where(may_open, segs.extra, seg_end)  # dropped room stays unused
+    return opened, seg_end, extra
 
-    s = jax.lax.while_loop(lambda s: jnp.any(s["seg_live"]) & (s["level"] <= C), level, state)
 
-    # compact the BRefs in array order; leaves point at their BRef's new id
-    used = s["node"] >= 0
+def _bin(refs: _Refs, view: _View, seg_end, *, cap, bins) -> _Binned:
+    """Step 4, binning over the BRefs of the split segments, and each one's best plane."""
+    C = cap
+    dtype = refs.lo.dtype
+    inf = jnp.asarray(jnp.inf, dtype)
+    pos = jnp.arange(C, dtype=jnp.int32)
+    seg = view.seg
+    end = take(seg_end, seg, 0)
+    is_ref = view.in_live & (pos < end) & take(view.split, seg, False)
+    sid = jnp.where(is_ref, seg, C)
+    count = jnp.where(view.split, _segment(jax.ops.segment_sum, is_ref.astype(jnp.int32), sid, C), view.count)
+    centre = 0.5 * refs.lo + 0.5 * refs.hi
+    c_min = _segment(jax.ops.segment_min, jnp.where(is_ref[:, None], centre, inf), sid, C)
+    c_max = _segment(jax.ops.segment_max, jnp.where(is_ref[:, None], centre, -inf), sid, C)
+    span = c_max - c_min
+    span_p = take(span, seg, 0)
+    low_p = take(c_min, seg, 0)
+    nb = jnp.asarray(bins, dtype)
+    raw = jnp.floor((centre - low_p) * nb / jnp.where(span_p > 0, span_p, 1))
+    bin_p = jnp.where(span_p > 0, jnp.clip(raw, 0, nb - 1), 0).astype(jnp.int32)  # [C, 3]
+    best, best_key = _best_planes(sid, bin_p, refs.lo, refs.hi, refs.prims, bins=bins, cap=C)
+    return _Binned(is_ref=is_ref, sid=sid, count=count, bin_p=bin_p, found=best < inf,
+                   axis=best_key // bins, plane=best_key % bins)
+
+
+def _partition(forest, refs: _Refs, view: _View, b: _Binned, seg_end, extra, threshold, *, cap) -> _Halves:
+    """Step 5, the stable partition and the split of the spare room."""
+    C = cap
+    i32 = jnp.int32
+    pos = jnp.arange(C, dtype=i32)
+    seg, lo, hi = view.seg, refs.lo, refs.hi
+    offset = pos - seg
+    axis_p = take(b.axis, seg, 0)
+    plane_p = take(b.plane, seg, 0)
+    by_plane = jnp.take_along_axis(b.bin_p, axis_p[:, None], axis=1)[:, 0] <= plane_p
+    goes_left = b.is_ref & jnp.where(take(b.found, seg, False), by_plane, offset < take(b.count, seg, 0) // 2)
+    n_left = _segment(jax.ops.segment_sum, goes_left.astype(i32), b.sid, C)
+    n_right = b.count - n_left
+    rank_left = _exclusive_rank(goes_left, jnp.minimum(seg, C - 1))
+    # the spare room goes in proportion to the BRefs that would open in each half
+    key2 = jnp.where(b.is_ref, 2 * seg + jnp.where(goes_left, 0, 1), 2 * C)
+    ch_lo = _segment(jax.ops.segment_min, lo, key2, 2 * C).reshape(C, 2, 3)
+    ch_hi = _segment(jax.ops.segment_max, hi, key2, 2 * C).reshape(C, 2, 3)
+    ch_ext = ch_hi - ch_lo
+    ch_dim = jnp.argmax(ch_ext, axis=2).astype(i32)
+    ch_ext_dim = jnp.take_along_axis(ch_ext, ch_dim[..., None], axis=2)[..., 0]
+    k2 = jnp.minimum(key2, 2 * C - 1)
+    d2 = ch_dim.reshape(-1)[k2]
+    w2 = (jnp.take_along_axis(hi, d2[:, None], axis=1) - jnp.take_along_axis(lo, d2[:, None], axis=1))[:, 0]
+    meets = b.is_ref & _interior(forest, refs.node) & (w2 > threshold * ch_ext_dim.reshape(-1)[k2])
+    weight = _segment(jax.ops.segment_sum, meets.astype(i32), key2, 2 * C).reshape(C, 2)
+    none = weight.sum(axis=1) == 0
+    w_l = jnp.where(none, n_left, weight[:, 0])
+    w_r = jnp.where(none, n_right, weight[:, 1])
+    spare = jnp.maximum(extra - seg_end, 0)
+    f32 = jnp.float32
+    share = jnp.floor(w_l.astype(f32) / jnp.maximum(w_l + w_r, 1).astype(f32) * spare.astype(f32))
+    spare_l = jnp.minimum(share.astype(i32), spare)
+    return _Halves(goes_left=goes_left, rank_left=rank_left, rank_right=offset - rank_left, n_left=n_left,
+                   n_right=n_right, right_start=pos + n_left + spare_l)
+
+
+def _move(refs: _Refs, view: _View, b: _Binned, h: _Halves, extra, *, cap):
+    """Move the BRefs of split segments into their halves; returns the BRefs and the
+    next level's segment of every slot."""
+    C = cap
+    dtype = refs.lo.dtype
+    pos = jnp.arange(C, dtype=jnp.int32)
+    seg = view.seg
+    new_pos = jnp.where(h.goes_left, seg + h.rank_left, take(h.right_start, seg, 0) + h.rank_right)
+    target = jnp.where(refs.node >= 0, jnp.where(b.is_ref, new_pos, pos), C)
+    empty_i = jnp.full(C, -1, jnp.int32)
+    moved = _Refs(node=empty_i.at[target].set(refs.node, mode="drop"),
+                  inst=empty_i.at[target].set(refs.inst, mode="drop"),
+                  lo=jnp.full((C, 3), jnp.inf, dtype).at[target].set(refs.lo, mode="drop"),
+                  hi=jnp.full((C, 3), -jnp.inf, dtype).at[target].set(refs.hi, mode="drop"),
+                  prims=jnp.zeros(C, jnp.int32).at[target].set(refs.prims, mode="drop"))
+    rs_p = take(h.right_start, seg, C)
+    split_p = take(view.split, seg, False)
+    seg_of = jnp.where(split_p, jnp.where(pos < rs_p, seg, jnp.where(pos < take(extra, seg, 0), rs_p, C)), C)
+    return moved, jnp.where(view.in_live, seg_of, C).astype(jnp.int32)
+
+
+def _grow(s: _Build, view: _View, b: _Binned, h: _Halves, extra, *, cap):
+    """This level's top-level nodes: leaves point at their BRef, split nodes get two
+    children, the next level's segments. Returns ``(segments, tree, next_free)``
+    (the segments' ``of`` is :func:`_move`'s)."""
+    C, M = cap, 2 * cap
+    i32 = jnp.int32
+    pos = jnp.arange(C, dtype=i32)
+    split_seg, leaf_seg = view.split, view.leaf
+    nid = jnp.where(s.segs.live, s.segs.node, M)
+    rank = jnp.cumsum(split_seg.astype(i32)) - split_seg.astype(i32)
+    left_id = jnp.where(split_seg, s.next_free + 2 * rank, M)
+    right_id = jnp.where(split_seg, left_id + 1, M)
+    starts_l = jnp.where(split_seg, pos, C)
+    starts_r = jnp.where(split_seg, h.right_start, C)
+
+    def halves(left_value, right_value, fill, dtype):
+        return jnp.full(C, fill, dtype).at[starts_l].set(left_value, mode="drop").at[starts_r].set(
+            right_value, mode="drop")
+
+    segs = _Segments(of=s.segs.of, end=halves(pos + h.n_left, h.right_start + h.n_right, 0, i32),
+                     extra=halves(h.right_start, extra, 0, i32), node=halves(left_id, right_id, 0, i32),
+                     live=halves(True, True, False, bool))
+    t, node_ids = s.top, s.segs.node
+    split_at = jnp.where(split_seg, nid, M)
+    leaf_at = jnp.where(leaf_seg, nid, M)
+    top = _TopTree(left=t.left.at[split_at].set(left_id, mode="drop"),
+                   right=t.right.at[split_at].set(right_id, mode="drop"),
+                   parent=t.parent.at[left_id].set(node_ids, mode="drop").at[right_id].set(node_ids, mode="drop"),
+                   axis=t.axis.at[split_at].set(jnp.where(b.found, b.axis, -1), mode="drop"),
+                   prim_start=t.prim_start.at[leaf_at].set(pos, mode="drop"),
+                   prim_count=t.prim_count.at[leaf_at].set(1, mode="drop"),
+                   lo=t.lo.at[nid].set(view.lo, mode="drop"), hi=t.hi.at[nid].set(view.hi, mode="drop"))
+    return segs, top, s.next_free + 2 * jnp.sum(split_seg, dtype=i32)
+
+
+def _compact(s: _Build, *, cap) -> TopLevel:
+    """The BRefs compacted in array order; leaves point at their BRef's new id."""
+    C = cap
+    i32 = jnp.int32
+    dtype = s.refs.lo.dtype
+    pos = jnp.arange(C, dtype=i32)
+    r, t = s.refs, s.top
+    used = r.node >= 0
     new_id = jnp.cumsum(used.astype(i32)) - 1
     dest = jnp.where(used, new_id, C)
     n_refs = jnp.sum(used, dtype=i32)
-    leaf = s["prim_count"] > 0
-    top = BVH(left=s["left"], right=s["right"], parent=s["parent"], lo=s["top_lo"], hi=s["top_hi"],
-              prim_start=jnp.where(leaf, take(new_id, s["prim_start"], 0), 0), prim_count=s["prim_count"],
-              axis=s["axis"], prim_index=jnp.where(pos < n_refs, pos, -1), root=i32(0))
+    leaf = t.prim_count > 0
+    top = BVH(left=t.left, right=t.right, parent=t.parent, lo=t.lo, hi=t.hi,
+              prim_start=jnp.where(leaf, take(new_id, t.prim_start, 0), 0), prim_count=t.prim_count,
+              axis=t.axis, prim_index=jnp.where(pos < n_refs, pos, -1), root=i32(0))
     return TopLevel(
         top=top,
-        node=jnp.full(C, -1, i32).at[dest].set(s["node"], mode="drop"),
-        instance=jnp.full(C, -1, i32).at[dest].set(s["inst"], mode="drop"),
-        lo=jnp.full((C, 3), inf, dtype).at[dest].set(s["lo"], mode="drop"),
-        hi=jnp.full((C, 3), -inf, dtype).at[dest].set(s["hi"], mode="drop"),
-        prims=jnp.zeros(C, i32).at[dest].set(s["prims"], mode="drop"),
+        node=jnp.full(C, -1, i32).at[dest].set(r.node, mode="drop"),
+        instance=jnp.full(C, -1, i32).at[dest].set(r.inst, mode="drop"),
+        lo=jnp.full((C, 3), jnp.inf, dtype).at[dest].set(r.lo, mode="drop"),
+        hi=jnp.full((C, 3), -jnp.inf, dtype).at[dest].set(r.hi, mode="drop"),
+        prims=jnp.zeros(C, i32).at[dest].set(r.prims, mode="drop"),
         position=jnp.full(C, -1, i32).at[dest].set(pos, mode="drop"),
-        count=n_refs, levels=s["level"], complete=~jnp.any(s["seg_live"]))
+        count=n_refs, levels=s.level, complete=~jnp.any(s.segs.live))

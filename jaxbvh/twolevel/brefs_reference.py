@@ -12,6 +12,8 @@ root 0, unpadded.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from jaxbvh.numerics import TIE_TOLERANCE, half_area
@@ -42,6 +44,41 @@ def world_box(lo, hi, to_scene, margin):
 
 
 
+@dataclasses.dataclass
+class _BRefArray:
+    """The BRef array, one NumPy array per field, by slot (changed in place)."""
+
+    node: np.ndarray   # int64 [slots]: forest node, -1 empty
+    inst: np.ndarray   # int64 [slots]: instance, -1 empty
+    lo: np.ndarray     # float [slots, 3]: scene-frame box (empty: inf)
+    hi: np.ndarray     # float [slots, 3] (empty: -inf)
+    prims: np.ndarray  # int64 [slots]: primitive count
+
+    FILL = (-1, -1, np.inf, -np.inf, 0)  # empty slot, field by field
+
+    def fields(self):
+        return [self.node, self.inst, self.lo, self.hi, self.prims]
+
+
+@dataclasses.dataclass
+class _TopNodes:
+    """The top-level tree as it grows, one Python list per field, depth-first ids."""
+
+    left: list = dataclasses.field(default_factory=list)
+    right: list = dataclasses.field(default_factory=list)
+    parent: list = dataclasses.field(default_factory=list)
+    axis: list = dataclasses.field(default_factory=list)       # split axis, -1 none
+    lo: list = dataclasses.field(default_factory=list)         # node box
+    hi: list = dataclasses.field(default_factory=list)
+    leaf_slot: list = dataclasses.field(default_factory=list)  # a leaf's BRef slot, -1 interior
+
+    def new_node(self, parent):
+        for field, value in ((self.left, -1), (self.right, -1), (self.parent, parent), (self.axis, -1),
+                             (self.leaf_slot, -1), (self.lo, None), (self.hi, None)):
+            field.append(value)
+        return len(self.left) - 1
+
+
 def build_top_level(forest, instances, n_instances, *, threshold=0.1, slots=None, bins=16,
                     overlap=0.1, estimate=False):
     """Reference top-level build over the first ``n_instances`` instances.
@@ -57,147 +94,167 @@ def build_top_level(forest, instances, n_instances, *, threshold=0.1, slots=None
     threshold = dtype.type(threshold)
     overlap = dtype.type(overlap)
     slots = n_instances if slots is None else slots
-    node = np.full(slots, -1, np.int64)
-    inst = np.full(slots, -1, np.int64)
-    lo = np.full((slots, 3), np.inf, dtype)
-    hi = np.full((slots, 3), -np.inf, dtype)
-    prims = np.zeros(slots, np.int64)
-
-    def bref(n, i):
-        box_lo, box_hi = world_box(f.lo[n], f.hi[n], instances.to_scene[i], instances.margin[i])
-        return box_lo, box_hi
-
-    for i in range(n_instances):
-        n = int(f.root[instances.object[i]])
-        node[i], inst[i] = n, i
-        lo[i], hi[i] = bref(n, i)
-        prims[i] = f.subtree_prims[n]
-
-    def is_interior(n):
-        return f.left[n] >= 0
-
-    def wide(p, box_lo, box_hi):
-        ext = box_hi - box_lo
-        dim = int(np.argmax(ext))
-        # threshold = inf never opens (and inf * a zero extent would be NaN)
-        return bool(np.isfinite(threshold)) and bool((hi[p, dim] - lo[p, dim]) > threshold * ext[dim])
-
-    left, right, parent, axis, top_lo, top_hi, leaf_slot = [], [], [], [], [], [], []
-
-    def new_node(par):
-        for arr, v in ((left, -1), (right, -1), (parent, par), (axis, -1), (leaf_slot, -1)):
-            arr.append(v)
-        top_lo.append(None)
-        top_hi.append(None)
-        return len(left) - 1
-
-    stack = [(new_node(-1), 0, n_instances, slots)]
+    refs = _instances_brefs(f, instances, n_instances, slots, dtype)
+    top = _TopNodes()
+    stack = [(top.new_node(-1), 0, n_instances, slots)]
     while stack:
         t, start, end, extra = stack.pop()
         ids = np.arange(start, end)
-        box_lo, box_hi = lo[ids].min(0), hi[ids].max(0)
-        top_lo[t], top_hi[t] = box_lo, box_hi
+        box_lo, box_hi = refs.lo[ids].min(0), refs.hi[ids].max(0)
+        top.lo[t], top.hi[t] = box_lo, box_hi
         if end - start == 1:
-            leaf_slot[t] = start
+            top.leaf_slot[t] = start
             continue
-
-        # termination of opening
+        if extra > end and _stops_opening(refs, ids, overlap):
+            extra = end
         if extra > end:
-            if len(set(inst[ids].tolist())) == 1:
-                extra = end
-            elif end - start <= SMALL_SEGMENT:
-                overlapping = False
-                for a in ids:
-                    for b in ids:
-                        if a == b:
-                            continue
-                        shorter = np.minimum(hi[a] - lo[a], hi[b] - lo[b])
-                        shared = np.minimum(hi[a], hi[b]) - np.maximum(lo[a], lo[b])
-                        if np.all(shared >= overlap * shorter):
-                            overlapping = True
-                if not overlapping:
-                    extra = end
-
-        # opening: all candidates or none
-        if extra > end:
-            candidates = [p for p in ids if is_interior(node[p]) and wide(p, box_lo, box_hi)]
-            if 0 < len(candidates) <= extra - end:
-                for k, p in enumerate(candidates):
-                    n, i, slot = node[p], inst[p], end + k
-                    kid_l, kid_r = int(f.left[n]), int(f.right[n])
-                    if estimate:
-                        count_l = count_r = max(prims[p] // 2, 1)
-                    else:
-                        count_l, count_r = f.subtree_prims[kid_l], f.subtree_prims[kid_r]
-                    node[slot], inst[slot], prims[slot] = kid_r, i, count_r
-                    lo[slot], hi[slot] = bref(kid_r, i)
-                    node[p], prims[p] = kid_l, count_l
-                    lo[p], hi[p] = bref(kid_l, i)
-                end += len(candidates)
-                ids = np.arange(start, end)
-
-        # binning: bins count primitives
-        centre = dtype.type(0.5) * lo[ids] + dtype.type(0.5) * hi[ids]
-        c_min, c_max = centre.min(0), centre.max(0)
-        best = None  # (cost, axis, plane, bin of each BRef on that axis)
-        candidates = []
-        for a in range(3):
-            span = c_max[a] - c_min[a]
-            if not span > 0:
-                continue
-            raw = np.floor((centre[:, a] - c_min[a]) * dtype.type(bins) / span)
-            b = np.clip(raw, 0, bins - 1).astype(np.int64)
-            for plane in range(bins - 1):
-                on_left = b <= plane
-                if on_left.all() or not on_left.any():
-                    continue
-                l_ids, r_ids = ids[on_left], ids[~on_left]
-                cost = (half_area(lo[l_ids].min(0), hi[l_ids].max(0)) * dtype.type(prims[l_ids].sum())
-                        + half_area(lo[r_ids].min(0), hi[r_ids].max(0)) * dtype.type(prims[r_ids].sum()))
-                candidates.append((cost, a, plane, b))
-        if candidates:
-            least = min(c[0] for c in candidates)
-            near = least * dtype.type(1 + TIE_TOLERANCE)
-            best = next(c for c in candidates if c[0] <= near)
-            goes_left = best[3] <= best[2]
-            axis[t] = best[1]
-        else:
-            goes_left = np.arange(len(ids)) < len(ids) // 2
-
-        # stable partition and spare split
+            end = _open(refs, f, instances, ids, end, extra, box_lo, box_hi, threshold, estimate)
+            ids = np.arange(start, end)
+        axis, goes_left = _best_split(refs, ids, bins, dtype)
+        if axis is not None:
+            top.axis[t] = axis
         l_ids, r_ids = ids[goes_left], ids[~goes_left]
-        weights = []
-        for side in (l_ids, r_ids):
-            side_lo, side_hi = lo[side].min(0), hi[side].max(0)
-            weights.append(sum(1 for p in side if is_interior(node[p]) and wide(p, side_lo, side_hi)))
-        if sum(weights) == 0:
-            weights = [len(l_ids), len(r_ids)]
-        spare = extra - end
-        share = np.floor(np.float32(weights[0]) / np.float32(sum(weights)) * np.float32(spare))
-        spare_l = min(int(share), spare)
-        fields = [node, inst, lo, hi, prims]
-        saved = [a[np.concatenate([l_ids, r_ids])].copy() for a in fields]
-        for a, fill in zip(fields, (-1, -1, np.inf, -np.inf, 0)):
-            a[start:extra] = fill
-        n_l = len(l_ids)
-        right_start = start + n_l + spare_l
-        for a, v in zip(fields, saved):
-            a[start:start + n_l] = v[:n_l]
-            a[right_start:right_start + len(r_ids)] = v[n_l:]
-        kid_l, kid_r = new_node(t), new_node(t)
-        left[t], right[t] = kid_l, kid_r
+        spare_l = _spare_left(refs, f, l_ids, r_ids, extra - end, threshold)
+        right_start = start + len(l_ids) + spare_l
+        _write_halves(refs, start, extra, l_ids, r_ids, right_start)
+        kid_l, kid_r = top.new_node(t), top.new_node(t)
+        top.left[t], top.right[t] = kid_l, kid_r
         stack.append((kid_r, right_start, right_start + len(r_ids), extra))
-        stack.append((kid_l, start, start + n_l, right_start))
+        stack.append((kid_l, start, start + len(l_ids), right_start))
+    brefs = dict(node=refs.node.astype(np.int32), instance=refs.inst.astype(np.int32), lo=refs.lo, hi=refs.hi,
+                 prims=refs.prims.astype(np.int32))
+    return _to_bvh(top, dtype), brefs
 
-    leaf = np.asarray(leaf_slot) >= 0
+
+def _bref_box(f, instances, n, i):
+    """World box of forest node ``n`` under instance ``i``."""
+    return world_box(f.lo[n], f.hi[n], instances.to_scene[i], instances.margin[i])
+
+
+def _instances_brefs(f, instances, n_instances, slots, dtype) -> _BRefArray:
+    """The BRef array with one BRef per instance (its object's root) at ``[0, n_instances)``."""
+    refs = _BRefArray(node=np.full(slots, -1, np.int64), inst=np.full(slots, -1, np.int64),
+                   lo=np.full((slots, 3), np.inf, dtype), hi=np.full((slots, 3), -np.inf, dtype),
+                   prims=np.zeros(slots, np.int64))
+    for i in range(n_instances):
+        n = int(f.root[instances.object[i]])
+        refs.node[i], refs.inst[i] = n, i
+        refs.lo[i], refs.hi[i] = _bref_box(f, instances, n, i)
+        refs.prims[i] = f.subtree_prims[n]
+    return refs
+
+
+def _is_interior(f, n):
+    return f.left[n] >= 0
+
+
+def _wide(refs, p, box_lo, box_hi, threshold):
+    """BRef ``p`` is wider than ``threshold`` x the largest extent of the box, along that axis."""
+    ext = box_hi - box_lo
+    dim = int(np.argmax(ext))
+    # threshold = inf never opens (and inf * a zero extent would be NaN)
+    return bool(np.isfinite(threshold)) and bool((refs.hi[p, dim] - refs.lo[p, dim]) > threshold * ext[dim])
+
+
+def _stops_opening(refs, ids, overlap) -> bool:
+    """Termination of opening: one instance only, or <= 4 BRefs of which no two overlap."""
+    if len(set(refs.inst[ids].tolist())) == 1:
+        return True
+    if len(ids) > SMALL_SEGMENT:
+        return False
+    for p in ids:
+        for q in ids:
+            if p == q:
+                continue
+            shorter = np.minimum(refs.hi[p] - refs.lo[p], refs.hi[q] - refs.lo[q])
+            shared = np.minimum(refs.hi[p], refs.hi[q]) - np.maximum(refs.lo[p], refs.lo[q])
+            if np.all(shared >= overlap * shorter):
+                return False
+    return True
+
+
+def _open(refs, f, instances, ids, end, extra, box_lo, box_hi, threshold, estimate) -> int:
+    """Opening: all candidates or none; a candidate's slot takes its left child, its
+    right child goes to ``end, end + 1, ...``. Returns the segment's new end."""
+    candidates = [p for p in ids if _is_interior(f, refs.node[p]) and _wide(refs, p, box_lo, box_hi, threshold)]
+    if not 0 < len(candidates) <= extra - end:
+        return end
+    for k, p in enumerate(candidates):
+        n, i, slot = refs.node[p], refs.inst[p], end + k
+        kid_l, kid_r = int(f.left[n]), int(f.right[n])
+        if estimate:
+            count_l = count_r = max(refs.prims[p] // 2, 1)
+        else:
+            count_l, count_r = f.subtree_prims[kid_l], f.subtree_prims[kid_r]
+        refs.node[slot], refs.inst[slot], refs.prims[slot] = kid_r, i, count_r
+        refs.lo[slot], refs.hi[slot] = _bref_box(f, instances, kid_r, i)
+        refs.node[p], refs.prims[p] = kid_l, count_l
+        refs.lo[p], refs.hi[p] = _bref_box(f, instances, kid_l, i)
+    return end + len(candidates)
+
+
+def _best_split(refs, ids, bins, dtype):
+    """Binning, bins counting primitives: ``(axis, goes_left)`` of the cheapest plane
+    (first within the tie tolerance), or ``(None, first half)`` without any plane."""
+    centre = dtype.type(0.5) * refs.lo[ids] + dtype.type(0.5) * refs.hi[ids]
+    c_min, c_max = centre.min(0), centre.max(0)
+    candidates = []  # (cost, axis, plane, bin of each BRef on that axis)
+    for axis in range(3):
+        span = c_max[axis] - c_min[axis]
+        if not span > 0:
+            continue
+        raw = np.floor((centre[:, axis] - c_min[axis]) * dtype.type(bins) / span)
+        b = np.clip(raw, 0, bins - 1).astype(np.int64)
+        for plane in range(bins - 1):
+            on_left = b <= plane
+            if on_left.all() or not on_left.any():
+                continue
+            l_ids, r_ids = ids[on_left], ids[~on_left]
+            cost = (half_area(refs.lo[l_ids].min(0), refs.hi[l_ids].max(0)) * dtype.type(refs.prims[l_ids].sum())
+                    + half_area(refs.lo[r_ids].min(0), refs.hi[r_ids].max(0)) * dtype.type(refs.prims[r_ids].sum()))
+            candidates.append((cost, axis, plane, b))
+    if not candidates:
+        return None, np.arange(len(ids)) < len(ids) // 2
+    least = min(c[0] for c in candidates)
+    near = least * dtype.type(1 + TIE_TOLERANCE)
+    _, axis, plane, b = next(c for c in candidates if c[0] <= near)
+    return axis, b <= plane
+
+
+def _spare_left(refs, f, l_ids, r_ids, spare, threshold) -> int:
+    """The left half's share of the spare room: in proportion to the BRefs that would
+    open in each half (measured against the half's own box), else to their numbers."""
+    weights = []
+    for side in (l_ids, r_ids):
+        side_lo, side_hi = refs.lo[side].min(0), refs.hi[side].max(0)
+        weights.append(sum(1 for p in side if _is_interior(f, refs.node[p]) and _wide(refs, p, side_lo, side_hi, threshold)))
+    if sum(weights) == 0:
+        weights = [len(l_ids), len(r_ids)]
+    share = np.floor(np.float32(weights[0]) / np.float32(sum(weights)) * np.float32(spare))
+    return min(int(share), spare)
+
+
+def _write_halves(refs, start, extra, l_ids, r_ids, right_start) -> None:
+    """Stable partition in place: the left half at ``start``, the right at ``right_start``,
+    the rest of ``[start, extra)`` empty."""
+    saved = [field[np.concatenate([l_ids, r_ids])].copy() for field in refs.fields()]
+    for field, fill in zip(refs.fields(), _BRefArray.FILL):
+        field[start:extra] = fill
+    n_l = len(l_ids)
+    for field, v in zip(refs.fields(), saved):
+        field[start:start + n_l] = v[:n_l]
+        field[right_start:right_start + len(r_ids)] = v[n_l:]
+
+
+def _to_bvh(top: _TopNodes, dtype) -> BVH:
+    """The unpadded top-level BVH; leaf ``j`` (in node order) holds its BRef's slot."""
+    leaf = np.asarray(top.leaf_slot) >= 0
     n_leaves = int(leaf.sum())
     order = np.flatnonzero(leaf)
-    prim_start = np.zeros(len(left), np.int32)
+    prim_start = np.zeros(len(top.left), np.int32)
     prim_start[order] = np.arange(n_leaves)
-    i32 = lambda a: np.asarray(a, np.int32)  # noqa: E731
-    top = BVH(left=i32(left), right=i32(right), parent=i32(parent), lo=np.stack(top_lo).astype(dtype),
-              hi=np.stack(top_hi).astype(dtype), prim_start=prim_start, prim_count=i32(leaf),
-              axis=i32(axis), prim_index=i32(np.asarray(leaf_slot)[order]), root=np.int32(0))
-    brefs = dict(node=node.astype(np.int32), instance=inst.astype(np.int32), lo=lo, hi=hi,
-                 prims=prims.astype(np.int32))
-    return top, brefs
+    i32 = lambda v: np.asarray(v, np.int32)  # noqa: E731
+    return BVH(left=i32(top.left), right=i32(top.right), parent=i32(top.parent),
+               lo=np.stack(top.lo).astype(dtype), hi=np.stack(top.hi).astype(dtype), prim_start=prim_start,
+               prim_count=i32(leaf), axis=i32(top.axis), prim_index=i32(np.asarray(top.leaf_slot)[order]),
+               root=np.int32(0))

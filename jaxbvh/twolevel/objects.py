@@ -262,7 +262,17 @@ def pack(mesh, trees: dict[int, ObjectTree], *, pad: bool = True,
     P, "instances": I}``, e.g. to give many scenes one shape). Raises ``ValueError``
     for a singular instance transform.
     """
-    n_obj = len(mesh.objects)
+    where = _check_placements(mesh, trees)
+    used = sorted({obj for obj, _ in mesh.instances})
+    dtype = np.asarray(trees[used[0]].tree.lo).dtype
+    want = capacity or {}
+    forest, prim_off = _pack_forest(trees, len(mesh.objects), dtype, pad=pad, want=want)
+    return forest, _pack_instances(mesh, where, prim_off, dtype, pad=pad, want=want)
+
+
+def _check_placements(mesh, trees: dict[int, ObjectTree]) -> list[Placement]:
+    """Every object an instance uses has a tree built where :func:`placements` says;
+    returns those placements (``ValueError`` otherwise)."""
     used = sorted({obj for obj, _ in mesh.instances})
     missing = [o for o in used if o not in trees]
     if missing:
@@ -273,7 +283,12 @@ def pack(mesh, trees: dict[int, ObjectTree], *, pad: bool = True,
         if not trees[o].placement.same(where[o]):
             raise ValueError(f"object {o}'s tree was built in another frame or placement than the "
                              "scene needs (the scene box or its instances changed); rebuild it")
-    dtype = np.asarray(trees[used[0]].tree.lo).dtype
+    return where
+
+
+def _pack_forest(trees: dict[int, ObjectTree], n_obj: int, dtype, *, pad: bool, want: dict):
+    """The object trees one after the other in object order: ``(Forest, prim_off)``,
+    ``prim_off`` [O + 1] int64 the first primitive slot of every object."""
     node_off = np.zeros(n_obj + 1, np.int64)
     prim_off = np.zeros(n_obj + 1, np.int64)
     for o in range(n_obj):
@@ -281,7 +296,6 @@ def pack(mesh, trees: dict[int, ObjectTree], *, pad: bool = True,
         node_off[o + 1] = node_off[o] + (t.tree.left.shape[0] if t is not None else 0)
         prim_off[o + 1] = prim_off[o] + (t.tree.prim_index.shape[0] if t is not None else 0)
     n_nodes, n_prims = int(node_off[-1]), int(prim_off[-1])
-    want = capacity or {}
     cap_n = max(capacity_bucket(n_nodes) if pad else n_nodes, want.get("nodes", 0))
     cap_p = max(capacity_bucket(n_prims) if pad else n_prims, want.get("prims", 0))
 
@@ -315,7 +329,12 @@ def pack(mesh, trees: dict[int, ObjectTree], *, pad: bool = True,
     forest = Forest(left=left, right=right, parent=parent, lo=lo, hi=hi, prim_start=start,
                     prim_count=count, axis=axis, prim_index=prim_index, subtree_prims=sub,
                     root=root, triangles=triangles)
+    return forest, prim_off
 
+
+def _pack_instances(mesh, where: list[Placement], prim_off, dtype, *, pad: bool, want: dict) -> Instances:
+    """The instances' maps between their object's frame and the scene frame (``ValueError``
+    for a singular one, or one that does not fit ``dtype``)."""
     n_inst = len(mesh.instances)
     cap_i = max(capacity_bucket(n_inst) if pad else n_inst, want.get("instances", 0))
     scene_inverse = np.linalg.inv(_affine(mesh.frame))
@@ -343,6 +362,5 @@ def pack(mesh, trees: dict[int, ObjectTree], *, pad: bool = True,
         margin[i] = 0 if np.array_equal(m, np.eye(4)) else margin_for(dtype)
         prim_shift[i] = offset - prim_off[obj]
         offset += mesh.objects[obj][1].shape[0]
-    instances = Instances(object=obj_of, to_scene=to_scene, to_object=to_object, margin=margin,
-                          prim_shift=prim_shift)
-    return forest, instances
+    return Instances(object=obj_of, to_scene=to_scene, to_object=to_object, margin=margin,
+                     prim_shift=prim_shift)

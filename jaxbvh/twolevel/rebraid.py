@@ -32,8 +32,9 @@ instance)`` pairs: top-level nodes (instance -1) are tested with the world ray; 
 top-level leaf the ray is mapped into the instance's object frame (``to_object``; the
 direction is not normalised, so ``t`` is the same in both frames) and the object's nodes
 and triangles are tested there. Each step is a node step or a primitive step, counted
-as in :mod:`jaxbvh.rays.traversal` (whose slab and Möller-Trumbore tests it reuses): the root
-box test is one box test, an interior node adds one per child. The loop is bounded by
+as in :mod:`jaxbvh.rays.traversal` (whose loop, :mod:`jaxbvh.rays.stack_walk`, and slab
+and Möller-Trumbore tests it reuses): the root box test is one box test, an interior
+node adds one per child. The loop is bounded by
 the number of steps a ray can take at most (every node and primitive of the flattened
 tree once, plus one); a ray that would need more, or whose stack would overflow, is
 reported and the driver raises. Primitive ids are world triangle ids (``Mesh.triangles``

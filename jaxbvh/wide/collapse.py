@@ -82,14 +82,68 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxbvh.configs import Checked, integer, knob, optional, real
 from jaxbvh.numerics import extent_scale, half_area, min_gain, take
 from jaxbvh.tree.layout import BVH, WideBVH, to_jax
 from jaxbvh.wide import levels as lv
 from jaxbvh.wide.box_tests import cost_table, node_test_cost  # noqa: F401 (public here)
 
 METHODS = ("greedy", "dp", "qbvh")
-DEFAULT_MAX_CHILDREN = 8
+DEFAULT_MAX_CHILDREN = 8  # the DP's K when none is given (the paper used 15)
 MAX_CHILDREN_LIMIT = 32  # the DP's step is unrolled over K^2 / 2 pairs (compile time)
+
+
+def _method(name, value):
+    if value not in METHODS:
+        raise ValueError(f"unknown collapse method {value!r}; choose one of {', '.join(METHODS)}")
+    return value
+
+
+def _width(name, value):
+    return _check_k(value, name)
+
+
+_MAX_LEAF = integer(1)  # the rule for max_leaf, here and in optimal()
+_CI = real(0)
+
+
+@dataclasses.dataclass(frozen=True)
+class CollapseConfig(Checked):
+    """Knobs of a collapse (Susano Pinto 2010; module docstring, Methods).
+
+    ``method``: ``"dp"`` (the optimal collapse, Algorithm 3), ``"greedy"`` (the top-down
+    pushup, Algorithm 2) or ``"qbvh"`` (the 4-wide baseline). ``max_children``: ``K`` in
+    [2, 32], the most children of a node; None: :data:`DEFAULT_MAX_CHILDREN` for dp, no
+    limit for greedy (qbvh is 4-wide: None or 4). ``test_cost``: ``T(k)``, the cost of
+    testing ``k`` child boxes (None: ``k``; :func:`node_test_cost`). ``max_leaf``, ``ci``
+    (dp only, beyond the paper): merge subtrees of up to ``max_leaf`` primitives into one
+    leaf, priced ``ci`` per primitive (:func:`optimal`).
+    """
+
+    method: str = knob("dp", check=_method, choices=METHODS,
+                       help="dp: optimal collapse; greedy: top-down pushup; qbvh: 4-wide baseline")
+    max_children: int | None = knob(None, check=optional(_width), type=int, metavar="K",
+                                    help=f"most children per node, 2..{MAX_CHILDREN_LIMIT} (None: "
+                                         f"{DEFAULT_MAX_CHILDREN} for dp, no limit for greedy; qbvh is 4-wide)")
+    test_cost: Any = knob(None, help="T(k): the cost of testing k child boxes (None: k)")
+    max_leaf: int = knob(1, check=_MAX_LEAF, metavar="P", help="dp only: merge subtrees of up to P "
+                         "primitives into one leaf")
+    ci: float = knob(1.0, check=_CI, help="cost of a primitive test, when leaves are merged")
+
+    def _check_together(self):
+        if self.max_leaf > 1 and self.method != "dp":
+            raise ValueError(f"max_leaf > 1 (merging leaves) needs method 'dp', not {self.method!r}")
+        if self.method == "qbvh" and self.max_children not in (None, 4):
+            raise ValueError(f"qbvh is 4-wide by construction; max_children {self.max_children} does not apply")
+
+    @property
+    def widest(self) -> int | None:
+        """The most children a node of the result may have (None: no limit)."""
+        if self.method == "qbvh":
+            return 4
+        if self.method == "dp" and self.max_children is None:
+            return DEFAULT_MAX_CHILDREN
+        return self.max_children
 
 
 def _window_width(n: int) -> int:
@@ -271,10 +325,7 @@ def _binary_input(tree) -> BVH:
 
 
 def _check_k(max_children, what="max_children") -> int:
-    k = int(max_children)
-    if not 2 <= k <= MAX_CHILDREN_LIMIT:
-        raise ValueError(f"{what} must be in [2, {MAX_CHILDREN_LIMIT}], got {max_children}")
-    return k
+    return integer(2, MAX_CHILDREN_LIMIT)(what, max_children)
 
 
 # ----------------------------------------------------------------------------------
@@ -542,10 +593,7 @@ def optimal(tree, *, max_children: int = DEFAULT_MAX_CHILDREN, test_cost: Callab
     """
     t = _binary_input(tree)
     k = _check_k(max_children)
-    if int(max_leaf) < 1:
-        raise ValueError(f"max_leaf must be >= 1, got {max_leaf}")
-    if not np.isfinite(ci) or ci < 0:
-        raise ValueError(f"ci must be finite and >= 0, got {ci}")
+    max_leaf, ci = _MAX_LEAF("max_leaf", max_leaf), _CI("ci", ci)
     table = cost_table(test_cost, k)
     merge = int(max_leaf) > 1
     kept, anchor, slot, objective, made_leaf, owner, count = _optimal_decide(
@@ -557,22 +605,23 @@ def optimal(tree, *, max_children: int = DEFAULT_MAX_CHILDREN, test_cost: Callab
     return _finish(t, kept, anchor, slot, k, table, ci=ci, objective=objective, **extra)
 
 
-def collapse(tree, method: str = "dp", *, max_children: int | None = None,
-             test_cost: Callable | None = None, max_leaf: int = 1, ci: float = 1.0) -> CollapseResult:
+def collapse(tree, method: str | CollapseConfig = "dp", **options) -> CollapseResult:
     """One entry for the three methods (:data:`METHODS`): ``"greedy"``, ``"dp"``, ``"qbvh"``.
 
+    ``method``: a :class:`CollapseConfig`, or a method name with the Config's other
+    knobs as keywords (``max_children``, ``test_cost``, ``max_leaf``, ``ci``).
     ``max_children`` None means: no limit for greedy, 8 for dp; qbvh is 4-wide by
     construction (any other value is an error). ``max_leaf`` > 1 needs ``"dp"``.
     """
-    if method not in METHODS:
-        raise ValueError(f"unknown collapse method {method!r}; choose one of {', '.join(METHODS)}")
-    if int(max_leaf) > 1 and method != "dp":
-        raise ValueError(f"max_leaf > 1 (merging leaves) needs method 'dp', not {method!r}")
-    if method == "greedy":
-        return greedy(tree, max_children=max_children, test_cost=test_cost)
-    if method == "qbvh":
-        if max_children not in (None, 4):
-            raise ValueError(f"qbvh is 4-wide by construction; max_children {max_children} does not apply")
-        return qbvh(tree, test_cost=test_cost)
-    return optimal(tree, max_children=DEFAULT_MAX_CHILDREN if max_children is None else max_children,
-                   test_cost=test_cost, max_leaf=max_leaf, ci=ci)
+    if isinstance(method, CollapseConfig):
+        if options:
+            raise TypeError("give a CollapseConfig or keyword options, not both (config.replace(...) changes one)")
+        config = method
+    else:
+        config = CollapseConfig(method=method, **options)
+    if config.method == "greedy":
+        return greedy(tree, max_children=config.max_children, test_cost=config.test_cost)
+    if config.method == "qbvh":
+        return qbvh(tree, test_cost=config.test_cost)
+    return optimal(tree, max_children=config.widest, test_cost=config.test_cost, max_leaf=config.max_leaf,
+                   ci=config.ci)

@@ -2,16 +2,20 @@
 
 from __future__ import annotations
 
+import argparse
 import contextlib
+import dataclasses
 import json
 import math
+import re
 import sys
 import time
 
 import numpy as np
 
 import jaxbvh
-from jaxbvh.builders.dispatch import BUILDERS
+from jaxbvh import configs
+from jaxbvh.builders.configs import BUILDERS, DEFAULT_BUILDER, BinnedConfig, BuilderConfig, PLOCConfig
 from jaxbvh.io import Mesh, TreeFile, bundled_mesh_path, load_any, load_mesh
 from jaxbvh.tree import layout as tree_mod
 from jaxbvh.tree.interchange import compact
@@ -33,25 +37,101 @@ def add_mesh_arg(parser, required: bool = False) -> None:
                                  "mesh (Spot, 5,856 triangles)")
 
 
-def add_builder_args(parser) -> None:
-    parser.add_argument("--builder", choices=BUILDERS, default="sweep",
+# ----------------------------------------------------------------------------------
+# Options from Configs: one default, one check, in the library
+# ----------------------------------------------------------------------------------
+
+
+def flag(name: str) -> str:
+    """The option of a Config knob: ``max_leaf`` -> ``--max-leaf``."""
+    return "--" + name.replace("_", "-")
+
+
+def add_config_options(parser, config_class, names=None, *, helps: dict | None = None,
+                       check_now: bool = False) -> None:
+    """Add an option per knob ``names`` (default: all) of the frozen Config ``config_class``.
+
+    Each option is :func:`flag` of the knob's name, stored under the knob's name; its
+    default is the knob's default (the one place it is written), its type that of the
+    default (or the knob's metadata ``type`` when the default is None), its help,
+    metavar and choices from the knob's metadata (:mod:`jaxbvh.configs`); ``helps``
+    replaces a knob's help. ``check_now``: run the knob's check while parsing (a bad
+    value is then argparse's usage error); otherwise :func:`config_from_args` checks it
+    in ``run`` (a one-line error like bad input).
+    """
+    fields = {f.name: f for f in dataclasses.fields(config_class)}
+    for name in names if names is not None else fields:
+        f = fields[name]
+        meta = f.metadata
+        kind = meta.get("type") or type(f.default)
+        check = meta.get("check") if check_now else None
+
+        def parse(text, kind=kind, check=check, name=name):
+            try:
+                value = kind(text)
+            except ValueError:
+                raise argparse.ArgumentTypeError(f"expected {kind.__name__}, got {text!r}") from None
+            try:
+                return value if check is None else check(name, value)
+            except ValueError as exc:
+                raise argparse.ArgumentTypeError(with_flags(str(exc), [name])) from None
+
+        text = (helps or {}).get(name, meta.get("help", ""))
+        if f.default is not None:
+            text += " (default: %(default)s)"
+        extra = {key: meta[key] for key in ("metavar", "choices") if key in meta}
+        parser.add_argument(flag(name), dest=name, type=parse, default=f.default, help=text, **extra)
+
+
+def with_flags(message: str, names) -> str:
+    """``message`` with each knob of ``names`` written as its option (``max_leaf`` -> ``--max-leaf``)."""
+    for name in sorted(names, key=len, reverse=True):
+        message = re.sub(rf"(?<![\w-]){re.escape(name)}(?![\w-])", flag(name), message)
+    return message
+
+
+@contextlib.contextmanager
+def options_named(names):
+    """Re-raise a ``ValueError`` from the library with the knobs ``names`` written as options."""
+    try:
+        yield
+    except ValueError as exc:
+        raise ValueError(with_flags(str(exc), names)) from None
+
+
+def config_from_args(config_class, args, **values):
+    """``config_class`` made from the options in ``args`` named like its knobs, and ``values``.
+
+    The Config checks them (the library's rules, once); a bad one is a ``ValueError``
+    naming the option.
+    """
+    given = [name for name in configs.names(config_class) if hasattr(args, name)]
+    values = {**{name: getattr(args, name) for name in given}, **values}
+    with options_named(given):
+        return config_class(**values)
+
+
+def add_builder_args(parser, *, helps: dict | None = None) -> None:
+    """``--builder`` and the builders' knobs (:mod:`jaxbvh.builders.configs`), checked while parsing."""
+    parser.add_argument("--builder", choices=list(BUILDERS), default=DEFAULT_BUILDER,
                         help="sweep, binned or median (top-down SAH engine), lbvh or ploc (bottom-up "
-                             "from Morton order: much faster on big inputs) (default: sweep)")
-    parser.add_argument("--max-leaf", type=_int_at_least(1), default=1, metavar="N",
-                        help="most primitives per leaf (default: 1)")
-    parser.add_argument("--bins", type=_int_at_least(2), default=16, metavar="B",
-                        help="bins per axis for --builder binned, >= 2 (default: 16)")
-    parser.add_argument("--radius", type=_int_at_least(1), default=16, metavar="R",
-                        help="neighbours on each side a cluster looks at, for --builder ploc (default: 16)")
-    parser.add_argument("--morton-bits", type=int, choices=(30, 63), default=30,
-                        help="Morton code length for --builder lbvh and ploc (default: 30)")
-    parser.add_argument("--ct", type=float, default=1.0, help="SAH traversal cost (default: 1)")
-    parser.add_argument("--ci", type=float, default=1.0, help="SAH intersection cost (default: 1)")
+                             "from Morton order: much faster on big inputs) (default: %(default)s)")
+    helps = {"bins": "bins per axis for --builder binned",
+             "radius": "neighbours on each side a cluster looks at, for --builder ploc",
+             "morton_bits": "Morton code length for --builder lbvh and ploc", **(helps or {})}
+    add_config_options(parser, BuilderConfig, ["max_leaf"], helps=helps, check_now=True)
+    add_config_options(parser, BinnedConfig, ["bins"], helps=helps, check_now=True)
+    add_config_options(parser, PLOCConfig, ["radius", "morton_bits"], helps=helps, check_now=True)
+    add_config_options(parser, BuilderConfig, ["ct", "ci"], helps=helps, check_now=True)
+
+
+def builder_config(args) -> BuilderConfig:
+    """The Config of ``args.builder`` with the builder options in ``args``."""
+    return config_from_args(BUILDERS[args.builder], args)
 
 
 def _int_at_least(minimum: int):
     """argparse ``type`` accepting integers >= ``minimum``."""
-    import argparse
 
     def parse(text: str) -> int:
         try:
@@ -182,13 +262,9 @@ def build_mesh_tree(mesh: Mesh, args, stages: Stages):
     """
     import jax
 
-
-
     lo, hi = mesh.local_boxes()
     with stages("build"):
-        tree = jaxbvh.build(lo, hi, method=args.builder, max_leaf=args.max_leaf, bins=args.bins,
-                            ct=args.ct, ci=args.ci, radius=getattr(args, "radius", 16),
-                            morton_bits=getattr(args, "morton_bits", 30))
+        tree = jaxbvh.build(lo, hi, builder_config(args))
         # the capacity a saved copy loads with: same shape, same compiled programs
         tree = compact(jax.block_until_ready(tree))
     with stages("validate"):

@@ -23,6 +23,7 @@ def run(args) -> dict:
     if args.mesh is not None and str(args.mesh).lower().endswith(TREE_SUFFIXES):
         raise ValueError(f"{args.mesh} is a tree file; build takes a mesh "
                          "(use 'jaxbvh stats' for trees)")
+    _common.builder_config(args)  # every builder option checked before any work
     names = ["load", "build", "validate"] + (["save"] if args.output else [])
     with _common.Stages(args, names) as stages:
         with stages("load"):

@@ -21,7 +21,7 @@ import jaxbvh
 from jaxbvh.cli.commands import _common
 from jaxbvh.io import Mesh
 from jaxbvh.wide import collapse
-from jaxbvh.wide.collapse import MAX_CHILDREN_LIMIT, METHODS
+from jaxbvh.wide.collapse import DEFAULT_MAX_CHILDREN, MAX_CHILDREN_LIMIT, CollapseConfig
 
 HELP = "collapse a binary BVH into a wide one: optimal DP, greedy pushup or QBVH (Susano Pinto 2010)"
 
@@ -31,12 +31,9 @@ def add_parser(subparsers):
     parser = subparsers.add_parser("collapse", help=HELP, description=description)
     parser.add_argument("input", metavar="INPUT",
                         help="a binary tree .npz or a mesh/scene file (built first)")
-    parser.add_argument("--method", choices=METHODS, default="dp",
-                        help="dp: optimal collapse; greedy: top-down pushup; qbvh: 4-wide "
-                             "baseline (default: dp)")
-    parser.add_argument("--max-children", type=int, default=None, metavar="K",
-                        help="most children per node, 2..32 (default: 8 for dp, no limit for "
-                             "greedy; qbvh is 4-wide)")
+    _common.add_config_options(parser, CollapseConfig, ["method", "max_children"], helps={
+        "max_children": f"most children per node, 2..{MAX_CHILDREN_LIMIT} (default: "
+                        f"{DEFAULT_MAX_CHILDREN} for dp, no limit for greedy; qbvh is 4-wide)"})
     parser.add_argument("--simd-width", type=int, default=0, metavar="W",
                         help="cost of testing k child boxes: ceil(k / W), or k for W = 0 (default: 0)")
     parser.add_argument("-o", "--output", metavar="OUT.npz", default=None,
@@ -46,22 +43,22 @@ def add_parser(subparsers):
     return parser
 
 
-def _check_args(args, kind: str):
-    if args.max_children is not None and not 2 <= args.max_children <= MAX_CHILDREN_LIMIT:
-        raise ValueError(f"--max-children must be in [2, {MAX_CHILDREN_LIMIT}], got {args.max_children}")
-    if args.simd_width < 0:
-        raise ValueError(f"--simd-width must be >= 0 (0: one test per box), got {args.simd_width}")
-    if args.method == "qbvh" and args.max_children not in (None, 4):
-        raise ValueError(f"--method qbvh is 4-wide by construction; --max-children {args.max_children} "
-                         "does not apply")
+def _config(args, kind: str) -> CollapseConfig:
+    """The CollapseConfig of the options (the library's checks); ``--max-leaf`` is the
+    builder's leaf size for a mesh, and merges leaves only with ``--method dp``."""
     if kind == "tree" and args.max_leaf > 1 and args.method != "dp":
         raise ValueError("--max-leaf with a tree input merges leaves, which needs --method dp")
+    with _common.options_named(["simd_width"]):
+        test_cost = collapse.node_test_cost(args.simd_width)
+    return _common.config_from_args(CollapseConfig, args, test_cost=test_cost,
+                                    max_leaf=args.max_leaf if args.method == "dp" else 1)
 
 
 def run(args) -> dict:
     import jax
 
-    _check_args(args, "tree" if str(args.input).lower().endswith(".npz") else "mesh")
+    config = _config(args, "tree" if str(args.input).lower().endswith(".npz") else "mesh")
+    _common.builder_config(args)  # the builder options too, before any work
     names = ["load", "build", "validate", "collapse", "check"] + (["save"] if args.output else [])
     with _common.Stages(args, names) as stages:
         with stages("load"):
@@ -80,13 +77,9 @@ def run(args) -> dict:
             prim_lo = prim_hi = None
             info = {"kind": "tree", "input": loaded.path}
         tree = jaxbvh.to_numpy(tree)
-        test_cost = collapse.node_test_cost(args.simd_width)
-        merge = args.method == "dp" and args.max_leaf > 1
 
         def once():
-            return jax.block_until_ready(collapse.collapse(
-                tree, args.method, max_children=args.max_children, test_cost=test_cost,
-                max_leaf=args.max_leaf if merge else 1, ci=args.ci))
+            return jax.block_until_ready(collapse.collapse(tree, config))
 
         with stages("collapse"):
             start = time.perf_counter()
@@ -103,10 +96,8 @@ def run(args) -> dict:
                 jaxbvh.save(args.output, wide, frame=frame)
 
     widths = np.sum(np.asarray(wide.child) >= 0, axis=1)
-    max_children = {"dp": args.max_children or collapse.DEFAULT_MAX_CHILDREN, "qbvh": 4,
-                     "greedy": args.max_children}[args.method]
-    out = {"command": "collapse", **info, "method": args.method,
-           "max_children": max_children, "simd_width": args.simd_width,
+    out = {"command": "collapse", **info, "method": config.method,
+           "max_children": config.widest, "simd_width": args.simd_width,
            "max_leaf": args.max_leaf,
            "rcost_before": float(result.rcost_before), "rcost": float(result.rcost),
            "rcost_change_percent": 100.0 * (float(result.rcost) / float(result.rcost_before) - 1.0)

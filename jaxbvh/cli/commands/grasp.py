@@ -13,32 +13,23 @@ import jaxbvh
 from jaxbvh.cli.commands import _common
 from jaxbvh.io import TREE_SUFFIXES
 from jaxbvh.stochastic import grasp
-from jaxbvh.stochastic.grasp import DEFAULT_DEVIATIONS, OBJECTIVES
+from jaxbvh.stochastic.grasp import DEFAULT_DEVIATIONS, GraspConfig
+
+KNOBS = ["trials", "noise", "deviations", "rcl", "objective"]  # the GraspConfig knobs offered as options
 
 HELP = "best of many randomized full-sweep builds (GRASP, Ng & Trifonov 2003)"
 
 
 def add_parser(subparsers):
-    # option values are checked in run(), so a bad one is a one-line error like bad input
+    # option values are checked in run() by GraspConfig, so a bad one is a one-line error like bad input
     parser = subparsers.add_parser(
         "grasp", help=HELP, description=HELP + ".",
         usage="%(prog)s MESH [--trials T] [--noise P | --deviations D] [--rcl axes|K] "
               "[--objective nt|sah] [--seed S] [-o BEST.npz] [--json]")
     _common.add_mesh_arg(parser, required=True)
-    parser.add_argument("--trials", type=int, default=100, metavar="T",
-                        help="randomized trees to build, >= 1 (default: 100)")
-    parser.add_argument("--noise", type=float, default=None, metavar="P",
-                        help="probability in [0, 1] that a node deviates from the greedy split")
-    parser.add_argument("--deviations", type=float, default=None, metavar="D",
-                        help="instead of --noise: expected deviations per tree, noise = D / "
-                             f"(triangles - 1) (default: {DEFAULT_DEVIATIONS:g}, see "
-                             "jaxbvh.grasp.DEFAULT_DEVIATIONS)")
-    parser.add_argument("--rcl", default="axes", metavar="axes|K",
-                        help="candidates of a deviation: 'axes' (the other axes' best splits, the "
-                             "paper's first method) or K (the K - 1 next-best splits; default: axes)")
-    parser.add_argument("--objective", choices=OBJECTIVES, default="nt",
-                        help="nt: total interior box area / root area (the paper's); sah: SAH "
-                             "(default: nt)")
+    _common.add_config_options(parser, GraspConfig, KNOBS, helps={
+        "deviations": "instead of --noise: expected deviations per tree, noise = D / (triangles - 1) "
+                      f"(default: {DEFAULT_DEVIATIONS:g}, see jaxbvh.grasp.DEFAULT_DEVIATIONS)"})
     parser.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default: 0)")
     parser.add_argument("-o", "--output", metavar="BEST.npz", default=None,
                         help="save the best tree (interchange .npz with its scene frame)")
@@ -50,18 +41,7 @@ def run(args) -> dict:
     import jax
     import numpy as np
 
-    if args.trials < 1:
-        raise ValueError(f"--trials must be >= 1, got {args.trials}")
-    if args.noise is not None and args.deviations is not None:
-        raise ValueError("give --noise or --deviations, not both")
-    if args.noise is not None and not 0.0 <= args.noise <= 1.0:
-        raise ValueError(f"--noise must be in [0, 1], got {args.noise}")
-    if args.deviations is not None and not 0.0 <= args.deviations < float("inf"):
-        raise ValueError(f"--deviations must be a finite number >= 0, got {args.deviations}")
-    try:
-        rcl = grasp.check_rcl(args.rcl)
-    except ValueError:
-        raise ValueError(f"--rcl must be 'axes' or an integer K >= 1, got {args.rcl!r}") from None
+    config = _common.config_from_args(GraspConfig, args)  # the library's checks, one-line errors
     if str(args.mesh).lower().endswith(TREE_SUFFIXES):
         raise ValueError(f"{args.mesh} is a tree file; grasp builds from a mesh")
     names = ["load", "grasp", "validate"] + (["save"] if args.output else [])
@@ -69,8 +49,8 @@ def run(args) -> dict:
         with stages("load"):
             mesh = _common.mesh_or_default(args.mesh)
             lo, hi = mesh.local_boxes()
-        noise = grasp.resolve_noise(lo.shape[0], args.noise, args.deviations)
-        bar = _common.progress(args, total=args.trials, desc="trials")
+        noise = grasp.resolve_noise(lo.shape[0], config.noise, config.deviations)
+        bar = _common.progress(args, total=config.trials, desc="trials")
 
         def on_chunk(done, best):
             bar.update(done - bar.n)
@@ -78,8 +58,7 @@ def run(args) -> dict:
 
         with stages("grasp"):
             start = time.perf_counter()
-            result = grasp.grasp(jax.random.key(args.seed), lo, hi, trials=args.trials, noise=noise,
-                                 rcl=rcl, objective=args.objective, on_chunk=on_chunk)
+            result = grasp.grasp(jax.random.key(args.seed), lo, hi, config, on_chunk=on_chunk)
             tree = jax.block_until_ready(result.tree)
             seconds = time.perf_counter() - start
         bar.close()
@@ -92,15 +71,15 @@ def run(args) -> dict:
     objectives = result.objectives
     return {
         "command": "grasp", **_common.mesh_info(mesh),
-        "objective": args.objective,
+        "objective": config.objective,
         "base": result.base,  # the greedy sweep tree
         "best": result.objective,
-        "best_of_10": result.best_of(10) if args.trials >= 10 else None,
+        "best_of_10": result.best_of(10) if config.trials >= 10 else None,
         "median": float(np.median(objectives)),
         "improvement_percent": 100.0 * (1.0 - result.objective / result.base) if result.base else 0.0,
         "better_trials": int(np.sum(objectives < result.base)),
         "best_trial": result.best_trial,
-        "trials": args.trials,
+        "trials": config.trials,
         "noise": noise,
         "deviations": noise * max(lo.shape[0] - 1, 0),
         "rcl": result.rcl,

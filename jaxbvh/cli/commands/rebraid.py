@@ -13,6 +13,7 @@ counted (the CLI also caches compiled code on disk).
 
 from __future__ import annotations
 
+import inspect
 import math
 import sys
 import time
@@ -21,13 +22,16 @@ import numpy as np
 
 import jaxbvh
 from jaxbvh import rays, twolevel
-from jaxbvh.builders.dispatch import BUILDERS
+from jaxbvh.builders.configs import BUILDERS, BinnedConfig
 from jaxbvh.cli.commands import _common
 from jaxbvh.io import load_mesh
 from jaxbvh.rays import traversal as traverse
 from jaxbvh.twolevel import brefs
 from jaxbvh.twolevel import objects as fm
 from jaxbvh.twolevel.brefs import DEFAULT_BINS, DEFAULT_BUDGET, DEFAULT_OVERLAP, DEFAULT_THRESHOLD
+
+# the two-level builder's defaults (its --builder is binned, not jaxbvh.build's sweep)
+TWO_LEVEL = {name: p.default for name, p in inspect.signature(twolevel.build).parameters.items()}
 
 HELP = "compare two-level, re-braided and single BVHs of a multi-object scene (Benthin et al. 2017)"
 
@@ -41,12 +45,11 @@ def add_parser(subparsers):
                         f"(> 0; inf: never; default: {DEFAULT_THRESHOLD})")
     parser.add_argument("--budget", type=float, default=DEFAULT_BUDGET, metavar="B",
                         help=f"BRef slots per instance, >= 1 (default: {DEFAULT_BUDGET:g})")
-    parser.add_argument("--builder", choices=BUILDERS, default="binned",
-                        help="builder of the object BVHs and the single BVH (default: binned)")
-    parser.add_argument("--max-leaf", type=_common._int_at_least(1), default=1, metavar="N",
-                        help="most primitives per leaf of the object and single BVHs (default: 1)")
-    parser.add_argument("--bins", type=_common._int_at_least(2), default=16, metavar="B",
-                        help="bins per axis of --builder binned (default: 16)")
+    parser.add_argument("--builder", choices=list(BUILDERS), default=TWO_LEVEL["method"],
+                        help="builder of the object BVHs and the single BVH (default: %(default)s)")
+    _common.add_config_options(parser, BinnedConfig, ["max_leaf", "bins"], check_now=True, helps={
+        "max_leaf": "most primitives per leaf of the object and single BVHs",
+        "bins": "bins per axis of --builder binned"})
     parser.add_argument("--top-bins", type=_common._int_at_least(2), default=DEFAULT_BINS, metavar="B",
                         help=f"bins per axis of the top-level build (default: {DEFAULT_BINS})")
     parser.add_argument("--overlap", type=float, default=DEFAULT_OVERLAP, metavar="F",
@@ -79,6 +82,7 @@ def run(args) -> dict:
     import jax
 
     brefs.check_options(args.threshold, args.budget, args.top_bins, args.overlap)
+    builder = _common.builder_config(args)
     names = ["load", "objects", "two-level", "rebraid", "single", "check"] + (["rays"] if args.rays else []) \
         + (["save"] if args.output else [])
     with _common.Stages(args, names) as stages:
@@ -99,8 +103,7 @@ def run(args) -> dict:
             results[name] = (tl, timings)
         lo, hi = mesh.local_boxes()
         with stages("single"):
-            single, t_single = _timed(lambda: jaxbvh.build(lo, hi, method=args.builder,
-                                                           max_leaf=args.max_leaf, bins=args.bins))
+            single, t_single = _timed(lambda: jaxbvh.build(lo, hi, builder))
         with stages("check"):
             single = jaxbvh.to_numpy(single)
             jaxbvh.validate(single, lo, hi)

@@ -23,6 +23,7 @@ def add_parser(subparsers):
 
 
 def run(args) -> dict:
+    _common.builder_config(args)  # every builder option checked before any work
     names = ["load", "build", "validate"]
     with _common.Stages(args, names) as stages:
         with stages("load"):

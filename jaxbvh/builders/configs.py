@@ -1,0 +1,132 @@
+"""One frozen Config per builder: its knobs, their defaults, their checks.
+
+:func:`jaxbvh.build` takes one of these (``jaxbvh.build(lo, hi, BinnedConfig(bins=8))``);
+:data:`BUILDERS` maps each method name to its class. The defaults here are the only
+ones: :func:`jaxbvh.build`'s keyword form, the command line's options and their
+``--help`` all read them from these classes (:mod:`jaxbvh.configs` says how).
+
+=================  ===============  =====================================================
+class              method           knobs beyond ``max_leaf, ct, ci, pad, dtype``
+=================  ===============  =====================================================
+:class:`SweepConfig`   ``"sweep"``      none
+:class:`BinnedConfig`  ``"binned"``     ``bins``
+:class:`MedianConfig`  ``"median"``     none (``ct``, ``ci`` unused: it never prices a split)
+:class:`LBVHConfig`    ``"lbvh"``       ``morton_bits``
+:class:`PLOCConfig`    ``"ploc"``       ``morton_bits``, ``radius``
+=================  ===============  =====================================================
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections import OrderedDict
+from typing import Any, ClassVar
+
+from jaxbvh.builders.morton import CODE_BITS, check_code_bits
+from jaxbvh.configs import Checked, integer, knob, real
+
+
+def _code_bits(name, value):
+    return check_code_bits(value)  # the Morton module's rule, whose message names morton_bits
+
+
+@dataclasses.dataclass(frozen=True)
+class BuilderConfig(Checked):
+    """Knobs every builder has (a base class; build with one of its subclasses).
+
+    ``max_leaf``: the largest leaf; 1 splits down to single primitives, larger leaves are
+    made where the SAH says a leaf costs no more than its best split (the median
+    builder makes every node of at most ``max_leaf`` primitives a leaf).
+    ``ct``, ``ci``: the SAH's traversal and intersection costs, used only by that leaf
+    test. ``pad``: pad the arrays to a capacity bucket (fewer compiles) or size them
+    exactly. ``dtype``: float32 (None, the default) or float64 (needs x64); the boxes
+    are cast to it.
+    """
+
+    method: ClassVar[str] = ""  # the name in BUILDERS and on the command line
+
+    max_leaf: int = knob(1, check=integer(1), metavar="N", help="most primitives per leaf")
+    ct: float = knob(1.0, check=real(0), help="SAH traversal cost")
+    ci: float = knob(1.0, check=real(0), help="SAH intersection cost")
+    pad: bool = knob(True, help="pad arrays to a capacity bucket (fewer recompiles)")
+    dtype: Any = knob(None, help="float32 (None) or float64 (needs x64)")
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepConfig(BuilderConfig):
+    """Full-sweep SAH (Müller & Fellner 1999, as Ng & Trifonov 2003 describe it): every
+    split position of every axis is priced; :mod:`jaxbvh.builders.topdown`."""
+
+    method: ClassVar[str] = "sweep"
+
+
+@dataclasses.dataclass(frozen=True)
+class BinnedConfig(BuilderConfig):
+    """Binned SAH (Wald 2007): centres bucketed into ``bins`` equal bins per axis, only the
+    planes between bins priced; :mod:`jaxbvh.builders.topdown`."""
+
+    method: ClassVar[str] = "binned"
+
+    bins: int = knob(16, check=integer(2), metavar="B", help="bins per axis")
+
+
+@dataclasses.dataclass(frozen=True)
+class MedianConfig(BuilderConfig):
+    """Object median (Kay & Kajiya 1986): the longest axis, half the primitives each side;
+    :mod:`jaxbvh.builders.topdown`."""
+
+    method: ClassVar[str] = "median"
+
+
+@dataclasses.dataclass(frozen=True)
+class _MortonConfig(BuilderConfig):
+    """Knobs of the builders that start from Morton order (:mod:`jaxbvh.builders.morton`)."""
+
+    morton_bits: int = knob(30, check=_code_bits, choices=CODE_BITS, help="Morton code length")
+
+
+@dataclasses.dataclass(frozen=True)
+class LBVHConfig(_MortonConfig):
+    """LBVH (Lauterbach et al. 2009) as Karras' radix tree (2012), bottom-up from Morton
+    order; :mod:`jaxbvh.builders.lbvh`."""
+
+    method: ClassVar[str] = "lbvh"
+
+
+@dataclasses.dataclass(frozen=True)
+class PLOCConfig(_MortonConfig):
+    """PLOC, parallel locally-ordered clustering (Meister & Bittner 2017): ``radius``
+    neighbours on each side in Morton order (the paper uses 8 to 25; static, one compile
+    per value); :mod:`jaxbvh.builders.ploc`."""
+
+    method: ClassVar[str] = "ploc"
+
+    radius: int = knob(16, check=integer(1), metavar="R",
+                       help="neighbours on each side a cluster looks at")
+
+
+# method name -> Config class. An OrderedDict: ``method in BUILDERS`` and iterating give
+# the names in this order, and hypothesis' sampled_from takes it (it refuses plain dicts)
+BUILDERS: OrderedDict[str, type[BuilderConfig]] = OrderedDict(
+    (c.method, c) for c in (SweepConfig, BinnedConfig, MedianConfig, LBVHConfig, PLOCConfig))
+DEFAULT_BUILDER = "sweep"  # the method of jaxbvh.build(lo, hi) and of the command line
+
+# every builder knob: the keyword form of jaxbvh.build takes any of them for any method
+KNOBS = tuple(OrderedDict.fromkeys(f.name for c in BUILDERS.values() for f in dataclasses.fields(c)))
+
+
+def make_config(method: str = DEFAULT_BUILDER, **options) -> BuilderConfig:
+    """The Config of ``method`` from keyword options (the form ``jaxbvh.build`` always took).
+
+    Knobs of other builders are ignored, so one set of options serves every method (as
+    the command line and the two-level builder pass them); a name no builder knows is a
+    ``TypeError``, a bad value a ``ValueError`` naming the knob.
+    """
+    if method not in BUILDERS:
+        raise ValueError(f"unknown builder {method!r}; choose one of {', '.join(BUILDERS)}")
+    unknown = sorted(set(options) - set(KNOBS))
+    if unknown:
+        raise TypeError(f"unknown builder option(s) {', '.join(unknown)}; builders take {', '.join(KNOBS)}")
+    cls = BUILDERS[method]
+    own = {f.name for f in dataclasses.fields(cls)}
+    return cls(**{k: v for k, v in options.items() if k in own})
