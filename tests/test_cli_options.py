@@ -88,9 +88,8 @@ def test_a_refused_value_names_its_flag(argv, flag):
         command.make_config(parse(*argv))
 
 
-@pytest.mark.skipif("sa" not in OPTIMIZERS, reason="annealing is not on the protocol in this checkout")
 def test_annealing_schedule_by_name():
-    """(Check after merging branch rotate.) ``--schedule`` offers the schedules by name."""
+    """``--schedule`` offers the schedules by name."""
     action = next(a for a in optimize_parser()._actions if "--schedule" in a.option_strings)
     assert set(action.choices) == {"kensler", "cosine", "exponential"}
     config = command.make_config(parse("--method", "sa", "--schedule", "cosine", "--iterations", 40,

@@ -66,7 +66,7 @@ def assert_same_result(got, expected):
 
 
 def test_the_registry():
-    assert {"reinsert", "treelet", "pipeline"} <= set(OPTIMIZERS)
+    assert list(OPTIMIZERS) == ["hc", "sa", "reinsert", "treelet", "pipeline"]
     for name, optimizer in OPTIMIZERS.items():
         assert isinstance(optimizer, Optimizer) and optimizer.name == name
         assert optimizer.stages and optimizer.paper

@@ -31,17 +31,11 @@ from jaxbvh.optimize.protocol import Optimizer, OptimizeResult, StepInfo
 
 #: every optimizer by method name (the command line's ``--method``)
 OPTIMIZERS: dict[str, Optimizer] = {
-    name: optimizer
-    for name, optimizer in (
-        # TODO(lead, after merging branch rotate): rotate.HILL_CLIMB and rotate.ANNEAL
-        # directly; until then only the optimizers this checkout has are registered
-        ("hc", getattr(rotate, "HILL_CLIMB", None)),
-        ("sa", getattr(rotate, "ANNEAL", None)),
-        ("reinsert", reinsert.REINSERT),
-        ("treelet", treelet.TREELET),
-        ("pipeline", pipeline.PIPELINE),
-    )
-    if optimizer is not None
+    "hc": rotate.HILL_CLIMB,
+    "sa": rotate.ANNEAL,
+    "reinsert": reinsert.REINSERT,
+    "treelet": treelet.TREELET,
+    "pipeline": pipeline.PIPELINE,
 }
 
 

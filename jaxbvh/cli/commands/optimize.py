@@ -22,7 +22,8 @@ import jaxbvh
 from jaxbvh.cli import options as config_options
 from jaxbvh.cli.commands import _common
 from jaxbvh.io import Mesh
-from jaxbvh.optimize import OPTIMIZERS, optimize, pipeline, schedules
+from jaxbvh.optimize import OPTIMIZERS, optimize, pipeline
+from jaxbvh.optimize.schedules import SCHEDULES
 
 DEFAULT_METHOD = "pipeline"
 
@@ -41,8 +42,8 @@ FLAGS = {
 #: pipeline sets its stages' passes, costs and split axes itself
 EXCLUDE = ("ct", "ci", "windows", "frontier", "treelet.max_passes", "treelet.split_axes",
            "reinsert.split_axes")
-#: TODO(lead, after merging branch rotate): schedules.SCHEDULES directly
-CHOICES = {"schedule": tuple(getattr(schedules, "SCHEDULES", ()))}
+#: annealing's schedules by name (a function is the library's alone)
+CHOICES = {"schedule": tuple(SCHEDULES)}
 
 #: every optimizer's options, from the configs
 OPTIONS = config_options.ConfigOptions({name: o.Config for name, o in OPTIMIZERS.items()},
