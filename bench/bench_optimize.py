@@ -37,7 +37,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import jaxbvh  # noqa: E402
-from jaxbvh.optimize import METHODS, optimize  # noqa: E402
+from jaxbvh.optimize import OPTIMIZERS, optimize  # noqa: E402
+
+METHODS = tuple(OPTIMIZERS)
 
 DATA = ROOT.parent / "shared" / "data"
 RESULTS = ROOT / "bench" / "results"
@@ -58,13 +60,12 @@ def options_for(method, args):
 def run_curve(tree, method, args, time_budget=None):
     """Compile (a run cut short), then a timed run: ``(result, seconds, curve)``."""
     options = options_for(method, args)
-    for stage in (("treelet", "reinsert") if method == "pipeline" else (method,)):  # compile
-        optimize(tree, stage, time_budget=1e-9, **options_for(stage, args))
+    optimize(tree, method, time_budget=1e-9, **options)  # compile (the pipeline has its own programs)
     curve = []
     start = time.perf_counter()
 
-    def on_step(stage, step, sah, moves):
-        curve.append((time.perf_counter() - start, sah, stage))
+    def on_step(info):
+        curve.append((time.perf_counter() - start, info.sah, info.stage))
 
     result = optimize(tree, method, time_budget=time_budget, on_step=on_step, **options)
     seconds = time.perf_counter() - start
@@ -108,8 +109,8 @@ def run(args):
             result, seconds, curve = run_curve(tree, method, args)
             jaxbvh.validate(result.tree)
             row = {"input": label, "nodes": nodes, "start_sah": start_sah, "method": method,
-                   "sah": result.sah, "seconds": seconds, "steps": result.steps,
-                   "moves": result.moves, "curve": curve}
+                   "sah": float(result.sah), "seconds": seconds, "steps": int(result.steps),
+                   "moves": int(result.moves), "curve": curve}
             if tiny:
                 row["tinybvh_sah"], row["tinybvh_seconds"] = TINYBVH[tiny][1], TINYBVH[tiny][2]
                 row["best_in_tinybvh_time"] = best_within(curve, TINYBVH[tiny][2])
@@ -232,7 +233,7 @@ def run_big(args):
     rows = []
     sa, sa_seconds, curve = run_curve(tree, "sa", args)
     rows.append({"input": label, "nodes": nodes, "start_sah": start_sah, "method": "sa",
-                 "sah": sa.sah, "seconds": sa_seconds, "steps": sa.steps, "moves": sa.moves,
+                 "sah": float(sa.sah), "seconds": sa_seconds, "steps": int(sa.steps), "moves": int(sa.moves),
                  "curve": curve})
     print({k: v for k, v in rows[-1].items() if k != "curve"}, file=sys.stderr, flush=True)
     budget = sa_seconds / 10
@@ -240,8 +241,8 @@ def run_big(args):
         result, seconds, curve = run_curve(tree, method, args, time_budget=budget)
         jaxbvh.validate(result.tree, lo, hi)
         rows.append({"input": label, "nodes": nodes, "start_sah": start_sah, "method": method,
-                     "sah": result.sah, "seconds": seconds, "steps": result.steps,
-                     "moves": result.moves, "curve": curve, "time_budget": budget})
+                     "sah": float(result.sah), "seconds": seconds, "steps": int(result.steps),
+                     "moves": int(result.moves), "curve": curve, "time_budget": budget})
         print({k: v for k, v in rows[-1].items() if k != "curve"}, file=sys.stderr, flush=True)
     return rows, len(lo), budget
 

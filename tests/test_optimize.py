@@ -1,4 +1,4 @@
-"""The optimizer entry point and the treelet + reinsertion pipeline (jaxbvh.optimize)."""
+"""The optimizer registry and entry point, and the treelet + reinsertion pipeline (jaxbvh.optimize)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,8 @@ import pytest
 from test_reinsert import assert_same_tree, random_tree
 
 import jaxbvh
-from jaxbvh.optimize import METHODS, PIPELINE_TREELET_PASSES, optimize, reinsert, treelet
+from jaxbvh.optimize import OPTIMIZERS, make_config, optimize, pipeline, reinsert, treelet
+from jaxbvh.optimize.driver import TimeBudget
 
 
 def check(tree, result, prim_lo, prim_hi):
@@ -21,45 +22,114 @@ def check(tree, result, prim_lo, prim_hi):
 
 def test_every_method_gives_a_valid_tree_and_reports_every_step():
     tree, plo, phi = random_tree(21, 50, 2)
-    for method in METHODS:
+    for method, optimizer in OPTIMIZERS.items():
         steps = []
-        result = optimize(tree, method, on_step=lambda *a: steps.append(a),
-                          **(dict(steps=12) if method == "sa" else {}))
+        result = optimize(tree, method, on_step=steps.append, **(dict(steps=12) if method == "sa" else {}))
         check(tree, result, plo, phi)
+        assert isinstance(result.tree.left, np.ndarray)  # NumPy from optimize()
         assert steps and len(steps) == len(result.trace) >= result.steps > 0
-        assert {stage for stage, *_ in steps} <= {method, "treelet", "reinsert"}
+        assert [info.step for info in steps] == list(range(len(steps)))
+        assert {info.method for info in steps} == {method}
+        assert {info.stage for info in steps} <= set(optimizer.stages)
+
+
+def chained_by_hand(tree, rounds=8, round_gain=1e-3, treelet_options=None, reinsert_options=None):
+    """The pipeline's rounds written out with the stages' own entry points: ``(tree, stages)``."""
+    t, sah, stages = tree, float(jaxbvh.sah(jaxbvh.to_jax(tree))), []
+    for round_ in range(rounds):
+        before = sah
+        first = dict(first_fraction=1 / 32 if round_ == 0 else 1.0)
+        r = treelet.restructure(t, max_passes=pipeline.DEFAULT_TREELET_PASSES, split_axes=False,
+                                **(treelet_options or {}))
+        t, stages = r.tree, stages + ["treelet"] * int(r.steps)
+        sah = float(r.history[r.steps - 1]) if r.steps else sah
+        r = reinsert.reinsert(t, split_axes=False, **{**first, **(reinsert_options or {})})
+        t, stages = r.tree, stages + ["reinsert"] * int(r.steps)
+        sah = float(r.history[r.steps - 1]) if r.steps else sah
+        if before - sah < round_gain * before:
+            break
+    return t, stages
 
 
 def test_pipeline_is_its_stages_in_rounds():
-    """The pipeline's tree is the one the stages give when chained by hand."""
+    """The pipeline's tree is the one the stages give when chained by hand, step for step."""
     tree, plo, phi = random_tree(22, 60, 1)
     result = optimize(tree, "pipeline", split_axes=False)
-    t, sah = tree, float(jaxbvh.sah(jaxbvh.to_jax(tree)))
-    for round_ in range(8):
-        before = sah
-        t = treelet.restructure(t, max_passes=PIPELINE_TREELET_PASSES, split_axes=False).tree
-        r = reinsert.reinsert(t, split_axes=False, first_fraction=1 / 32 if round_ == 0 else 1.0)
-        t, sah = r.tree, float(r.sah)
-        if before - sah < 1e-3 * before:
-            break
-    assert_same_tree(result.tree, t)
+    expected, stages = chained_by_hand(tree)
+    assert_same_tree(result.tree, expected)
+    assert [pipeline.STAGES[i] for i in result.history_stage[:result.steps]] == stages
+    assert result.converged and "treelet" in stages[stages.index("reinsert"):]  # more than one round
     check(tree, result, plo, phi)
     axes = optimize(tree, "pipeline")  # with Kensler's split-axis pass: the same SAH
     assert axes.sah == pytest.approx(result.sah, rel=1e-6)
     assert_same_tree(axes.tree, jaxbvh.tree.assign_split_axes(result.tree), fields=("axis", "lo", "hi"))
 
 
-def test_time_budget_and_bad_arguments():
+def test_pipeline_passes_over_a_stage_with_nothing_to_do():
+    """Two-leaf treelets never change a tree: the treelet stages take no step, and the
+    pipeline is rounds of reinsertion; with Ct = 0 nothing changes the SAH at all."""
+    tree, plo, phi = random_tree(24, 40, 1)
+    result = optimize(tree, "pipeline", split_axes=False, max_rounds=3, treelet=dict(leaves=2))
+    expected, stages = chained_by_hand(tree, rounds=3, treelet_options=dict(leaves=2))
+    assert set(stages) == {"reinsert"}
+    assert_same_tree(result.tree, expected)
+    assert [pipeline.STAGES[i] for i in result.history_stage[:result.steps]] == stages
+    check(tree, result, plo, phi)
+    flat = optimize(tree, "pipeline", ct=0.0, treelet=dict(leaves=2))
+    assert flat.steps == 0 and flat.moves == 0 and flat.converged
+
+
+def test_pipeline_rounds_stop_at_max_rounds_and_chunks_change_nothing():
+    tree, plo, phi = random_tree(22, 60, 1)
+    one = optimize(tree, "pipeline", split_axes=False, max_rounds=1)
+    expected, stages = chained_by_hand(tree, rounds=1)
+    assert_same_tree(one.tree, expected)
+    assert int(one.steps) == len(stages) and not one.converged  # the limit, not the gain rule
+    log = []
+    chunked = optimize(tree, "pipeline", split_axes=False, max_rounds=1, on_step=log.append)
+    assert_same_tree(chunked.tree, one.tree)
+    assert [info.stage for info in log] == stages
+
+
+def test_pipeline_config():
+    default = pipeline.Config()
+    assert default.treelet.max_passes == pipeline.DEFAULT_TREELET_PASSES  # the pipeline's passes
+    assert default.treelet.split_axes is False and default.reinsert.split_axes is False
+    given = pipeline.Config(ct=2.0, treelet=dict(leaves=5), reinsert=reinsert.Config(max_steps=64, ct=3.0))
+    assert (given.treelet.leaves, given.treelet.ct, given.reinsert.max_steps, given.reinsert.ct) == (5, 2.0, 64, 2.0)
+    assert pipeline.Config(treelet=treelet.Config()) == default  # the stored stage configs are what runs
+    for bad, knob in ((dict(round_gain=-1.0), "round_gain"), (dict(max_rounds=0), "max_rounds"),
+                      (dict(treelet_passes=-1), "treelet_passes"), (dict(ci=-1.0), "ci"),
+                      (dict(treelet=dict(leaves=11)), "leaves"), (dict(reinsert=3), "reinsert"),
+                      (dict(reinsert=dict(first_fraction=0)), "first_fraction")):
+        with pytest.raises(ValueError, match=knob):
+            pipeline.Config(**bad)
+
+
+def test_make_config_and_bad_arguments():
+    tree, plo, phi = random_tree(23, 60, 1)
+    assert make_config("reinsert") == reinsert.Config()
+    assert make_config("reinsert", reinsert.Config(max_steps=9), first_fraction=1.0) == reinsert.Config(
+        max_steps=9, first_fraction=1.0)
+    assert make_config("pipeline", max_rounds=2).max_rounds == 2
+    with pytest.raises(ValueError, match="method"):
+        optimize(tree, "magic")
+    with pytest.raises(ValueError, match="unknown option.*steps"):
+        optimize(tree, "pipeline", steps=3)
+    with pytest.raises(ValueError, match="treelet.Config"):
+        optimize(tree, "treelet", config=reinsert.Config())
+    with pytest.raises(ValueError, match="time_budget"):
+        optimize(tree, "reinsert", time_budget=-1)
+    with pytest.raises(ValueError, match="max_steps"):
+        optimize(tree, "reinsert", max_steps=0)
+
+
+def test_time_budget_stops_the_pipeline_after_its_first_step():
     tree, plo, phi = random_tree(23, 60, 1)
     short = optimize(tree, "pipeline", time_budget=1e-9)
     check(tree, short, plo, phi)
-    assert [stage for stage, *_ in short.trace] == ["treelet", "treelet"][: len(short.trace)]
-    with pytest.raises(ValueError, match="method"):
-        optimize(tree, "magic")
-    with pytest.raises(ValueError, match="pipeline options"):
-        optimize(tree, "pipeline", steps=3)
-    with pytest.raises(ValueError, match="time_budget"):
-        optimize(tree, "reinsert", time_budget=-1)
+    assert [info.stage for info in short.trace] == ["treelet"] and short.steps == 1
+    assert not short.converged
 
 
 # ----------------------------------------------------------------------------------
@@ -115,14 +185,18 @@ def test_cli_methods_refuse_broken_trees(capsys, tmp_path, method, kind):
 def test_time_budget_clock_starts_after_the_first_step():
     import time
 
-    from jaxbvh.optimize.budget import TimeBudget
-
     none = TimeBudget(None)
-    assert not any(none.spent() for _ in range(3))
+    none.start()
+    assert not any(none.spent() for _ in range(3)) and none.left() is None
     tiny = TimeBudget(1e-9)
     time.sleep(0.01)  # the first step (compiling) is not counted
-    assert not tiny.spent()
+    assert not tiny.spent() and tiny.left() == 1e-9
+    tiny.start()
     time.sleep(0.01)
     assert tiny.spent()
     long = TimeBudget(3600.0)
+    long.start()
     assert not long.spent() and not long.spent()
+    for bad in (0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="time_budget"):
+            TimeBudget(bad)

@@ -1,4 +1,4 @@
-"""Parallel reinsertion (jaxbvh.reinsert) against its NumPy twin and the invariants.
+"""Parallel reinsertion (jaxbvh.optimize.reinsert) against its NumPy twin and the invariants.
 
 Random trees are padded to one capacity so every jitted function compiles once.
 """
@@ -17,14 +17,14 @@ from hypothesis import strategies as st
 
 import jaxbvh
 from jaxbvh import numerics
-from jaxbvh.optimize import reinsert
+from jaxbvh.optimize import driver, reinsert, reinsert_rules
 from jaxbvh.optimize import reinsert_reference as ref
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 NODES, PRIMS = 128, 64  # one capacity for all random trees
 SETTINGS = dict(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 MIN_GAIN = numerics.min_gain(np.float32)
-
+ITERATION = jax.jit(reinsert._iteration)
 
 
 def assert_same_tree(a, b, fields=("left", "right", "parent", "lo", "hi", "root")):
@@ -56,11 +56,45 @@ trees = st.builds(lambda seed, n, leaf, grid: (seed, n, leaf, grid),
 
 
 def _search_all(tree, max_steps):
-    s = reinsert._prepare(jaxbvh.to_jax(tree))
+    s = jax.jit(reinsert._prepare)(jaxbvh.to_jax(tree))
     ids, count = reinsert._candidates(s, jnp.int32(reinsert.ALL_OCTAVES))
     out = jax.jit(reinsert._search)(s, ids, count, reinsert._scale_of(s), jnp.int32(max_steps),
                                     jnp.float32(MIN_GAIN))
     return s, [np.asarray(x) for x in out]
+
+
+# ----------------------------------------------------------------------------------
+# The first candidates
+# ----------------------------------------------------------------------------------
+
+
+OCTAVES = jax.jit(lambda area, parent, root, need: reinsert_rules.octaves_holding(area, parent, root, need, xp=jnp))
+
+
+@settings(**{**SETTINGS, "max_examples": 60})
+@given(st.lists(st.tuples(st.integers(-1, NODES - 1), st.integers(-40, 2), st.sampled_from([0.0, 1.0, 1.7])),
+                min_size=1, max_size=NODES),
+       st.integers(0, NODES - 1), st.sampled_from([1 / 32, 0.2, 0.5, 1.0, 1e-9]))
+def test_first_octaves_traced_equal_the_host_rule(rows, root, first_fraction):
+    """The octaves a run starts with, taken inside a traced program (the pipeline's
+    reinsertion stages), equal the host rule of the twin, literally: the fewest octaves
+    whose parent areas hold ceil(first_fraction * nodes) nodes."""
+    parent = np.full(NODES, -1, np.int32)
+    area = np.zeros(NODES, np.float32)
+    for i, (up, exponent, mantissa) in enumerate(rows):
+        parent[i], area[i] = up, np.ldexp(np.float32(mantissa), exponent)
+    root = min(root, len(rows) - 1)
+    nodes = int(np.sum(parent >= 0))
+    expected = reinsert_rules.ALL_OCTAVES
+    if first_fraction < 1 and area[root] > 0 and nodes:
+        need = int(np.ceil(first_fraction * nodes))
+        for octaves in range(64):
+            if np.sum(area[parent[parent >= 0]] >= np.ldexp(area[root], -octaves)) >= need:
+                expected = octaves
+                break
+    assert reinsert_rules.first_octaves(area, parent, root, first_fraction) == expected
+    need = reinsert_rules.candidates_needed(first_fraction, nodes)
+    assert int(OCTAVES(area, parent, jnp.int32(root), jnp.int32(need))) == expected
 
 
 # ----------------------------------------------------------------------------------
@@ -114,10 +148,10 @@ def test_each_gain_is_the_drop_in_interior_area_of_its_move(case):
 
 
 def _one_iteration(tree, octaves=reinsert.ALL_OCTAVES):
-    s = reinsert._prepare(jaxbvh.to_jax(tree))
+    s = jax.jit(reinsert._prepare)(jaxbvh.to_jax(tree))
     m, taken, gains, count = reinsert._moves_of(s, jnp.int32(octaves), jnp.int32(1024),
                                                 jnp.float32(MIN_GAIN))
-    new, moves, total, sah, _, _ = reinsert._iteration(
+    new, moves, total, sah, _ = ITERATION(
         s, jnp.asarray(tree.prim_count), jnp.float32(1), jnp.float32(1), jnp.int32(octaves),
         jnp.int32(1024), jnp.float32(MIN_GAIN))
     return s, m, np.asarray(taken), np.asarray(gains), new, int(moves), float(total), float(sah)
@@ -180,11 +214,15 @@ def test_reinsert_equals_reference(case, first_fraction):
     tree, plo, phi = random_tree(*case)
     result = reinsert.reinsert(tree, first_fraction=first_fraction, split_axes=False)
     expected, info = ref.reinsert(tree, first_fraction=first_fraction)
-    assert result.iterations == info["iterations"] and result.moves == info["moves"]
+    assert result.steps == info["iterations"] and result.moves == info["moves"]
     assert_same_tree(result.tree, expected)
-    np.testing.assert_allclose(result.history, info["history"], rtol=1e-5)
+    history = result.history[:result.steps]
+    np.testing.assert_allclose(history, info["history"], rtol=1e-5)
+    assert np.isnan(result.history[result.steps:]).all()
+    np.testing.assert_array_equal(result.history_moves[:result.steps], [len(t) for t in info["taken"]])
     sah = check_result(tree, result, plo, phi)
-    assert np.all(np.diff(np.concatenate([[float(result.sah_start)], result.history])) <= 1e-5 * sah)
+    assert np.all(np.diff(np.concatenate([[float(result.sah_start)], history])) <= 1e-5 * sah)
+    assert bool(result.converged) == (result.steps < reinsert.DEFAULT_MAX_ITERATIONS)
     # converged: one more iteration over all nodes finds nothing
     assert _one_iteration(result.tree)[5] == 0
 
@@ -208,10 +246,14 @@ def test_time_budget_stops_early_with_a_valid_tree():
     full = reinsert.reinsert(tree, first_fraction=0.05)
     short = reinsert.reinsert(tree, first_fraction=0.05, time_budget=1e-9)
     check_result(tree, short, plo, phi)
-    assert 1 <= short.iterations < full.iterations <= reinsert.DEFAULT_MAX_ITERATIONS
+    assert 1 <= short.steps < full.steps <= reinsert.DEFAULT_MAX_ITERATIONS
+    assert not short.converged and full.converged
     log = []
-    reinsert.reinsert(tree, on_iteration=lambda i, sah, moves: log.append((i, sah, moves)))
-    assert [i for i, *_ in log] == list(range(len(log))) and log[-1][2] == 0
+    logged = reinsert.reinsert(tree, on_step=log.append)
+    assert [info.step for info in log] == list(range(len(log))) == list(range(logged.steps))
+    assert {info.stage for info in log} == {"reinsert"} and log[-1].moves == 0
+    np.testing.assert_allclose([info.sah for info in log], logged.history[:logged.steps])
+    assert_same_tree(logged.tree, reinsert.reinsert(tree).tree)  # chunks never change the result
 
 
 def test_tiny_trees_and_zero_traversal_cost():
@@ -222,23 +264,26 @@ def test_tiny_trees_and_zero_traversal_cost():
         assert result.moves == 0 if n <= 2 else result.moves >= 0
     tree, plo, phi = random_tree(5, 20)
     result = reinsert.reinsert(tree, ct=0.0)  # no move changes the SAH
-    assert result.iterations == 0 and result.moves == 0
+    assert result.steps == 0 and result.moves == 0
     check_result(tree, result, plo, phi, ct=0.0)
 
 
 def test_no_retrace_for_trees_of_one_capacity():
+    """Settings are traced values: new trees of one capacity and new settings reuse the
+    compiled loop of steps."""
     reinsert.reinsert(random_tree(1, 20)[0])
-    before = reinsert._iteration._cache_size()
+    before = driver.advance._cache_size()
     for seed in range(2, 5):
-        reinsert.reinsert(random_tree(seed, 30, 2)[0], max_steps=7 * seed, first_fraction=0.1)
-    assert reinsert._iteration._cache_size() == before
+        reinsert.reinsert(random_tree(seed, 30, 2)[0], max_steps=7 * seed, first_fraction=0.1,
+                          escalate=10.0 ** -seed, min_gain=1e-5 * seed, split_axes=seed % 2 == 0)
+    assert driver.advance._cache_size() == before
 
 
 def test_bad_arguments_raise_value_error():
     tree = random_tree(0, 5)[0]
     for kwargs in (dict(max_steps=0), dict(max_iterations=-1), dict(first_fraction=0),
                    dict(first_fraction=1.5), dict(ct=-1.0), dict(time_budget=0),
-                   dict(on_iteration=3), dict(min_gain=-1.0)):
+                   dict(on_step=3), dict(min_gain=-1.0), dict(escalate=-1.0)):
         with pytest.raises(ValueError):
             reinsert.reinsert(tree, **kwargs)
     wide = jaxbvh.from_interchange({**jaxbvh.to_interchange(tree), "child": np.full((9, 3), -1, np.int32)})
@@ -254,6 +299,6 @@ def test_real_tree_iterations_equal_reference():
     result = reinsert.reinsert(tree, max_iterations=3, first_fraction=0.02, split_axes=False)
     expected, info = ref.reinsert(tree, max_iterations=3, first_fraction=0.02)
     assert_same_tree(result.tree, expected)
-    np.testing.assert_allclose(result.history, info["history"], rtol=1e-5)
+    np.testing.assert_allclose(result.history[:result.steps], info["history"], rtol=1e-5)
     check_result(tree, result, None, None)
     assert float(result.sah) < float(result.sah_start) - 0.3

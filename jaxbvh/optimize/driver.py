@@ -17,6 +17,12 @@ so the overshoot stays small) and returns the state it reached: the best tree so
 every optimizer (all of them only lower the SAH, except annealing, which keeps its best).
 No host callback runs inside a compiled program, so every compiled piece is cached
 (also by JAX's persistent cache).
+
+Batches. :func:`init_batch` starts any optimizer on a batch of trees (one capacity,
+:func:`jaxbvh.tree.batching.stack_trees`): each tree's state is made by ``init`` on the
+host, and the states are stacked along a new leading axis. :func:`run_batch` then runs
+``step`` vmapped until every state is done (a done state is a fixed point of ``step``,
+so each tree gets exactly its own single-tree result) and ``result`` vmapped.
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh.optimize.protocol import OptimizerState, StepInfo
+from jaxbvh.tree.batching import unstack_trees
 
 #: a chunk of steps grows (doubling, up to this many) while one takes under CHUNK_SECONDS
 MAX_CHUNK = 256
@@ -139,3 +146,43 @@ def drive(optimizer, state: OptimizerState, *, budget: TimeBudget, on_step: Call
         done_steps = now
         if time.perf_counter() - started < CHUNK_SECONDS:
             chunk = min(2 * chunk, MAX_CHUNK)
+
+
+def stack_states(states) -> OptimizerState:
+    """One state with a leading batch axis from states of one optimizer, config and capacity."""
+    states = list(states)
+    if not states:
+        raise ValueError("stack_states: no states")
+    if any(s.static != states[0].static for s in states):
+        raise ValueError("stack_states: the states differ in their static settings (config or shapes)")
+    return jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *states)
+
+
+def init_batch(optimizer, trees, config=None, keys=None) -> OptimizerState:
+    """The states of ``optimizer`` for a batch of trees, stacked (module docstring).
+
+    ``trees``: a :class:`~jaxbvh.tree.layout.BVH` whose arrays have a leading batch axis
+    B (:func:`jaxbvh.tree.batching.stack_trees`). ``keys``: [B] ``jax.random`` keys (None:
+    every tree gets ``init``'s default key).
+    """
+    singles = unstack_trees(trees)
+    if keys is not None and len(keys) != len(singles):
+        raise ValueError(f"init_batch: {len(singles)} trees but {len(keys)} keys")
+    return stack_states(optimizer.init(tree, config, None if keys is None else keys[i])
+                        for i, tree in enumerate(singles))
+
+
+@partial(jax.jit, static_argnums=(0, 1))
+def _run_batch(step: Callable, result: Callable, states: OptimizerState):
+    states = jax.lax.while_loop(lambda s: ~jnp.all(s.progress.done), jax.vmap(step), states)
+    return jax.vmap(result)(states)
+
+
+def run_batch(optimizer, trees, config=None, *, keys=None):
+    """Run ``optimizer`` on a batch of trees at once (``step`` vmapped) to the end.
+
+    ``trees``, ``keys``: as :func:`init_batch`. Returns the ``OptimizeResult`` of every
+    tree (NumPy arrays with a leading batch axis), each exactly the tree's own result.
+    """
+    return jax.device_get(_run_batch(optimizer.step, optimizer.result,
+                                     init_batch(optimizer, trees, config, keys)))

@@ -1,167 +1,289 @@
-"""One entry point for every tree optimizer, and the default pipeline that combines them.
+"""The pipeline: rounds of treelet restructuring and parallel reinsertion, as one optimizer.
 
-Methods (:data:`METHODS`):
+Rounds
+======
+A round is a *treelet stage*, passes of treelet restructuring (Karras & Aila 2013,
+:mod:`jaxbvh.optimize.treelet`; ``treelet_passes``, default 2, or fewer when a pass
+restructures nothing), then a *reinsertion stage*, parallel reinsertion (Meister &
+Bittner 2018, :mod:`jaxbvh.optimize.reinsert`) until an iteration over all nodes takes
+no move (or its ``max_iterations``). The first round's reinsertion starts from the nodes
+of largest parent area (``first_fraction`` of the reinsertion config, 1/32) and widens
+octave by octave; later rounds search every node from the start, since the gains left
+are spread thin. Rounds repeat until one lowers the SAH by less than ``round_gain``
+(relative, default 1e-3; the run has then *converged*) or after ``max_rounds`` (8).
 
-* ``"hc"`` — Kensler's rotations, hill climbing (:func:`jaxbvh.optimize.rotate.hill_climb`);
-* ``"sa"`` — Kensler's rotations, simulated annealing (:func:`jaxbvh.optimize.rotate.anneal`);
-* ``"reinsert"`` — parallel reinsertion (Meister & Bittner 2018, :mod:`jaxbvh.optimize.reinsert`);
-* ``"treelet"`` — treelet restructuring (Karras & Aila 2013, :mod:`jaxbvh.optimize.treelet`);
-* ``"pipeline"`` — rounds of treelet restructuring (:data:`PIPELINE_TREELET_PASSES`
-  passes) followed by reinsertion (from the largest parent areas in the first round, from
-  every node in later ones, where the gains left are spread thin), until a round lowers
-  the SAH by less than
-  ``round_gain`` (relative, default :data:`PIPELINE_ROUND_GAIN`) or after
-  :data:`PIPELINE_MAX_ROUNDS` rounds. The two move sets are complementary: reinsertion
-  moves whole subtrees anywhere in the tree, treelets rearrange up to 7 neighbouring
-  subtrees optimally; each stops where the other still finds gains, and together they
-  end below either alone (``bench/bench_optimize.py``; rotations add nothing after
-  treelets, whose 7-leaf optimum includes every rotation at their root). Starting with
-  treelets gave the lower SAH on the tinybvh trees.
+The two move sets are complementary: reinsertion moves whole subtrees anywhere in the
+tree, treelets rearrange up to 7 neighbouring subtrees optimally; each stops where the
+other still finds gains, and together they end below either alone
+(``bench/bench_optimize.py``; rotations add nothing after treelets, whose 7-leaf optimum
+includes every rotation at their root). Starting with treelets gave the lower SAH on the
+tinybvh trees.
 
-Every method takes ``time_budget`` (seconds, compiling apart: the clock starts after
-the first pass or iteration, which compiles; in the pipeline, later stages compile inside
-the budget unless their programs are cached) and returns the best tree so far when it runs out; all of
-them only lower the SAH except annealing, which keeps its best tree. Every result is a
-:class:`OptimizeResult`. The pipeline is a composition of the optimizers above, each
-held equal to its NumPy twin, so it has no twin of its own.
+On the protocol
+===============
+:data:`PIPELINE` is an optimizer of :mod:`jaxbvh.optimize.protocol` whose stages are
+``("treelet", "reinsert")``. Its loop state holds one state of each stage's optimizer;
+one ``step`` is one step of the current stage (a treelet pass or a reinsertion
+iteration, chosen by ``lax.cond`` on the stage counter), recorded with its stage in the
+history. When that stage's state is done, the next stage starts (traced, inside the same
+step) from its tree: the links and boxes go on from one stage to the next, and a stage
+that has nothing to do (two-leaf treelets, ``ct = 0``) is passed over at once. A round
+ends when its reinsertion stage is done. Each stage is held equal to its NumPy twin, and
+the pipeline equal to the stages chained by hand (``tests/test_optimize.py``), so it has
+no twin of its own.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import time
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
-import numpy as np
+import jax
+import jax.numpy as jnp
 
-from jaxbvh.optimize import reinsert, rotate, treelet
+from jaxbvh.optimize import reinsert, treelet
+from jaxbvh.optimize.driver import run
+from jaxbvh.optimize.protocol import (
+    Optimizer,
+    OptimizeResult,
+    OptimizerState,
+    check_config,
+    check_costs,
+    check_tree,
+    float_dtype,
+    keep_if_done,
+    make_result,
+    new_progress,
+    record,
+)
+from jaxbvh.optimize.reinsert_rules import candidates_needed
 from jaxbvh.tree.cost import sah as sah_of
-from jaxbvh.tree.layout import BVH, to_jax, to_numpy
-from jaxbvh.tree.split_axes import assign_split_axes
+from jaxbvh.tree.layout import to_jax
+from jaxbvh.tree.split_axes import apply_split_axes
 
-METHODS = ("hc", "sa", "reinsert", "treelet", "pipeline")
-PIPELINE_TREELET_PASSES = 2
-PIPELINE_ROUND_GAIN = 1e-3
-PIPELINE_MAX_ROUNDS = 8
+DEFAULT_TREELET_PASSES = 2
+DEFAULT_ROUND_GAIN = 1e-3
+DEFAULT_MAX_ROUNDS = 8
+
+#: the stages, in the order of a round (``progress.stage`` and ``history_stage`` index it)
+STAGES = ("treelet", "reinsert")
+TREELETS, REINSERTION = 0, 1
 
 
 @dataclasses.dataclass(frozen=True)
-class OptimizeResult:
-    """What :func:`optimize` returns.
+class Config:
+    """Knobs of the pipeline (module docstring), with the defaults.
 
-    ``tree``: the optimized :class:`~jaxbvh.tree.layout.BVH` (NumPy, same capacity as the
-    input). ``sah``, ``sah_start``: SAH after and before. ``steps``: passes or
-    iterations run in all. ``moves``: moves (rotations, reinsertions, restructured
-    treelets) applied. ``trace``: ``[(stage, step, sah, moves), ...]`` after every step
-    of every stage (for curves; stage is the method of that step). ``chain_sah``: for
-    annealing with several chains, every chain's SAH.
+    ``round_gain``: a round that lowers the SAH by less than this (relative) is the
+    last. ``max_rounds``: most rounds. ``treelet_passes``: most treelet passes per
+    round. ``treelet``: the treelet stage's :class:`jaxbvh.optimize.treelet.Config`
+    (or a dict of its fields); ``reinsert``: the reinsertion stage's
+    :class:`jaxbvh.optimize.reinsert.Config` (or a dict), whose ``first_fraction``
+    applies to the first round (later rounds search every node) and whose
+    ``max_iterations`` bounds each stage. ``ct``, ``ci``: SAH constants of both stages.
+    ``split_axes``: Kensler's final pass (:func:`jaxbvh.tree.split_axes.assign_split_axes`)
+    in ``result``. The pipeline's ``ct``, ``ci``, ``treelet_passes`` replace those of the
+    stage configs (as stored here), and the stages never assign split axes themselves.
     """
 
-    tree: Any
-    sah: float
-    sah_start: float
-    steps: int
-    moves: int
-    trace: list
-    chain_sah: Any = None
+    round_gain: float = dataclasses.field(default=DEFAULT_ROUND_GAIN, metadata=dict(
+        help="the last round is the first that lowers the SAH by less than this (relative)",
+        metavar="G"))
+    max_rounds: int = dataclasses.field(default=DEFAULT_MAX_ROUNDS, metadata=dict(
+        help="most rounds of treelets and reinsertion", metavar="R"))
+    treelet_passes: int = dataclasses.field(default=DEFAULT_TREELET_PASSES, metadata=dict(
+        help="most treelet passes per round", metavar="P"))
+    treelet: treelet.Config = dataclasses.field(default_factory=treelet.Config)
+    reinsert: reinsert.Config = dataclasses.field(default_factory=reinsert.Config)
+    ct: float = dataclasses.field(default=1.0, metadata=dict(help="SAH traversal cost"))
+    ci: float = dataclasses.field(default=1.0, metadata=dict(help="SAH intersection cost"))
+    split_axes: bool = dataclasses.field(default=True, metadata=dict(
+        help="Kensler's split-axis pass on the result"))
+
+    def __post_init__(self):
+        if not self.round_gain >= 0:
+            raise ValueError(f"round_gain must be >= 0, got {self.round_gain}")
+        if self.max_rounds < 1:
+            raise ValueError(f"max_rounds must be >= 1, got {self.max_rounds}")
+        if self.treelet_passes < 0:
+            raise ValueError(f"treelet_passes must be >= 0, got {self.treelet_passes}")
+        check_costs(self.ct, self.ci)
+        common = dict(ct=self.ct, ci=self.ci, split_axes=False)
+        stages = {"treelet": (self.treelet, treelet.Config, dict(common, max_passes=self.treelet_passes)),
+                  "reinsert": (self.reinsert, reinsert.Config, common)}
+        for name, (given, StageConfig, fixed) in stages.items():
+            if isinstance(given, dict):
+                given = StageConfig(**given)
+            if not isinstance(given, StageConfig):
+                raise ValueError(f"{name} must be a {StageConfig.__module__}.Config or a dict of its "
+                                 f"fields, got {type(given).__name__}")
+            object.__setattr__(self, name, dataclasses.replace(given, **fixed))
 
 
-def _run(method, tree, *, key, ct, ci, time_budget, report, options):
-    """One optimizer; returns ``(tree, steps, moves, chain_sah)`` (JAX tree)."""
+class Params(NamedTuple):
+    """Settings passed as traced values (changing them does not recompile)."""
 
-    if method == "hc":
-        out = rotate.hill_climb(tree, ct=ct, ci=ci, split_axes=False, time_budget=time_budget,
-                                on_pass=lambda i, sah, moves, _t: report("hc", i, sah, moves),
-                                **options)
-        return out.tree, int(out.passes), int(out.moves), None
-    if method == "sa":
-        import jax
-
-        out = rotate.anneal(jax.random.key(0) if key is None else key, tree, ct=ct, ci=ci,
-                            split_axes=False, time_budget=time_budget,
-                            on_pass=lambda i, sah, moves, _t: report("sa", i, sah, moves),
-                            **options)
-        return out.tree, int(out.passes), int(out.moves), out.chain_sah
-    if method == "reinsert":
-        out = reinsert.reinsert(tree, ct=ct, ci=ci, split_axes=False, time_budget=time_budget,
-                                on_iteration=lambda i, sah, moves: report("reinsert", i, sah, moves),
-                                **options)
-        return out.tree, int(out.iterations), int(out.moves), None
-    out = treelet.restructure(tree, ct=ct, ci=ci, split_axes=False, time_budget=time_budget,
-                              on_step=lambda info: report("treelet", info.step, info.sah, info.moves),
-                              **options)
-    return to_jax(out.tree), int(out.steps), int(out.moves), None
+    ct: Any          # [] tree dtype: SAH cost of a traversal step
+    ci: Any          # [] tree dtype: SAH cost of a primitive test
+    round_gain: Any  # [] tree dtype: relative gain below which a round is the last
+    max_rounds: Any  # [] int32: most rounds
+    need_first: Any  # [] int32: first candidates of the first round's reinsertion
+    need_later: Any  # [] int32: the same in later rounds (every node)
+    split_axes: Any  # [] bool: Kensler's final pass in result()
 
 
-def optimize(tree, method: str = "pipeline", *, key=None, ct: float = 1.0, ci: float = 1.0,
-             time_budget: float | None = None, split_axes: bool = True,
-             on_step: Callable | None = None, round_gain: float = PIPELINE_ROUND_GAIN,
-             max_rounds: int = PIPELINE_MAX_ROUNDS, **options) -> OptimizeResult:
-    """Optimize ``tree`` with ``method`` (one of :data:`METHODS`, module docstring).
+class Static(NamedTuple):
+    """Settings that fix the compiled program."""
 
-    ``key``: ``jax.random`` key for ``"sa"`` (default ``key(0)``). ``time_budget``:
-    seconds for the whole run (module docstring). ``split_axes``: Kensler's final pass
-    (:func:`jaxbvh.optimize.rotate.assign_split_axes`) at the end. ``on_step(stage, step, sah,
-    moves)``: called on the host after every pass or iteration. ``options``: passed to
-    the optimizer (e.g. ``steps``/``chains`` for ``"sa"``, ``first_fraction`` for
-    ``"reinsert"``, ``leaves`` for ``"treelet"``; for ``"pipeline"`` keys
-    ``reinsert=dict(...)`` and ``treelet=dict(...)``). ``round_gain``, ``max_rounds``:
-    the pipeline's stopping rule.
+    treelet: Any          # treelet.Config of the treelet stages (hashable)
+    reinsert_limit: int   # most iterations of a reinsertion stage
+
+
+class Inner(NamedTuple):
+    """The pipeline's loop state: one state per stage, the round's figures."""
+
+    treelet: Any     # OptimizerState of the treelet stage (current while stage == 0)
+    reinsert: Any    # OptimizerState of the reinsertion stage (current while stage == 1)
+    stage: Any       # [] int32: the current stage (index into STAGES)
+    round: Any       # [] int32: the current round, from 0
+    round_start: Any  # [] tree dtype: SAH when the current round began
+
+
+# ----------------------------------------------------------------------------------
+# From one stage to the next
+# ----------------------------------------------------------------------------------
+
+
+def _start_reinsertion(inner: Inner, params: Params, static: Static) -> Inner:
+    """The reinsertion stage, started from the treelet stage's tree."""
+    tree = treelet.result(inner.treelet).tree
+    sub = inner.reinsert
+    need = jnp.where(inner.round == 0, params.need_first, params.need_later)
+    sub = reinsert.restart(sub.params._replace(need=need), tree, static.reinsert_limit)
+    return inner._replace(reinsert=sub, stage=jnp.int32(REINSERTION))
+
+
+def _start_round(inner: Inner, sah, static: Static) -> Inner:
+    """The next round's treelet stage, started from the reinsertion stage's tree."""
+    tree = reinsert.result(inner.reinsert).tree
+    sub = treelet.init(tree, static.treelet)  # traceable: it reads nothing on the host
+    return inner._replace(treelet=sub, stage=jnp.int32(TREELETS), round=inner.round + 1,
+                          round_start=jnp.asarray(sah, inner.round_start.dtype))
+
+
+def _stage_done(inner: Inner):
+    return jnp.where(inner.stage == TREELETS, inner.treelet.progress.done, inner.reinsert.progress.done)
+
+
+def _settle(inner: Inner, sah, params: Params, static: Static):
+    """Start the next stage while the current one is done: ``(inner, finished,
+    converged)``; ``finished``: the last round is over (``converged``: by the round
+    gain rule, not by ``max_rounds``). ``sah``: the SAH of the latest step."""
+
+    def after_treelets(inner):
+        return _start_reinsertion(inner, params, static), jnp.bool_(False), jnp.bool_(False)
+
+    def after_round(inner):
+        before = inner.round_start
+        small = before - sah < params.round_gain * before
+        last = small | (inner.round + 1 >= params.max_rounds)
+        inner = jax.lax.cond(last, lambda i: i, lambda i: _start_round(i, sah, static), inner)
+        return inner, last, small
+
+    def cond(carry):
+        inner, finished, _ = carry
+        return _stage_done(inner) & ~finished
+
+    def body(carry):
+        inner, _, _ = carry
+        return jax.lax.cond(inner.stage == TREELETS, after_treelets, after_round, inner)
+
+    return jax.lax.while_loop(cond, body, (inner, jnp.bool_(False), jnp.bool_(False)))
+
+
+@jax.jit
+def _settle_at_init(state: OptimizerState) -> OptimizerState:
+    inner, finished, converged = _settle(state.inner, state.progress.sah, state.params, state.static)
+    progress = state.progress._replace(done=state.progress.done | finished, converged=converged,
+                                       stage=inner.stage)
+    return state.replace(inner=inner, progress=progress)
+
+
+# ----------------------------------------------------------------------------------
+# The optimizer protocol
+# ----------------------------------------------------------------------------------
+
+
+def init(tree, config: Config | None = None, key=None) -> OptimizerState:
+    """The state before the first step: both stages' states, the first one current.
+
+    ``tree``: a :class:`~jaxbvh.tree.layout.BVH` (NumPy or JAX arrays, any capacity,
+    leaves of any size). ``key``: unused (the method is deterministic).
     """
-    import jax
-
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
-    if not isinstance(tree, BVH):
-        raise ValueError(f"tree must be a binary jaxbvh.BVH, got {type(tree).__name__}")
-    if time_budget is not None and not time_budget > 0:
-        raise ValueError(f"time_budget must be > 0 seconds, got {time_budget}")
-    if not round_gain >= 0 or max_rounds < 1:
-        raise ValueError(f"round_gain must be >= 0 and max_rounds >= 1, got {round_gain}, {max_rounds}")
+    del key
+    check_tree(tree)
+    config = check_config(config, Config, "pipeline")
     tree = to_jax(tree)
-    trace = []
-    clock = {}
+    dtype = float_dtype(tree)
+    treelets = treelet.init(tree, config.treelet)
+    reinsertion = reinsert.init(tree, config.reinsert)  # its params and settings; restarted later
+    nodes = int(jnp.sum(tree.parent >= 0))
+    params = Params(ct=jnp.asarray(config.ct, dtype), ci=jnp.asarray(config.ci, dtype),
+                    round_gain=jnp.asarray(config.round_gain, dtype), max_rounds=jnp.int32(config.max_rounds),
+                    need_first=reinsertion.params.need, need_later=jnp.int32(candidates_needed(1.0, nodes)),
+                    split_axes=jnp.bool_(config.split_axes))
+    treelet_limit, reinsert_limit = int(treelets.progress.limit), int(reinsertion.progress.limit)
+    progress = new_progress(sah_of(tree, config.ct, config.ci),
+                            config.max_rounds * (treelet_limit + reinsert_limit), dtype)
+    inner = Inner(treelets, reinsertion, jnp.int32(TREELETS), jnp.int32(0), progress.sah_start)
+    static = Static(config.treelet, reinsert_limit)
+    return _settle_at_init(OptimizerState(tree, progress, params, inner, static))
 
-    def report(stage, step, sah, moves):
-        if not trace and time_budget is not None:  # the first step compiled: start the clock
-            clock["deadline"] = time.perf_counter() + time_budget
-        trace.append((stage, int(step), float(sah), int(moves)))
-        if on_step is not None:
-            on_step(stage, int(step), float(sah), int(moves))
 
-    sah_start = float(sah_of(tree, ct, ci))
-    common = dict(key=key, ct=ct, ci=ci, report=report)
-    chain_sah = None
-    if method != "pipeline":
-        tree, steps, moves, chain_sah = _run(method, tree, time_budget=time_budget, options=options,
-                                             **common)
-    else:
-        unknown = set(options) - {"reinsert", "treelet"}
-        if unknown:
-            raise ValueError(f"pipeline options are reinsert=dict(...) and treelet=dict(...), "
-                             f"got {', '.join(sorted(unknown))}")
-        stages = {"treelet": {"max_passes": PIPELINE_TREELET_PASSES, **options.get("treelet", {})},
-                  "reinsert": dict(options.get("reinsert", {}))}
-        steps = moves = 0
-        sah = sah_start
-        for round_ in range(max_rounds):
-            if round_ == 1:  # the big moves are made: search every node from the start
-                stages["reinsert"] = {**stages["reinsert"], "first_fraction": 1.0}
-            before = sah
-            for stage in ("treelet", "reinsert"):
-                deadline = clock.get("deadline")
-                left = time_budget if deadline is None else deadline - time.perf_counter()
-                if left is not None and left <= 0:
-                    break
-                tree, n, m, _ = _run(stage, tree, time_budget=left, options=stages[stage], **common)
-                steps, moves = steps + n, moves + m
-                sah = trace[-1][2] if trace else sah
-            deadline = clock.get("deadline")
-            if before - sah < round_gain * before or (
-                    deadline is not None and time.perf_counter() >= deadline):
-                break
-    if split_axes:
-        tree = assign_split_axes(tree)
-    tree = to_numpy(jax.block_until_ready(tree))
-    return OptimizeResult(tree, float(sah_of(to_jax(tree), ct, ci)), sah_start, steps, moves, trace,
-                          None if chain_sah is None else np.asarray(chain_sah))
+def step(state: OptimizerState) -> OptimizerState:
+    """One step of the current stage (a treelet pass or a reinsertion iteration), then
+    the next stage or round if that stage is done (module docstring)."""
+    inner, params, static = state.inner, state.params, state.static
+
+    def treelet_pass(inner):
+        sub = treelet.step(inner.treelet)
+        return inner._replace(treelet=sub), sub.progress.sah, sub.progress.moves - inner.treelet.progress.moves
+
+    def reinsert_iteration(inner):
+        sub = reinsert.step(inner.reinsert)
+        return inner._replace(reinsert=sub), sub.progress.sah, sub.progress.moves - inner.reinsert.progress.moves
+
+    new, sah, moves = jax.lax.cond(inner.stage == TREELETS, treelet_pass, reinsert_iteration, inner)
+    progress = record(state.progress._replace(stage=inner.stage), sah, moves, converged=False)
+    new, finished, converged = _settle(new, progress.sah, params, static)
+    progress = progress._replace(done=progress.done | finished, converged=converged, stage=new.stage)
+    return keep_if_done(state, state.replace(inner=new, progress=progress))
+
+
+def result(state: OptimizerState) -> OptimizeResult:
+    """The optimized tree (same capacity as the input) and the run's figures.
+
+    The current stage's state holds the latest tree (a stage that has just started
+    holds the tree the previous one ended with).
+    """
+    inner = state.inner
+    out = jax.lax.cond(inner.stage == TREELETS, lambda i: treelet.result(i.treelet).tree,
+                       lambda i: reinsert.result(i.reinsert).tree, inner)
+    out = jax.lax.cond(state.params.split_axes, apply_split_axes, lambda t: t, out)
+    progress = state.progress._replace(sah=sah_of(out, state.params.ct, state.params.ci))
+    return make_result(out, progress)
+
+
+PIPELINE = Optimizer("pipeline", Config, init, step, result, stages=STAGES,
+                     paper="Karras & Aila 2013 and Meister & Bittner 2018, in rounds")
+
+
+def pipeline(tree, *, time_budget: float | None = None, on_step: Callable | None = None,
+             **config) -> OptimizeResult:
+    """Rounds of treelets and reinsertion until a round gains little (module docstring).
+
+    ``config``: fields of :class:`Config` (``treelet``, ``reinsert``: stage configs or
+    dicts of their fields). ``time_budget``, ``on_step(info)``: as
+    :func:`jaxbvh.optimize.driver.run` (``info.stage`` names the stage of each step).
+    """
+    return run(PIPELINE, tree, Config(**config), time_budget=time_budget, on_step=on_step)

@@ -78,10 +78,19 @@ One iteration
    changed paths are refitted bottom-up, all moves in lockstep, stopping below the
    common ancestor (whose box cannot change).
 
-Iterations repeat until one over all nodes takes no move, ``max_iterations``, or
-``time_budget``; every iteration lowers the SAH, so the last tree is the best. The NumPy
-twin (:mod:`jaxbvh.optimize.reinsert_reference`) searches one candidate at a time with the same
-steps, takes the moves greedily and applies them one by one, in rank order.
+Iterations repeat until one over all nodes takes no move (the run has converged),
+``max_iterations``, or ``time_budget``; every iteration lowers the SAH, so the last tree
+is the best. The NumPy twin (:mod:`jaxbvh.optimize.reinsert_reference`) searches one
+candidate at a time with the same steps, takes the moves greedily and applies them one
+by one, in rank order.
+
+The protocol
+============
+:data:`REINSERT` is an optimizer of :mod:`jaxbvh.optimize.protocol`: ``init`` refits the
+boxes and finds the first octaves (:mod:`jaxbvh.optimize.reinsert_rules`), ``step`` is
+one iteration, the widening of the candidates included (:func:`widen`: the octaves are
+loop state, so a batch of trees widens each its own way), ``result`` the tree.
+:func:`reinsert` runs it under the shared driver (:func:`jaxbvh.optimize.driver.run`).
 
 Exactness
 =========
@@ -104,36 +113,36 @@ import numpy as np
 
 from jaxbvh.numerics import extent_scale, half_area, none_to_oob, take_clipped
 from jaxbvh.numerics import min_gain as default_min_gain
-from jaxbvh.optimize.budget import TimeBudget
-from jaxbvh.optimize.reinsert_rules import ALL_OCTAVES, first_octaves, move_width
+from jaxbvh.optimize.driver import run
+from jaxbvh.optimize.protocol import (
+    Optimizer,
+    OptimizeResult,
+    OptimizerState,
+    check_config,
+    check_costs,
+    check_tree,
+    float_dtype,
+    keep_if_done,
+    make_result,
+    new_progress,
+    record,
+)
+from jaxbvh.optimize.reinsert_rules import (
+    ALL_OCTAVES,
+    FIRST_OCTAVES_TRIED,
+    candidates_needed,
+    move_width,
+    octaves_holding,
+)
 from jaxbvh.tree.cost import sah as sah_of
-from jaxbvh.tree.layout import BVH, to_jax
+from jaxbvh.tree.layout import to_jax
 from jaxbvh.tree.refit import refit_boxes
-from jaxbvh.tree.split_axes import assign_split_axes
+from jaxbvh.tree.split_axes import apply_split_axes
 
 DEFAULT_MAX_STEPS = 1024       # search steps per node and iteration (legocar needs < 200)
 DEFAULT_MAX_ITERATIONS = 1000
 DEFAULT_FIRST_FRACTION = 1 / 32
 DEFAULT_ESCALATE = 1e-4
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class ReinsertResult:
-    """What :func:`reinsert` returns.
-
-    ``tree``: the optimized :class:`~jaxbvh.tree.layout.BVH` (same capacity as the input).
-    ``sah``: its SAH; ``sah_start``: the input's. ``iterations``: iterations run (the
-    last one took no move when the optimizer converged). ``moves``: moves applied in
-    all. ``history``: SAH after each iteration (NumPy, length ``iterations``).
-    """
-
-    tree: Any
-    sah: Any
-    sah_start: Any
-    iterations: Any
-    moves: Any
-    history: Any
 
 
 class _State(NamedTuple):
@@ -550,7 +559,7 @@ def _apply(st: _State, m: _Moves, taken, scale):
 
 
 # ----------------------------------------------------------------------------------
-# Jitted pieces and the driver
+# One iteration
 # ----------------------------------------------------------------------------------
 
 
@@ -558,8 +567,8 @@ def _scale_of(st: _State):
     return extent_scale(st.lo[st.root], st.hi[st.root])
 
 
-@jax.jit
-def _prepare(tree):
+def _prepare(tree) -> _State:
+    """The working state of ``tree``: interior boxes refitted tight, their areas."""
     child = jnp.stack([tree.left, tree.right], axis=1).astype(jnp.int32)
     lo, hi = refit_boxes(child, tree.lo, tree.hi)
     root = jnp.asarray(tree.root, jnp.int32)
@@ -590,14 +599,12 @@ def _find(st: _State, octaves, max_steps, min_gain):
     return m, _select(st, m), jnp.where(a >= 0, take_clipped(gain, a), 0), count
 
 
-@jax.jit
 def _iteration(st: _State, prim_count, ct, ci, octaves, max_steps, min_gain):
-    """One iteration: ``(state, moves taken, total gain, SAH after, candidates, nodes)``."""
+    """One iteration: ``(state, moves taken, total gain, SAH after, candidates searched)``."""
     m, taken, gain, count = _find(st, octaves, max_steps, min_gain)
     new = _apply(st, m, taken, _scale_of(st))
     moves = jnp.sum(taken, dtype=jnp.int32)
-    return (new, moves, jnp.sum(jnp.where(taken, gain, 0)), _interior_sah(new, prim_count, ct, ci),
-            count, jnp.sum(st.parent >= 0, dtype=jnp.int32))
+    return new, moves, jnp.sum(jnp.where(taken, gain, 0)), _interior_sah(new, prim_count, ct, ci), count
 
 
 @jax.jit
@@ -606,82 +613,165 @@ def _moves_of(st: _State, octaves, max_steps, min_gain):
     return _find(st, octaves, max_steps, min_gain)
 
 
-@jax.jit
 def _to_tree(tree, st: _State):
+    """``tree`` with the links, boxes and root of the working state ``st``."""
     return tree.replace(left=st.child[:, 0], right=st.child[:, 1], parent=st.parent,
                         lo=st.lo, hi=st.hi, root=st.root)
 
 
-def _check_tree(tree):
-    if not isinstance(tree, BVH):
-        raise ValueError(f"tree must be a binary jaxbvh.BVH, got {type(tree).__name__}")
+def widen(octaves, taken, count, nodes, before, after, escalate):
+    """The octaves of the next iteration (module docstring, step 1; traceable).
+
+    One more after an iteration that took moves but lowered the SAH (``before`` ->
+    ``after``) by at most ``escalate`` (relative), four more after one that took none,
+    every node from 64 octaves on; unchanged once every node (``count == nodes``) is
+    searched or while the gains stay large. The comparison runs in the tree's float type
+    (the host loop it replaces, and the twin, compare the same two SAH values in
+    float64: they can differ only when the drop lies within rounding of the threshold).
+    """
+    small = (taken == 0) | (before - after <= escalate * before)
+    grown = jnp.where(octaves < FIRST_OCTAVES_TRIED, octaves + jnp.where(taken > 0, 1, 4), ALL_OCTAVES)
+    return jnp.where((count < nodes) & small, grown, octaves).astype(jnp.int32)
 
 
-def reinsert(tree, *, ct: float = 1.0, ci: float = 1.0,
-             max_iterations: int = DEFAULT_MAX_ITERATIONS, max_steps: int = DEFAULT_MAX_STEPS,
-             first_fraction: float = DEFAULT_FIRST_FRACTION, escalate: float = DEFAULT_ESCALATE,
-             min_gain: float | None = None, split_axes: bool = True,
-             on_iteration: Callable | None = None,
-             time_budget: float | None = None) -> ReinsertResult:
-    """Parallel reinsertion until an iteration over all nodes takes no move (module docstring).
+# ----------------------------------------------------------------------------------
+# The optimizer protocol
+# ----------------------------------------------------------------------------------
 
-    ``tree``: a :class:`~jaxbvh.tree.layout.BVH` (NumPy or JAX arrays, any capacity; leaves of
-    any size). ``max_iterations``: most iterations. ``max_steps``: the search bound, in
-    steps per node and iteration. ``first_fraction``: about the share of nodes searched
-    at first, those of largest parent area (whole octaves of parent area below the
-    root's, :func:`first_octaves`); after an iteration that lowers the SAH by at most
-    ``escalate`` (relative) one more octave is searched, after one that takes no move
-    four more, until all nodes are (from 64 octaves on: all nodes). ``min_gain``: relative margin (module
-    docstring). ``split_axes``: run :func:`jaxbvh.optimize.rotate.assign_split_axes` at the end.
-    ``on_iteration(i, sah, moves)``: called on the host after every iteration
-    (progress). ``time_budget``: seconds after which to stop (at the end of an
-    iteration) with the tree so far (the best so far: every iteration lowers the SAH);
-    the clock starts after the first iteration, which also compiles. Returns a
-    :class:`ReinsertResult` whose tree has the input's capacity.
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Knobs of parallel reinsertion (Meister & Bittner 2018), with the defaults.
+
+    ``max_iterations``: most iterations. ``max_steps``: the search bound, in steps per
+    node and iteration. ``first_fraction``: about the share of nodes searched at first,
+    those of largest parent area (1: every node, Meister & Bittner's schedule).
+    ``escalate``: relative SAH drop at or below which the next iteration searches one
+    more octave. ``ct``, ``ci``: SAH constants. ``min_gain``: relative margin a place
+    must beat (None: ``64 * eps`` of the tree's float type). ``split_axes``: Kensler's
+    final pass (:func:`jaxbvh.tree.split_axes.assign_split_axes`) in ``result``.
     """
 
-    _check_tree(tree)
-    if max_iterations < 0:
-        raise ValueError(f"max_iterations must be >= 0, got {max_iterations}")
-    if max_steps < 1:
-        raise ValueError(f"max_steps must be >= 1, got {max_steps}")
-    if not 0 < first_fraction <= 1:
-        raise ValueError(f"first_fraction must be in (0, 1], got {first_fraction}")
-    if not ct >= 0 or not ci >= 0:
-        raise ValueError(f"ct and ci must be >= 0, got ct={ct}, ci={ci}")
-    if time_budget is not None and not time_budget > 0:
-        raise ValueError(f"time_budget must be > 0 seconds, got {time_budget}")
-    if on_iteration is not None and not callable(on_iteration):
-        raise ValueError(f"on_iteration must be a function (iteration, sah, moves), got {on_iteration!r}")
+    max_iterations: int = dataclasses.field(default=DEFAULT_MAX_ITERATIONS, metadata=dict(
+        help="most iterations", metavar="N"))
+    max_steps: int = dataclasses.field(default=DEFAULT_MAX_STEPS, metadata=dict(
+        help="search steps per node and iteration", metavar="S"))
+    first_fraction: float = dataclasses.field(default=DEFAULT_FIRST_FRACTION, metadata=dict(
+        help="about the share of nodes (largest parent area first) searched at first, "
+             "growing to all; in (0, 1]", metavar="F"))
+    escalate: float = dataclasses.field(default=DEFAULT_ESCALATE, metadata=dict(
+        help="relative SAH drop of an iteration at or below which one more octave of "
+             "nodes is searched", metavar="E"))
+    ct: float = dataclasses.field(default=1.0, metadata=dict(help="SAH traversal cost"))
+    ci: float = dataclasses.field(default=1.0, metadata=dict(help="SAH intersection cost"))
+    min_gain: float | None = dataclasses.field(default=None, metadata=dict(
+        help="relative margin a move must beat (automatic: 64 eps of the tree's float type)",
+        metavar="G"))
+    split_axes: bool = dataclasses.field(default=True, metadata=dict(
+        help="Kensler's split-axis pass on the result"))
+
+    def __post_init__(self):
+        if self.max_iterations < 0:
+            raise ValueError(f"max_iterations must be >= 0, got {self.max_iterations}")
+        if self.max_steps < 1:
+            raise ValueError(f"max_steps must be >= 1, got {self.max_steps}")
+        if not 0 < self.first_fraction <= 1:
+            raise ValueError(f"first_fraction must be in (0, 1], got {self.first_fraction}")
+        if not self.escalate >= 0:
+            raise ValueError(f"escalate must be >= 0, got {self.escalate}")
+        check_costs(self.ct, self.ci)
+        if self.min_gain is not None and not self.min_gain >= 0:
+            raise ValueError(f"min_gain must be >= 0, got {self.min_gain}")
+
+
+class Params(NamedTuple):
+    """Settings passed as traced values (changing them does not recompile)."""
+
+    ct: Any         # [] tree dtype: SAH cost of a traversal step
+    ci: Any         # [] tree dtype: SAH cost of a primitive test
+    min_gain: Any   # [] tree dtype: relative margin (module docstring, Exactness)
+    escalate: Any   # [] tree dtype: relative drop that widens the candidates
+    max_steps: Any  # [] int32: search steps per node and iteration
+    need: Any       # [] int32: candidates of the first iteration (reinsert_rules.candidates_needed)
+    split_axes: Any  # [] bool: Kensler's final pass in result() (traced: no program of its own)
+
+
+class Inner(NamedTuple):
+    """Reinsertion's own loop state."""
+
+    tree: Any     # _State: links, boxes (interior ones tight), root, scaled areas
+    octaves: Any  # [] int32: candidates' parent areas reach 2^-octaves of the root's
+    nodes: Any    # [] int32: real nodes but the root (every one a candidate at ALL_OCTAVES)
+
+
+def init(tree, config: Config | None = None, key=None) -> OptimizerState:
+    """The state before the first iteration: boxes refitted tight, the first octaves.
+
+    ``tree``: a :class:`~jaxbvh.tree.layout.BVH` (NumPy or JAX arrays, any capacity,
+    leaves of any size). ``key``: unused (the method is deterministic).
+    """
+    del key
+    check_tree(tree)
+    config = check_config(config, Config, "reinsert")
     tree = to_jax(tree)
-    dtype = np.dtype(tree.lo.dtype)
-    min_gain = default_min_gain(dtype) if min_gain is None else float(min_gain)
-    if not min_gain >= 0:
-        raise ValueError(f"min_gain must be >= 0, got {min_gain}")
-    sah_start = sah_of(tree, ct, ci)
+    dtype = float_dtype(tree)
+    min_gain = default_min_gain(dtype) if config.min_gain is None else config.min_gain
+    # the node count never changes while optimizing: the first candidates' count is
+    # taken here, on the host (reinsert_rules)
+    nodes = int(jnp.sum(tree.parent >= 0))
+    params = Params(*(jnp.asarray(x, dtype) for x in (config.ct, config.ci, min_gain, config.escalate)),
+                    max_steps=jnp.int32(config.max_steps),
+                    need=jnp.int32(candidates_needed(config.first_fraction, nodes)),
+                    split_axes=jnp.bool_(config.split_axes))
+    limit = config.max_iterations if config.ct > 0 else 0  # with Ct = 0 no move changes the SAH
+    return restart(params, tree, limit)
+
+
+@jax.jit
+def _start(tree, need) -> Inner:
     st = _prepare(tree)
-    octaves = first_octaves(*jax.device_get((st.area, st.parent, st.root)), first_fraction)
-    history, moves = [], 0
-    budget = TimeBudget(time_budget)
-    ct_, ci_, steps_, mg_ = (jnp.asarray(ct, dtype), jnp.asarray(ci, dtype), jnp.int32(max_steps),
-                             jnp.asarray(min_gain, dtype))
-    for i in range(max_iterations if ct > 0 else 0):
-        st, taken, _, sah, count, nodes = _iteration(st, tree.prim_count, ct_, ci_,
-                                                     jnp.int32(octaves), steps_, mg_)
-        taken, sah, count, nodes = int(taken), float(sah), int(count), int(nodes)
-        history.append(sah)
-        moves += taken
-        if on_iteration is not None:
-            on_iteration(i, sah, taken)
-        before = history[-2] if len(history) > 1 else float(sah_start)
-        if taken == 0 and count == nodes:
-            break
-        if count < nodes and (taken == 0 or before - sah <= escalate * before):
-            octaves = octaves + (1 if taken else 4) if octaves < 64 else ALL_OCTAVES
-        if budget.spent():
-            break
-    out = _to_tree(tree, st)
-    if split_axes:
-        out = assign_split_axes(out)
-    return ReinsertResult(out, sah_of(out, ct, ci), sah_start, len(history), moves,
-                          np.asarray(history, dtype))
+    octaves = octaves_holding(st.area, st.parent, st.root, need, xp=jnp)
+    return Inner(st, octaves, jnp.sum(st.parent >= 0, dtype=jnp.int32))
+
+
+def restart(params: Params, tree, limit: int) -> OptimizerState:
+    """The state of a fresh run on ``tree`` (a JAX BVH) with these settings (traceable:
+    the pipeline starts each reinsertion stage with it). ``limit``: most iterations."""
+    progress = new_progress(sah_of(tree, params.ct, params.ci), limit, float_dtype(tree))
+    # every setting is traced (no static part): one compiled program for every config
+    return OptimizerState(tree, progress, params, _start(tree, params.need), None)
+
+
+def step(state: OptimizerState) -> OptimizerState:
+    """One iteration: search the candidates, take the independent best moves, apply
+    them; widen the candidates when the gain gets small (module docstring)."""
+    p, inner, progress = state.params, state.inner, state.progress
+    st, taken, _, sah, count = _iteration(inner.tree, state.tree.prim_count, p.ct, p.ci, inner.octaves,
+                                          p.max_steps, p.min_gain)
+    octaves = widen(inner.octaves, taken, count, inner.nodes, progress.sah, sah, p.escalate)
+    progress = record(progress, sah, taken, converged=(taken == 0) & (count == inner.nodes))
+    return keep_if_done(state, state.replace(inner=inner._replace(tree=st, octaves=octaves), progress=progress))
+
+
+def result(state: OptimizerState) -> OptimizeResult:
+    """The optimized tree (same capacity as the input) and the run's figures."""
+    out = _to_tree(state.tree, state.inner.tree)
+    out = jax.lax.cond(state.params.split_axes, apply_split_axes, lambda t: t, out)
+    progress = state.progress._replace(sah=sah_of(out, state.params.ct, state.params.ci))
+    return make_result(out, progress)
+
+
+REINSERT = Optimizer("reinsert", Config, init, step, result, paper="Meister & Bittner 2018")
+
+
+def reinsert(tree, *, time_budget: float | None = None, on_step: Callable | None = None,
+             **config) -> OptimizeResult:
+    """Parallel reinsertion until an iteration over all nodes takes no move (module docstring).
+
+    ``config``: fields of :class:`Config` (e.g. ``first_fraction=1.0``, ``max_steps=64``).
+    ``time_budget``, ``on_step(info)``: as :func:`jaxbvh.optimize.driver.run` (the run
+    stops after an iteration with the tree so far: every iteration lowers the SAH).
+    Returns an :class:`~jaxbvh.optimize.protocol.OptimizeResult` whose tree has the
+    input's capacity (``steps``: iterations).
+    """
+    return run(REINSERT, tree, Config(**config), time_budget=time_budget, on_step=on_step)

@@ -4,14 +4,31 @@ Which nodes are searched when (candidates by octaves of parent area below the ro
 coarse to fine) and how many of the moves found an iteration considers: both
 :mod:`jaxbvh.optimize.reinsert` and :mod:`jaxbvh.optimize.reinsert_reference` follow
 these, so they choose the same moves.
+
+The first octaves
+=================
+An iteration searches the nodes whose parent's area is at least ``2^-k`` of the root's
+(``k`` octaves). A run starts at the fewest octaves ``k`` in ``0 .. 63`` that hold
+:func:`candidates_needed` nodes (about ``first_fraction`` of them), or with every node
+(:data:`ALL_OCTAVES`) when none does, when ``first_fraction >= 1``, when the root has
+no area or the tree has no node but the root. :func:`octaves_holding` applies the rule
+to NumPy or JAX arrays (``xp``): the NumPy twin calls it on the host, the optimizer
+inside its traced step (the pipeline starts a reinsertion stage there). The count
+itself is taken on the host (:func:`candidates_needed`, in float64 as the rule reads):
+a tree's node count never changes while it is optimized.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
 #: ``octaves`` at and above this: every node is a candidate (the threshold is 0)
 ALL_OCTAVES = 4096
+
+#: octaves tried for the first candidates (beyond: every node)
+FIRST_OCTAVES_TRIED = 64
 
 
 def move_width(capacity: int) -> int:
@@ -19,18 +36,41 @@ def move_width(capacity: int) -> int:
     return int(min(capacity, max(4096, capacity // 32)))
 
 
-def first_octaves(area, parent, root, first_fraction: float) -> int:
-    """The fewest octaves of parent area (below the root's) that hold ``first_fraction``
-    of the candidates (host; :data:`ALL_OCTAVES` for all of them)."""
+def candidates_needed(first_fraction: float, nodes: int) -> int:
+    """How many of ``nodes`` (real nodes but the root) the first iteration searches at
+    least: ``ceil(first_fraction * nodes)``; ``nodes + 1`` (no octave holds that many:
+    every node) for ``first_fraction >= 1``. Host integers, float64 arithmetic."""
     if first_fraction >= 1:
-        return ALL_OCTAVES
-    area, parent = np.asarray(area), np.asarray(parent)
-    area_p = area[parent[parent >= 0]]
-    root_area = float(area[int(root)])
-    if root_area <= 0 or area_p.size == 0:
-        return ALL_OCTAVES
-    need = int(np.ceil(first_fraction * area_p.size))
-    for octaves in range(0, 64):
-        if int(np.sum(area_p >= np.ldexp(area.dtype.type(root_area), -octaves))) >= need:
-            return octaves
-    return ALL_OCTAVES
+        return int(nodes) + 1
+    return int(math.ceil(float(first_fraction) * int(nodes)))
+
+
+def octaves_holding(area, parent, root, need, xp=np):
+    """The fewest octaves ``k`` in ``0 .. 63`` whose candidates number at least ``need``
+    (module docstring), else :data:`ALL_OCTAVES`; an int32 scalar of ``xp``.
+
+    ``area`` [N]: scaled half-areas; ``parent`` [N] int (-1: root or padding); ``root``:
+    the root's id; ``need``: :func:`candidates_needed`. ``xp``: ``numpy`` or
+    ``jax.numpy`` (traceable then). The counts compare areas with exact powers of two
+    of the root's area, as the iterations' candidate test does.
+    """
+    area, parent = xp.asarray(area), xp.asarray(parent)
+    valid = parent >= 0
+    area_p = xp.where(valid, area[xp.maximum(parent, 0)], -xp.inf)
+    root_area = area[root]
+    thresholds = xp.ldexp(xp.full(FIRST_OCTAVES_TRIED, root_area, area.dtype),
+                          -xp.arange(FIRST_OCTAVES_TRIED, dtype=np.int32))
+    ascending = xp.sort(area_p)
+    # candidates of k octaves: parent areas >= the threshold of k (never a padding -inf)
+    counts = area_p.shape[0] - xp.searchsorted(ascending, thresholds, side="left")
+    enough = counts >= need
+    first = xp.argmax(enough).astype(np.int32)
+    usable = xp.any(enough) & (root_area > 0) & xp.any(valid)
+    return xp.where(usable, first, np.int32(ALL_OCTAVES)).astype(np.int32)
+
+
+def first_octaves(area, parent, root, first_fraction: float) -> int:
+    """:func:`octaves_holding` for ``first_fraction`` of the tree's nodes (host)."""
+    nodes = int(np.sum(np.asarray(parent) >= 0))
+    return int(octaves_holding(np.asarray(area), np.asarray(parent), int(root),
+                               candidates_needed(first_fraction, nodes)))
