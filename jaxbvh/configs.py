@@ -21,9 +21,15 @@ key         what it is
 :class:`Checked` runs every field's check in ``__post_init__`` and then the class's own
 ``_check_together`` for rules between knobs, so a Config that exists is valid, and the
 command line, which builds its options and their defaults from these fields
-(:func:`jaxbvh.cli.commands._common.add_config_options`), checks a value by the same
-rule the library does. The checks below put the knob's name first in their message, so
-the command line can say ``--max-leaf`` where the library says ``max_leaf``.
+(:class:`jaxbvh.cli.options.ConfigOptions`), checks a value by the same rule the
+library does. The checks below put the knob's name first in their message, so the
+command line can say ``--max-leaf`` where the library says ``max_leaf``.
+
+A knob that several methods share (the SAH constants, the optimizers' margin and
+split-axis pass) is made by one function below (:func:`ct_knob`, ...), so its
+default, check and help are written once. A knob whose default is itself a Config (the
+pipeline's stage configs) is checked by :func:`config_of`, and the command line offers
+that Config's knobs too.
 """
 
 from __future__ import annotations
@@ -36,7 +42,11 @@ from typing import Any, Callable
 
 def knob(default, *, check: Callable | None = None, help: str = "", metavar: str | None = None,
          choices=None, type: Callable | None = None):
-    """A dataclass field with its default, check and command-line metadata (module docstring)."""
+    """A dataclass field with its default, check and command-line metadata (module docstring).
+
+    ``default`` must be immutable (a number, string, tuple, None or a frozen Config):
+    every instance shares it.
+    """
     metadata = {"check": check, "help": help, "metavar": metavar, "choices": choices, "type": type}
     return dataclasses.field(default=default, metadata={k: v for k, v in metadata.items() if v is not None})
 
@@ -89,16 +99,19 @@ def integer(minimum: int | None = None, maximum: int | None = None) -> Callable:
 
 
 def real(minimum: float | None = None, maximum: float | None = None, *, finite: bool = True,
-         below: float | None = None) -> Callable:
-    """A real number in ``[minimum, maximum]`` (or ``< below``), finite unless ``finite=False``."""
+         below: float | None = None, above: float | None = None) -> Callable:
+    """A real number in ``[minimum, maximum]``, ``< below``, ``> above``; finite unless
+    ``finite=False`` (never NaN)."""
 
     def check(name, value):
         number = isinstance(value, numbers.Real) and not isinstance(value, bool)
         ok = number and not math.isnan(value) and (not finite or math.isfinite(value)) \
             and (minimum is None or value >= minimum) and (maximum is None or value <= maximum) \
-            and (below is None or value < below)
+            and (below is None or value < below) and (above is None or value > above)
         if not ok:
             what = _range("a finite number" if finite else "a number", minimum, maximum)
+            if above is not None:
+                what += f" above {above:g}"
             if below is not None:
                 what += f" below {below:g}"
             raise ValueError(f"{name} must be {what}, got {value!r}")
@@ -121,6 +134,66 @@ def one_of(choices) -> Callable:
 def optional(check: Callable) -> Callable:
     """``None`` or what ``check`` accepts."""
     return lambda name, value: None if value is None else check(name, value)
+
+
+def sizes(name, value):
+    """A non-empty sequence of integers >= 1 (work sizes), as a tuple (hashable: Configs
+    of the optimizers are part of a compiled program's identity)."""
+    one = integer(1)
+    try:
+        return tuple(one(name, v) for v in _non_empty(value))
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be positive sizes, got {value!r}") from None
+
+
+def _non_empty(value) -> tuple:
+    items = tuple(value)
+    if not items:
+        raise ValueError("empty")
+    return items
+
+
+def config_of(config_class) -> Callable:
+    """A nested Config: an instance of ``config_class``, or a dict of its knobs (checked
+    by that Config, whose message names the inner knob)."""
+
+    def check(name, value):
+        if isinstance(value, dict):
+            value = config_class(**value)
+        if not isinstance(value, config_class):
+            raise ValueError(f"{name} must be a {config_class.__module__}.{config_class.__qualname__} "
+                             f"or a dict of its fields, got {type(value).__name__}")
+        return value
+
+    return check
+
+
+# ----------------------------------------------------------------------------------
+# Knobs several methods share: one default, one check, one help each
+# ----------------------------------------------------------------------------------
+
+
+def ct_knob():
+    """``ct``: the SAH's cost of a traversal step (1, as every paper here uses it)."""
+    return knob(1.0, check=real(0), metavar="CT", help="SAH traversal cost, >= 0")
+
+
+def ci_knob():
+    """``ci``: the SAH's cost of a primitive test (1)."""
+    return knob(1.0, check=real(0), metavar="CI", help="SAH intersection cost, >= 0")
+
+
+def min_gain_knob():
+    """``min_gain``: the relative margin an optimizer's move must beat; None: ``64 * eps``
+    of the tree's float type (:func:`jaxbvh.numerics.min_gain`)."""
+    return knob(None, check=optional(real(0, finite=False)), type=float, metavar="G",
+                help="relative margin a move must beat (none: 64 eps of the tree's float type)")
+
+
+def split_axes_knob():
+    """``split_axes``: Kensler's final pass (:func:`jaxbvh.tree.split_axes.assign_split_axes`)
+    on an optimizer's result."""
+    return knob(True, help="Kensler's split-axis pass on the result")
 
 
 def _range(what: str, minimum, maximum) -> str:
