@@ -204,3 +204,12 @@ def _range(what: str, minimum, maximum) -> str:
     if maximum is not None:
         return f"{what} <= {maximum:g}"
     return what
+
+
+@dataclasses.dataclass(frozen=True)
+class SAHCosts(Checked):
+    """The SAH constants alone: the Config of pricing a tree one did not build (``jaxbvh
+    trace``, the stats of a tree file). ``ct``, ``ci``: as every builder's."""
+
+    ct: float = ct_knob()
+    ci: float = ci_knob()
