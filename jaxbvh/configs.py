@@ -92,7 +92,8 @@ def integer(minimum: int | None = None, maximum: int | None = None) -> Callable:
         whole = isinstance(value, numbers.Real) and not isinstance(value, bool) and float(value).is_integer()
         in_range = whole and (minimum is None or value >= minimum) and (maximum is None or value <= maximum)
         if not in_range:
-            raise ValueError(f"{name} must be {_range('an integer', minimum, maximum)}, got {value!r}")
+            what = _interval("an integer", minimum, maximum, None, None)
+            raise ValueError(f"{name} must be {what}, got {value!r}")
         return int(value)
 
     return check
@@ -109,11 +110,7 @@ def real(minimum: float | None = None, maximum: float | None = None, *, finite: 
             and (minimum is None or value >= minimum) and (maximum is None or value <= maximum) \
             and (below is None or value < below) and (above is None or value > above)
         if not ok:
-            what = _range("a finite number" if finite else "a number", minimum, maximum)
-            if above is not None:
-                what += f" above {above:g}"
-            if below is not None:
-                what += f" below {below:g}"
+            what = _interval("a finite number" if finite else "a number", minimum, maximum, above, below)
             raise ValueError(f"{name} must be {what}, got {value!r}")
         return float(value)
 
@@ -141,15 +138,11 @@ def sizes(name, value):
     of the optimizers are part of a compiled program's identity)."""
     one = integer(1)
     try:
-        return tuple(one(name, v) for v in _non_empty(value))
+        items = tuple(one(name, v) for v in value)
     except (TypeError, ValueError):
-        raise ValueError(f"{name} must be positive sizes, got {value!r}") from None
-
-
-def _non_empty(value) -> tuple:
-    items = tuple(value)
+        items = ()
     if not items:
-        raise ValueError("empty")
+        raise ValueError(f"{name} must be positive sizes, got {value!r}")
     return items
 
 
@@ -166,6 +159,19 @@ def config_of(config_class) -> Callable:
         return value
 
     return check
+
+
+def _interval(what: str, minimum, maximum, above, below) -> str:
+    """``what`` with its bounds: ``in (0, 1]``, ``>= 2``, ``< 1``, ..."""
+    low = f"[{minimum:g}" if minimum is not None else f"({above:g}" if above is not None else None
+    high = f"{maximum:g}]" if maximum is not None else f"{below:g})" if below is not None else None
+    if low and high:
+        return f"{what} in {low}, {high}"
+    if low:
+        return f"{what} {'>=' if minimum is not None else '>'} {low[1:]}"
+    if high:
+        return f"{what} {'<=' if maximum is not None else '<'} {high[:-1]}"
+    return what
 
 
 # ----------------------------------------------------------------------------------
@@ -194,16 +200,6 @@ def split_axes_knob():
     """``split_axes``: Kensler's final pass (:func:`jaxbvh.tree.split_axes.assign_split_axes`)
     on an optimizer's result."""
     return knob(True, help="Kensler's split-axis pass on the result")
-
-
-def _range(what: str, minimum, maximum) -> str:
-    if minimum is not None and maximum is not None:
-        return f"{what} in [{minimum:g}, {maximum:g}]"
-    if minimum is not None:
-        return f"{what} >= {minimum:g}"
-    if maximum is not None:
-        return f"{what} <= {maximum:g}"
-    return what
 
 
 @dataclasses.dataclass(frozen=True)

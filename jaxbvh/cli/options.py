@@ -278,9 +278,10 @@ class ConfigOptions:
         for flag, value in given.items():
             paths = [k.path for k in self.knobs[flag] if k.method == method]
             if not paths and not self.ignore_others:
+                chooser = self.method_flag or "method"
                 others = ", ".join(dict.fromkeys(k.method for k in self.knobs[flag]))
-                raise ValueError(f"{flag} does not apply to {self.method_flag or 'the method'} {method}; "
-                                 f"it is an option of {others}")
+                raise ValueError(f"{flag} does not apply to {chooser} {method}; it is an option of "
+                                 f"{chooser} {others}")
             mine[flag] = paths
             values.update({path: value for path in paths})
         base = self.bases[method]
