@@ -238,33 +238,44 @@ def test_an_option_refuses_exactly_what_its_config_refuses(case, data):
 
 def test_an_option_of_another_method_is_an_error_naming_both():
     """``jaxbvh optimize TREE --hottest -1`` used to ignore --hottest (the default method
-    is the pipeline); every option of a method-choosing command is checked so."""
+    is the pipeline); every option of a method-choosing command is checked so, but
+    between methods of one family (the builders; hill climbing and annealing)."""
     checked = 0
     for command in SUBPARSERS:
         for options in {id(a.config_options): a.config_options for a in knob_actions(command)}.values():
-            if options.method_flag is None or options.ignore_others:
+            if options.method_flag is None:
                 continue
             for flag, knobs in options.knobs.items():
                 owners = {k.method for k in knobs}
+                families = {options.families[owner] for owner in owners}
                 for method in set(options.methods) - owners:
-                    kind, choices = knobs[0].kind, knobs[0].choices
-                    value = "--no-" + flag[2:] if kind is bool else \
-                        f"{flag}={choices[0] if choices else {int: 1, float: 0.5}.get(kind, 'x')}"
+                    default = knobs[0].default  # a value its own method takes
+                    sample = {int: 1, float: 0.5, str: "x"}[knobs[0].kind] if default is None else default
+                    value = "--no-" + flag[2:] if knobs[0].kind is bool else f"{flag}={sample}"
                     args = parse(command, options.method_flag, method, value)
+                    if options.families[method] in families:  # shared: accepted, not used
+                        assert options.config(method, args) == options.config(
+                            method, parse(command, options.method_flag, method))
+                        continue
                     with pytest.raises(ValueError, match=f"^{flag} does not apply to "
                                                          f"{options.method_flag} {method};.*{sorted(owners)[0]}"):
                         options.config(method, args)
                     checked += 1
     assert checked > 20
+    make = optimize_command.make_config
     with pytest.raises(ValueError, match="--hottest does not apply to --method pipeline"):
-        optimize_command.make_config(parse("optimize", "--hottest", "-1"))
+        make(parse("optimize", "--hottest", "-1"))
+    # annealing's options with hill climbing: accepted, and checked by annealing's Config
+    assert make(parse("optimize", "--method", "hc", "--iterations", 8, "--chains", 2)) == OPTIMIZERS["hc"].Config()
+    with pytest.raises(ValueError, match=r"^--hottest must be a number >= 0, got -1.0 \(an option of --method sa\)"):
+        make(parse("optimize", "--method", "hc", "--hottest", "-1"))
 
 
 def test_builder_options_serve_every_builder():
     """One set of builder options for every builder (a knob of another builder is
-    ignored), checked while parsing: a usage error before anything runs."""
+    checked, not used), checked while parsing: a usage error before anything runs."""
     args = parse("build", "--builder", "sweep", "--bins", 4, "--radius", 3)
-    assert type(options_of("build", "--bins").config("sweep", args)) is BUILDERS["sweep"]
+    assert options_of("build", "--bins").config("sweep", args) == BUILDERS["sweep"]()
     with pytest.raises(ValueError, match="argument --bins: --bins must be an integer >= 2"):
         parse("build", "--builder", "sweep", "--bins", 1)
 

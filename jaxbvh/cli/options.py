@@ -33,9 +33,13 @@ commands check when they build the Config, first thing in ``run``.
 
 **An option of another method is an error.** With ``method_flag`` (``--method``), a flag
 given that sets no knob of the chosen method is a ``ValueError`` naming both (``--hottest
-does not apply to --method pipeline``) rather than silently ignored; ``ignore_others``
-keeps the builders' rule instead (one set of builder options serves every builder, as
-:func:`jaxbvh.build`'s keyword form does).
+does not apply to --method pipeline; it is an option of --method sa``) rather than
+silently ignored. Methods of one *family* (``families``) share their options instead: a
+flag of another method of the family is accepted, and its value checked by that
+method's Config, so it is never silently wrong. The builders are one family (one set of
+builder options serves every builder, as :func:`jaxbvh.build`'s keyword form does), and
+so are hill climbing and annealing (Kensler's rotations; hill climbing is annealing
+without the heat).
 """
 
 from __future__ import annotations
@@ -137,14 +141,15 @@ class ConfigOptions:
     ``flags``: renames, keyed the same way, to a flag (``{"leaves": "--treelet-leaves"}``).
     ``choices``: knob -> allowed values (for a string knob that names none). ``helps``:
     knob -> help text replacing the knob's. ``method_flag``: the option that picks the
-    method (``"--method"``), named in errors. ``ignore_others``: a flag of another method
-    is ignored rather than an error. ``check_while_parsing``: run the knobs' checks in
-    argparse (see the module docstring).
+    method (``"--method"``), named in errors. ``families``: method -> family name;
+    methods of one family share their options (module docstring; by default each method
+    is a family of its own). ``check_while_parsing``: run the knobs' checks in argparse
+    (see the module docstring).
     """
 
     def __init__(self, configs: Mapping[str, Any], *, exclude=(), flags: Mapping[str, str] | None = None,
                  choices: Mapping[str, tuple] | None = None, helps: Mapping[str, str] | None = None,
-                 method_flag: str | None = None, ignore_others: bool = False,
+                 method_flag: str | None = None, families: Mapping[str, str] | None = None,
                  check_while_parsing: bool = False):
         self.bases = {method: _instance(config) for method, config in configs.items()}
         self.exclude = set(exclude)
@@ -152,7 +157,7 @@ class ConfigOptions:
         self.extra_choices = dict(choices or {})
         self.helps = dict(helps or {})
         self.method_flag = method_flag
-        self.ignore_others = ignore_others
+        self.families = {method: (families or {}).get(method, method) for method in self.bases}
         self.check_while_parsing = check_while_parsing
         self.knobs: dict[str, list[Knob]] = {}  # flag -> the knobs it sets
         for method, base in self.bases.items():
@@ -277,18 +282,33 @@ class ConfigOptions:
         mine: dict[str, list[tuple]] = {}
         for flag, value in given.items():
             paths = [k.path for k in self.knobs[flag] if k.method == method]
-            if not paths and not self.ignore_others:
-                chooser = self.method_flag or "method"
-                others = ", ".join(dict.fromkeys(k.method for k in self.knobs[flag]))
-                raise ValueError(f"{flag} does not apply to {chooser} {method}; it is an option of "
-                                 f"{chooser} {others}")
-            mine[flag] = paths
-            values.update({path: value for path in paths})
+            if paths:
+                mine[flag] = paths
+                values.update({path: value for path in paths})
+            else:
+                self._check_other(method, flag, value)
         base = self.bases[method]
         try:
             return _build(base, values, fixed)
         except ValueError as error:
             raise ValueError(self._named(method, str(error), base, given, mine, fixed)) from None
+
+    def _check_other(self, method: str, flag: str, value) -> None:
+        """A flag given that sets no knob of ``method``: an error naming both, unless a
+        method of its family owns it; then that method's Config checks the value."""
+        chooser = self.method_flag or "method"
+        owners = list(dict.fromkeys(k.method for k in self.knobs[flag]))
+        kin = [owner for owner in owners if self.families[owner] == self.families[method]]
+        if not kin:
+            raise ValueError(f"{flag} does not apply to {chooser} {method}; it is an option of "
+                             f"{chooser} {', '.join(owners)}")
+        owner = kin[0]
+        paths = [k.path for k in self.knobs[flag] if k.method == owner]
+        try:
+            _build(self.bases[owner], dict.fromkeys(paths, value), {})
+        except ValueError as error:
+            message = self._named(owner, str(error), self.bases[owner], {flag: value}, {flag: paths}, {})
+            raise ValueError(f"{message} (an option of {chooser} {owner})") from None
 
     def _named(self, method, message, base, given, mine, fixed) -> str:
         """``message`` with the method's knob names written as flags, and led by the flag

@@ -44,9 +44,10 @@ def add_mesh_arg(parser, required: bool = False) -> None:
 DEFAULT_SEED = 0
 
 #: the builders' knobs as options (jaxbvh.cli.options): --max-leaf, --bins, --radius,
-#: --morton-bits, --ct, --ci. One set serves every builder (a knob of another builder is
-#: ignored, as jaxbvh.build's keyword form does), and every builder shares each knob's
-#: rule, so values are checked while parsing. pad and dtype stay the library's.
+#: --morton-bits, --ct, --ci. The builders are one family: one set of options serves every
+#: builder (a knob of another builder is checked, not used, as jaxbvh.build's keyword form
+#: ignores it), and every builder shares each knob's rule, so values are checked while
+#: parsing. pad and dtype stay the library's.
 BUILDER_EXCLUDE = ("pad", "dtype")
 
 
@@ -57,7 +58,8 @@ def builder_options(default: BuilderConfig | None = None) -> config_options.Conf
     if default is not None:
         configs[default.method] = default
     return config_options.ConfigOptions(configs, exclude=BUILDER_EXCLUDE, method_flag="--builder",
-                                        ignore_others=True, check_while_parsing=True)
+                                        families=dict.fromkeys(BUILDERS, "builders"),
+                                        check_while_parsing=True)
 
 
 def add_builder_args(parser, *, default: BuilderConfig | None = None) -> None:

@@ -10,8 +10,9 @@ parallel reinsertion (Meister & Bittner 2018), ``treelet`` treelet restructuring
 The method's options are the knobs of its ``Config`` (:mod:`jaxbvh.cli.options`): the
 command types no default of its own, and ``--help`` lists each method's. A few keep
 their established spellings (:data:`FLAGS`). An option of another method is a usage
-error naming both (``--hottest`` belongs to ``--method sa``), and the method's Config
-checks every value, naming the option, before anything is loaded.
+error naming both (``--hottest`` belongs to ``--method sa``), but for hill climbing and
+annealing, which share theirs (:data:`FAMILIES`); the Configs check every value given,
+naming the option, before anything is loaded.
 """
 
 from __future__ import annotations
@@ -42,10 +43,16 @@ FLAGS = {
 EXCLUDE = ("ct", "ci", "windows", "frontier", "treelet.max_passes", "treelet.split_axes",
            "reinsert.split_axes")
 
+#: methods whose options serve each other: Kensler's hill climbing is his annealing
+#: without the heat, so annealing's options (--iterations, --chains, ...) are accepted,
+#: and checked, with --method hc; any other method's option is an error
+FAMILIES = {"hc": "rotations", "sa": "rotations"}
+
 #: every optimizer's options, from the configs (annealing's --schedule offers the
 #: schedules by name, the knob's choices; a function is the library's alone)
 OPTIONS = config_options.ConfigOptions({name: o.Config for name, o in OPTIMIZERS.items()},
-                                       exclude=EXCLUDE, flags=FLAGS, method_flag="--method")
+                                       exclude=EXCLUDE, flags=FLAGS, method_flag="--method",
+                                       families=FAMILIES)
 
 
 def add_parser(subparsers):
