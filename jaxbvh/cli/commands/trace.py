@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import inspect
+
 import numpy as np
 
 from jaxbvh import rays
@@ -14,6 +16,8 @@ from jaxbvh.rays.measure import KINDS, MODES
 
 #: --ct, --ci: the SAH constants of the cost reported beside the ray counts
 COSTS = config_options.ConfigOptions({"trace": SAHCosts})
+#: the traversal's own defaults of --mode and --batch (read from the library, not retyped)
+TRAVERSAL = {name: p.default for name, p in inspect.signature(traverse.trace).parameters.items()}
 
 HELP = "trace rays through a tree (.npz) over its mesh; report box and primitive tests per ray"
 
@@ -29,11 +33,11 @@ def add_parser(subparsers):
                         help="random: origins in the root box, uniform directions; camera: "
                              "pinhole framing the scene; bounce: diffuse rays off the surface "
                              "(default: random)")
-    parser.add_argument("--mode", choices=MODES, default="closest",
-                        help="closest hit, any hit (shadow rays) or all hits (default: closest)")
+    parser.add_argument("--mode", choices=MODES, default=TRAVERSAL["mode"],
+                        help="closest hit, any hit (shadow rays) or all hits (default: %(default)s)")
     _common.add_seed(parser)
-    parser.add_argument("--batch", type=_common._int_at_least(1), default=256, metavar="B",
-                        help="rays per jitted batch (default: 256)")
+    parser.add_argument("--batch", type=_common._int_at_least(1), default=TRAVERSAL["batch"], metavar="B",
+                        help="rays per jitted batch (default: %(default)s)")
     parser.add_argument("--save", metavar="HITS.npz", default=None,
                         help="write origin, direction (world space), t and prim (-1: miss) "
                              "and the per-ray counters")
