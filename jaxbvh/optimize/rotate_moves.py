@@ -1,9 +1,10 @@
 """The six moves of Kensler's tree rotations at a window of nodes: scoring, choice, application.
 
 Part of :mod:`jaxbvh.optimize.rotate`, whose docstring explains the moves, the choice
-rules and the exactness margin. :func:`score` scores all six moves of a set of nodes;
-:func:`process_window` scores a window of nodes with disjoint subtrees, chooses a move
-for each (hill climbing or annealing) and applies them all at once.
+rules and the exactness margin. :func:`score` scores all six moves of a set of nodes
+(a :class:`Scores`); :func:`process_window` scores a window of nodes with disjoint
+subtrees, chooses a move for each (hill climbing or annealing) and applies them all at
+once.
 """
 
 from __future__ import annotations
