@@ -24,7 +24,7 @@ from jaxbvh import cli
 from jaxbvh.rays import traversal as traverse
 from jaxbvh.rays import traversal_reference as ref_rays
 from jaxbvh.tree import pad_to
-from jaxbvh.wide import collapse, levels
+from jaxbvh.wide import collapse, collapse_dp, levels
 from jaxbvh.wide import collapse_reference as ref
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -485,9 +485,9 @@ def test_no_retrace_for_same_capacity():
     a, _, _ = random_tree(3, 30)
     b, _, _ = random_tree(4, 17, 2, "grid")
     collapse.optimal(a)
-    before = collapse._optimal_decide._cache_size()
+    before = collapse_dp.decide._cache_size()
     collapse.optimal(b, test_cost=collapse.node_test_cost(4))  # other T: a value, not a shape
-    assert collapse._optimal_decide._cache_size() == before
+    assert collapse_dp.decide._cache_size() == before
 
 
 # ----------------------------------------------------------------------------------

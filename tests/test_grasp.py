@@ -270,11 +270,11 @@ def test_noise_zero_trials_all_equal_the_base():
 def test_noise_list_length_and_trial_do_not_recompile():
     lo, hi = random_boxes(12, 23)
     grasp.grasp(jax.random.key(0), lo, hi, trials=2, noise=1.0, rcl=3, chunk_prims=CHUNK)
-    start = grasp._forest._cache_size()
+    start = grasp.build_forest._cache_size()
     grasp.grasp(jax.random.key(1), lo, hi, trials=2, noise=1.0, rcl=9, chunk_prims=CHUNK)
     grasp.grasp(jax.random.key(2), *random_boxes(13, 18), trials=2, deviations=100.0, rcl=2, chunk_prims=CHUNK)
     grasp.randomized_build(jax.random.key(3), lo, hi, trial=5, noise=0.2, rcl=4)
-    assert grasp._forest._cache_size() == start
+    assert grasp.build_forest._cache_size() == start
 
 
 def test_deviations_set_the_noise():

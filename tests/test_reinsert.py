@@ -17,14 +17,16 @@ from hypothesis import strategies as st
 
 import jaxbvh
 from jaxbvh import numerics
-from jaxbvh.optimize import driver, reinsert, reinsert_rules
+from jaxbvh.optimize import driver, reinsert, reinsert_moves, reinsert_rules, reinsert_search
 from jaxbvh.optimize import reinsert_reference as ref
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 NODES, PRIMS = 128, 64  # one capacity for all random trees
 SETTINGS = dict(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 MIN_GAIN = numerics.min_gain(np.float32)
-ITERATION = jax.jit(reinsert._iteration)
+ITERATION = jax.jit(reinsert_moves.iteration)
+FIND = jax.jit(reinsert_moves.find)
+PREPARE = jax.jit(reinsert_search.prepare)
 
 
 def assert_same_tree(a, b, fields=("left", "right", "parent", "lo", "hi", "root")):
@@ -56,10 +58,10 @@ trees = st.builds(lambda seed, n, leaf, grid: (seed, n, leaf, grid),
 
 
 def _search_all(tree, max_steps):
-    s = jax.jit(reinsert._prepare)(jaxbvh.to_jax(tree))
-    ids, count = reinsert._candidates(s, jnp.int32(reinsert.ALL_OCTAVES))
-    out = jax.jit(reinsert._search)(s, ids, count, reinsert._scale_of(s), jnp.int32(max_steps),
-                                    jnp.float32(MIN_GAIN))
+    s = PREPARE(jaxbvh.to_jax(tree))
+    ids, count = reinsert_search.candidates(s, jnp.int32(reinsert.ALL_OCTAVES))
+    out = jax.jit(reinsert_search.search)(s, ids, count, reinsert_search.scale_of(s), jnp.int32(max_steps),
+                                          jnp.float32(MIN_GAIN))
     return s, [np.asarray(x) for x in out]
 
 
@@ -148,9 +150,8 @@ def test_each_gain_is_the_drop_in_interior_area_of_its_move(case):
 
 
 def _one_iteration(tree, octaves=reinsert.ALL_OCTAVES):
-    s = jax.jit(reinsert._prepare)(jaxbvh.to_jax(tree))
-    m, taken, gains, count = reinsert._moves_of(s, jnp.int32(octaves), jnp.int32(1024),
-                                                jnp.float32(MIN_GAIN))
+    s = PREPARE(jaxbvh.to_jax(tree))
+    m, taken, gains, count = FIND(s, jnp.int32(octaves), jnp.int32(1024), jnp.float32(MIN_GAIN))
     new, moves, total, sah, _ = ITERATION(
         s, jnp.asarray(tree.prim_count), jnp.float32(1), jnp.float32(1), jnp.int32(octaves),
         jnp.int32(1024), jnp.float32(MIN_GAIN))
@@ -168,7 +169,7 @@ def test_iteration_equals_the_reference_applying_the_same_batch(case):
     assert moves == taken.sum()
     batch = [(int(a[i]), int(out[i])) for i in np.flatnonzero(taken)]
     expected = ref.apply_batch(tree, batch)
-    got = reinsert._to_tree(jaxbvh.to_jax(tree), new)
+    got = reinsert_search.to_tree(jaxbvh.to_jax(tree), new)
     assert_same_tree(got, expected)
     jaxbvh.validate(got, plo, phi)
     before = float(jaxbvh.sah(jaxbvh.to_jax(tree)))

@@ -301,12 +301,12 @@ def test_top_level_compiles_once_for_every_threshold_and_scene():
     mesh = scenes.instanced_scene(jax.random.key(1), [small_tree(0)], 5)
     trees = fm.build_objects(mesh)
     top_level(mesh, trees, threshold=0.1)
-    before = brefs._build._cache_size()
+    before = brefs.build_levels._cache_size()
     for threshold in (0.05, 0.5, math.inf):
         top_level(mesh, trees, threshold=threshold, budget=2.0)
     other = scenes.instanced_scene(jax.random.key(2), [small_tree(5)], 7)
     top_level(other, fm.build_objects(other), threshold=0.1)
-    assert brefs._build._cache_size() == before
+    assert brefs.build_levels._cache_size() == before
 
 
 def test_float64_build_matches_reference_and_validates():

@@ -130,18 +130,28 @@ def _in_place(linked: Linked, n, left, right, parent) -> BVH:
     )
 
 
-def _collapse(linked: Linked, parts, max_leaf) -> BVH:
-    """Layout with the subtrees under passing nodes collapsed into leaves (module docstring)."""
-    n, left, right, parent, count, passes = parts
-    cap = linked.leaf_lo.shape[0]
-    nodes = 2 * cap
-    none = nodes
+class _Kept(NamedTuple):
+    """Which nodes of the linked tree the collapse keeps, by linked id [2 cap]."""
+
+    inside: Any      # bool: the parent is covered (it or an ancestor passes), so the node is gone
+    interior: Any    # bool: an internal slot that stays interior (nothing above or at it passes)
+    final_leaf: Any  # bool: a leaf of the result (a passing node or a position, not inside)
+
+
+class _Numbering(NamedTuple):
+    """Node ids of the result: interior nodes in slot order, then leaves by lowest position."""
+
+    final_id: Any       # int32 [2 cap]: the result's node id of each linked id (2 cap: gone)
+    leaf_rank: Any      # int32 [2 cap]: a final leaf's rank among the leaves (cap: not a leaf)
+    start_by_rank: Any  # int32 [cap]: first prim_index slot of the leaf of each rank
+
+
+def _kept(parts, max_leaf, cap) -> _Kept:
+    """The nodes kept: only the nearest ``max_leaf - 1`` ancestors of a node can pass, so
+    "covered" spreads down from the passing nodes in at most ``max_leaf`` steps."""
+    n, _, _, parent, _, passes = parts
     slot = jnp.arange(cap, dtype=jnp.int32)
     real = slot < n - 1
-    first = jnp.concatenate([linked.first, slot])
-    is_right = jnp.zeros(nodes, bool).at[right].set(True, mode="drop")
-
-    # covered: the node or one of its ancestors passes (only the nearest max_leaf - 1 can)
     up = parent[:cap]
 
     def spread(carry):
@@ -154,19 +164,35 @@ def _collapse(linked: Linked, parts, max_leaf) -> BVH:
     inside = take(covered, parent, False)  # [nodes]: the parent is covered, so the node is gone
     interior = real & ~covered
     final_leaf = jnp.concatenate([passes & ~inside[:cap], (slot < n) & ~inside[cap:]])
+    return _Kept(inside=inside, interior=jnp.concatenate([interior, jnp.zeros(cap, bool)]), final_leaf=final_leaf)
 
-    # numbering: interior nodes in slot order, then leaves by lowest position
-    starts = jnp.zeros(cap, jnp.int32).at[jnp.where(final_leaf, first, cap)].set(1, mode="drop")
+
+def _number(linked: Linked, count, kept: _Kept) -> _Numbering:
+    """Node ids and leaf ranks of the result, and where each leaf's primitives start."""
+    cap = linked.leaf_lo.shape[0]
+    none = 2 * cap
+    slot = jnp.arange(cap, dtype=jnp.int32)
+    first = jnp.concatenate([linked.first, slot])
+    starts = jnp.zeros(cap, jnp.int32).at[jnp.where(kept.final_leaf, first, cap)].set(1, mode="drop")
     rank_at = exclusive_sum(starts)
     n_interior = jnp.sum(starts) - 1
-    interior_all = jnp.concatenate([interior, jnp.zeros(cap, bool)])
-    leaf_rank = jnp.where(final_leaf, take(rank_at, first, 0), cap)
-    final_id = jnp.where(interior_all, jnp.concatenate([exclusive_sum(interior), slot]),
-                         jnp.where(final_leaf, n_interior + leaf_rank, none))
+    leaf_rank = jnp.where(kept.final_leaf, take(rank_at, first, 0), cap)
+    final_id = jnp.where(kept.interior, jnp.concatenate([exclusive_sum(kept.interior[:cap]), slot]),
+                         jnp.where(kept.final_leaf, n_interior + leaf_rank, none))
     size_by_rank = jnp.zeros(cap, jnp.int32).at[leaf_rank].set(count, mode="drop")
-    start_by_rank = exclusive_sum(size_by_rank)
+    return _Numbering(final_id=final_id, leaf_rank=leaf_rank, start_by_rank=exclusive_sum(size_by_rank))
 
-    # every primitive walks up to its leaf, adding the primitives left of its path
+
+def _prim_index(linked: Linked, parts, max_leaf, kept: _Kept, numbering: _Numbering):
+    """``prim_index`` [cap] int32 of the result: every primitive walks up to its leaf,
+    adding the primitives left of its path (at most ``max_leaf`` steps)."""
+    n, left, right, parent, count, _ = parts
+    cap = linked.leaf_lo.shape[0]
+    nodes = 2 * cap
+    none = nodes
+    slot = jnp.arange(cap, dtype=jnp.int32)
+    inside = kept.inside
+    is_right = jnp.zeros(nodes, bool).at[right].set(True, mode="drop")
     left_all = jnp.concatenate([left, jnp.full(cap, none, jnp.int32)])
 
     def climb(carry):
@@ -180,13 +206,25 @@ def _collapse(linked: Linked, parts, max_leaf) -> BVH:
     leaf_of, offset, _, _ = jax.lax.while_loop(
         lambda c: c[2] & (c[3] < jnp.minimum(max_leaf, cap)), climb,
         (cap + slot, jnp.zeros(cap, jnp.int32), jnp.any(inside[cap:] & (slot < n)), jnp.int32(0)))
-    prim_slot = take(start_by_rank, take(leaf_rank, leaf_of, cap), 0) + offset
-    prim_index = jnp.full(cap, -1, jnp.int32).at[jnp.where(slot < n, prim_slot, cap)].set(linked.order, mode="drop")
+    prim_slot = take(numbering.start_by_rank, take(numbering.leaf_rank, leaf_of, cap), 0) + offset
+    return jnp.full(cap, -1, jnp.int32).at[jnp.where(slot < n, prim_slot, cap)].set(linked.order, mode="drop")
+
+
+def _collapse(linked: Linked, parts, max_leaf) -> BVH:
+    """Layout with the subtrees under passing nodes collapsed into leaves (module docstring)."""
+    _, left, right, parent, count, _ = parts
+    cap = linked.leaf_lo.shape[0]
+    nodes = 2 * cap
+    none = nodes
+    kept = _kept(parts, max_leaf, cap)
+    numbering = _number(linked, count, kept)
+    prim_index = _prim_index(linked, parts, max_leaf, kept, numbering)
+    final_id, leaf_rank = numbering.final_id, numbering.leaf_rank
 
     # every node id gathers its source (the inverse of final_id, one integer scatter)
     source = jnp.full(nodes, none, jnp.int32).at[final_id].set(jnp.arange(nodes, dtype=jnp.int32), mode="drop")
-    is_leaf = take(final_leaf, source, False)
-    is_interior = take(interior_all, source, False)
+    is_leaf = take(kept.final_leaf, source, False)
+    is_interior = take(kept.interior, source, False)
 
     def field(internal, leaf, fill):
         both = jnp.concatenate([internal, leaf])
@@ -195,13 +233,14 @@ def _collapse(linked: Linked, parts, max_leaf) -> BVH:
     def link(ids):
         return jnp.where(is_interior, take(final_id, take(ids, source, none), -1), -1)
 
+    left_all = jnp.concatenate([left, jnp.full(cap, none, jnp.int32)])
     right_all = jnp.concatenate([right, jnp.full(cap, none, jnp.int32)])
     parent_id = take(final_id, take(parent, source, none), -1)
     parent_id = jnp.where(parent_id < none, parent_id, -1)
     return BVH(
         left=link(left_all), right=link(right_all), parent=parent_id,
         lo=field(linked.lo, linked.leaf_lo, jnp.inf), hi=field(linked.hi, linked.leaf_hi, -jnp.inf),
-        prim_start=jnp.where(is_leaf, take(start_by_rank, take(leaf_rank, source, cap), 0), 0),
+        prim_start=jnp.where(is_leaf, take(numbering.start_by_rank, take(leaf_rank, source, cap), 0), 0),
         prim_count=jnp.where(is_leaf, take(count, source, 0), 0),
         axis=jnp.where(is_interior, take(linked.axis, source, -1), -1),
         prim_index=prim_index, root=jnp.int32(0),

@@ -10,6 +10,8 @@ order, root 0, unpadded.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from jaxbvh.builders import lbvh_reference as lbvh
@@ -89,6 +91,80 @@ def _binned_split(ids, lo, hi, centre, scale, bins):
     return best, axis, left, right
 
 
+def _node_split(config, ids, lo, hi, centre, scale, box_lo, box_hi):
+    """The split the method picks for a node over ``ids`` (its box ``box_lo``,
+    ``box_hi``): ``(cost or None, axis, left ids, right ids)``, or None without one.
+
+    The cost is ``A_L N_L + A_R N_R`` for the SAH methods; None for the median and for
+    the binned builder's fallback (no plane: the first half by id goes left).
+    """
+    method = config.method
+    count = len(ids)
+    if count <= 1:
+        return None
+    if method == "sweep":
+        return _sweep_split(ids, lo, hi, centre, scale)
+    if method == "binned":
+        split = _binned_split(ids, lo, hi, centre, scale, config.bins)
+        if split is None and count > config.max_leaf:
+            ordered = np.sort(ids)
+            split = (None, 0, ordered[: count // 2], ordered[count // 2:])
+        return split
+    if method == "median":
+        axis = int(np.argmax(box_hi - box_lo))
+        ordered = ids[np.lexsort((ids, centre[ids, axis]))]
+        return (None, axis, ordered[: count // 2], ordered[count // 2:])
+    raise ValueError(f"unknown builder {method!r}")
+
+
+def _is_leaf(config, split, count, area, ct, ci, dtype) -> bool:
+    """The leaf test: no split, or ``count <= max_leaf`` and the split does not pay
+    (the median, and a split without a cost, never pay; an SAH split pays when
+    ``Ci N > (Ct + Ci cost / A) (1 + TIE_TOLERANCE)``, ``Ct + Ci N`` for ``A = 0``)."""
+    if split is None:
+        return True
+    if count > config.max_leaf:
+        return False
+    if config.method == "median" or split[0] is None:
+        return True
+    estimate = ct + (ci * split[0] / area if area > 0 else ci * dtype.type(count))
+    return bool(ci * dtype.type(count) <= estimate * dtype.type(1 + TIE_TOLERANCE))
+
+
+@dataclasses.dataclass
+class _Nodes:
+    """The tree as it is built: one list per BVH field, a node per entry, depth-first."""
+
+    left: list = dataclasses.field(default_factory=list)        # child id, -1 for a leaf
+    right: list = dataclasses.field(default_factory=list)
+    parent: list = dataclasses.field(default_factory=list)      # -1 for the root
+    axis: list = dataclasses.field(default_factory=list)        # split axis, -1 for a leaf
+    lo: list = dataclasses.field(default_factory=list)          # [3] box (None until built)
+    hi: list = dataclasses.field(default_factory=list)
+    prim_start: list = dataclasses.field(default_factory=list)  # a leaf's first prim_index slot
+    prim_count: list = dataclasses.field(default_factory=list)  # a leaf's primitives, 0 interior
+    prim_index: list = dataclasses.field(default_factory=list)  # primitive ids, leaf by leaf
+
+    def new(self, parent: int) -> int:
+        """A fresh node under ``parent``: a leaf of no primitives until built. Its id."""
+        for column, value in ((self.left, -1), (self.right, -1), (self.parent, parent), (self.axis, -1),
+                              (self.prim_start, 0), (self.prim_count, 0), (self.lo, None), (self.hi, None)):
+            column.append(value)
+        return len(self.left) - 1
+
+    def make_leaf(self, node: int, ids) -> None:
+        self.prim_start[node] = len(self.prim_index)
+        self.prim_count[node] = len(ids)
+        self.prim_index.extend(int(i) for i in ids)
+
+    def to_bvh(self, dtype) -> BVH:
+        i32 = lambda a: np.asarray(a, np.int32)  # noqa: E731
+        return BVH(left=i32(self.left), right=i32(self.right), parent=i32(self.parent),
+                   lo=np.stack(self.lo).astype(dtype), hi=np.stack(self.hi).astype(dtype),
+                   prim_start=i32(self.prim_start), prim_count=i32(self.prim_count), axis=i32(self.axis),
+                   prim_index=i32(self.prim_index), root=np.int32(0))
+
+
 def build(prim_lo, prim_hi, config) -> BVH:
     """Reference build of ``config`` (a builder Config of :mod:`jaxbvh.builders.configs`, read
     for its ``method`` and knobs only), boxes used in their dtype.
@@ -97,75 +173,31 @@ def build(prim_lo, prim_hi, config) -> BVH:
     bottom-up builders have twins of their own (:mod:`jaxbvh.builders.lbvh_reference`,
     :mod:`jaxbvh.builders.ploc_reference`), which this dispatches to.
     """
-    method = config.method
-    if method == "lbvh":
+    if config.method == "lbvh":
         return lbvh.build(prim_lo, prim_hi, config)
-    if method == "ploc":
+    if config.method == "ploc":
         return ploc.build(prim_lo, prim_hi, config)
-    max_leaf, ct, ci = config.max_leaf, config.ct, config.ci
-    bins = config.bins if method == "binned" else None
     lo = np.asarray(prim_lo)
     hi = np.asarray(prim_hi)
     dtype = lo.dtype
-    ct, ci = dtype.type(ct), dtype.type(ci)
-    n = lo.shape[0]
+    ct, ci = dtype.type(config.ct), dtype.type(config.ci)
     scale = dtype.type(scene_scale(lo, hi))
     centre = dtype.type(0.5) * lo + dtype.type(0.5) * hi
 
-    left, right, parent, axis_of = [], [], [], []
-    node_lo, node_hi, prim_start, prim_count = [], [], [], []
-    prim_index: list[int] = []
-
-    def new_node(par):
-        for arr, v in ((left, -1), (right, -1), (parent, par), (axis_of, -1), (prim_start, 0), (prim_count, 0)):
-            arr.append(v)
-        node_lo.append(None)
-        node_hi.append(None)
-        return len(left) - 1
-
-    stack = [(new_node(-1), np.arange(n))]
+    nodes = _Nodes()
+    stack = [(nodes.new(-1), np.arange(lo.shape[0]))]
     while stack:
         node, ids = stack.pop()
         box_lo, box_hi = lo[ids].min(0), hi[ids].max(0)
-        node_lo[node], node_hi[node] = box_lo, box_hi
-        count = len(ids)
-        area = half_area(box_lo, box_hi, scale)
-        split = None
-        if count > 1:
-            if method == "sweep":
-                split = _sweep_split(ids, lo, hi, centre, scale)
-            elif method == "binned":
-                split = _binned_split(ids, lo, hi, centre, scale, bins)
-                if split is None and count > max_leaf:
-                    ordered = np.sort(ids)
-                    split = (None, 0, ordered[: count // 2], ordered[count // 2:])
-            elif method == "median":
-                axis = int(np.argmax(box_hi - box_lo))
-                ordered = ids[np.lexsort((ids, centre[ids, axis]))]
-                split = (None, axis, ordered[: count // 2], ordered[count // 2:])
-            else:
-                raise ValueError(f"unknown builder {method!r}")
-            if split is not None and count <= max_leaf:
-                if method == "median" or split[0] is None:
-                    split = None
-                else:  # SAH termination test
-                    estimate = ct + (ci * split[0] / area if area > 0 else ci * dtype.type(count))
-                    if ci * dtype.type(count) <= estimate * dtype.type(1 + TIE_TOLERANCE):
-                        split = None
-        if split is None:
-            prim_start[node] = len(prim_index)
-            prim_count[node] = count
-            prim_index.extend(int(i) for i in ids)
+        nodes.lo[node], nodes.hi[node] = box_lo, box_hi
+        split = _node_split(config, ids, lo, hi, centre, scale, box_lo, box_hi)
+        if _is_leaf(config, split, len(ids), half_area(box_lo, box_hi, scale), ct, ci, dtype):
+            nodes.make_leaf(node, ids)
             continue
         _, axis, left_ids, right_ids = split
-        axis_of[node] = axis
-        l_id, r_id = new_node(node), new_node(node)
-        left[node], right[node] = l_id, r_id
+        nodes.axis[node] = axis
+        l_id, r_id = nodes.new(node), nodes.new(node)
+        nodes.left[node], nodes.right[node] = l_id, r_id
         stack.append((r_id, right_ids))
         stack.append((l_id, left_ids))
-
-    i32 = lambda a: np.asarray(a, np.int32)  # noqa: E731
-    return BVH(left=i32(left), right=i32(right), parent=i32(parent),
-               lo=np.stack(node_lo).astype(dtype), hi=np.stack(node_hi).astype(dtype),
-               prim_start=i32(prim_start), prim_count=i32(prim_count), axis=i32(axis_of),
-               prim_index=i32(prim_index), root=np.int32(0))
+    return nodes.to_bvh(dtype)

@@ -159,7 +159,7 @@ def score_moves(tree, ct=1.0, ci=1.0):
 def _score_moves(tree, ct, ci):
     scale, st = initial_state(tree, ct, ci)
     s = score(st, jnp.arange(tree.left.shape[0]), scale, jnp.asarray(ct, tree.lo.dtype))
-    return s["cur"], s["cand"], s["legal"]
+    return s.cur, s.cand, s.legal
 
 
 # ----------------------------------------------------------------------------------

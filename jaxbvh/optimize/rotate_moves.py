@@ -1,9 +1,10 @@
 """The six moves of Kensler's tree rotations at a window of nodes: scoring, choice, application.
 
 Part of :mod:`jaxbvh.optimize.rotate`, whose docstring explains the moves, the choice
-rules and the exactness margin. :func:`score` scores all six moves of a set of nodes;
-:func:`process_window` scores a window of nodes with disjoint subtrees, chooses a move
-for each (hill climbing or annealing) and applies them all at once.
+rules and the exactness margin. :func:`score` scores all six moves of a set of nodes
+(a :class:`Scores`); :func:`process_window` scores a window of nodes with disjoint
+subtrees, chooses a move for each (hill climbing or annealing) and applies them all at
+once.
 """
 
 from __future__ import annotations
@@ -86,12 +87,26 @@ def _combine(a: _Part, b: _Part, scale, ct) -> _Part:
                  1 + jnp.maximum(a.height, b.height))
 
 
-def score(st, nodes, scale, ct):
-    """Scores of the six moves at ``nodes`` [W] (``N`` = no node).
+class Scores(NamedTuple):
+    """The six moves of a set of nodes ``n`` [W], scored (:func:`score`)."""
 
-    Returns a dict of [W] / [W, 6] arrays: the family ids, the current cost ``cur``,
-    ``cand`` (cost of ``n`` after each move), ``legal``, the new parts of ``L`` and
-    ``R`` after each move, and the new height of ``n``.
+    left: Any        # [W] int32: L (N: none)
+    right: Any       # [W] int32: R
+    grand: Any       # (LL, LR, RL, RR): [W] int32 each (N: none)
+    interior: Any    # [W] bool: n is a real interior node
+    cur: Any         # [W]: C(n) now
+    cand: Any        # [W, 6]: C(n) after each move
+    n_height: Any    # list of 6 [W] int32: height of n after each move
+    cur_height: Any  # [W] int32: height of n now
+    legal: Any       # [W, 6] bool: the move exists at n
+    new_left: Any    # list of 6 _Part: L's slot after each move (box, area, cost, height)
+    new_right: Any   # list of 6 _Part: R's slot after each move
+
+
+def score(st, nodes, scale, ct) -> Scores:
+    """Scores of the six moves at ``nodes`` [W] (``N`` = no node), a :class:`Scores`.
+
+    ``scale``: the power of two areas are measured with; ``ct``: the SAH traversal cost.
     """
     cap = st.child.shape[0]
     kids = take(st.child, nodes, -1)
@@ -126,7 +141,7 @@ def score(st, nodes, scale, ct):
     interior = real & (left >= 0)
     legal = jnp.stack([r_in, r_in, l_in, l_in, l_in & r_in, l_in & r_in], axis=1) & interior[:, None]
 
-    return dict(
+    return Scores(
         left=left, right=right, grand=(ll, lr, rl, rr), interior=interior, cur=cur,
         cand=jnp.stack([c for c, _ in n_after], axis=1),
         n_height=[h for _, h in n_after],
@@ -170,17 +185,10 @@ def _choose_annealing(cand, cur, legal, tol, temperature, draws):
     return choice
 
 
-def process_window(st, nodes, scale, ct, min_gain, temperature, draws, annealing, chains):
-    """Score ``nodes`` (disjoint subtrees), pick a move for each, apply them all.
-
-    Returns the new state, the moves made per chain [chains] (a forest of ``chains``
-    equal-capacity trees, node ``k * (N / chains) + i`` being node ``i`` of tree ``k``)
-    and the nodes each move changed ([W, 3]: the node and its changed children, ``N``
-    where none).
-    """
-    cap = st.child.shape[0]
-    s = score(st, nodes, scale, ct)
-    cur, cand, legal = s["cur"], s["cand"], s["legal"]
+def _choose(s: Scores, nodes, min_gain, temperature, draws, annealing):
+    """The move of each node ([W] int32, -1: none) by hill climbing or annealing, and
+    the scores with ``cur`` and ``cand`` materialised (what the application reads)."""
+    cur, cand, legal = s.cur, s.cand, s.legal
     tol = min_gain * jnp.abs(cur)
     # materialise the scores once: otherwise XLA copies their computation into every
     # step of the choosers, and compile time triples
@@ -192,14 +200,14 @@ def process_window(st, nodes, scale, ct, min_gain, temperature, draws, annealing
         choice = _choose_greedy(cand, cur, legal, tol)
     # materialise the choice once: it feeds every scatter below, and XLA would otherwise
     # recompute the whole choice inside several of them
-    choice = jax.lax.optimization_barrier(jnp.where(s["interior"], choice, -1))
-    moved = choice >= 0
-    m = jnp.maximum(choice, 0)
-    left, right = s["left"], s["right"]
-    oob = jnp.full_like(nodes, cap)
-    interior_nodes = jnp.where(s["interior"], nodes, cap)
+    choice = jax.lax.optimization_barrier(jnp.where(s.interior, choice, -1))
+    return choice, s._replace(cur=cur, cand=cand)
 
-    # swap the two slots' contents
+
+def _swap_slots(st, s: Scores, nodes, m, moved):
+    """The links after each moved node's two slots swapped contents: ``(child, parent)``."""
+    cap = st.child.shape[0]
+    left, right = s.left, s.right
     family = (nodes, left, right)
     a_node = _select(m, [family[a] for a, _ in _SLOT_A])
     b_node = _select(m, [family[b] for b, _ in _SLOT_B])
@@ -209,7 +217,7 @@ def process_window(st, nodes, scale, ct, min_gain, temperature, draws, annealing
     b_node = jnp.where(moved, b_node, cap)
     # the slots' contents are ids the scoring already gathered; reading child again here
     # (or through a flat view) makes XLA copy the whole array for every window
-    ll, lr, rl, rr = s["grand"]
+    ll, lr, rl, rr = s.grand
     content = {(0, 0): left, (0, 1): right, (1, 0): ll, (1, 1): lr, (2, 0): rl, (2, 1): rr}
     a_val = jnp.where(moved, _select(m, [content[slot] for slot in _SLOT_A]), -1)
     b_val = jnp.where(moved, _select(m, [content[slot] for slot in _SLOT_B]), -1)
@@ -217,32 +225,62 @@ def process_window(st, nodes, scale, ct, min_gain, temperature, draws, annealing
              .at[b_node, b_side].set(a_val, mode="drop"))
     parent = st.parent.at[jnp.where(moved, b_val, cap)].set(a_node, mode="drop")
     parent = parent.at[jnp.where(moved, a_val, cap)].set(b_node, mode="drop")
+    return child, parent
 
-    # new boxes, costs and heights of the changed children, and of n
+
+def _update_parts(st, s: Scores, nodes, m, moved):
+    """New boxes, costs and heights of the changed children and of ``n``.
+
+    Returns ``(lo, hi, cost, height, l_at, r_at)``: the state's arrays updated, and the
+    changed left and right children ([W] int32, ``N`` where unchanged).
+    """
+    cap = st.child.shape[0]
+    oob = jnp.full_like(nodes, cap)
+    interior_nodes = jnp.where(s.interior, nodes, cap)
+
     def pick(parts):
         return _Part(*(_select(m, list(f)) for f in zip(*parts)))
 
-    new_l, new_r = pick(s["new_left"]), pick(s["new_right"])
+    new_l, new_r = pick(s.new_left), pick(s.new_right)
     l_changes = moved & _select(m, [jnp.bool_(x) for x in _CHANGES_L])
     r_changes = moved & _select(m, [jnp.bool_(x) for x in _CHANGES_R])
-    l_at = jnp.where(l_changes, left, oob)
-    r_at = jnp.where(r_changes, right, oob)
+    l_at = jnp.where(l_changes, s.left, oob)
+    r_at = jnp.where(r_changes, s.right, oob)
     lo = st.lo.at[l_at].set(new_l.lo, mode="drop").at[r_at].set(new_r.lo, mode="drop")
     hi = st.hi.at[l_at].set(new_l.hi, mode="drop").at[r_at].set(new_r.hi, mode="drop")
-    n_cost = jnp.where(moved, _select(m, [cand[:, k] for k in range(6)]), cur)
-    n_height = jnp.where(moved, _select(m, s["n_height"]), s["cur_height"])
+    n_cost = jnp.where(moved, _select(m, [s.cand[:, k] for k in range(6)]), s.cur)
+    n_height = jnp.where(moved, _select(m, s.n_height), s.cur_height)
     cost = (st.cost.at[l_at].set(new_l.cost, mode="drop").at[r_at].set(new_r.cost, mode="drop")
             .at[interior_nodes].set(n_cost, mode="drop"))
     height = (st.height.at[l_at].set(new_l.height, mode="drop")
               .at[r_at].set(new_r.height, mode="drop")
               .at[interior_nodes].set(n_height, mode="drop"))
-    new = st._replace(child=child, parent=parent, lo=lo, hi=hi, cost=cost, height=height)
+    return lo, hi, cost, height, l_at, r_at
+
+
+def _moves_per_chain(nodes, moved, cap, chains):
+    """Moves made in each chain of the forest, [chains] int32."""
     if chains == 1:
-        per_chain = jnp.sum(moved, dtype=jnp.int32)[None]
-    else:  # a one-hot sum: a scatter-add with this many collisions is slow on CPU
-        chain = nodes // (cap // chains)
-        per_chain = jnp.sum((chain[:, None] == jnp.arange(chains)) & moved[:, None], axis=0,
-                            dtype=jnp.int32)
-    return new, per_chain, jnp.stack([jnp.where(moved, nodes, cap), l_at, r_at], axis=1)
+        return jnp.sum(moved, dtype=jnp.int32)[None]
+    # a one-hot sum: a scatter-add with this many collisions is slow on CPU
+    chain = nodes // (cap // chains)
+    return jnp.sum((chain[:, None] == jnp.arange(chains)) & moved[:, None], axis=0, dtype=jnp.int32)
 
 
+def process_window(st, nodes, scale, ct, min_gain, temperature, draws, annealing, chains):
+    """Score ``nodes`` (disjoint subtrees), pick a move for each, apply them all.
+
+    Returns the new state, the moves made per chain [chains] (a forest of ``chains``
+    equal-capacity trees, node ``k * (N / chains) + i`` being node ``i`` of tree ``k``)
+    and the nodes each move changed ([W, 3]: the node and its changed children, ``N``
+    where none).
+    """
+    cap = st.child.shape[0]
+    choice, s = _choose(score(st, nodes, scale, ct), nodes, min_gain, temperature, draws, annealing)
+    moved = choice >= 0
+    m = jnp.maximum(choice, 0)
+    child, parent = _swap_slots(st, s, nodes, m, moved)
+    lo, hi, cost, height, l_at, r_at = _update_parts(st, s, nodes, m, moved)
+    new = st._replace(child=child, parent=parent, lo=lo, hi=hi, cost=cost, height=height)
+    changed = jnp.stack([jnp.where(moved, nodes, cap), l_at, r_at], axis=1)
+    return new, _moves_per_chain(nodes, moved, cap, chains), changed

@@ -196,7 +196,9 @@ def _mode(rcl):
     return ("axes", 0) if rcl == "axes" else ("list", int(rcl))
 
 
-_forest = jax.jit(randomized_forest, static_argnames=("rcl",))
+#: :func:`jaxbvh.builders.topdown.randomized_forest`, compiled: every forest of a run and
+#: every :func:`randomized_build` go through it (one program per capacity and RCL mode)
+build_forest = jax.jit(randomized_forest, static_argnames=("rcl",))
 
 
 def randomized_build(key, prim_lo, prim_hi, *, trial: int = 0, noise: float, rcl="axes", pad: bool = True,
@@ -221,7 +223,7 @@ def randomized_build(key, prim_lo, prim_hi, *, trial: int = 0, noise: float, rcl
     cap = lo.shape[0]
     zeros = jnp.zeros(cap, jnp.int32)
     splits = RandomSplits(key, zeros, zeros.at[0].set(trial), zeros, jnp.float32(noise), jnp.int32(k))
-    tree, _ = _forest(lo, hi, n, scale, splits, rcl=mode)
+    tree, _ = build_forest(lo, hi, n, scale, splits, rcl=mode)
     return tree
 
 
@@ -349,6 +351,91 @@ def _forest_capacity(total: int, base: int) -> int:
     return base << max(0, math.ceil(math.log2(total / base))) if total > base else base
 
 
+@dataclasses.dataclass(frozen=True)
+class _Run:
+    """What every forest call of a GRASP run shares."""
+
+    key: Any          # the run's jax.random key
+    lo: np.ndarray    # [n, 3] the prepared primitive boxes (cast; real primitives only)
+    hi: np.ndarray    # [n, 3]
+    scale: Any        # the scene's area scale (jaxbvh.builders.inputs.prepare)
+    base: int         # the scene's capacity: a forest holds base x a power of two slots
+    capacity: int     # the run's least forest capacity (room for a full chunk: one compile)
+    pad: bool         # pad forests to a capacity (else exactly their primitives)
+    noise: float      # per-node deviation probability
+    k: int            # list length of the cardinality RCL (0: rcl "axes")
+    mode: str         # "axes" or "list" (static for the engine)
+    objective: str    # "nt" or "sah"
+    greedy: _Greedy   # the greedy tree the trials deviate from
+
+
+def _deviating_subtrees(key, greedy: _Greedy, trials: int, noise: float, mode: str, k: int):
+    """The topmost deviating nodes of every trial: ``[(trial, index into greedy's
+    interior nodes)]``, by trial, then by run start."""
+    can_deviate = greedy.start.size > 0 and noise > 0 and (mode == "axes" or k >= 2)
+    subs = []
+    # draw in blocks of a few shapes: trials and nodes padded to capacity buckets
+    m = greedy.start.size
+    padded = capacity_bucket(m)
+    per_call = capacity_bucket(min(trials, max(1, _DRAWS_PER_CALL // padded)))
+    start = jnp.zeros(padded, jnp.int32).at[:m].set(jnp.asarray(greedy.start, jnp.int32))
+    count = jnp.zeros(padded, jnp.int32).at[:m].set(jnp.asarray(greedy.count, jnp.int32))
+    for first in range(0, trials if can_deviate else 0, per_call):
+        numbers = np.arange(first, first + per_call)
+        u0 = np.asarray(_first_uniforms(key, jnp.asarray(numbers, jnp.int32), start, count))[:, :m]
+        deviate = u0 < np.float32(noise)
+        for row, t in enumerate(numbers[numbers < trials]):
+            subs += [(int(t), int(i)) for i in _topmost(deviate[row], greedy.start, greedy.count)]
+    return subs
+
+
+def _batches(subs, count, chunk_prims: int):
+    """``subs`` in order, cut into batches of at most ``chunk_prims`` primitives
+    (``count[i]``: those under subtree ``i``; a larger subtree makes a batch alone)."""
+    batch, size = [], 0
+    for t, i in subs:
+        c = int(count[i])
+        if batch and size + c > chunk_prims:
+            yield batch
+            batch, size = [], 0
+        batch.append((t, i))
+        size += c
+    if batch:
+        yield batch
+
+
+def _rebuild(run: _Run, batch):
+    """Build one forest of the subtrees ``batch`` [(trial, node)] and price them.
+
+    Returns ``(trial of each subtree, change of its trial's objective, its primitives)``,
+    NumPy arrays [len(batch)].
+    """
+    greedy = run.greedy
+    nodes = np.array([i for _, i in batch])
+    owner = np.array([t for t, _ in batch])
+    starts, counts = greedy.start[nodes], greedy.count[nodes]
+    groups = np.repeat(np.arange(len(batch)), counts)
+    ids = greedy.prim_index[concat_ranges(starts, counts)]
+    ids = ids[np.lexsort((ids, groups))]  # each group's primitives by id: the tie order
+    total = ids.size
+    cap = max(run.capacity, _forest_capacity(total, run.base)) if run.pad else total
+    lo_f = np.full((cap, 3), np.inf, run.lo.dtype)
+    hi_f = np.full((cap, 3), -np.inf, run.lo.dtype)
+    lo_f[:total], hi_f[:total] = run.lo[ids], run.hi[ids]
+    per_group = np.zeros(cap, np.int32)
+    trial_of, shift = per_group.copy(), per_group.copy()
+    group = np.full(cap, 0, np.int32)
+    group[:total] = groups
+    trial_of[: len(batch)] = owner
+    shift[: len(batch)] = starts - (np.cumsum(counts) - counts)
+    splits = RandomSplits(run.key, jnp.asarray(group), jnp.asarray(trial_of), jnp.asarray(shift),
+                          jnp.float32(run.noise), jnp.int32(run.k))
+    forest, tree_of = build_forest(jnp.asarray(lo_f), jnp.asarray(hi_f), jnp.int32(total), run.scale, splits,
+                                   rcl=run.mode)
+    values = _forest_values(forest, tree_of, len(batch), run.objective, greedy.root_area)
+    return owner, greedy.weight[nodes] * (values - greedy.contribution[nodes]), counts
+
+
 def grasp(key, prim_lo, prim_hi, config: GraspConfig | None = None, *,
           on_chunk: Callable[[int, float], None] | None = None, **options) -> GraspResult:
     """Best of ``config.trials`` randomized full-sweep builds (module docstring).
@@ -376,71 +463,24 @@ def grasp(key, prim_lo, prim_hi, config: GraspConfig | None = None, *,
     lo, hi, n, scale = prepare(prim_lo, prim_hi, pad=pad, dtype=dtype)
     n = int(n)
     noise = resolve_noise(n, config.noise, config.deviations)
-    lo_np, hi_np = np.asarray(lo)[:n], np.asarray(hi)[:n]
-    dt = lo_np.dtype
 
     greedy = _greedy(build(prim_lo, prim_hi, SweepConfig(pad=pad, dtype=dtype)), objective)
     objectives = np.full(trials, greedy.base)
     rebuilt = np.zeros(trials, np.int64)
-
-    # the topmost deviating nodes of every trial: (trial, index into greedy's interior nodes)
-    can_deviate = greedy.start.size > 0 and noise > 0 and (mode == "axes" or k >= 2)
-    subs = []
-    # draw in blocks of a few shapes: trials and nodes padded to capacity buckets
-    m = greedy.start.size
-    padded = capacity_bucket(m)
-    per_call = capacity_bucket(min(trials, max(1, _DRAWS_PER_CALL // padded)))
-    start = jnp.zeros(padded, jnp.int32).at[:m].set(jnp.asarray(greedy.start, jnp.int32))
-    count = jnp.zeros(padded, jnp.int32).at[:m].set(jnp.asarray(greedy.count, jnp.int32))
-    for first in range(0, trials if can_deviate else 0, per_call):
-        numbers = np.arange(first, first + per_call)
-        u0 = np.asarray(_first_uniforms(key, jnp.asarray(numbers, jnp.int32), start, count))[:, :m]
-        deviate = u0 < np.float32(noise)
-        for row, t in enumerate(numbers[numbers < trials]):
-            subs += [(int(t), int(i)) for i in _topmost(deviate[row], greedy.start, greedy.count)]
-
-    def run(batch):
-        """Build one forest of subtrees [(trial, node)]; add their effect to the objectives."""
-        nodes = np.array([i for _, i in batch])
-        owner = np.array([t for t, _ in batch])
-        starts, counts = greedy.start[nodes], greedy.count[nodes]
-        groups = np.repeat(np.arange(len(batch)), counts)
-        ids = greedy.prim_index[concat_ranges(starts, counts)]
-        ids = ids[np.lexsort((ids, groups))]  # each group's primitives by id: the tie order
-        total = ids.size
-        cap = max(capacity, _forest_capacity(total, lo.shape[0])) if pad else total
-        lo_f = np.full((cap, 3), np.inf, dt)
-        hi_f = np.full((cap, 3), -np.inf, dt)
-        lo_f[:total], hi_f[:total] = lo_np[ids], hi_np[ids]
-        per_group = np.zeros(cap, np.int32)
-        trial_of, shift = per_group.copy(), per_group.copy()
-        group = np.full(cap, 0, np.int32)
-        group[:total] = groups
-        trial_of[: len(batch)] = owner
-        shift[: len(batch)] = starts - (np.cumsum(counts) - counts)
-        splits = RandomSplits(key, jnp.asarray(group), jnp.asarray(trial_of), jnp.asarray(shift),
-                              jnp.float32(noise), jnp.int32(k))
-        forest, tree_of = _forest(jnp.asarray(lo_f), jnp.asarray(hi_f), jnp.int32(total), scale, splits, rcl=mode)
-        values = _forest_values(forest, tree_of, len(batch), objective, greedy.root_area)
-        np.add.at(objectives, owner, greedy.weight[nodes] * (values - greedy.contribution[nodes]))
-        np.add.at(rebuilt, owner, counts)
-
+    subs = _deviating_subtrees(key, greedy, trials, noise, mode, k)
     # one forest capacity for the whole run (one compile): room for a full chunk
     sizes = greedy.count[[i for _, i in subs]] if subs else np.zeros(1, np.int64)
     capacity = _forest_capacity(min(int(sizes.sum()), max(chunk_prims, int(sizes.max()))), lo.shape[0])
-    batch, size = [], 0
-    for t, i in subs:
-        c = int(greedy.count[i])
-        if batch and size + c > chunk_prims:
-            run(batch)
-            if on_chunk is not None:  # trials before the batch's last one are finished
-                done = batch[-1][0]
-                on_chunk(done, float(np.min(objectives[:done])) if done else greedy.base)
-            batch, size = [], 0
-        batch.append((t, i))
-        size += c
-    if batch:
-        run(batch)
+    run = _Run(key=key, lo=np.asarray(lo)[:n], hi=np.asarray(hi)[:n], scale=scale, base=lo.shape[0],
+               capacity=capacity, pad=pad, noise=noise, k=k, mode=mode, objective=objective, greedy=greedy)
+    batches = list(_batches(subs, greedy.count, chunk_prims))
+    for number, batch in enumerate(batches):
+        owner, change, counts = _rebuild(run, batch)
+        np.add.at(objectives, owner, change)
+        np.add.at(rebuilt, owner, counts)
+        if on_chunk is not None and number < len(batches) - 1:
+            done = batch[-1][0]  # trials before the batch's last one are finished
+            on_chunk(done, float(np.min(objectives[:done])) if done else greedy.base)
     best = int(np.argmin(objectives))
     if on_chunk is not None:
         on_chunk(trials, float(objectives[best]))

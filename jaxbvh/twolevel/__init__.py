@@ -6,7 +6,8 @@ module             what it holds
 ``rebraid``        :class:`TwoLevelBVH`, :func:`build`, :func:`flatten`, :func:`sah`
 ``objects``        one BVH per object, packed into a forest; instances and world boxes
 ``brefs``          the top level over build references that opens overlapping objects
-                   (twin: ``brefs_reference``)
+                   (twin: ``brefs_reference``); one level of it in ``brefs_level``,
+                   its segmented reductions and bin planes in ``brefs_segments``
 ``traversal``      closest-hit rays through the two levels
 =================  =====================================================================
 """

@@ -70,6 +70,11 @@ Outputs
   with the removed nodes flagged "do not test this box, assume it is hit";
   :func:`jaxbvh.rays.traversal.trace` honours it (``skip=``) and then makes exactly the box
   tests of ``tree``, ray by ray, for all-hits queries.
+
+The machinery sits beside this module: :mod:`jaxbvh.wide.collapse_layout` (from the
+kept nodes to the wide tree: areas, level schedule, anchors and slots, emission,
+prices, shared by the three methods) and :mod:`jaxbvh.wide.collapse_dp` (the optimal
+collapse's tables and back-tracking).
 """
 
 from __future__ import annotations
@@ -83,10 +88,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh.configs import Checked, integer, knob, optional, real
-from jaxbvh.numerics import extent_scale, half_area, min_gain, take
+from jaxbvh.numerics import min_gain, take
 from jaxbvh.tree.layout import BVH, WideBVH, to_jax
+from jaxbvh.wide import collapse_dp
 from jaxbvh.wide import levels as lv
 from jaxbvh.wide.box_tests import cost_table, node_test_cost  # noqa: F401 (public here)
+from jaxbvh.wide.collapse_layout import emit, layout, links, prices, relative_areas, schedule
 
 METHODS = ("greedy", "dp", "qbvh")
 DEFAULT_MAX_CHILDREN = 8  # the DP's K when none is given (the paper used 15)
@@ -146,16 +153,6 @@ class CollapseConfig(Checked):
         return self.max_children
 
 
-def _window_width(n: int) -> int:
-    """Window of the level sweeps for ``n`` nodes (speed only; one size, one compiled step).
-
-    About ``n / 64``, a power of two in [64, 4096]: wide enough for the big levels, narrow
-    enough that the nearly empty levels near the root and the deepest leaves, each one
-    window, cost little.
-    """
-    return int(min(4096, max(64, 1 << max(0, (n // 64 - 1)).bit_length())))
-
-
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class CollapseResult:
@@ -184,17 +181,9 @@ class CollapseResult:
 # ----------------------------------------------------------------------------------
 
 
-def relative_areas(lo, hi, root):
-    """``a(n) = S(n) / S(root)`` [N] (all 1 when the root has zero area); padding 0 or 1."""
-    scale = extent_scale(lo[root], hi[root])
-    area = half_area(lo, hi, scale)
-    root_area = area[root]
-    return jnp.where(root_area > 0, area / jnp.where(root_area > 0, root_area, 1), jnp.ones_like(area))
-
-
 @jax.jit
 def _rcost(child, lo, hi, prim_count, root, table, ci):
-    return _prices(relative_areas(lo, hi, root), child, prim_count, table, jnp.asarray(ci, lo.dtype))
+    return prices(relative_areas(lo, hi, root), child, prim_count, table, jnp.asarray(ci, lo.dtype))
 
 
 def rcost(tree, test_cost: Callable | None = None):
@@ -216,99 +205,15 @@ def leaf_cost(tree, ci: float = 1.0):
 
 
 # ----------------------------------------------------------------------------------
-# Shared pieces: schedule, layout, emission
+# Shared pieces (the rest is in jaxbvh.wide.collapse_layout)
 # ----------------------------------------------------------------------------------
-
-
-
-def _links(tree):
-    n = tree.left.shape[0]
-    left = jnp.where(tree.left >= 0, tree.left, n).astype(jnp.int32)
-    right = jnp.where(tree.right >= 0, tree.right, n).astype(jnp.int32)
-    interior = tree.left >= 0
-    real = interior | (tree.prim_count > 0)
-    return left, right, interior, real
-
-
-@jax.jit
-def _schedule(tree):
-    """The interior nodes level by level (:mod:`jaxbvh.wide.levels`); one compile per capacity,
-    shared by the three methods."""
-    left, right, interior, _ = _links(tree)
-    return lv.level_order(left, right, tree.root, interior, (_window_width(tree.left.shape[0]),))
-
-
-@jax.jit
-def _layout(tree, levels, kept):
-    """Anchor (nearest kept proper ancestor) and child slot of every node, from ``kept``;
-    and the most children of a node.
-
-    Bottom-up: ``e(n)`` entry points ``n`` gives its anchor (1 if kept, else the sum of
-    its children's). Top-down: a kept node's children start at slot 0, a removed node's
-    at its own slot; the right child follows the left child's ``e``.
-    """
-    n = tree.left.shape[0]
-    left, right, _, _ = _links(tree)
-
-    def count_up(e, start, valid):
-        x = levels.window(start, valid)
-        total = take(e, left[jnp.minimum(x, n - 1)], 0) + take(e, right[jnp.minimum(x, n - 1)], 0)
-        return e.at[x].set(jnp.where(take(kept, x, True), 1, total), mode="drop")
-
-    e = lv.sweep_up(levels, count_up, jnp.ones(n, jnp.int32))
-
-    def place_down(state, start, valid):
-        anchor, slot = state
-        x = levels.window(start, valid)
-        xs = jnp.minimum(x, n - 1)
-        keep_x = kept[xs]
-        base = jnp.where(keep_x, 0, slot[xs])
-        owner = jnp.where(keep_x, xs, anchor[xs])
-        l, r = jnp.where(x < n, left[xs], n), jnp.where(x < n, right[xs], n)
-        kids = jnp.concatenate([l, r])
-        anchor = anchor.at[kids].set(jnp.concatenate([owner, owner]), mode="drop")
-        slot = slot.at[kids].set(jnp.concatenate([base, base + take(e, l, 0)]), mode="drop")
-        return anchor, slot
-
-    anchor, slot = lv.sweep_down(levels, place_down, (jnp.full(n, -1, jnp.int32), jnp.zeros(n, jnp.int32)))
-    width = jnp.max(jnp.where(kept & (jnp.arange(n) != tree.root), slot, 0)) + 1
-    return anchor, slot, width
-
-
-def _prices(a, child, prim_count, table, ci):
-    """``(R, leaf cost)`` of a tree with relative areas ``a`` (see :func:`rcost`)."""
-    k = jnp.sum(child >= 0, axis=1)
-    per_node = a * jnp.take(table.astype(a.dtype), k, mode="clip")
-    rc = jnp.sum(jnp.where(k > 0, per_node, 0))
-    leaves = jnp.sum(jnp.where(prim_count > 0, a * prim_count.astype(a.dtype), 0)) * ci
-    return rc, leaves
-
-
-@partial(jax.jit, static_argnames=("arity",))
-def _emit(tree, kept, anchor, slot, leaf_count, leaf_start, prim_index, table, ci, *, arity):
-    """The WideBVH on the input's ids (kept nodes linked to their anchors at their
-    slots), and ``(R, leaf cost)`` of it and of the input."""
-    n = tree.left.shape[0]
-    ids = jnp.arange(n, dtype=jnp.int32)
-    linked = kept & (ids != tree.root)
-    rows = jnp.where(linked, anchor, n)
-    child = jnp.full((n, arity), -1, jnp.int32).at[rows, jnp.where(linked, slot, 0)].set(ids, mode="drop")
-    is_leaf = kept & (leaf_count > 0)
-    wide = WideBVH(child=child, parent=jnp.where(linked, anchor, -1).astype(jnp.int32),
-                   lo=jnp.where(kept[:, None], tree.lo, jnp.inf).astype(tree.lo.dtype),
-                   hi=jnp.where(kept[:, None], tree.hi, -jnp.inf).astype(tree.hi.dtype),
-                   prim_start=jnp.where(is_leaf, leaf_start, 0).astype(jnp.int32),
-                   prim_count=jnp.where(is_leaf, leaf_count, 0).astype(jnp.int32),
-                   prim_index=prim_index, root=tree.root)
-    a = relative_areas(tree.lo, tree.hi, tree.root)  # kept boxes are the input's: one area pass
-    ci = jnp.asarray(ci, a.dtype)
-    return wide, _prices(a, child, wide.prim_count, table, ci), _prices(a, tree.child, tree.prim_count, table[:3], ci)
 
 
 def _finish(tree, kept, anchor, slot, arity, table, *, leaf_count=None, leaf_start=None,
             prim_index=None, merged=False, ci=1.0, objective=None):
+    """The :class:`CollapseResult` of the nodes ``kept`` at their anchors and slots."""
     t = tree
-    wide, (after, leaves_after), (before, leaves_before) = _emit(
+    wide, (after, leaves_after), (before, leaves_before) = emit(
         t, kept, anchor, slot, t.prim_count if leaf_count is None else leaf_count,
         t.prim_start if leaf_start is None else leaf_start,
         t.prim_index if prim_index is None else prim_index, table, ci, arity=arity)
@@ -335,16 +240,16 @@ def _check_k(max_children, what="max_children") -> int:
 
 @jax.jit
 def _qbvh_decide(tree, levels):
-    _, _, interior, real = _links(tree)
+    _, _, interior, real = links(tree)
     return real & ~(interior & (lv.depth_of(levels) % 2 == 1))
 
 
 def qbvh(tree, test_cost: Callable | None = None) -> CollapseResult:
     """The paper's QBVH baseline: remove every interior node at odd depth (4-wide)."""
     t = _binary_input(tree)
-    levels = _schedule(t)
+    levels = schedule(t)
     kept = _qbvh_decide(t, levels)
-    anchor, slot, _ = _layout(t, levels, kept)
+    anchor, slot, _ = layout(t, levels, kept)
     return _finish(t, kept, anchor, slot, 4, cost_table(test_cost, 4))
 
 
@@ -352,7 +257,7 @@ def qbvh(tree, test_cost: Callable | None = None) -> CollapseResult:
 def _greedy_decide(tree, levels, *, max_children):
     """The kept nodes [N] bool of the greedy pushup."""
     n = tree.left.shape[0]
-    left, right, interior, real = _links(tree)
+    left, right, interior, real = links(tree)
     a = relative_areas(tree.lo, tree.hi, tree.root)
     one = jnp.asarray(1 - min_gain(a.dtype), a.dtype)
 
@@ -417,168 +322,17 @@ def greedy(tree, *, max_children: int | None = None, test_cost: Callable | None 
     """
     t = _binary_input(tree)
     k = None if max_children is None else _check_k(max_children)
-    levels = _schedule(t)
+    levels = schedule(t)
     kept = _greedy_decide(t, levels, max_children=k)
-    anchor, slot, width = _layout(t, levels, kept)
+    anchor, slot, width = layout(t, levels, kept)
     # no limit: as wide as the widest node, rounded up to 4 or a multiple of 8 (fewer compiles)
     arity = k if k is not None else (4 if int(width) <= 4 else -(-int(width) // 8) * 8)
     return _finish(t, kept, anchor, slot, arity, cost_table(test_cost, arity))
 
 
 # ----------------------------------------------------------------------------------
-# The optimal collapse (dynamic programming)
+# The optimal collapse (dynamic programming: jaxbvh.wide.collapse_dp)
 # ----------------------------------------------------------------------------------
-
-
-def _first_near_min(candidates):
-    """Tie rule over a list of candidate arrays: ``(index, value)`` of the first within
-    :func:`jaxbvh.numerics.min_gain` of the least (elementwise; unrolled, so XLA fuses it into one loop)."""
-    best = candidates[0]
-    for c in candidates[1:]:
-        best = jnp.minimum(best, c)
-    near = best * (1 + min_gain(best.dtype))
-    index = jnp.zeros(best.shape, jnp.int32)
-    value = candidates[-1]
-    for i in range(len(candidates) - 1, -1, -1):  # the last assignment is the first candidate
-        within = candidates[i] <= near
-        index = jnp.where(within, i, index)
-        value = jnp.where(within, candidates[i], value)
-    return index, value
-
-
-def _min_plus(gl, gr):
-    """``h[t] = g_L[i] + g_R[t - i]`` at the first near-least ``i``: ``(h, i)`` [K+1, W].
-
-    Tables are [K+1, W] (one row per ``t``). Unrolled over the ``K (K - 1) / 2`` pairs
-    ``(t, i < t)`` on whole rows, which XLA fuses into one loop (3x faster on CPU than
-    shifting whole tables; compile time grows as K^2, hence :data:`MAX_CHILDREN_LIMIT`).
-    """
-    k1, w = gl.shape
-    h = [jnp.full((w,), jnp.inf, gl.dtype)] * 2
-    split = [jnp.zeros((w,), jnp.int32)] * 2
-    for t in range(2, k1):
-        i, value = _first_near_min([gl[i] + gr[t - i] for i in range(1, t)])
-        h.append(value)
-        split.append(i + 1)
-    return jnp.stack(h), jnp.stack(split).astype(jnp.int8)
-
-
-@partial(jax.jit, static_argnames=("max_children", "merge"))
-def _optimal_decide(tree, levels, table, ci, max_leaf, *, max_children, merge):
-    n = tree.left.shape[0]
-    k = max_children
-    left, right, interior, real = _links(tree)
-    a = relative_areas(tree.lo, tree.hi, tree.root)
-    dtype = a.dtype
-    table = table.astype(dtype)
-    ci = jnp.asarray(ci, dtype)
-    rows_total = levels.order.shape[0]
-    is_leaf = tree.prim_count > 0
-    leaf_value = (a * ci * tree.prim_count.astype(dtype)) if merge else jnp.zeros(n, dtype)
-    t_index = jnp.arange(k + 1)[:, None]
-
-    def child_table(g, prims, c):
-        """Tables [K+1, W] of the children ``c`` [W]: a leaf's from its cost, others from ``g``."""
-        pos = take(levels.position, c, rows_total)
-        leaf = take(is_leaf, c, False)
-        stored = jnp.take(g, pos, axis=1, mode="fill", fill_value=jnp.inf)
-        leaf_table = jnp.where(t_index == 1, take(leaf_value, c, 0)[None, :], jnp.inf)
-        count = jnp.where(leaf, take(tree.prim_count, c, 0), take(prims, pos, 0))
-        return jnp.where(leaf[None, :], leaf_table, stored), count
-
-    def solve(state, start, valid):
-        g, choice, split, prims = state
-        x = levels.window(start, valid)
-        xs = jnp.minimum(x, n - 1)
-        w = x.shape[0]
-        both, counts = child_table(g, prims, jnp.concatenate([left[xs], right[xs]]))  # one gather
-        gl, gr, pl, pr = both[:, :w], both[:, w:], counts[:w], counts[w:]
-        h, i_best = _min_plus(gl, gr)
-        t_best, value = _first_near_min([a[xs] * table[t] + h[t] for t in range(2, k + 1)])
-        t_best = t_best + 2
-        count = pl + pr
-        if merge:
-            as_leaf = jnp.where(count <= max_leaf, a[xs] * ci * count.astype(dtype), jnp.inf)
-            make_leaf = value > as_leaf * (1 + min_gain(dtype))
-            t_best = jnp.where(make_leaf, 0, t_best)
-            value = jnp.where(make_leaf, as_leaf, value)
-        g = jax.lax.dynamic_update_slice(g, h.at[1].set(value), (jnp.int32(0), start))
-        choice = jax.lax.dynamic_update_slice(choice, t_best.astype(jnp.int8), (start,))
-        split = jax.lax.dynamic_update_slice(split, i_best, (jnp.int32(0), start))
-        prims = jax.lax.dynamic_update_slice(prims, count, (start,))
-        return g, choice, split, prims
-
-    state = (jnp.full((k + 1, rows_total), jnp.inf, dtype), jnp.zeros(rows_total, jnp.int8),
-             jnp.zeros((k + 1, rows_total), jnp.int8), jnp.zeros(rows_total, jnp.int32))
-    g, choice, split, prims = lv.sweep_up(levels, solve, state)
-    root_pos = levels.position[tree.root]
-    objective = jnp.where(interior[tree.root], take(g[1], root_pos, jnp.inf), leaf_value[tree.root])
-
-    # back-tracking: tau[n] = entry points n gives its anchor (1: kept, 0: inside a new leaf)
-    def back(state, start, valid):
-        tau, anchor, slot, owner = state
-        x = levels.window(start, valid)
-        xs = jnp.minimum(x, n - 1)
-        live = x < n
-        tau_x = tau[xs]
-        keep_x = tau_x == 1
-        ch = jax.lax.dynamic_slice(choice, (start,), (x.shape[0],)).astype(jnp.int32)
-        sp = jax.lax.dynamic_slice(split, (jnp.int32(0), start), (k + 1, x.shape[0])).astype(jnp.int32)
-        becomes_leaf = keep_x & (ch == 0)
-        inside = tau_x == 0
-        entries = jnp.where(keep_x, ch, tau_x)
-        i = jnp.take_along_axis(sp, jnp.clip(entries, 0, k)[None, :], axis=0)[0]
-        gone = inside | becomes_leaf
-        kids = jnp.concatenate([jnp.where(live, left[xs], n), jnp.where(live, right[xs], n)])
-        base = jnp.where(keep_x, 0, slot[xs])
-        up = jnp.where(keep_x, xs, anchor[xs])
-        new_owner = jnp.where(becomes_leaf, xs, jnp.where(inside, owner[xs], n))
-
-        def both(l_value, r_value):
-            return jnp.concatenate([l_value, r_value])
-
-        tau = tau.at[kids].set(both(jnp.where(gone, 0, i), jnp.where(gone, 0, entries - i)), mode="drop")
-        anchor = anchor.at[kids].set(both(up, up), mode="drop")
-        slot = slot.at[kids].set(both(base, base + i), mode="drop")
-        owner = owner.at[kids].set(both(new_owner, new_owner), mode="drop")
-        return tau, anchor, slot, owner
-
-    tau0 = jnp.zeros(n, jnp.int32).at[tree.root].set(1)
-    tau, anchor, slot, owner = lv.sweep_down(
-        levels, back, (tau0, jnp.full(n, -1, jnp.int32), jnp.zeros(n, jnp.int32), jnp.full(n, n, jnp.int32)))
-    kept = real & (tau == 1)
-    made_leaf = kept & interior
-    if merge:
-        made_leaf = made_leaf & (take(choice, levels.position, 1) == 0)
-    else:
-        made_leaf = jnp.zeros(n, bool)
-    count = jnp.where(made_leaf, take(prims, levels.position, 0), tree.prim_count)
-    return kept, anchor, slot, objective, made_leaf, owner, count
-
-
-@jax.jit
-def _regroup_prims(tree, owner, count):
-    """``prim_index`` with every new leaf's primitives in one run: ``(start, prim_index)``.
-
-    ``owner[leaf]`` is the new leaf that absorbs a binary leaf (``N``: it stays a leaf).
-    Slots are sorted by the leaf that ends up holding them (stable), so runs stay runs.
-    """
-    n = tree.left.shape[0]
-    p = tree.prim_index.shape[0]
-    leaf = tree.prim_count > 0
-    ids = jnp.arange(n, dtype=jnp.int32)
-    slots = jnp.arange(p, dtype=jnp.int32)
-    first = jnp.full(p, -1, jnp.int32).at[jnp.where(leaf, tree.prim_start, p)].set(ids, mode="drop")
-    last_start = jax.lax.cummax(jnp.where(first >= 0, slots, -1))
-    holder = take(first, jnp.where(last_start >= 0, last_start, p), -1)
-    hs = jnp.maximum(holder, 0)
-    used = (holder >= 0) & (slots < tree.prim_start[hs] + tree.prim_count[hs])
-    final = jnp.where(owner[hs] < n, owner[hs], hs)
-    key = jnp.where(used, final, n)
-    key_sorted, order = jax.lax.sort((key, slots), num_keys=1, is_stable=True)
-    prim_index = jnp.where(key_sorted < n, tree.prim_index[order], -1)
-    start = jnp.full(n, p, jnp.int32).at[key_sorted].min(slots, mode="drop")
-    return jnp.where(count > 0, start, 0), prim_index
 
 
 def optimal(tree, *, max_children: int = DEFAULT_MAX_CHILDREN, test_cost: Callable | None = None,
@@ -596,11 +350,11 @@ def optimal(tree, *, max_children: int = DEFAULT_MAX_CHILDREN, test_cost: Callab
     max_leaf, ci = _MAX_LEAF("max_leaf", max_leaf), _CI("ci", ci)
     table = cost_table(test_cost, k)
     merge = int(max_leaf) > 1
-    kept, anchor, slot, objective, made_leaf, owner, count = _optimal_decide(
-        t, _schedule(t), table, ci, jnp.int32(max_leaf), max_children=k, merge=merge)
+    kept, anchor, slot, objective, made_leaf, owner, count = collapse_dp.decide(
+        t, schedule(t), table, ci, jnp.int32(max_leaf), max_children=k, merge=merge)
     extra = {}
     if merge:
-        start, prim_index = _regroup_prims(t, owner, count)
+        start, prim_index = collapse_dp.regroup_prims(t, owner, count)
         extra = dict(leaf_count=count, leaf_start=start, prim_index=prim_index, merged=True)
     return _finish(t, kept, anchor, slot, k, table, ci=ci, objective=objective, **extra)
 

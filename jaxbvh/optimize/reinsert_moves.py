@@ -1,0 +1,281 @@
+"""The moves of one reinsertion iteration: ranking, conflicts, application.
+
+Part of :mod:`jaxbvh.optimize.reinsert`, whose docstring explains the move, its lock
+set and the greedy choice in rank order (steps 3 and 4 of an iteration). :func:`find`
+searches the candidates (:mod:`jaxbvh.optimize.reinsert_search`) and chooses the moves
+to take; :func:`apply` applies them at once and refits their paths; :func:`iteration`
+is both, with the SAH after.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxbvh.numerics import half_area, none_to_oob, take_clipped
+from jaxbvh.optimize.reinsert_rules import move_width
+from jaxbvh.optimize.reinsert_search import State, candidates, scale_of, search
+
+#: mantissa bits of a gain that rank moves: gains within about 1% of each other tie
+RANK_MANTISSA = 7
+
+
+def rank_key(gain):
+    """Integer key that orders positive gains by their exponent and first
+    :data:`RANK_MANTISSA` mantissa bits (about 1%): closer gains tie, and then the
+    smaller id ranks first. Mirror-image moves (``a`` beside ``b`` and ``b`` beside
+    ``a``) gain the same in exact arithmetic but come out several ulps apart, differently
+    in XLA and in NumPy; a coarse key makes them tie in both.
+
+    Works on JAX and NumPy arrays (float32 -> int32, float64 -> int64 keys; a float64
+    key needs x64 in JAX, which float64 trees have).
+    """
+    if isinstance(gain, np.ndarray) or np.isscalar(gain):
+        gain = np.asarray(gain)
+        f32 = gain.dtype == np.float32
+        ints = gain.view(np.int32 if f32 else np.int64)
+    else:
+        f32 = gain.dtype == jnp.float32
+        ints = jax.lax.bitcast_convert_type(gain, jnp.int32 if f32 else jnp.int64)
+    return ints >> ((23 if f32 else 52) - RANK_MANTISSA)
+
+
+# ----------------------------------------------------------------------------------
+# Small helpers
+# ----------------------------------------------------------------------------------
+
+
+def _sibling(child, parent, n):
+    up = take_clipped(parent, n)
+    kids = take_clipped(child, up)
+    return jnp.where(kids[..., 0] == n, kids[..., 1], kids[..., 0])
+
+
+def interior_sah(st: State, prim_count, ct, ci):
+    """SAH of the working tree from its sums of areas (tight boxes; the identity in the
+    docstring of :mod:`jaxbvh.optimize.reinsert`), a scalar of the boxes' dtype.
+    ``prim_count`` [N] int32: the tree's leaf sizes; ``ct``, ``ci``: SAH constants."""
+    interior = st.child[:, 0] >= 0
+    leaf = prim_count > 0
+    dtype = st.lo.dtype
+    root_area = st.area[st.root]
+    weighted = (ct * jnp.sum(jnp.where(interior, st.area, 0))
+                + ci * jnp.sum(jnp.where(leaf, prim_count.astype(dtype) * st.area, 0)))
+    flat = ct * jnp.sum(interior).astype(dtype) + ci * jnp.sum(prim_count).astype(dtype)
+    return jnp.where(root_area > 0, weighted / jnp.where(root_area > 0, root_area, 1), flat)
+
+
+# ----------------------------------------------------------------------------------
+# Conflicts, moves, refit
+# ----------------------------------------------------------------------------------
+
+
+def _walk(parent, starts, tops, active, fn, carry, cap):
+    """Walk up from ``starts`` to ``tops`` (inclusive) in lockstep, ``carry = fn(carry,
+    nodes, live)`` at every step (``nodes``: the current node of each lane)."""
+
+    def cond(c):
+        _, _, live, i = c
+        return jnp.any(live) & (i <= cap)
+
+    def body(c):
+        carry, cur, live, i = c
+        carry = fn(carry, cur, live)
+        live = live & (cur != tops)
+        cur = jnp.where(live, take_clipped(parent, cur), cur)
+        return carry, cur, live, i + 1
+
+    carry, _, _, _ = jax.lax.while_loop(cond, body, (carry, starts, active, jnp.int32(0)))
+    return carry
+
+
+def best(gain, out, width):
+    """Up to ``width`` of the moves found, best first: node ids [width] (``-1``: none).
+
+    The moves found are taken in id order (the first ``width`` of them when there are
+    more), then ranked by :func:`rank_key` of their gain, descending, ties by id.
+    """
+    cap = out.shape[0]
+    has = out >= 0
+    at = jnp.where(has, jnp.cumsum(has.astype(jnp.int32)) - 1, width)
+    a = jnp.full(width, -1, jnp.int32).at[at].set(jnp.arange(cap, dtype=jnp.int32), mode="drop")
+    key = jnp.where(a >= 0, -rank_key(take_clipped(gain, a)), jnp.iinfo(jnp.int32).max)
+    big = jnp.int32(cap)
+    _, _, a = jax.lax.sort((key, jnp.where(a >= 0, a, big), a), num_keys=2)
+    return a
+
+
+class Moves(NamedTuple):
+    """Moves as lanes, best first (lane index = rank): ``a`` (-1: idle lane), the nodes
+    it touches and the ends of its paths."""
+
+    a: Any      # [W] int32: the node moved, with its subtree (-1: idle lane)
+    p: Any      # [W] int32: its parent, which moves with it
+    s: Any      # [W] int32: its sibling, which takes p's place
+    g: Any      # [W] int32: parent of p (-1: p is the root)
+    out: Any    # [W] int32: the place: p goes above it
+    up: Any     # [W] int32: parent of out (-1: out is the root)
+    lca: Any    # [W] int32: common ancestor of p and out (top of both paths)
+
+
+def moves(st: State, a, out, lca) -> Moves:
+    """The moves of nodes ``a`` [W] (``-1``: idle lane) as lanes, from the search's
+    results by node id: ``out`` [N] the place, ``lca`` [N] the common ancestor."""
+    live = a >= 0
+    p = jnp.where(live, take_clipped(st.parent, a), -1)
+    y = jnp.where(live, take_clipped(out, a), -1)
+    return Moves(a=a, p=p, s=jnp.where(live, _sibling(st.child, st.parent, a), -1),
+                 g=jnp.where(live, take_clipped(st.parent, p), -1), out=y,
+                 up=jnp.where(live, take_clipped(st.parent, y), -1),
+                 lca=jnp.where(live, take_clipped(lca, a), -1))
+
+
+def select(st: State, m: Moves):
+    """Which moves (lanes, best first) are taken, bool [W]: the greedy choice in rank
+    order, in rounds.
+
+    Round after round, every remaining move that ranks first on every node it locks
+    (among the remaining moves) is taken, and moves that lock a node of a taken move
+    drop out. The result is the sequential greedy choice (best rank first, a move taken
+    when it shares no locked node with one taken before): the first-ranked remaining
+    move always wins, and a move wins in a round exactly when every better move that
+    shares a node with it has dropped out.
+    """
+    cap = st.child.shape[0]
+    parent = st.parent
+    width = m.a.shape[0]
+    has = m.a >= 0
+    rank = jnp.arange(width, dtype=jnp.int32)
+    extra = jnp.stack([m.a, m.s, m.g, m.up], axis=1)  # [W, 4], -1: none
+    none = jnp.int32(width)
+
+    def claim(lanes):
+        """Scatter-min of lane ranks over the nodes each lane in ``lanes`` locks."""
+        lock = jnp.full(cap, none, jnp.int32)
+        lock = lock.at[jnp.where(lanes[:, None], none_to_oob(extra, cap), cap)].min(
+            jnp.broadcast_to(rank[:, None], extra.shape), mode="drop")
+
+        def mark(lock, nodes, live):
+            return lock.at[jnp.where(live, nodes, cap)].min(rank, mode="drop")
+
+        lock = _walk(parent, m.p, m.lca, lanes, mark, lock, cap)
+        return _walk(parent, m.out, m.lca, lanes, mark, lock, cap)
+
+    def every(lanes, test):
+        """Whether ``test(nodes, ranks)`` holds on every node each lane locks."""
+        ok = lanes & jnp.all((extra < 0) | test(extra, rank[:, None]), axis=1)
+
+        def check(ok, nodes, live):
+            return ok & (~live | test(nodes, rank))
+
+        ok = _walk(parent, m.p, m.lca, lanes, check, ok, cap)
+        return _walk(parent, m.out, m.lca, lanes, check, ok, cap)
+
+    def cond(c):
+        return jnp.any(c[0]) & (c[3] <= width)
+
+    def body(c):
+        alive, taken, held, i = c
+        lock = claim(alive)
+        free = every(alive, lambda n, r: take_clipped(held, n) == none)
+        win = every(alive & free, lambda n, r: take_clipped(lock, n) == r)
+        held = jnp.minimum(held, claim(win))
+        return alive & free & ~win, taken | win, held, i + 1
+
+    _, taken, _, _ = jax.lax.while_loop(
+        cond, body, (has, jnp.zeros(width, bool), jnp.full(cap, none, jnp.int32), jnp.int32(0)))
+    return taken
+
+
+def apply(st: State, m: Moves, taken, scale) -> State:
+    """Apply the ``taken`` moves (bool [W]) at once, then refit their changed paths
+    (docstring of :mod:`jaxbvh.optimize.reinsert`, step 4); ``scale``: that of ``st``."""
+    cap = st.child.shape[0]
+    child, parent = st.child, st.parent
+    a, p, s, g, y, up, lca = m.a, m.p, m.s, m.g, m.out, m.up, m.lca
+    side_s = jnp.where(take_clipped(child, p)[:, 0] == a, 1, 0)
+    side_p = jnp.where(take_clipped(child, g)[:, 0] == p, 0, 1)
+    side_y = jnp.where(take_clipped(child, up)[:, 0] == y, 0, 1)
+
+    def at(nodes, ok):
+        return jnp.where(taken & ok, nodes, cap)
+
+    new_child = child.at[at(g, g >= 0), side_p].set(s, mode="drop")
+    new_child = new_child.at[at(up, up >= 0), side_y].set(p, mode="drop")
+    new_child = new_child.at[at(p, True), side_s].set(y, mode="drop")
+    new_parent = parent.at[at(s, True)].set(g, mode="drop")
+    new_parent = new_parent.at[at(p, True)].set(up, mode="drop")
+    new_parent = new_parent.at[at(y, True)].set(p, mode="drop")
+    root = jnp.max(jnp.where(taken & (g < 0), s, jnp.where(taken & (up < 0), p, -1)))
+    root = jnp.where(root >= 0, root, st.root)
+
+    # refit: chain 1 from g (ancestors of p that shrink), chain 2 from p (p and the
+    # ancestors of out that grow); each stops below the node whose box cannot change
+    case_i = lca == p       # out inside s's subtree: only chain 2, up to s
+    case_ii = y == lca      # out is an ancestor: only chain 1, through p above out
+    start1 = jnp.where(case_i, -1, g)
+    stop1 = jnp.where(case_ii, up, lca)
+    start2 = jnp.where(case_ii, -1, p)
+    stop2 = jnp.where(case_i, g, lca)
+    live1 = taken & (start1 >= 0) & (start1 != stop1)
+    live2 = taken & (start2 >= 0)
+
+    def cond(c):
+        return jnp.any(c[4]) | jnp.any(c[5])
+
+    def body(c):
+        lo, hi, cur1, cur2, live1, live2, i = c
+        for cur, live in ((cur1, live1), (cur2, live2)):
+            kids = take_clipped(new_child, cur)
+            box_lo = jnp.minimum(take_clipped(lo, kids[:, 0]), take_clipped(lo, kids[:, 1]))
+            box_hi = jnp.maximum(take_clipped(hi, kids[:, 0]), take_clipped(hi, kids[:, 1]))
+            lo = lo.at[jnp.where(live, cur, cap)].set(box_lo, mode="drop")
+            hi = hi.at[jnp.where(live, cur, cap)].set(box_hi, mode="drop")
+        nxt1 = take_clipped(new_parent, cur1)
+        nxt2 = take_clipped(new_parent, cur2)
+        live1 = live1 & (nxt1 != stop1) & (nxt1 >= 0) & (i < cap)
+        live2 = live2 & (nxt2 != stop2) & (nxt2 >= 0) & (i < cap)
+        return lo, hi, jnp.where(live1, nxt1, cur1), jnp.where(live2, nxt2, cur2), live1, live2, i + 1
+
+    lo, hi, *_ = jax.lax.while_loop(cond, body, (st.lo, st.hi, start1, start2, live1, live2,
+                                                 jnp.int32(0)))
+    return State(new_child, new_parent, lo, hi, root, half_area(lo, hi, scale))
+
+
+# ----------------------------------------------------------------------------------
+# One iteration
+# ----------------------------------------------------------------------------------
+
+
+def find(st: State, octaves, max_steps, min_gain):
+    """Search and selection of one iteration: ``(moves, taken, gains, count)``.
+
+    ``octaves`` [] int32: the candidates (:func:`~jaxbvh.optimize.reinsert_search.candidates`);
+    ``max_steps`` [] int32, ``min_gain`` []: as for :func:`~jaxbvh.optimize.reinsert_search.search`.
+    Returns the :class:`Moves` found (best first, :func:`~jaxbvh.optimize.reinsert_rules.move_width`
+    lanes), which of them are taken (bool [W]), each lane's gain ([W], 0 for idle lanes)
+    and the number of candidates searched ([] int32). Traceable.
+    """
+    scale = scale_of(st)
+    ids, count = candidates(st, octaves)
+    gain, out, lca = search(st, ids, count, scale, max_steps, min_gain)
+    a = best(gain, out, move_width(st.child.shape[0]))
+    m = moves(st, a, out, lca)
+    return m, select(st, m), jnp.where(a >= 0, take_clipped(gain, a), 0), count
+
+
+def iteration(st: State, prim_count, ct, ci, octaves, max_steps, min_gain):
+    """One iteration: ``(state, moves taken, total gain, SAH after, candidates searched)``.
+
+    :func:`find`, then :func:`apply`; ``prim_count`` [N] int32, ``ct``, ``ci``: the SAH
+    of the new state (:func:`interior_sah`). The gain is in scaled half-areas (the SAH
+    drops by ``ct * gain / area(root)``). Traceable.
+    """
+    m, taken, gain, count = find(st, octaves, max_steps, min_gain)
+    new = apply(st, m, taken, scale_of(st))
+    made = jnp.sum(taken, dtype=jnp.int32)
+    return new, made, jnp.sum(jnp.where(taken, gain, 0)), interior_sah(new, prim_count, ct, ci), count
+

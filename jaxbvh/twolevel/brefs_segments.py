@@ -1,0 +1,82 @@
+"""Segmented reductions over the BRef array and the best bin plane of every segment.
+
+Part of :mod:`jaxbvh.twolevel.brefs` (Benthin et al. 2017), whose docstring explains the
+BRef array, its segments and the binning (step 4: bins over the BRef centres, the plane
+cost ``A_L N_L + A_R N_R``, the tie rule). Per-segment arrays are keyed by the
+segment's start slot; :func:`segment` reduces over segments, :func:`exclusive_rank`
+ranks flagged slots within theirs, :func:`best_planes` finds each segment's cheapest
+plane with sorts and segmented scans (no segments x bins table).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from jaxbvh.numerics import TIE_TOLERANCE, half_area, take
+
+
+def segment(op, data, ids, n):
+    """``op`` (segment_sum/min/max) over ``n`` segments; id ``n`` means "none" (dropped)."""
+    return op(data, ids, num_segments=n + 1)[:n]
+
+
+def exclusive_rank(flag, start):
+    """Rank of each flagged position among the flagged positions of its segment
+    (``flag`` [C] bool, ``start`` [C] int32 its segment's start): int32 [C]."""
+    before = jnp.cumsum(flag.astype(jnp.int32)) - flag.astype(jnp.int32)
+    return before - take(before, start, 0)
+
+
+def _scan(starts, lo, hi, prims):
+    """Inclusive running (box, primitive count) along axis 1, restarting where ``starts``."""
+
+    def combine(a, b):
+        fa, la, ha, pa = a
+        fb, lb, hb, pb = b
+        keep = fb[..., None]
+        return (fa | fb, jnp.where(keep, lb, jnp.minimum(la, lb)), jnp.where(keep, hb, jnp.maximum(ha, hb)),
+                jnp.where(fb, pb, pa + pb))
+
+    return jax.lax.associative_scan(combine, (starts, lo, hi, prims), axis=1)[1:]
+
+
+def best_planes(sid, bin_p, lo, hi, prims, *, bins, cap):
+    """Cheapest bin plane of every segment: ``(cost, axis * bins + plane)`` [C].
+
+    ``sid`` [C] int32: the segment (start slot) of each slot that takes part, ``cap``
+    for the others; ``bin_p`` [C, 3] int32: the bin of each slot's centre per axis;
+    ``lo``, ``hi`` [C, 3], ``prims`` [C] int32: the BRefs' boxes and primitive counts.
+    Per axis the BRefs are sorted by (segment, bin); forward and backward segmented scans
+    give the box and primitive count of both sides of every plane where the bin changes
+    (empty bins between two occupied ones give the same partition; the lowest such plane
+    is named). Costs and the tie rule are those of :mod:`jaxbvh.twolevel.brefs` (step 4);
+    segments without a plane get ``(inf, max int)``.
+    """
+    i32 = jnp.int32
+    dtype = lo.dtype
+    axes = jnp.arange(3, dtype=i32)
+    none = cap * bins  # sorts after every real key
+    keys = jnp.where(sid[None, :] < cap, sid[None, :] * bins + bin_p.T, none)  # [3, C]
+    order = jnp.argsort(keys, axis=1, stable=True).astype(i32)
+    seg = jnp.take_along_axis(jnp.broadcast_to(sid, (3, cap)), order, axis=1)
+    b = jnp.take_along_axis(bin_p.T, order, axis=1)
+    s_lo, s_hi, s_p = lo[order], hi[order], prims[order]  # [3, C, 3], [3, C]
+    step = jnp.concatenate([seg[:, 1:] != seg[:, :-1], jnp.ones((3, 1), bool)], axis=1)  # last of a run
+    first = jnp.concatenate([jnp.ones((3, 1), bool), step[:, :-1]], axis=1)
+    l_lo, l_hi, l_p = _scan(first, s_lo, s_hi, s_p)
+    r_lo, r_hi, r_p = (a[:, ::-1] for a in _scan(step[:, ::-1], s_lo[:, ::-1], s_hi[:, ::-1], s_p[:, ::-1]))
+    shift = lambda a, fill: jnp.concatenate([a[:, 1:], jnp.full_like(a[:, :1], fill)], axis=1)  # noqa: E731
+    r_lo, r_hi, r_p = shift(r_lo, jnp.inf), shift(r_hi, -jnp.inf), shift(r_p, 0)
+    # a plane after every sorted BRef whose successor in the segment has a higher bin (so
+    # both sides hold BRefs; bins differ only on an axis of positive span)
+    plane = (seg < cap) & ~step & (b != shift(b, -1))
+    cost = (half_area(l_lo, l_hi) * l_p.astype(dtype) + half_area(r_lo, r_hi) * r_p.astype(dtype))
+    cost = jnp.where(plane, cost, jnp.inf)
+    ids = jnp.where(plane, seg, cap).ravel()
+    best = segment(jax.ops.segment_min, cost.ravel(), ids, cap)
+    near = (best * (1 + TIE_TOLERANCE)).at[ids].get(mode="fill", fill_value=-jnp.inf)
+    key = jnp.where(plane & (cost.ravel() <= near).reshape(3, cap), axes[:, None] * bins + b,
+                    jnp.iinfo(i32).max)
+    best_key = segment(jax.ops.segment_min, key.ravel(), ids, cap)
+    return best, best_key
