@@ -21,9 +21,15 @@ key         what it is
 :class:`Checked` runs every field's check in ``__post_init__`` and then the class's own
 ``_check_together`` for rules between knobs, so a Config that exists is valid, and the
 command line, which builds its options and their defaults from these fields
-(:func:`jaxbvh.cli.commands._common.add_config_options`), checks a value by the same
-rule the library does. The checks below put the knob's name first in their message, so
-the command line can say ``--max-leaf`` where the library says ``max_leaf``.
+(:class:`jaxbvh.cli.options.ConfigOptions`), checks a value by the same rule the
+library does. The checks below put the knob's name first in their message, so the
+command line can say ``--max-leaf`` where the library says ``max_leaf``.
+
+A knob that several methods share (the SAH constants, the optimizers' margin and
+split-axis pass) is made by one function below (:func:`ct_knob`, ...), so its
+default, check and help are written once. A knob whose default is itself a Config (the
+pipeline's stage configs) is checked by :func:`config_of`, and the command line offers
+that Config's knobs too.
 """
 
 from __future__ import annotations
@@ -36,7 +42,11 @@ from typing import Any, Callable
 
 def knob(default, *, check: Callable | None = None, help: str = "", metavar: str | None = None,
          choices=None, type: Callable | None = None):
-    """A dataclass field with its default, check and command-line metadata (module docstring)."""
+    """A dataclass field with its default, check and command-line metadata (module docstring).
+
+    ``default`` must be immutable (a number, string, tuple, None or a frozen Config):
+    every instance shares it.
+    """
     metadata = {"check": check, "help": help, "metavar": metavar, "choices": choices, "type": type}
     return dataclasses.field(default=default, metadata={k: v for k, v in metadata.items() if v is not None})
 
@@ -82,25 +92,25 @@ def integer(minimum: int | None = None, maximum: int | None = None) -> Callable:
         whole = isinstance(value, numbers.Real) and not isinstance(value, bool) and float(value).is_integer()
         in_range = whole and (minimum is None or value >= minimum) and (maximum is None or value <= maximum)
         if not in_range:
-            raise ValueError(f"{name} must be {_range('an integer', minimum, maximum)}, got {value!r}")
+            what = _interval("an integer", minimum, maximum, None, None)
+            raise ValueError(f"{name} must be {what}, got {value!r}")
         return int(value)
 
     return check
 
 
 def real(minimum: float | None = None, maximum: float | None = None, *, finite: bool = True,
-         below: float | None = None) -> Callable:
-    """A real number in ``[minimum, maximum]`` (or ``< below``), finite unless ``finite=False``."""
+         below: float | None = None, above: float | None = None) -> Callable:
+    """A real number in ``[minimum, maximum]``, ``< below``, ``> above``; finite unless
+    ``finite=False`` (never NaN)."""
 
     def check(name, value):
         number = isinstance(value, numbers.Real) and not isinstance(value, bool)
         ok = number and not math.isnan(value) and (not finite or math.isfinite(value)) \
             and (minimum is None or value >= minimum) and (maximum is None or value <= maximum) \
-            and (below is None or value < below)
+            and (below is None or value < below) and (above is None or value > above)
         if not ok:
-            what = _range("a finite number" if finite else "a number", minimum, maximum)
-            if below is not None:
-                what += f" below {below:g}"
+            what = _interval("a finite number" if finite else "a number", minimum, maximum, above, below)
             raise ValueError(f"{name} must be {what}, got {value!r}")
         return float(value)
 
@@ -123,11 +133,79 @@ def optional(check: Callable) -> Callable:
     return lambda name, value: None if value is None else check(name, value)
 
 
-def _range(what: str, minimum, maximum) -> str:
-    if minimum is not None and maximum is not None:
-        return f"{what} in [{minimum:g}, {maximum:g}]"
-    if minimum is not None:
-        return f"{what} >= {minimum:g}"
-    if maximum is not None:
-        return f"{what} <= {maximum:g}"
+def sizes(name, value):
+    """A non-empty sequence of integers >= 1 (work sizes), as a tuple (hashable: Configs
+    of the optimizers are part of a compiled program's identity)."""
+    one = integer(1)
+    try:
+        items = tuple(one(name, v) for v in value)
+    except (TypeError, ValueError):
+        items = ()
+    if not items:
+        raise ValueError(f"{name} must be positive sizes, got {value!r}")
+    return items
+
+
+def config_of(config_class) -> Callable:
+    """A nested Config: an instance of ``config_class``, or a dict of its knobs (checked
+    by that Config, whose message names the inner knob)."""
+
+    def check(name, value):
+        if isinstance(value, dict):
+            value = config_class(**value)
+        if not isinstance(value, config_class):
+            raise ValueError(f"{name} must be a {config_class.__module__}.{config_class.__qualname__} "
+                             f"or a dict of its fields, got {type(value).__name__}")
+        return value
+
+    return check
+
+
+def _interval(what: str, minimum, maximum, above, below) -> str:
+    """``what`` with its bounds: ``in (0, 1]``, ``>= 2``, ``< 1``, ..."""
+    low = f"[{minimum:g}" if minimum is not None else f"({above:g}" if above is not None else None
+    high = f"{maximum:g}]" if maximum is not None else f"{below:g})" if below is not None else None
+    if low and high:
+        return f"{what} in {low}, {high}"
+    if low:
+        return f"{what} {'>=' if minimum is not None else '>'} {low[1:]}"
+    if high:
+        return f"{what} {'<=' if maximum is not None else '<'} {high[:-1]}"
     return what
+
+
+# ----------------------------------------------------------------------------------
+# Knobs several methods share: one default, one check, one help each
+# ----------------------------------------------------------------------------------
+
+
+def ct_knob():
+    """``ct``: the SAH's cost of a traversal step (1, as every paper here uses it)."""
+    return knob(1.0, check=real(0), metavar="CT", help="SAH traversal cost, >= 0")
+
+
+def ci_knob():
+    """``ci``: the SAH's cost of a primitive test (1)."""
+    return knob(1.0, check=real(0), metavar="CI", help="SAH intersection cost, >= 0")
+
+
+def min_gain_knob():
+    """``min_gain``: the relative margin an optimizer's move must beat; None: ``64 * eps``
+    of the tree's float type (:func:`jaxbvh.numerics.min_gain`)."""
+    return knob(None, check=optional(real(0, finite=False)), type=float, metavar="G",
+                help="relative margin a move must beat (none: 64 eps of the tree's float type)")
+
+
+def split_axes_knob():
+    """``split_axes``: Kensler's final pass (:func:`jaxbvh.tree.split_axes.assign_split_axes`)
+    on an optimizer's result."""
+    return knob(True, help="Kensler's split-axis pass on the result")
+
+
+@dataclasses.dataclass(frozen=True)
+class SAHCosts(Checked):
+    """The SAH constants alone: the Config of pricing a tree one did not build (``jaxbvh
+    trace``, the stats of a tree file). ``ct``, ``ci``: as every builder's."""
+
+    ct: float = ct_knob()
+    ci: float = ci_knob()

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from test_reinsert import NODES, assert_same_tree, check_result, random_tree, trees
 
 import jaxbvh
-from jaxbvh.optimize import treelet
+from jaxbvh.optimize import driver, treelet
 from jaxbvh.optimize import treelet_reference as ref
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -105,6 +105,19 @@ def test_smaller_treelets_and_windows():
     c = treelet.restructure(tree, split_axes=False, windows=(3,))  # speed only
     assert_same_tree(b.tree, c.tree)
     assert float(b.sah) <= float(a.sah) * (1 + 1e-6)  # 7 leaves see more than 4
+
+
+def test_split_axes_is_a_traced_setting():
+    """Runs with and without Kensler's split-axis pass share one compiled loop and one
+    compiled result (``split_axes`` is a traced Param, as reinsertion's)."""
+    tree, plo, phi = random_tree(14, 30, 2)
+    treelet.restructure(tree, split_axes=False)
+    before = driver.advance._cache_size(), driver._finish._cache_size()
+    with_axes = treelet.restructure(tree, split_axes=True)
+    assert (driver.advance._cache_size(), driver._finish._cache_size()) == before
+    check_result(tree, with_axes, plo, phi)
+    assert_same_tree(with_axes.tree, jaxbvh.tree.assign_split_axes(treelet.restructure(tree, split_axes=False).tree),
+                     fields=("axis", "lo", "hi"))
 
 
 def test_time_budget_progress_float64_and_tiny_trees():

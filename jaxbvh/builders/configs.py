@@ -23,7 +23,7 @@ from collections import OrderedDict
 from typing import Any, ClassVar
 
 from jaxbvh.builders.morton import CODE_BITS, check_code_bits
-from jaxbvh.configs import Checked, integer, knob, real
+from jaxbvh.configs import Checked, ci_knob, ct_knob, integer, knob
 
 
 def _code_bits(name, value):
@@ -46,8 +46,8 @@ class BuilderConfig(Checked):
     method: ClassVar[str] = ""  # the name in BUILDERS and on the command line
 
     max_leaf: int = knob(1, check=integer(1), metavar="N", help="most primitives per leaf")
-    ct: float = knob(1.0, check=real(0), help="SAH traversal cost")
-    ci: float = knob(1.0, check=real(0), help="SAH intersection cost")
+    ct: float = ct_knob()
+    ci: float = ci_knob()
     pad: bool = knob(True, help="pad arrays to a capacity bucket (fewer recompiles)")
     dtype: Any = knob(None, help="float32 (None) or float64 (needs x64)")
 

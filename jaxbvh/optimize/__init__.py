@@ -39,6 +39,10 @@ OPTIMIZERS: dict[str, Optimizer] = {
 }
 
 
+#: the method of :func:`optimize` (and of ``jaxbvh optimize``) unless told otherwise
+DEFAULT_METHOD = "pipeline"
+
+
 def make_config(method: str, config=None, **options):
     """The ``Config`` of ``method``: ``config`` (None: the defaults) with ``options``
     (its fields) replaced; ``ValueError`` for an unknown method or option."""
@@ -58,7 +62,7 @@ def make_config(method: str, config=None, **options):
     return dataclasses.replace(config, **options) if options else config
 
 
-def optimize(tree, method: str = "pipeline", *, key=None, time_budget: float | None = None,
+def optimize(tree, method: str = DEFAULT_METHOD, *, key=None, time_budget: float | None = None,
              on_step=None, config=None, **options) -> OptimizeResult:
     """Optimize ``tree`` with ``method`` (a name of :data:`OPTIMIZERS`); the result has
     NumPy arrays.
@@ -75,4 +79,4 @@ def optimize(tree, method: str = "pipeline", *, key=None, time_budget: float | N
     return run(OPTIMIZERS[method], tree, config, key=key, time_budget=time_budget, on_step=on_step)
 
 
-__all__ = ["OPTIMIZERS", "Optimizer", "OptimizeResult", "StepInfo", "make_config", "optimize"]
+__all__ = ["DEFAULT_METHOD", "OPTIMIZERS", "Optimizer", "OptimizeResult", "StepInfo", "make_config", "optimize"]

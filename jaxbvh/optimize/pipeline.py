@@ -41,6 +41,7 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jaxbvh.configs import Checked, ci_knob, config_of, ct_knob, integer, knob, real, split_axes_knob
 from jaxbvh.optimize import reinsert, treelet
 from jaxbvh.optimize.driver import run
 from jaxbvh.optimize.protocol import (
@@ -48,7 +49,6 @@ from jaxbvh.optimize.protocol import (
     OptimizeResult,
     OptimizerState,
     check_config,
-    check_costs,
     check_tree,
     float_dtype,
     keep_if_done,
@@ -71,7 +71,7 @@ TREELETS, REINSERTION = 0, 1
 
 
 @dataclasses.dataclass(frozen=True)
-class Config:
+class Config(Checked):
     """Knobs of the pipeline (module docstring), with the defaults.
 
     ``round_gain``: a round that lowers the SAH by less than this (relative) is the
@@ -86,38 +86,27 @@ class Config:
     stage configs (as stored here), and the stages never assign split axes themselves.
     """
 
-    round_gain: float = dataclasses.field(default=DEFAULT_ROUND_GAIN, metadata=dict(
-        help="the last round is the first that lowers the SAH by less than this (relative)",
-        metavar="G"))
-    max_rounds: int = dataclasses.field(default=DEFAULT_MAX_ROUNDS, metadata=dict(
-        help="most rounds of treelets and reinsertion", metavar="R"))
-    treelet_passes: int = dataclasses.field(default=DEFAULT_TREELET_PASSES, metadata=dict(
-        help="most treelet passes per round", metavar="P"))
-    treelet: treelet.Config = dataclasses.field(default_factory=treelet.Config)
-    reinsert: reinsert.Config = dataclasses.field(default_factory=reinsert.Config)
-    ct: float = dataclasses.field(default=1.0, metadata=dict(help="SAH traversal cost"))
-    ci: float = dataclasses.field(default=1.0, metadata=dict(help="SAH intersection cost"))
-    split_axes: bool = dataclasses.field(default=True, metadata=dict(
-        help="Kensler's split-axis pass on the result"))
+    round_gain: float = knob(DEFAULT_ROUND_GAIN, check=real(0, finite=False), metavar="G",
+                             help="the last round is the first that lowers the SAH by less than this "
+                                  "(relative)")
+    max_rounds: int = knob(DEFAULT_MAX_ROUNDS, check=integer(1), metavar="R",
+                           help="most rounds of treelets and reinsertion")
+    treelet_passes: int = knob(DEFAULT_TREELET_PASSES, check=integer(0), metavar="P",
+                               help="most treelet passes per round")
+    treelet: treelet.Config = knob(treelet.Config(), check=config_of(treelet.Config),
+                                   help="the treelet stage's Config")
+    reinsert: reinsert.Config = knob(reinsert.Config(), check=config_of(reinsert.Config),
+                                     help="the reinsertion stage's Config")
+    ct: float = ct_knob()
+    ci: float = ci_knob()
+    split_axes: bool = split_axes_knob()
 
-    def __post_init__(self):
-        if not self.round_gain >= 0:
-            raise ValueError(f"round_gain must be >= 0, got {self.round_gain}")
-        if self.max_rounds < 1:
-            raise ValueError(f"max_rounds must be >= 1, got {self.max_rounds}")
-        if self.treelet_passes < 0:
-            raise ValueError(f"treelet_passes must be >= 0, got {self.treelet_passes}")
-        check_costs(self.ct, self.ci)
+    def _check_together(self):
+        # the stored stage configs are what runs: the pipeline's costs and passes, no
+        # split-axis pass of their own
         common = dict(ct=self.ct, ci=self.ci, split_axes=False)
-        stages = {"treelet": (self.treelet, treelet.Config, dict(common, max_passes=self.treelet_passes)),
-                  "reinsert": (self.reinsert, reinsert.Config, common)}
-        for name, (given, StageConfig, fixed) in stages.items():
-            if isinstance(given, dict):
-                given = StageConfig(**given)
-            if not isinstance(given, StageConfig):
-                raise ValueError(f"{name} must be a {StageConfig.__module__}.Config or a dict of its "
-                                 f"fields, got {type(given).__name__}")
-            object.__setattr__(self, name, dataclasses.replace(given, **fixed))
+        object.__setattr__(self, "treelet", self.treelet.replace(**common, max_passes=self.treelet_passes))
+        object.__setattr__(self, "reinsert", self.reinsert.replace(**common))
 
 
 class Params(NamedTuple):

@@ -111,6 +111,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxbvh.configs import Checked, ci_knob, ct_knob, integer, knob, min_gain_knob, real, split_axes_knob
 from jaxbvh.numerics import extent_scale, half_area, none_to_oob, take_clipped
 from jaxbvh.numerics import min_gain as default_min_gain
 from jaxbvh.optimize.driver import run
@@ -119,7 +120,6 @@ from jaxbvh.optimize.protocol import (
     OptimizeResult,
     OptimizerState,
     check_config,
-    check_costs,
     check_tree,
     float_dtype,
     keep_if_done,
@@ -640,7 +640,7 @@ def widen(octaves, taken, count, nodes, before, after, escalate):
 
 
 @dataclasses.dataclass(frozen=True)
-class Config:
+class Config(Checked):
     """Knobs of parallel reinsertion (Meister & Bittner 2018), with the defaults.
 
     ``max_iterations``: most iterations. ``max_steps``: the search bound, in steps per
@@ -652,36 +652,19 @@ class Config:
     final pass (:func:`jaxbvh.tree.split_axes.assign_split_axes`) in ``result``.
     """
 
-    max_iterations: int = dataclasses.field(default=DEFAULT_MAX_ITERATIONS, metadata=dict(
-        help="most iterations", metavar="N"))
-    max_steps: int = dataclasses.field(default=DEFAULT_MAX_STEPS, metadata=dict(
-        help="search steps per node and iteration", metavar="S"))
-    first_fraction: float = dataclasses.field(default=DEFAULT_FIRST_FRACTION, metadata=dict(
-        help="about the share of nodes (largest parent area first) searched at first, "
-             "growing to all; in (0, 1]", metavar="F"))
-    escalate: float = dataclasses.field(default=DEFAULT_ESCALATE, metadata=dict(
-        help="relative SAH drop of an iteration at or below which one more octave of "
-             "nodes is searched", metavar="E"))
-    ct: float = dataclasses.field(default=1.0, metadata=dict(help="SAH traversal cost"))
-    ci: float = dataclasses.field(default=1.0, metadata=dict(help="SAH intersection cost"))
-    min_gain: float | None = dataclasses.field(default=None, metadata=dict(
-        help="relative margin a move must beat (automatic: 64 eps of the tree's float type)",
-        metavar="G"))
-    split_axes: bool = dataclasses.field(default=True, metadata=dict(
-        help="Kensler's split-axis pass on the result"))
-
-    def __post_init__(self):
-        if self.max_iterations < 0:
-            raise ValueError(f"max_iterations must be >= 0, got {self.max_iterations}")
-        if self.max_steps < 1:
-            raise ValueError(f"max_steps must be >= 1, got {self.max_steps}")
-        if not 0 < self.first_fraction <= 1:
-            raise ValueError(f"first_fraction must be in (0, 1], got {self.first_fraction}")
-        if not self.escalate >= 0:
-            raise ValueError(f"escalate must be >= 0, got {self.escalate}")
-        check_costs(self.ct, self.ci)
-        if self.min_gain is not None and not self.min_gain >= 0:
-            raise ValueError(f"min_gain must be >= 0, got {self.min_gain}")
+    max_iterations: int = knob(DEFAULT_MAX_ITERATIONS, check=integer(0), metavar="N", help="most iterations")
+    max_steps: int = knob(DEFAULT_MAX_STEPS, check=integer(1), metavar="S",
+                          help="search steps per node and iteration")
+    first_fraction: float = knob(DEFAULT_FIRST_FRACTION, check=real(above=0, maximum=1), metavar="F",
+                                 help="about the share of nodes (largest parent area first) searched at "
+                                      "first, growing to all; in (0, 1]")
+    escalate: float = knob(DEFAULT_ESCALATE, check=real(0, finite=False), metavar="E",
+                           help="relative SAH drop of an iteration at or below which one more octave of "
+                                "nodes is searched")
+    ct: float = ct_knob()
+    ci: float = ci_knob()
+    min_gain: float | None = min_gain_knob()
+    split_axes: bool = split_axes_knob()
 
 
 class Params(NamedTuple):

@@ -95,6 +95,18 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jaxbvh.configs import (
+    Checked,
+    ci_knob,
+    ct_knob,
+    integer,
+    knob,
+    min_gain_knob,
+    optional,
+    real,
+    sizes,
+    split_axes_knob,
+)
 from jaxbvh.draws import annealing_draws
 from jaxbvh.numerics import extent_scale
 from jaxbvh.numerics import min_gain as default_min_gain
@@ -104,7 +116,6 @@ from jaxbvh.optimize.protocol import (
     OptimizeResult,
     OptimizerState,
     check_config,
-    check_costs,
     check_tree,
     float_dtype,
     history_length,
@@ -156,21 +167,27 @@ def _score_moves(tree, ct, ci):
 # ----------------------------------------------------------------------------------
 
 
-def _check_common(config) -> None:
-    """The checks hill climbing and annealing share (``ValueError`` naming the knob)."""
-    check_costs(config.ct, config.ci)
-    if config.min_gain is not None and not config.min_gain >= 0:
-        raise ValueError(f"min_gain must be >= 0, got {config.min_gain}")
-    if config.windows is not None:
-        if not config.windows or min(config.windows) < 1:
-            raise ValueError(f"windows must be positive sizes, got {config.windows}")
-        object.__setattr__(config, "windows", tuple(int(w) for w in config.windows))
-    if config.frontier < 1:
-        raise ValueError(f"frontier must be >= 1, got {config.frontier}")
+def _schedule(name, value):
+    """A schedule: a name of :data:`SCHEDULES` or a function ``step -> temperature``."""
+    if isinstance(value, str):
+        if value not in SCHEDULES:
+            raise ValueError(f"{name} must be one of {', '.join(SCHEDULES)} or a function "
+                             f"step -> temperature, got {value!r}")
+    elif not callable(value):
+        raise ValueError(f"{name} must be a function step -> temperature, got {value!r}")
+    return value
+
+
+def _max_passes(help: str):
+    return knob(1000, check=integer(1), metavar="P", help=help)
+
+
+def _frontier():
+    return knob(DEFAULT_FRONTIER, check=integer(1), help="queue of changed nodes (speed only)")
 
 
 @dataclasses.dataclass(frozen=True)
-class HillClimbConfig:
+class HillClimbConfig(Checked):
     """Knobs of Kensler's hill climbing (module docstring), with the defaults.
 
     ``ct``, ``ci``: SAH constants. ``max_passes``: stop after this many passes even if
@@ -181,24 +198,17 @@ class HillClimbConfig:
     size is one more compiled copy of the window step).
     """
 
-    ct: float = 1.0
-    ci: float = 1.0
-    max_passes: int = 1000
-    min_gain: float | None = None
-    split_axes: bool = True
-    windows: tuple = DEFAULT_WINDOWS
-    frontier: int = DEFAULT_FRONTIER
-
-    def __post_init__(self):
-        if self.max_passes < 1:
-            raise ValueError(f"max_passes must be >= 1, got {self.max_passes}")
-        if self.windows is None:
-            raise ValueError("windows must be positive sizes, got None")
-        _check_common(self)
+    ct: float = ct_knob()
+    ci: float = ci_knob()
+    max_passes: int = _max_passes("most passes (stop even if not converged)")
+    min_gain: float | None = min_gain_knob()
+    split_axes: bool = split_axes_knob()
+    windows: tuple = knob(DEFAULT_WINDOWS, check=sizes, help="window sizes (speed only)")
+    frontier: int = _frontier()
 
 
 @dataclasses.dataclass(frozen=True)
-class AnnealConfig:
+class AnnealConfig(Checked):
     """Knobs of Kensler's simulated annealing (module docstring), with the defaults.
 
     ``schedule``: the temperature of each pass: a name from
@@ -217,38 +227,25 @@ class AnnealConfig:
     or a K times wider first window (a forest). Others as :class:`HillClimbConfig`.
     """
 
-    schedule: str | Callable = "kensler"
-    steps: int = KENSLER_STEPS
-    hottest: float = DEFAULT_HOTTEST
-    period: int = KENSLER_PERIOD
-    chains: int = 1
-    keep_best: bool = True
-    max_quench: int = 1000
-    ct: float = 1.0
-    ci: float = 1.0
-    min_gain: float | None = None
-    split_axes: bool = True
-    windows: tuple | None = None
-    frontier: int = DEFAULT_FRONTIER
-
-    def __post_init__(self):
-        if isinstance(self.schedule, str):
-            if self.schedule not in SCHEDULES:
-                raise ValueError(f"schedule must be one of {', '.join(SCHEDULES)} or a function "
-                                 f"step -> temperature, got {self.schedule!r}")
-        elif not callable(self.schedule):
-            raise ValueError(f"schedule must be a function step -> temperature, got {self.schedule!r}")
-        if self.steps < 0:
-            raise ValueError(f"steps must be >= 0, got {self.steps}")
-        if not self.hottest >= 0:
-            raise ValueError(f"hottest must be >= 0, got {self.hottest}")
-        if self.period < 1:
-            raise ValueError(f"period must be >= 1, got {self.period}")
-        if self.chains < 1:
-            raise ValueError(f"chains must be >= 1, got {self.chains}")
-        if self.max_quench < 1:
-            raise ValueError(f"max_quench must be >= 1, got {self.max_quench}")
-        _check_common(self)
+    schedule: str | Callable = knob("kensler", check=_schedule, choices=tuple(SCHEDULES),
+                                    help="temperature of each pass (a name; the library also takes "
+                                         "any function step -> T)")
+    steps: int = knob(KENSLER_STEPS, check=integer(0), metavar="N",
+                      help="passes that follow the schedule (Kensler's N)")
+    hottest: float = knob(DEFAULT_HOTTEST, check=real(0, finite=False), metavar="H",
+                          help="peak temperature, in units of the node cost")
+    period: int = knob(KENSLER_PERIOD, check=integer(1), metavar="F",
+                       help="period of Kensler's sine, in passes")
+    chains: int = knob(1, check=integer(1), metavar="K", help="independent chains, run as one forest")
+    keep_best: bool = knob(True, help="return the tree of least SAH seen (else the last)")
+    max_quench: int = _max_passes("most passes at T = 0 after the schedule")
+    ct: float = ct_knob()
+    ci: float = ci_knob()
+    min_gain: float | None = min_gain_knob()
+    split_axes: bool = split_axes_knob()
+    windows: tuple | None = knob(None, check=optional(sizes),
+                                 help="window sizes (speed only; none: chosen by the chains)")
+    frontier: int = _frontier()
 
 
 class Params(NamedTuple):

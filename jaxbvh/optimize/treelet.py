@@ -53,6 +53,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxbvh.configs import Checked, ci_knob, ct_knob, integer, knob, min_gain_knob, sizes, split_axes_knob
 from jaxbvh.numerics import extent_scale, half_area, take_clipped
 from jaxbvh.numerics import min_gain as default_min_gain
 from jaxbvh.optimize.driver import run
@@ -61,7 +62,6 @@ from jaxbvh.optimize.protocol import (
     OptimizeResult,
     OptimizerState,
     check_config,
-    check_costs,
     check_tree,
     float_dtype,
     keep_if_done,
@@ -313,9 +313,10 @@ def _pass(st: _State, scale, ct, min_gain, *, n, windows):
 class Params(NamedTuple):
     """Settings passed as traced values (changing them does not recompile)."""
 
-    ct: Any        # SAH cost of a traversal step
-    ci: Any        # SAH cost of a primitive test
-    min_gain: Any  # relative margin (module docstring)
+    ct: Any          # [] tree dtype: SAH cost of a traversal step
+    ci: Any          # [] tree dtype: SAH cost of a primitive test
+    min_gain: Any    # [] tree dtype: relative margin (module docstring)
+    split_axes: Any  # [] bool: Kensler's final pass in result() (traced: no program of its own)
 
 
 class Static(NamedTuple):
@@ -323,7 +324,6 @@ class Static(NamedTuple):
 
     leaves: int         # treelet size n
     windows: tuple      # treelets solved at once (speed only)
-    split_axes: bool    # Kensler's final pass in result()
 
 
 class Inner(NamedTuple):
@@ -334,7 +334,7 @@ class Inner(NamedTuple):
 
 
 @dataclasses.dataclass(frozen=True)
-class Config:
+class Config(Checked):
     """Knobs of treelet restructuring (Karras & Aila 2013), with the paper's defaults.
 
     ``leaves``: treelet size ``n`` (2 .. :data:`MAX_LEAVES`; the paper's 7; each size
@@ -342,29 +342,19 @@ class Config:
     last gains in). ``ct``, ``ci``: SAH constants. ``min_gain``: relative margin a
     change must beat (None: ``64 * eps`` of the tree's float type,
     :func:`jaxbvh.numerics.min_gain`). ``split_axes``: Kensler's final pass
-    (:func:`jaxbvh.tree.split_axes.assign_split_axes`) in ``result``. ``windows``:
-    treelets solved at once (speed only, never the result).
+    (:func:`jaxbvh.tree.split_axes.assign_split_axes`) in ``result`` (a traced setting:
+    no program of its own). ``windows``: treelets solved at once (speed only, never the
+    result).
     """
 
-    leaves: int = DEFAULT_LEAVES
-    max_passes: int = DEFAULT_MAX_PASSES
-    ct: float = 1.0
-    ci: float = 1.0
-    min_gain: float | None = None
-    split_axes: bool = True
-    windows: tuple = DEFAULT_WINDOWS
-
-    def __post_init__(self):
-        if not 2 <= self.leaves <= MAX_LEAVES:
-            raise ValueError(f"leaves must be in 2 .. {MAX_LEAVES}, got {self.leaves}")
-        if self.max_passes < 0:
-            raise ValueError(f"max_passes must be >= 0, got {self.max_passes}")
-        check_costs(self.ct, self.ci)
-        if self.min_gain is not None and not self.min_gain >= 0:
-            raise ValueError(f"min_gain must be >= 0, got {self.min_gain}")
-        if not self.windows or min(self.windows) < 1:
-            raise ValueError(f"windows must be positive sizes, got {self.windows}")
-        object.__setattr__(self, "windows", tuple(int(w) for w in self.windows))
+    leaves: int = knob(DEFAULT_LEAVES, check=integer(2, MAX_LEAVES), metavar="N",
+                       help="treelet size: leaves of a treelet (each size compiles its own program)")
+    max_passes: int = knob(DEFAULT_MAX_PASSES, check=integer(0), metavar="P", help="most passes")
+    ct: float = ct_knob()
+    ci: float = ci_knob()
+    min_gain: float | None = min_gain_knob()
+    split_axes: bool = split_axes_knob()
+    windows: tuple = knob(DEFAULT_WINDOWS, check=sizes, help="treelets solved at once (speed only)")
 
 
 @jax.jit
@@ -397,12 +387,13 @@ def init(tree, config: Config | None = None, key=None) -> OptimizerState:
     tree = to_jax(tree)
     dtype = float_dtype(tree)
     min_gain = default_min_gain(dtype) if config.min_gain is None else config.min_gain
-    params = Params(*(jnp.asarray(x, dtype) for x in (config.ct, config.ci, min_gain)))
+    params = Params(*(jnp.asarray(x, dtype) for x in (config.ct, config.ci, min_gain)),
+                    split_axes=jnp.bool_(config.split_axes))
     inner = _prepare(tree, params.ct, params.ci)
     limit = config.max_passes if config.leaves > 2 else 0  # two-leaf treelets cannot change
     progress = new_progress(sah_of(tree, config.ct, config.ci), limit, dtype)
     return OptimizerState(tree, progress, params, inner,
-                          Static(int(config.leaves), config.windows, bool(config.split_axes)))
+                          Static(int(config.leaves), config.windows))
 
 
 def step(state: OptimizerState) -> OptimizerState:
@@ -418,8 +409,7 @@ def result(state: OptimizerState) -> OptimizeResult:
     """The restructured tree (same capacity as the input) and the run's figures."""
     st = state.inner.tree
     out = state.tree.replace(left=st.child[:, 0], right=st.child[:, 1], parent=st.parent, lo=st.lo, hi=st.hi)
-    if state.static.split_axes:
-        out = apply_split_axes(out)
+    out = jax.lax.cond(state.params.split_axes, apply_split_axes, lambda t: t, out)
     progress = state.progress._replace(sah=sah_of(out, state.params.ct, state.params.ci))
     return make_result(out, progress)
 

@@ -62,6 +62,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxbvh.builders.configs import BinnedConfig, BuilderConfig, make_config
 from jaxbvh.builders.dispatch import build
 from jaxbvh.tree.frame import Frame
 from jaxbvh.tree.layout import BVH, capacity_bucket, depth, to_numpy
@@ -194,18 +195,51 @@ def placements(mesh, world_space: bool = True) -> list[Placement]:
     return out
 
 
-def build_object(vertices, faces, placement: Placement, *, method="binned", max_leaf=1, bins=16,
-                 ct=1.0, ci=1.0, dtype=np.float32) -> ObjectTree:
-    """BVH of one object's triangles where ``placement`` says (validated, padding stripped)."""
+#: the object BVHs' builder unless told otherwise: binned SAH, one primitive per leaf (the
+#: paper's choice; the command line's ``jaxbvh rebraid`` reads its defaults from it)
+DEFAULT_BUILDER = BinnedConfig()
 
+
+def object_builder(builder: BuilderConfig | None = None, **options) -> BuilderConfig:
+    """The builder Config of the object BVHs: ``builder`` (None: :data:`DEFAULT_BUILDER`),
+    or in the older keyword form the Config of ``method`` (default: the default's) made
+    from ``options`` (``max_leaf``, ``bins``, ``ct``, ``ci``, ...; knobs of other builders
+    are ignored, :func:`jaxbvh.builders.configs.make_config`). Not both at once."""
+    if options:
+        if builder is not None:
+            raise TypeError("give a builder Config or keyword builder options, not both "
+                            "(builder.replace(...) changes a Config)")
+        return make_config(options.pop("method", DEFAULT_BUILDER.method), **options)
+    if builder is None:
+        return DEFAULT_BUILDER
+    if not isinstance(builder, BuilderConfig):
+        raise TypeError(f"builder must be a builder Config (jaxbvh.builders.configs), got {type(builder).__name__}")
+    return builder
+
+
+def _dtype(builder: BuilderConfig, dtype) -> np.dtype:
+    """The object BVHs' float type: ``dtype``, else the builder's (float32 when it names none)."""
+    return np.dtype(dtype if dtype is not None else builder.dtype if builder.dtype is not None else np.float32)
+
+
+def build_object(vertices, faces, placement: Placement, builder: BuilderConfig | None = None, *,
+                 dtype=None, **options) -> ObjectTree:
+    """BVH of one object's triangles where ``placement`` says (validated, padding stripped).
+
+    ``builder``: the builder Config (None: :data:`DEFAULT_BUILDER`; or the keyword form,
+    :func:`object_builder`);
+    ``dtype``: float32 or float64 (needs x64) for the triangles and boxes (None: the
+    builder's, float32 unless it says float64).
+    """
+    builder = object_builder(builder, **options)
+    dtype = _dtype(builder, dtype)
     vertices = np.asarray(vertices, np.float64)
     if placement.baked is not None:  # the same arithmetic as Mesh.triangles
         t = placement.baked
         vertices = vertices @ t[:3, :3].T + t[:3, 3]
     tri = placement.frame.to_local(vertices[faces]).astype(dtype)
     lo, hi = tri.min(axis=1), tri.max(axis=1)
-    tree = to_numpy(build(lo, hi, method=method, max_leaf=max_leaf, bins=bins, ct=ct,
-                                 ci=ci, dtype=dtype))
+    tree = to_numpy(build(lo, hi, builder.replace(dtype=dtype)))
     # the builder numbers nodes level by level from 0: real nodes are a prefix
     real = int(np.count_nonzero((tree.left >= 0) | (tree.prim_count > 0)))
     n = lo.shape[0]
@@ -217,9 +251,11 @@ def build_object(vertices, faces, placement: Placement, *, method="binned", max_
     return ObjectTree(tree=tree, placement=placement, triangles=tri)
 
 
-def build_objects(mesh, *, method="binned", max_leaf=1, bins=16, ct=1.0, ci=1.0,
-                  dtype=np.float32, world_space=True, only=None) -> dict[int, ObjectTree]:
-    """:func:`build_object` for every object of ``mesh`` (or the ids in ``only``)."""
+def build_objects(mesh, builder: BuilderConfig | None = None, *, dtype=None, world_space=True, only=None,
+                  **options) -> dict[int, ObjectTree]:
+    """:func:`build_object` for every object of ``mesh`` (or the ids in ``only``), with
+    ``builder`` (or the keyword form, :func:`object_builder`) and ``dtype``."""
+    builder = object_builder(builder, **options)
     where = placements(mesh, world_space)
     ids = range(len(mesh.objects)) if only is None else only
     out = {}
@@ -227,8 +263,7 @@ def build_objects(mesh, *, method="binned", max_leaf=1, bins=16, ct=1.0, ci=1.0,
         vertices, faces = mesh.objects[obj]
         if faces.shape[0] == 0:
             raise ValueError(f"object {obj} of {mesh.name} has no triangles")
-        out[obj] = build_object(vertices, faces, where[obj], method=method, max_leaf=max_leaf,
-                                bins=bins, ct=ct, ci=ci, dtype=dtype)
+        out[obj] = build_object(vertices, faces, where[obj], builder, dtype=dtype)
     return out
 
 

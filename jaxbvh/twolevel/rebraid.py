@@ -60,10 +60,11 @@ from typing import Any
 import jax
 import numpy as np
 
+from jaxbvh.builders.configs import BuilderConfig
 from jaxbvh.tree.cost import sah as sah_of
 from jaxbvh.tree.layout import BVH, capacity_bucket, concat_ranges, depth, pad_to, to_jax, to_numpy
 from jaxbvh.twolevel import brefs as _brefs
-from jaxbvh.twolevel.objects import Forest, Instances, ObjectTree, build_objects, pack, world_boxes
+from jaxbvh.twolevel.objects import Forest, Instances, ObjectTree, build_objects, object_builder, pack, world_boxes
 
 
 @jax.tree_util.register_dataclass
@@ -143,25 +144,27 @@ def build_from(mesh, trees: dict[int, ObjectTree], *, threshold: float = _brefs.
     return tl
 
 
-def build(mesh, *, threshold: float = _brefs.DEFAULT_THRESHOLD, budget: float = _brefs.DEFAULT_BUDGET,
-          capacity: int | None = None, top_bins: int = _brefs.DEFAULT_BINS,
-          overlap: float = _brefs.DEFAULT_OVERLAP, estimate: bool = False, method: str = "binned",
-          max_leaf: int = 1, bins: int = 16, ct: float = 1.0, ci: float = 1.0, dtype=np.float32,
-          world_space: bool = True, timings: dict | None = None) -> TwoLevelBVH:
+def build(mesh, builder: BuilderConfig | None = None, *, threshold: float = _brefs.DEFAULT_THRESHOLD,
+          budget: float = _brefs.DEFAULT_BUDGET, capacity: int | None = None,
+          top_bins: int = _brefs.DEFAULT_BINS, overlap: float = _brefs.DEFAULT_OVERLAP, estimate: bool = False,
+          dtype=None, world_space: bool = True, timings: dict | None = None, **builder_options) -> TwoLevelBVH:
     """Two-level BVH of ``mesh`` with re-braiding (module docstring).
 
-    Object BVHs: ``method``, ``max_leaf``, ``bins``, ``ct``, ``ci`` as
-    :func:`jaxbvh.builders.topdown`, in ``dtype`` (float64 needs x64); ``world_space``: build objects
-    placed by a single instance in world space (:mod:`jaxbvh.twolevel.objects`). Top level: ``threshold``
-    (opening threshold; inf: plain two-level), ``budget`` BRef slots per instance (or
-    ``capacity`` in all), ``top_bins``, ``overlap``, ``estimate`` as
-    :func:`jaxbvh.twolevel.brefs.build_top_level`. ``timings``, if given, receives ``objects``,
-    ``pack`` and ``top`` seconds.
+    Object BVHs: ``builder``, a builder Config (None:
+    :data:`jaxbvh.twolevel.objects.DEFAULT_BUILDER`, binned SAH with one primitive per
+    leaf; the older keywords ``method``, ``max_leaf``, ``bins``, ``ct``, ``ci`` make one,
+    :func:`jaxbvh.twolevel.objects.object_builder`), in ``dtype`` (None: the builder's,
+    float32 unless it says float64, which needs x64); ``world_space``: build objects
+    placed by a single instance in world space (:mod:`jaxbvh.twolevel.objects`). Top
+    level: ``threshold`` (opening threshold; inf: plain two-level), ``budget`` BRef slots
+    per instance (or ``capacity`` in all), ``top_bins``, ``overlap``, ``estimate`` as
+    :func:`jaxbvh.twolevel.brefs.build_top_level`. ``timings``, if given, receives
+    ``objects``, ``pack`` and ``top`` seconds.
     """
     _brefs.check_options(threshold, budget, top_bins, overlap)
+    builder = object_builder(builder, **builder_options)  # refused before any work
     start = time.perf_counter()
-    trees = build_objects(mesh, method=method, max_leaf=max_leaf, bins=bins, ct=ct, ci=ci, dtype=dtype,
-                          world_space=world_space)
+    trees = build_objects(mesh, builder, dtype=dtype, world_space=world_space)
     if timings is not None:
         timings["objects"] = time.perf_counter() - start
     return build_from(mesh, trees, threshold=threshold, budget=budget, capacity=capacity,

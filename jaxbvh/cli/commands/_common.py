@@ -4,18 +4,17 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import dataclasses
 import json
 import math
-import re
 import sys
 import time
 
 import numpy as np
 
 import jaxbvh
-from jaxbvh import configs
-from jaxbvh.builders.configs import BUILDERS, DEFAULT_BUILDER, BinnedConfig, BuilderConfig, PLOCConfig
+from jaxbvh.builders.configs import BUILDERS, DEFAULT_BUILDER, BuilderConfig
+from jaxbvh.cli import options as config_options
+from jaxbvh.configs import SAHCosts
 from jaxbvh.io import Mesh, TreeFile, bundled_mesh_path, load_any, load_mesh
 from jaxbvh.tree import layout as tree_mod
 from jaxbvh.tree.interchange import compact
@@ -38,96 +37,54 @@ def add_mesh_arg(parser, required: bool = False) -> None:
 
 
 # ----------------------------------------------------------------------------------
-# Options from Configs: one default, one check, in the library
+# Options every command shares: the builder's (from its Configs), the seed
 # ----------------------------------------------------------------------------------
 
+#: the random seed of a command that draws (grasp, evolve, sa, rays) unless --seed says
+DEFAULT_SEED = 0
 
-def flag(name: str) -> str:
-    """The option of a Config knob: ``max_leaf`` -> ``--max-leaf``."""
-    return "--" + name.replace("_", "-")
-
-
-def add_config_options(parser, config_class, names=None, *, helps: dict | None = None,
-                       check_now: bool = False) -> None:
-    """Add an option per knob ``names`` (default: all) of the frozen Config ``config_class``.
-
-    Each option is :func:`flag` of the knob's name, stored under the knob's name; its
-    default is the knob's default (the one place it is written), its type that of the
-    default (or the knob's metadata ``type`` when the default is None), its help,
-    metavar and choices from the knob's metadata (:mod:`jaxbvh.configs`); ``helps``
-    replaces a knob's help. ``check_now``: run the knob's check while parsing (a bad
-    value is then argparse's usage error); otherwise :func:`config_from_args` checks it
-    in ``run`` (a one-line error like bad input).
-    """
-    fields = {f.name: f for f in dataclasses.fields(config_class)}
-    for name in names if names is not None else fields:
-        f = fields[name]
-        meta = f.metadata
-        kind = meta.get("type") or type(f.default)
-        check = meta.get("check") if check_now else None
-
-        def parse(text, kind=kind, check=check, name=name):
-            try:
-                value = kind(text)
-            except ValueError:
-                raise argparse.ArgumentTypeError(f"expected {kind.__name__}, got {text!r}") from None
-            try:
-                return value if check is None else check(name, value)
-            except ValueError as exc:
-                raise argparse.ArgumentTypeError(with_flags(str(exc), [name])) from None
-
-        text = (helps or {}).get(name, meta.get("help", ""))
-        if f.default is not None:
-            text += " (default: %(default)s)"
-        extra = {key: meta[key] for key in ("metavar", "choices") if key in meta}
-        parser.add_argument(flag(name), dest=name, type=parse, default=f.default, help=text, **extra)
+#: the builders' knobs as options (jaxbvh.cli.options): --max-leaf, --bins, --radius,
+#: --morton-bits, --ct, --ci. The builders are one family: one set of options serves every
+#: builder (a knob of another builder is checked, not used, as jaxbvh.build's keyword form
+#: ignores it), and every builder shares each knob's rule, so values are checked while
+#: parsing. pad and dtype stay the library's.
+BUILDER_EXCLUDE = ("pad", "dtype")
 
 
-def with_flags(message: str, names) -> str:
-    """``message`` with each knob of ``names`` written as its option (``max_leaf`` -> ``--max-leaf``)."""
-    for name in sorted(names, key=len, reverse=True):
-        message = re.sub(rf"(?<![\w-]){re.escape(name)}(?![\w-])", flag(name), message)
-    return message
+def builder_options(default: BuilderConfig | None = None) -> config_options.ConfigOptions:
+    """The builder options; ``default``: a Config whose values are its builder's defaults
+    (None: every builder's class defaults)."""
+    configs = dict(BUILDERS)
+    if default is not None:
+        configs[default.method] = default
+    return config_options.ConfigOptions(configs, exclude=BUILDER_EXCLUDE, method_flag="--builder",
+                                        families=dict.fromkeys(BUILDERS, "builders"),
+                                        check_while_parsing=True)
 
 
-@contextlib.contextmanager
-def options_named(names):
-    """Re-raise a ``ValueError`` from the library with the knobs ``names`` written as options."""
-    try:
-        yield
-    except ValueError as exc:
-        raise ValueError(with_flags(str(exc), names)) from None
-
-
-def config_from_args(config_class, args, **values):
-    """``config_class`` made from the options in ``args`` named like its knobs, and ``values``.
-
-    The Config checks them (the library's rules, once); a bad one is a ``ValueError``
-    naming the option.
-    """
-    given = [name for name in configs.names(config_class) if hasattr(args, name)]
-    values = {**{name: getattr(args, name) for name in given}, **values}
-    with options_named(given):
-        return config_class(**values)
-
-
-def add_builder_args(parser, *, helps: dict | None = None) -> None:
-    """``--builder`` and the builders' knobs (:mod:`jaxbvh.builders.configs`), checked while parsing."""
-    parser.add_argument("--builder", choices=list(BUILDERS), default=DEFAULT_BUILDER,
+def add_builder_args(parser, *, default: BuilderConfig | None = None) -> None:
+    """``--builder`` and the builders' knobs (:mod:`jaxbvh.builders.configs`); ``default``:
+    the builder (its method and values) when no option says otherwise (None:
+    :data:`~jaxbvh.builders.configs.DEFAULT_BUILDER` with its class defaults)."""
+    method = DEFAULT_BUILDER if default is None else default.method
+    parser.add_argument("--builder", choices=list(BUILDERS), default=method,
                         help="sweep, binned or median (top-down SAH engine), lbvh or ploc (bottom-up "
                              "from Morton order: much faster on big inputs) (default: %(default)s)")
-    helps = {"bins": "bins per axis for --builder binned",
-             "radius": "neighbours on each side a cluster looks at, for --builder ploc",
-             "morton_bits": "Morton code length for --builder lbvh and ploc", **(helps or {})}
-    add_config_options(parser, BuilderConfig, ["max_leaf"], helps=helps, check_now=True)
-    add_config_options(parser, BinnedConfig, ["bins"], helps=helps, check_now=True)
-    add_config_options(parser, PLOCConfig, ["radius", "morton_bits"], helps=helps, check_now=True)
-    add_config_options(parser, BuilderConfig, ["ct", "ci"], helps=helps, check_now=True)
+    options = builder_options(default)
+    options.add_to(parser, "builder options (knobs of each builder's Config)")
+    parser.set_defaults(builder_options=options)
 
 
 def builder_config(args) -> BuilderConfig:
-    """The Config of ``args.builder`` with the builder options in ``args``."""
-    return config_from_args(BUILDERS[args.builder], args)
+    """The Config of ``args.builder`` with the builder options in ``args`` (one-line
+    ``ValueError`` naming the option if refused)."""
+    return args.builder_options.config(args.builder, args)
+
+
+def add_seed(parser, what: str = "random seed") -> None:
+    """``--seed S`` (default :data:`DEFAULT_SEED`)."""
+    parser.add_argument("--seed", type=int, default=DEFAULT_SEED, metavar="S",
+                        help=f"{what} (default: {DEFAULT_SEED})")
 
 
 def _int_at_least(minimum: int):
@@ -253,8 +210,8 @@ class Stages:
 # ----------------------------------------------------------------------------------
 
 
-def build_mesh_tree(mesh: Mesh, args, stages: Stages):
-    """Build over ``mesh.local_boxes()`` with the builder options in ``args``; validated.
+def build_mesh_tree(mesh: Mesh, builder: BuilderConfig, stages: Stages):
+    """Build over ``mesh.local_boxes()`` with ``builder``; validated.
 
     Returns ``(tree, lo, hi)``, the tree as NumPy arrays trimmed to the capacity of its
     node count (:func:`jaxbvh.tree.layout.compact`); ``stages`` records "build" (compile + build,
@@ -264,7 +221,7 @@ def build_mesh_tree(mesh: Mesh, args, stages: Stages):
 
     lo, hi = mesh.local_boxes()
     with stages("build"):
-        tree = jaxbvh.build(lo, hi, builder_config(args))
+        tree = jaxbvh.build(lo, hi, builder)
         # the capacity a saved copy loads with: same shape, same compiled programs
         tree = compact(jax.block_until_ready(tree))
     with stages("validate"):
@@ -272,8 +229,9 @@ def build_mesh_tree(mesh: Mesh, args, stages: Stages):
     return tree, lo, hi
 
 
-def tree_stats(tree, ct: float = 1.0, ci: float = 1.0) -> dict:
-    """Nodes, leaves, depth, leaf sizes and all costs of ``tree`` as plain Python values."""
+def tree_stats(tree, costs=SAHCosts()) -> dict:
+    """Nodes, leaves, depth, leaf sizes and all costs of ``tree`` as plain Python values;
+    ``costs``: a Config with the SAH's ``ct``, ``ci`` (a builder's, or :class:`SAHCosts`)."""
 
     t = jaxbvh.to_numpy(tree)
     real = tree_mod.real_nodes(t)
@@ -291,7 +249,7 @@ def tree_stats(tree, ct: float = 1.0, ci: float = 1.0) -> dict:
         "capacity": int(np.asarray(t.prim_count).shape[0]),
         "dtype": str(np.asarray(t.lo).dtype),
     }
-    stats.update(jaxbvh.all_costs(tree, ct, ci))
+    stats.update(jaxbvh.all_costs(tree, costs.ct, costs.ci))
     return stats
 
 

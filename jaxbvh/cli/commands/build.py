@@ -23,20 +23,20 @@ def run(args) -> dict:
     if args.mesh is not None and str(args.mesh).lower().endswith(TREE_SUFFIXES):
         raise ValueError(f"{args.mesh} is a tree file; build takes a mesh "
                          "(use 'jaxbvh stats' for trees)")
-    _common.builder_config(args)  # every builder option checked before any work
+    builder = _common.builder_config(args)  # every builder option checked before any work
     names = ["load", "build", "validate"] + (["save"] if args.output else [])
     with _common.Stages(args, names) as stages:
         with stages("load"):
             mesh = _common.mesh_or_default(args.mesh)
-        tree, _, _ = _common.build_mesh_tree(mesh, args, stages)
+        tree, _, _ = _common.build_mesh_tree(mesh, builder, stages)
         if args.output:
             with stages("save"):
                 jaxbvh.save(args.output, tree, frame=mesh.frame)
     result = {"command": "build", **_common.mesh_info(mesh),
-              "builder": args.builder, "max_leaf": args.max_leaf}
-    if args.builder == "binned":
-        result["bins"] = args.bins
-    result.update(_common.tree_stats(tree, args.ct, args.ci))
+              "builder": builder.method, "max_leaf": builder.max_leaf}
+    if builder.method == "binned":
+        result["bins"] = builder.bins
+    result.update(_common.tree_stats(tree, builder))
     result.update({
         "valid": True,
         "frame_origin": [float(x) for x in mesh.frame.origin],

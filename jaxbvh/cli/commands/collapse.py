@@ -13,17 +13,26 @@ written.
 
 from __future__ import annotations
 
+import inspect
 import time
 
 import numpy as np
 
 import jaxbvh
+from jaxbvh.cli import options as config_options
 from jaxbvh.cli.commands import _common
 from jaxbvh.io import Mesh
 from jaxbvh.wide import collapse
-from jaxbvh.wide.collapse import DEFAULT_MAX_CHILDREN, MAX_CHILDREN_LIMIT, CollapseConfig
+from jaxbvh.wide.collapse import CollapseConfig
+
+#: node_test_cost's own default (one box test per child), read from the library
+SIMD_WIDTH = inspect.signature(collapse.node_test_cost).parameters["simd_width"].default
 
 HELP = "collapse a binary BVH into a wide one: optimal DP, greedy pushup or QBVH (Susano Pinto 2010)"
+
+#: CollapseConfig's --method and --max-children; its max_leaf and ci are the builder
+#: options' --max-leaf and --ci, and test_cost comes from --simd-width
+OPTIONS = config_options.ConfigOptions({"collapse": CollapseConfig}, exclude=("test_cost", "max_leaf", "ci"))
 
 
 def add_parser(subparsers):
@@ -31,11 +40,9 @@ def add_parser(subparsers):
     parser = subparsers.add_parser("collapse", help=HELP, description=description)
     parser.add_argument("input", metavar="INPUT",
                         help="a binary tree .npz or a mesh/scene file (built first)")
-    _common.add_config_options(parser, CollapseConfig, ["method", "max_children"], helps={
-        "max_children": f"most children per node, 2..{MAX_CHILDREN_LIMIT} (default: "
-                        f"{DEFAULT_MAX_CHILDREN} for dp, no limit for greedy; qbvh is 4-wide)"})
-    parser.add_argument("--simd-width", type=int, default=0, metavar="W",
-                        help="cost of testing k child boxes: ceil(k / W), or k for W = 0 (default: 0)")
+    OPTIONS.add_to(parser)
+    parser.add_argument("--simd-width", type=int, default=SIMD_WIDTH, metavar="W",
+                        help=f"cost of testing k child boxes: ceil(k / W), or k for W = 0 (default: {SIMD_WIDTH})")
     parser.add_argument("-o", "--output", metavar="OUT.npz", default=None,
                         help="save the wide tree (interchange .npz with its frame)")
     _common.add_builder_args(parser)
@@ -43,29 +50,33 @@ def add_parser(subparsers):
     return parser
 
 
-def _config(args, kind: str) -> CollapseConfig:
+def _config(args, builder, kind: str) -> CollapseConfig:
     """The CollapseConfig of the options (the library's checks); ``--max-leaf`` is the
     builder's leaf size for a mesh, and merges leaves only with ``--method dp``."""
-    if kind == "tree" and args.max_leaf > 1 and args.method != "dp":
-        raise ValueError("--max-leaf with a tree input merges leaves, which needs --method dp")
-    with _common.options_named(["simd_width"]):
+    try:
         test_cost = collapse.node_test_cost(args.simd_width)
-    return _common.config_from_args(CollapseConfig, args, test_cost=test_cost,
-                                    max_leaf=args.max_leaf if args.method == "dp" else 1)
+    except ValueError as exc:
+        raise ValueError(config_options.with_flags(str(exc), {"simd_width": "--simd-width"})) from None
+    config = OPTIONS.config(None, args, test_cost=test_cost, ci=builder.ci)
+    if config.method != "dp":
+        if kind == "tree" and builder.max_leaf > 1:
+            raise ValueError("--max-leaf with a tree input merges leaves, which needs --method dp")
+        return config
+    return config.replace(max_leaf=builder.max_leaf)
 
 
 def run(args) -> dict:
     import jax
 
-    config = _config(args, "tree" if str(args.input).lower().endswith(".npz") else "mesh")
-    _common.builder_config(args)  # the builder options too, before any work
+    builder = _common.builder_config(args)  # the builder options too, before any work
+    config = _config(args, builder, "tree" if str(args.input).lower().endswith(".npz") else "mesh")
     names = ["load", "build", "validate", "collapse", "check"] + (["save"] if args.output else [])
     with _common.Stages(args, names) as stages:
         with stages("load"):
             loaded = (_common.load_tree(args.input, binary=True)
                       if str(args.input).lower().endswith(".npz") else _common.load_input(args.input))
         if isinstance(loaded, Mesh):
-            tree, prim_lo, prim_hi = _common.build_mesh_tree(loaded, args, stages)
+            tree, prim_lo, prim_hi = _common.build_mesh_tree(loaded, builder, stages)
             frame = loaded.frame
             info = {"kind": "mesh", **_common.mesh_info(loaded), "builder": args.builder}
         else:
@@ -98,7 +109,7 @@ def run(args) -> dict:
     widths = np.sum(np.asarray(wide.child) >= 0, axis=1)
     out = {"command": "collapse", **info, "method": config.method,
            "max_children": config.widest, "simd_width": args.simd_width,
-           "max_leaf": args.max_leaf,
+           "max_leaf": builder.max_leaf,
            "rcost_before": float(result.rcost_before), "rcost": float(result.rcost),
            "rcost_change_percent": 100.0 * (float(result.rcost) / float(result.rcost_before) - 1.0)
            if float(result.rcost_before) else 0.0,

@@ -10,25 +10,24 @@ tree the insertion build makes from it (one primitive per leaf, nodes of up to
 from __future__ import annotations
 
 import jaxbvh
+from jaxbvh.cli import options as config_options
 from jaxbvh.cli.commands import _common
 from jaxbvh.io import TREE_SUFFIXES
 from jaxbvh.stochastic import evolve
 from jaxbvh.stochastic.evolve import EvolveConfig
 
-KNOBS = ["population", "generations", "crossover", "mutation", "max_children"]  # offered as options
-
 HELP = "genetic algorithm over Goldsmith-Salmon insertion orders (Ng & Trifonov 2003)"
+
+#: EvolveConfig's knobs as options, but the precision (the library's)
+OPTIONS = config_options.ConfigOptions({"evolve": EvolveConfig}, exclude=("dtype",))
 
 
 def add_parser(subparsers):
     # option values are checked in run() by EvolveConfig, so a bad one is a one-line error like bad input
-    parser = subparsers.add_parser(
-        "evolve", help=HELP, description=HELP + ".",
-        usage="%(prog)s MESH [--population P] [--generations G] [--crossover R] [--mutation F] "
-              "[--max-children K] [--seed S] [-o BEST.npz] [--json]")
+    parser = subparsers.add_parser("evolve", help=HELP, description=HELP + ".")
     _common.add_mesh_arg(parser, required=True)
-    _common.add_config_options(parser, EvolveConfig, KNOBS)
-    parser.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default: 0)")
+    OPTIONS.add_to(parser)
+    _common.add_seed(parser)
     parser.add_argument("-o", "--output", metavar="BEST.npz", default=None,
                         help="save the best tree (interchange .npz with its scene frame)")
     _common.add_json(parser)
@@ -38,7 +37,7 @@ def add_parser(subparsers):
 def run(args) -> dict:
     import jax
 
-    config = _common.config_from_args(EvolveConfig, args)  # the library's checks, one-line errors
+    config = OPTIONS.config(None, args)  # the library's checks, one-line errors
     if str(args.mesh).lower().endswith(TREE_SUFFIXES):
         raise ValueError(f"{args.mesh} is a tree file; evolve builds from a mesh")
     names = ["load", "evolve", "validate"] + (["save"] if args.output else [])

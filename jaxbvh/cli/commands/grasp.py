@@ -10,27 +10,26 @@ from __future__ import annotations
 import time
 
 import jaxbvh
+from jaxbvh.cli import options as config_options
 from jaxbvh.cli.commands import _common
 from jaxbvh.io import TREE_SUFFIXES
 from jaxbvh.stochastic import grasp
 from jaxbvh.stochastic.grasp import DEFAULT_DEVIATIONS, GraspConfig
 
-KNOBS = ["trials", "noise", "deviations", "rcl", "objective"]  # the GraspConfig knobs offered as options
-
 HELP = "best of many randomized full-sweep builds (GRASP, Ng & Trifonov 2003)"
+
+#: GraspConfig's knobs as options, but those of memory and precision (the library's)
+OPTIONS = config_options.ConfigOptions({"grasp": GraspConfig}, exclude=("chunk_prims", "pad", "dtype"), helps={
+    "deviations": "instead of --noise: expected deviations per tree, noise = D / (triangles - 1); "
+                  f"with neither, {DEFAULT_DEVIATIONS:g} (jaxbvh.stochastic.grasp.DEFAULT_DEVIATIONS)"})
 
 
 def add_parser(subparsers):
     # option values are checked in run() by GraspConfig, so a bad one is a one-line error like bad input
-    parser = subparsers.add_parser(
-        "grasp", help=HELP, description=HELP + ".",
-        usage="%(prog)s MESH [--trials T] [--noise P | --deviations D] [--rcl axes|K] "
-              "[--objective nt|sah] [--seed S] [-o BEST.npz] [--json]")
+    parser = subparsers.add_parser("grasp", help=HELP, description=HELP + ".")
     _common.add_mesh_arg(parser, required=True)
-    _common.add_config_options(parser, GraspConfig, KNOBS, helps={
-        "deviations": "instead of --noise: expected deviations per tree, noise = D / (triangles - 1) "
-                      f"(default: {DEFAULT_DEVIATIONS:g}, see jaxbvh.grasp.DEFAULT_DEVIATIONS)"})
-    parser.add_argument("--seed", type=int, default=0, metavar="S", help="random seed (default: 0)")
+    OPTIONS.add_to(parser)
+    _common.add_seed(parser)
     parser.add_argument("-o", "--output", metavar="BEST.npz", default=None,
                         help="save the best tree (interchange .npz with its scene frame)")
     _common.add_json(parser)
@@ -41,7 +40,7 @@ def run(args) -> dict:
     import jax
     import numpy as np
 
-    config = _common.config_from_args(GraspConfig, args)  # the library's checks, one-line errors
+    config = OPTIONS.config(None, args)  # the library's checks, one-line errors
     if str(args.mesh).lower().endswith(TREE_SUFFIXES):
         raise ValueError(f"{args.mesh} is a tree file; grasp builds from a mesh")
     names = ["load", "grasp", "validate"] + (["save"] if args.output else [])

@@ -7,9 +7,12 @@ rotations to convergence, ``sa`` simulated annealing (``--schedule``), ``reinser
 parallel reinsertion (Meister & Bittner 2018), ``treelet`` treelet restructuring
 (Karras & Aila 2013), ``pipeline`` (the default) rounds of treelets and reinsertion.
 
-The method's options are the fields of its ``Config`` (:mod:`jaxbvh.cli.options`): the
+The method's options are the knobs of its ``Config`` (:mod:`jaxbvh.cli.options`): the
 command types no default of its own, and ``--help`` lists each method's. A few keep
-their established spellings (:data:`FLAGS`); options of another method are ignored.
+their established spellings (:data:`FLAGS`). An option of another method is a usage
+error naming both (``--hottest`` belongs to ``--method sa``), but for hill climbing and
+annealing, which share theirs (:data:`FAMILIES`); the Configs check every value given,
+naming the option, before anything is loaded.
 """
 
 from __future__ import annotations
@@ -22,10 +25,7 @@ import jaxbvh
 from jaxbvh.cli import options as config_options
 from jaxbvh.cli.commands import _common
 from jaxbvh.io import Mesh
-from jaxbvh.optimize import OPTIMIZERS, optimize, pipeline
-from jaxbvh.optimize.schedules import SCHEDULES
-
-DEFAULT_METHOD = "pipeline"
+from jaxbvh.optimize import DEFAULT_METHOD, OPTIMIZERS, optimize, pipeline
 
 HELP = ("optimize a BVH: rotations (hill climbing, annealing), parallel reinsertion, treelet "
         "restructuring, or the pipeline of treelets and reinsertion")
@@ -42,12 +42,17 @@ FLAGS = {
 #: pipeline sets its stages' passes, costs and split axes itself
 EXCLUDE = ("ct", "ci", "windows", "frontier", "treelet.max_passes", "treelet.split_axes",
            "reinsert.split_axes")
-#: annealing's schedules by name (a function is the library's alone)
-CHOICES = {"schedule": tuple(SCHEDULES)}
 
-#: every optimizer's options, from the configs
+#: methods whose options serve each other: Kensler's hill climbing is his annealing
+#: without the heat, so annealing's options (--iterations, --chains, ...) are accepted,
+#: and checked, with --method hc; any other method's option is an error
+FAMILIES = {"hc": "rotations", "sa": "rotations"}
+
+#: every optimizer's options, from the configs (annealing's --schedule offers the
+#: schedules by name, the knob's choices; a function is the library's alone)
 OPTIONS = config_options.ConfigOptions({name: o.Config for name, o in OPTIMIZERS.items()},
-                                       exclude=EXCLUDE, flags=FLAGS, choices=CHOICES)
+                                       exclude=EXCLUDE, flags=FLAGS, method_flag="--method",
+                                       families=FAMILIES)
 
 
 def add_parser(subparsers):
@@ -58,8 +63,7 @@ def add_parser(subparsers):
     parser.add_argument("--method", choices=tuple(OPTIMIZERS), default=DEFAULT_METHOD,
                         help="; ".join(f"{name}: {o.paper}" for name, o in OPTIMIZERS.items())
                              + f" (default: {DEFAULT_METHOD})")
-    parser.add_argument("--seed", type=int, default=0, metavar="S",
-                        help="random seed for annealing (default: 0)")
+    _common.add_seed(parser, "random seed for annealing")
     parser.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                         help="stop after about this many seconds (compiling apart) with the best "
                              "tree so far (default: run to convergence)")
@@ -71,17 +75,19 @@ def add_parser(subparsers):
     return parser
 
 
-def make_config(args):
-    """The Config of ``args.method`` from the options given (the Config's defaults for the rest)."""
-    return OPTIONS.config(args.method, args, ct=args.ct, ci=args.ci)
+def make_config(args, builder=None):
+    """The Config of ``args.method`` from the options given (the Config's defaults for the
+    rest), with the SAH constants of ``builder`` (None: of the builder options in ``args``)."""
+    builder = _common.builder_config(args) if builder is None else builder
+    return OPTIONS.config(args.method, args, ct=builder.ct, ci=builder.ci)
 
 
-def _load(args, stages):
+def _load(args, builder, stages):
     """``(tree, prim_lo, prim_hi, frame, info)`` of the input (a mesh is built first)."""
     with stages("load"):
         loaded = _common.load_input(args.input)
     if isinstance(loaded, Mesh):
-        tree, prim_lo, prim_hi = _common.build_mesh_tree(loaded, args, stages)
+        tree, prim_lo, prim_hi = _common.build_mesh_tree(loaded, builder, stages)
         return tree, prim_lo, prim_hi, loaded.frame, {"kind": "mesh", **_common.mesh_info(loaded),
                                                       "builder": args.builder}
     with stages("build"):
@@ -106,11 +112,12 @@ def run(args) -> dict:
 
     if args.time_budget is not None and not args.time_budget > 0:
         raise ValueError(f"--time-budget must be > 0 seconds, got {args.time_budget}")
-    config = make_config(args)
+    builder = _common.builder_config(args)
+    config = make_config(args, builder)
     names = ["load", "build", "validate", "optimize", "check"] + (["save"] if args.output else [])
     with _common.Stages(args, names) as stages:
-        tree, prim_lo, prim_hi, frame, info = _load(args, stages)
-        before = jaxbvh.all_costs(tree, args.ct, args.ci)
+        tree, prim_lo, prim_hi, frame, info = _load(args, builder, stages)
+        before = jaxbvh.all_costs(tree, config.ct, config.ci)
         totals = {"hc": getattr(config, "max_passes", None), "sa": getattr(config, "steps", None)}
         bar = _common.progress(args, total=totals.get(args.method), desc=f"{args.method}")
 
@@ -126,7 +133,7 @@ def run(args) -> dict:
         bar.close()
         with stages("check"):
             _check(tree, result.tree, prim_lo, prim_hi)
-        after = jaxbvh.all_costs(result.tree, args.ct, args.ci)
+        after = jaxbvh.all_costs(result.tree, config.ct, config.ci)
         if args.output:
             with stages("save"):
                 jaxbvh.save(args.output, result.tree, frame=frame)

@@ -13,7 +13,6 @@ counted (the CLI also caches compiled code on disk).
 
 from __future__ import annotations
 
-import inspect
 import math
 import sys
 import time
@@ -22,16 +21,12 @@ import numpy as np
 
 import jaxbvh
 from jaxbvh import rays, twolevel
-from jaxbvh.builders.configs import BUILDERS, BinnedConfig
 from jaxbvh.cli.commands import _common
 from jaxbvh.io import load_mesh
 from jaxbvh.rays import traversal as traverse
 from jaxbvh.twolevel import brefs
 from jaxbvh.twolevel import objects as fm
 from jaxbvh.twolevel.brefs import DEFAULT_BINS, DEFAULT_BUDGET, DEFAULT_OVERLAP, DEFAULT_THRESHOLD
-
-# the two-level builder's defaults (its --builder is binned, not jaxbvh.build's sweep)
-TWO_LEVEL = {name: p.default for name, p in inspect.signature(twolevel.build).parameters.items()}
 
 HELP = "compare two-level, re-braided and single BVHs of a multi-object scene (Benthin et al. 2017)"
 
@@ -45,11 +40,9 @@ def add_parser(subparsers):
                         f"(> 0; inf: never; default: {DEFAULT_THRESHOLD})")
     parser.add_argument("--budget", type=float, default=DEFAULT_BUDGET, metavar="B",
                         help=f"BRef slots per instance, >= 1 (default: {DEFAULT_BUDGET:g})")
-    parser.add_argument("--builder", choices=list(BUILDERS), default=TWO_LEVEL["method"],
-                        help="builder of the object BVHs and the single BVH (default: %(default)s)")
-    _common.add_config_options(parser, BinnedConfig, ["max_leaf", "bins"], check_now=True, helps={
-        "max_leaf": "most primitives per leaf of the object and single BVHs",
-        "bins": "bins per axis of --builder binned"})
+    # the builder of the object BVHs and of the single BVH: the two-level builder's
+    # (binned SAH, one primitive per leaf), not jaxbvh.build's sweep
+    _common.add_builder_args(parser, default=fm.DEFAULT_BUILDER)
     parser.add_argument("--top-bins", type=_common._int_at_least(2), default=DEFAULT_BINS, metavar="B",
                         help=f"bins per axis of the top-level build (default: {DEFAULT_BINS})")
     parser.add_argument("--overlap", type=float, default=DEFAULT_OVERLAP, metavar="F",
@@ -62,7 +55,7 @@ def add_parser(subparsers):
                         "(default: those are built in world space)")
     parser.add_argument("--rays", type=_common._int_at_least(1), default=None, metavar="N",
                         help="trace N random rays through all three: box and primitive tests per ray")
-    parser.add_argument("--seed", type=int, default=0, help="random seed of the rays (default: 0)")
+    _common.add_seed(parser, "random seed of the rays")
     parser.add_argument("-o", "--output", metavar="FLAT.npz", default=None,
                         help="save the re-braided tree flattened to world space (validated first)")
     _common.add_json(parser)
@@ -88,10 +81,8 @@ def run(args) -> dict:
     with _common.Stages(args, names) as stages:
         with stages("load"):
             mesh = load_mesh(args.scene)
-        options = dict(method=args.builder, max_leaf=args.max_leaf, bins=args.bins,
-                       world_space=not args.object_space)
         with stages("objects"):
-            trees, t_objects = _timed(lambda: fm.build_objects(mesh, **options))
+            trees, t_objects = _timed(lambda: fm.build_objects(mesh, builder, world_space=not args.object_space))
         top = dict(top_bins=args.top_bins, overlap=args.overlap, estimate=args.estimate)
         results = {}
         for name, threshold in (("two_level", math.inf), ("rebraid", args.threshold)):
@@ -138,7 +129,7 @@ def run(args) -> dict:
             with stages("save"):
                 jaxbvh.save(args.output, flats["rebraid"], frame=mesh.frame)
 
-    result = {"command": "rebraid", **_common.mesh_info(mesh), "builder": args.builder,
+    result = {"command": "rebraid", **_common.mesh_info(mesh), "builder": builder.method,
               "threshold": args.threshold, "budget": args.budget,
               "slots": brefs.brefs_capacity(len(mesh.instances), args.threshold, args.budget),
               "two_level": out["two_level"], "rebraid": out["rebraid"], "single": out["single"],

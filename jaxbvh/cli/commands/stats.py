@@ -23,7 +23,7 @@ def add_parser(subparsers):
 
 
 def run(args) -> dict:
-    _common.builder_config(args)  # every builder option checked before any work
+    builder = _common.builder_config(args)  # every builder option checked before any work
     names = ["load", "build", "validate"]
     with _common.Stages(args, names) as stages:
         with stages("load"):
@@ -31,20 +31,21 @@ def run(args) -> dict:
         if isinstance(loaded, Mesh):
             if args.mesh is not None:
                 raise ValueError(f"--mesh applies to a tree file; {args.input} is a mesh")
-            tree, _, _ = _common.build_mesh_tree(loaded, args, stages)
+            tree, _, _ = _common.build_mesh_tree(loaded, builder, stages)
             result = {"command": "stats", "kind": "mesh", **_common.mesh_info(loaded),
-                      "builder": args.builder, "max_leaf": args.max_leaf}
-            result.update(_common.tree_stats(tree, args.ct, args.ci))
+                      "builder": builder.method, "max_leaf": builder.max_leaf}
+            result.update(_common.tree_stats(tree, builder))
             result.update({"valid": True, "validated_against": "mesh",
                            "seconds": stages.seconds["build"]})
             return result
-        return _tree_stats(loaded, args, stages)
+        return _tree_stats(loaded, args, builder, stages)
 
 
-def _tree_stats(loaded, args, stages) -> dict:
+def _tree_stats(loaded, args, costs, stages) -> dict:
     """Report of a tree file. A broken structure (cycle, shared child, bad ids, NaN or
     inverted boxes) is reported without costs: they would mean nothing. ``valid`` is
-    False (exit status 1) when any check fails."""
+    False (exit status 1) when any check fails. ``costs``: the SAH constants (the builder
+    options' ``--ct``, ``--ci``)."""
     tree, frame = loaded.tree, loaded.frame
     result = {"command": "stats", "kind": "tree", "input": loaded.path}
     with stages("validate"):
@@ -65,7 +66,7 @@ def _tree_stats(loaded, args, stages) -> dict:
             against = "mesh"
     structure_ok = against == "mesh" or not problems
     if structure_ok:
-        result.update(_common.tree_stats(tree, args.ct, args.ci))
+        result.update(_common.tree_stats(tree, costs))
     result.update({
         "frame_origin": [float(x) for x in frame.origin],
         "frame_scale": float(frame.scale),

@@ -2,13 +2,22 @@
 
 from __future__ import annotations
 
+import inspect
+
 import numpy as np
 
 from jaxbvh import rays
+from jaxbvh.cli import options as config_options
 from jaxbvh.cli.commands import _common
+from jaxbvh.configs import SAHCosts
 from jaxbvh.io import load_mesh
 from jaxbvh.rays import traversal as traverse
 from jaxbvh.rays.measure import KINDS, MODES
+
+#: --ct, --ci: the SAH constants of the cost reported beside the ray counts
+COSTS = config_options.ConfigOptions({"trace": SAHCosts})
+#: the traversal's own defaults of --mode and --batch (read from the library, not retyped)
+TRAVERSAL = {name: p.default for name, p in inspect.signature(traverse.trace).parameters.items()}
 
 HELP = "trace rays through a tree (.npz) over its mesh; report box and primitive tests per ray"
 
@@ -24,11 +33,11 @@ def add_parser(subparsers):
                         help="random: origins in the root box, uniform directions; camera: "
                              "pinhole framing the scene; bounce: diffuse rays off the surface "
                              "(default: random)")
-    parser.add_argument("--mode", choices=MODES, default="closest",
-                        help="closest hit, any hit (shadow rays) or all hits (default: closest)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
-    parser.add_argument("--batch", type=_common._int_at_least(1), default=256, metavar="B",
-                        help="rays per jitted batch (default: 256)")
+    parser.add_argument("--mode", choices=MODES, default=TRAVERSAL["mode"],
+                        help="closest hit, any hit (shadow rays) or all hits (default: %(default)s)")
+    _common.add_seed(parser)
+    parser.add_argument("--batch", type=_common._int_at_least(1), default=TRAVERSAL["batch"], metavar="B",
+                        help="rays per jitted batch (default: %(default)s)")
     parser.add_argument("--save", metavar="HITS.npz", default=None,
                         help="write origin, direction (world space), t and prim (-1: miss) "
                              "and the per-ray counters")
@@ -36,8 +45,7 @@ def add_parser(subparsers):
                         help="render camera rays: shaded normals, depth and a heat map of box "
                              "tests per pixel (the measured rays with --kind camera, else a "
                              "separate 320 x 240 camera view); needs matplotlib")
-    parser.add_argument("--ct", type=float, default=1.0, help="SAH traversal cost (default: 1)")
-    parser.add_argument("--ci", type=float, default=1.0, help="SAH intersection cost (default: 1)")
+    COSTS.add_to(parser)
     _common.add_json(parser)
     return parser
 
@@ -51,6 +59,7 @@ def triangles_in_frame(mesh, frame, dtype) -> np.ndarray:
 def run(args) -> dict:
     import jax
 
+    costs = COSTS.config(None, args)
     if args.image:
         _common.require_matplotlib("--image")
     with _common.Stages(args, ["load", "trace", "write"]) as stages:
@@ -70,7 +79,7 @@ def run(args) -> dict:
             origin, direction = rays.make_rays(key, args.kind, tree, triangles, args.rays)
         with stages("trace"):
             hits, summary = rays.measure(tree, triangles, origin, direction, mode=args.mode,
-                                         ct=args.ct, ci=args.ci, batch=args.batch)
+                                         ct=costs.ct, ci=costs.ci, batch=args.batch)
         result = {"command": "trace", "tree": loaded.path, "mesh": str(mesh.path),
                   "triangles": mesh.n_triangles, "kind": args.kind, "seed": args.seed,
                   "arity": int(np.asarray(tree.child).shape[1]),
