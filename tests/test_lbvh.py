@@ -100,7 +100,7 @@ def test_interleave_puts_x_highest():
     with morton.x64():
         for per_axis in (10, 21):
             q = np.array([0, 1, 2, 5, 2 ** per_axis - 1], np.uint64)
-            got = np.asarray(morton._spread(jnp.asarray(q), per_axis))
+            got = np.asarray(morton.spread_bits(jnp.asarray(q), per_axis))
             assert [int(g) for g in got] == [reference_morton.interleave(int(v), 0, 0, per_axis) >> 2 for v in q]
 
 
@@ -175,12 +175,12 @@ def test_sizes_in_one_capacity_bucket_compile_once():
     rng = np.random.default_rng(1)
     sizes = [13, 14, 15, 16]
     assert {jaxbvh.capacity_bucket(n) for n in sizes} == {16}
-    start = lbvh._topology._cache_size(), lbvh._finish._cache_size()
+    start = lbvh.topology._cache_size(), lbvh.assemble._cache_size()
     for n in sizes:
         lo = rng.random((n, 3)).astype(np.float32)
         jaxbvh.build(lo, lo + 0.1, method="lbvh", max_leaf=n % 3 + 2)  # max_leaf is traced
-    assert lbvh._topology._cache_size() - start[0] <= 1
-    assert lbvh._finish._cache_size() - start[1] <= 1
+    assert lbvh.topology._cache_size() - start[0] <= 1
+    assert lbvh.assemble._cache_size() - start[1] <= 1
 
 
 def test_bad_options_get_clear_errors():

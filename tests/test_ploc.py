@@ -98,11 +98,11 @@ def test_no_mutual_pair_falls_back_to_exact_comparisons(monkeypatch):
     monkeypatch.setattr(reference, "nearest", spy)
     monkeypatch.setattr(reference, "TIE_TOLERANCE", 0.5)
     monkeypatch.setattr(ploc, "TIE_TOLERANCE", 0.5)
-    ploc._cluster.clear_cache()  # the tolerance is read at trace time
+    ploc.cluster.clear_cache()  # the tolerance is read at trace time
     try:
         got = jaxbvh.build(lo, hi, method="ploc", radius=2)
     finally:
-        ploc._cluster.clear_cache()
+        ploc.cluster.clear_cache()
     want = reference.build(lo, hi, PLOCConfig(radius=2))
     assert any(exact_calls)
     jaxbvh.validate(got, lo, hi)
@@ -111,11 +111,11 @@ def test_no_mutual_pair_falls_back_to_exact_comparisons(monkeypatch):
 
 def test_sizes_in_one_capacity_bucket_compile_once():
     rng = np.random.default_rng(1)
-    start = ploc._cluster._cache_size()
+    start = ploc.cluster._cache_size()
     for n in (13, 14, 15, 16):
         lo = rng.random((n, 3)).astype(np.float32)
         jaxbvh.build(lo, lo + 0.1, method="ploc", max_leaf=n % 3 + 2)
-    assert ploc._cluster._cache_size() - start <= 1
+    assert ploc.cluster._cache_size() - start <= 1
 
 
 def test_stages_halve_down_to_the_smallest():

@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 import jaxbvh
 from jaxbvh import scenes, twolevel
 from jaxbvh.rays.traversal import moller_trumbore
-from jaxbvh.twolevel import brefs, rebraid
+from jaxbvh.twolevel import brefs
 from jaxbvh.twolevel import brefs_reference as ref
 from jaxbvh.twolevel import objects as fm
 from tests.strategies import triangle_soups
@@ -214,14 +214,15 @@ def test_world_boxes_are_conservative_and_monotone(seed, exponent):
     inner_hi = np.maximum(inner_lo, hi - (hi - lo) * rng.uniform(0, 0.5, (50, 3)).astype(np.float32))
     m32 = np.broadcast_to(m[:3].astype(np.float32), (50, 3, 4))
     margin = np.full(50, fm.margin_for(np.float32), np.float32)
-    w_lo, w_hi = map(np.asarray, rebraid._world_boxes_jit(lo, hi, m32, margin))
+    world_boxes = jax.jit(fm.world_boxes)  # compiled, as rebraid's flatten runs it
+    w_lo, w_hi = map(np.asarray, world_boxes(lo, hi, m32, margin))
     # the exactly transformed corners (float64 from the float64 matrix) lie inside
     corners = np.stack(np.meshgrid([0, 1], [0, 1], [0, 1], indexing="ij"), -1).reshape(8, 3)
     pts = np.where(corners[None] == 0, lo[:, None].astype(np.float64), hi[:, None].astype(np.float64))
     world = pts @ m[:3, :3].T + m[:3, 3]
     assert (w_lo <= world.min(1)).all() and (w_hi >= world.max(1)).all()
     # a box inside another maps inside the other's image; NumPy twin gives the same bits
-    i_lo, i_hi = map(np.asarray, rebraid._world_boxes_jit(inner_lo, inner_hi, m32, margin))
+    i_lo, i_hi = map(np.asarray, world_boxes(inner_lo, inner_hi, m32, margin))
     assert (i_lo >= w_lo).all() and (i_hi <= w_hi).all()
     for k in range(5):
         r_lo, r_hi = ref.world_box(lo[k], hi[k], m32[k], margin[k])
@@ -229,7 +230,7 @@ def test_world_boxes_are_conservative_and_monotone(seed, exponent):
         np.testing.assert_array_equal(r_hi, w_hi[k])
     # the identity with margin 0 is exact
     eye = np.broadcast_to(np.eye(4, dtype=np.float32)[:3], (50, 3, 4))
-    e_lo, e_hi = map(np.asarray, rebraid._world_boxes_jit(lo, hi, eye, np.zeros(50, np.float32)))
+    e_lo, e_hi = map(np.asarray, world_boxes(lo, hi, eye, np.zeros(50, np.float32)))
     np.testing.assert_array_equal(e_lo, lo)
     np.testing.assert_array_equal(e_hi, hi)
 

@@ -18,7 +18,7 @@ _ON_PREPARED = {"sweep": topdown.build, "binned": topdown.build, "median": topdo
 
 
 def build(prim_lo, prim_hi, config: BuilderConfig | str | None = None, *, method: str | None = None,
-          **options) -> BVH:
+          capacity: int | None = None, **options) -> BVH:
     """Build a binary BVH over primitive boxes.
 
     ``jaxbvh.build(lo, hi, BinnedConfig(bins=8))`` builds with a Config; the keyword form
@@ -38,6 +38,9 @@ def build(prim_lo, prim_hi, config: BuilderConfig | str | None = None, *, method
       options: the Config's knobs (``max_leaf``, ``bins``, ``ct``, ``ci``, ``pad``,
         ``dtype``, ``radius``, ``morton_bits``). ``dtype`` float64 needs x64; the boxes
         are cast to it, so validate the tree against boxes cast the same way.
+      capacity: primitive slots to pad to (at least ``n``), in place of ``pad``'s
+        capacity bucket: inputs of many sizes then share one compiled program (a
+        test's random scenes, a batch of small meshes). ``ValueError`` below ``n``.
 
     Returns:
       A :class:`~jaxbvh.tree.layout.BVH` of JAX arrays with ``2 * capacity`` node slots, root 0
@@ -58,5 +61,5 @@ def build(prim_lo, prim_hi, config: BuilderConfig | str | None = None, *, method
     elif not isinstance(config, BuilderConfig) or config.method not in BUILDERS:
         raise TypeError(f"config must be one of {', '.join(c.__name__ for c in BUILDERS.values())}, "
                         f"got {type(config).__name__}")
-    lo, hi, n, scale = prepare(prim_lo, prim_hi, pad=config.pad, dtype=config.dtype)
+    lo, hi, n, scale = prepare(prim_lo, prim_hi, pad=config.pad, capacity=capacity, dtype=config.dtype)
     return _ON_PREPARED[config.method](lo, hi, n, scale, config)

@@ -104,8 +104,15 @@ def radix_tree(key, n, code_len):
 
 
 @partial(jax.jit, static_argnames=("bits",))
-def _topology(lo, hi, n, origin, scale, *, bits):
-    """Sort and radix tree (traced in the x64 scope): order, left, right, first, count, axis."""
+def topology(lo, hi, n, origin, scale, *, bits):
+    """Steps 1 and 2 (module docstring), jitted: the sort and the radix tree.
+
+    Call inside :func:`jaxbvh.builders.morton.x64`. ``lo``, ``hi`` [cap, 3]: padded boxes
+    (first ``n`` real); ``origin``, ``scale``: from :func:`jaxbvh.builders.morton.quantization`;
+    ``bits`` (static): 30 or 63. Returns int32 arrays ``(order [cap], left, right, first,
+    count, axis)``, the last five [cap] over the internal slots (:mod:`jaxbvh.builders.bottom_up`).
+    One compiled program per capacity and ``bits``.
+    """
     key, order = morton.sort_keys(morton.keys(lo, hi, n, origin, scale, bits=bits), n)
     return (order,) + radix_tree(key, n, morton.code_length(n, bits))
 
@@ -167,7 +174,14 @@ def fit_boxes(left, right, n, leaf_lo, leaf_hi, *, window: int):
 
 
 @partial(jax.jit, static_argnames=("window", "collapse"))
-def _finish(lo, hi, n, order, left, right, first, count, axis, max_leaf, ct, ci, scale, *, window, collapse):
+def assemble(lo, hi, n, order, left, right, first, count, axis, max_leaf, ct, ci, scale, *, window, collapse):
+    """Steps 3 and 4 (module docstring), jitted: boxes bottom-up, leaves collapsed, the layout.
+
+    ``order`` ... ``axis``: what :func:`topology` returns; ``max_leaf``, ``ct``, ``ci``,
+    ``scale``: traced scalars. Static: ``window`` (:func:`window_size`, speed only) and
+    ``collapse`` (``max_leaf > 1``); one compiled program per capacity and static values.
+    Returns a :class:`~jaxbvh.tree.layout.BVH`.
+    """
     # padding positions read padding slots
     leaf_lo, leaf_hi = jnp.take(lo, order, axis=0, mode="clip"), jnp.take(hi, order, axis=0, mode="clip")
     node_lo, node_hi = fit_boxes(left, right, n, leaf_lo, leaf_hi, window=window)
@@ -195,8 +209,8 @@ def build(lo, hi, n, scale, config: LBVHConfig) -> BVH:
     n = int(n)
     origin, grid = morton.quantization(lo_j, hi_j, n, bits)
     with morton.x64():
-        order, left, right, first, count, axis = _topology(lo_j, hi_j, jnp.int32(n), jnp.asarray(origin),
+        order, left, right, first, count, axis = topology(lo_j, hi_j, jnp.int32(n), jnp.asarray(origin),
                                                            jnp.asarray(grid), bits=bits)
-    return _finish(lo_j, hi_j, jnp.int32(n), order, left, right, first, count, axis, jnp.int32(config.max_leaf),
+    return assemble(lo_j, hi_j, jnp.int32(n), order, left, right, first, count, axis, jnp.int32(config.max_leaf),
                    jnp.asarray(config.ct, dtype), jnp.asarray(config.ci, dtype), jnp.asarray(scale, dtype),
                    window=window_size(lo.shape[0]), collapse=config.max_leaf > 1)

@@ -91,8 +91,12 @@ def quantization(lo, hi, n: int, bits: int):
     return low.astype(dtype), dtype.type(scale)
 
 
-def _spread(x, bits_per_axis: int):
-    """Bits of ``x`` (uint64, < 2^bits_per_axis) moved to every third position."""
+def spread_bits(x, bits_per_axis: int):
+    """Bits of ``x`` (uint64 array, each < ``2^bits_per_axis``) moved to every third position.
+
+    Bit ``k`` of ``x`` lands on bit ``3k``; ``bits_per_axis`` is 10 (30-bit codes) or 21
+    (63-bit codes). Traceable inside :func:`x64` (uint64).
+    """
     if bits_per_axis == 10:
         masks = ((16, 0x030000FF), (8, 0x0300F00F), (4, 0x030C30C3), (2, 0x09249249))
     else:  # 21
@@ -127,8 +131,8 @@ def keys(lo, hi, n, origin, scale, *, bits: int):
     centre = 0.5 * lo + 0.5 * hi
     cell = jnp.floor((centre - origin) * scale)
     cell = jnp.where(is_prim[:, None], jnp.clip(cell, 0, 2 ** per_axis - 1), 0).astype(jnp.uint64)
-    code = ((_spread(cell[:, 0], per_axis) << np.uint64(2)) | (_spread(cell[:, 1], per_axis) << np.uint64(1))
-            | _spread(cell[:, 2], per_axis))
+    code = ((spread_bits(cell[:, 0], per_axis) << np.uint64(2))
+            | (spread_bits(cell[:, 1], per_axis) << np.uint64(1)) | spread_bits(cell[:, 2], per_axis))
     length = code_length(n, bits).astype(jnp.uint64)
     top = (code >> (np.uint64(bits) - length)) << (np.uint64(63) - length)
     return jnp.where(is_prim, top | ids, PAD_BIT | ids)

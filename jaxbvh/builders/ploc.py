@@ -191,7 +191,16 @@ def _iteration(n, scale, radius: int, carry):
 
 
 @partial(jax.jit, static_argnames=("radius", "stages", "collapse"))
-def _cluster(lo, hi, n, order, max_leaf, ct, ci, scale, *, radius, stages, collapse):
+def cluster(lo, hi, n, order, max_leaf, ct, ci, scale, *, radius, stages, collapse):
+    """The clustering and the layout (module docstring), jitted: what :func:`build` runs after the sort.
+
+    ``lo``, ``hi`` [cap, 3]: padded boxes (first ``n`` real); ``order`` int32 [cap]: the
+    ids in Morton order (:func:`jaxbvh.builders.morton.morton_order`); ``max_leaf``,
+    ``ct``, ``ci``, ``scale``: traced scalars. Static: ``radius``, ``stages``
+    (:func:`stage_sizes`), ``collapse`` (``max_leaf > 1``); one compiled program per
+    capacity and static values. ``TIE_TOLERANCE`` is read at trace time (a test that
+    changes it clears this function's cache). Returns a :class:`~jaxbvh.tree.layout.BVH`.
+    """
     cap = lo.shape[0]
     # padding positions read padding slots
     leaf_lo, leaf_hi = jnp.take(lo, order, axis=0, mode="clip"), jnp.take(hi, order, axis=0, mode="clip")
@@ -226,6 +235,6 @@ def build(lo, hi, n, scale, config: PLOCConfig) -> BVH:
     n = int(n)
     origin, grid = morton.quantization(lo_j, hi_j, n, bits)
     order = morton.morton_order(lo_j, hi_j, n, jnp.asarray(origin), jnp.asarray(grid), bits=bits)
-    return _cluster(lo_j, hi_j, jnp.int32(n), order, jnp.int32(config.max_leaf), jnp.asarray(config.ct, dtype),
+    return cluster(lo_j, hi_j, jnp.int32(n), order, jnp.int32(config.max_leaf), jnp.asarray(config.ct, dtype),
                     jnp.asarray(config.ci, dtype), jnp.asarray(scale, dtype), radius=config.radius,
                     stages=stage_sizes(lo.shape[0]), collapse=config.max_leaf > 1)

@@ -417,6 +417,31 @@ def result(state: OptimizerState) -> OptimizeResult:
 TREELET = Optimizer("treelet", Config, init, step, result, paper="Karras & Aila 2013")
 
 
+class Treelet(NamedTuple):
+    """One treelet, formed and solved alone (:func:`solve`); ``k`` leaves, ``n`` = ``Config.leaves``."""
+
+    improves: Any  # [] bool: the best topology beats the current one by more than min_gain (a pass rewrites it)
+    inner: Any     # [n - 1] int32: its interior nodes, the root first, in the order formed (-1 past k - 1)
+    leaves: Any    # [] int32: k, its leaf count
+    best: Any      # [] least area-weighted cost c* over every binary tree of its leaves
+    current: Any   # [] area-weighted cost of its present topology
+
+
+@jax.jit
+def solve(state: OptimizerState, root) -> Treelet:
+    """Form and solve the treelet of ``root`` (an interior node) in ``state``, writing nothing back.
+
+    The unit of work of a pass (module docstring: formation and the dynamic programme over
+    subsets), open to tests and study. ``state``: from :func:`init` or :func:`step`; its
+    ``Config.leaves``, ``ct`` and ``min_gain`` apply; costs are area-weighted in the state's
+    area scale (that of the root box). Returns a :class:`Treelet`.
+    """
+    p, inner = state.params, state.inner
+    improves, ids, k, new, current = _solve(inner.tree, jnp.asarray(root, jnp.int32), inner.scale, p.ct,
+                                            p.min_gain, state.static.leaves)
+    return Treelet(improves, ids, k, new[3][0], current)
+
+
 def restructure(tree, *, time_budget: float | None = None, on_step: Callable | None = None,
                 **config) -> OptimizeResult:
     """Treelet restructuring, pass after pass, until a pass changes nothing (module docstring).
