@@ -12,7 +12,7 @@ from hypothesis import HealthCheck, settings
 # "ci": what `python -m pytest` runs (.ci/run too): a fixed seed per test (derandomize), so a
 # run is repeatable and its time known. "dev": random draws and five times the examples, to
 # hunt locally (tests that set max_examples themselves are costly per example, and say why):
-# HYPOTHESIS_PROFILE=dev python -m pytest tests/test_build.py
+# HYPOTHESIS_PROFILE=dev python -m pytest tests/builders/test_build.py
 # No deadline: a first example compiles (seconds), the next ones reuse the program.
 # too_slow: generating hundreds of coordinates per example is slow by design;
 # data_too_large: scenes of several triangle soups draw many values.
@@ -46,3 +46,9 @@ def _release_compiled_programs():
     jax.clear_caches()
     gc.collect()
 
+
+
+@pytest.fixture
+def cache_dir(_compilation_cache_out_of_home):
+    """The suite's compilation-cache folder (above)."""
+    return _compilation_cache_out_of_home

@@ -126,3 +126,33 @@ def test_every_twin_sits_beside_its_module():
     mods = modules()
     lonely = [n for n in mods if n.endswith("_reference") and n[: -len("_reference")] not in mods]
     assert not lonely, f"twins without a module of the same name beside them: {lonely}"
+
+
+TESTS = Path(__file__).resolve().parent
+WHOLE_PACKAGE_TESTS = {"test_architecture.py", "test_notebooks.py"}  # the package's shape, its notebooks
+
+
+def test_tests_follow_the_packages():
+    """Each test module sits in the folder of the package it tests (``tests/optimize/`` for
+    ``jaxbvh/optimize/``); only whole-package checks sit at the top."""
+    for path in TESTS.rglob("test_*.py"):
+        folder = path.parent.relative_to(TESTS)
+        if folder == Path("."):
+            assert path.name in WHOLE_PACKAGE_TESTS, f"{path.name}: move it into the folder of its package"
+        else:
+            assert (PACKAGE / folder / "__init__.py").exists(), f"tests/{folder}: no package jaxbvh/{folder}"
+
+
+def test_tests_use_public_names():
+    """Tests reach the library by its public names (a step they need is public):
+    no ``from jaxbvh... import _name`` and no ``module._name`` of a library module."""
+    for path in TESTS.rglob("*.py"):
+        tree = ast.parse(path.read_text())
+        library = {alias.asname or alias.name for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)
+                   and (node.module or "").startswith("jaxbvh") for alias in node.names}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("jaxbvh"):
+                assert not [a.name for a in node.names if a.name.startswith("_")], f"{path.name}:{node.lineno}"
+            if (isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__")
+                    and isinstance(node.value, ast.Name) and node.value.id in library | {"jaxbvh"}):
+                assert node.attr == "_cache_size", f"{path.name}:{node.lineno}: {node.value.id}.{node.attr}"

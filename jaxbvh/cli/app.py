@@ -25,8 +25,7 @@ import sys
 from pathlib import Path
 
 from jaxbvh import __version__
-from jaxbvh.cli import commands
-from jaxbvh.cli.commands import _common
+from jaxbvh.cli import command_kit, commands
 from jaxbvh.io import MeshError, use_mesh_cache
 from jaxbvh.io import meshes as io
 from jaxbvh.tree.validate import InvalidTreeError
@@ -154,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("jaxbvh: interrupted", file=sys.stderr)
         return 130
-    _common.print_result(result, as_json=getattr(args, "json", False))
+    command_kit.print_result(result, as_json=getattr(args, "json", False))
     return EXIT_INVALID if result.get("valid") is False else 0
 
 

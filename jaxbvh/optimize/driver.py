@@ -86,7 +86,7 @@ advance = jax.jit(_advance, static_argnums=0)
 
 
 @partial(jax.jit, static_argnums=0)
-def _finish(result: Callable, state: OptimizerState):
+def finish(result: Callable, state: OptimizerState):
     return result(state)
 
 
@@ -111,7 +111,7 @@ def run(optimizer, tree, config=None, *, key=None, time_budget: float | None = N
         state = advance(optimizer.step, state, jnp.int32(np.iinfo(np.int32).max))
     else:
         state = drive(optimizer, state, budget=budget, on_step=on_step, trace=trace, clock=clock)
-    out = jax.device_get(_finish(optimizer.result, state))
+    out = jax.device_get(finish(optimizer.result, state))
     return out.replace(trace=tuple(trace))
 
 

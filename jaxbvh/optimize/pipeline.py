@@ -29,7 +29,7 @@ history. When that stage's state is done, the next stage starts (traced, inside 
 step) from its tree: the links and boxes go on from one stage to the next, and a stage
 that has nothing to do (two-leaf treelets, ``ct = 0``) is passed over at once. A round
 ends when its reinsertion stage is done. Each stage is held equal to its NumPy twin, and
-the pipeline equal to the stages chained by hand (``tests/test_optimize.py``), so it has
+the pipeline equal to the stages chained by hand (``tests/optimize/test_optimize.py``), so it has
 no twin of its own.
 """
 

@@ -153,7 +153,7 @@ def trace_ray(tree, triangles, origin, direction, *, mode="closest", t_min=0.0,
                 ray.stack_overflow = True
                 continue
             stack.append((c, entry_c))
-    return _finish(ray, mode, max_hits)
+    return finish(ray, mode, max_hits)
 
 
 def _visit_leaf(a: _Tree, triangles, ray: _Ray, node, mode, max_hits) -> bool:
@@ -206,7 +206,7 @@ def _children_hit(a: _Tree, ray: _Ray, node, entry) -> list:
     return [(c, entry_c) for _, _, c, entry_c in kids]
 
 
-def _finish(ray: _Ray, mode, max_hits) -> dict:
+def finish(ray: _Ray, mode, max_hits) -> dict:
     """The ray's result record (the fields of :class:`jaxbvh.rays.traversal.Hits`)."""
     out = dict(t=ray.t, prim=ray.prim, u=ray.u, v=ray.v, box_tests=ray.box_tests, prim_tests=ray.prim_tests,
                nodes_visited=ray.nodes_visited, leaves_visited=ray.leaves_visited,

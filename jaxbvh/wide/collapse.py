@@ -209,7 +209,7 @@ def leaf_cost(tree, ci: float = 1.0):
 # ----------------------------------------------------------------------------------
 
 
-def _finish(tree, kept, anchor, slot, arity, table, *, leaf_count=None, leaf_start=None,
+def finish(tree, kept, anchor, slot, arity, table, *, leaf_count=None, leaf_start=None,
             prim_index=None, merged=False, ci=1.0, objective=None):
     """The :class:`CollapseResult` of the nodes ``kept`` at their anchors and slots."""
     t = tree
@@ -250,7 +250,7 @@ def qbvh(tree, test_cost: Callable | None = None) -> CollapseResult:
     levels = schedule(t)
     kept = _qbvh_decide(t, levels)
     anchor, slot, _ = layout(t, levels, kept)
-    return _finish(t, kept, anchor, slot, 4, cost_table(test_cost, 4))
+    return finish(t, kept, anchor, slot, 4, cost_table(test_cost, 4))
 
 
 @partial(jax.jit, static_argnames=("max_children",))
@@ -327,7 +327,7 @@ def greedy(tree, *, max_children: int | None = None, test_cost: Callable | None 
     anchor, slot, width = layout(t, levels, kept)
     # no limit: as wide as the widest node, rounded up to 4 or a multiple of 8 (fewer compiles)
     arity = k if k is not None else (4 if int(width) <= 4 else -(-int(width) // 8) * 8)
-    return _finish(t, kept, anchor, slot, arity, cost_table(test_cost, arity))
+    return finish(t, kept, anchor, slot, arity, cost_table(test_cost, arity))
 
 
 # ----------------------------------------------------------------------------------
@@ -356,7 +356,7 @@ def optimal(tree, *, max_children: int = DEFAULT_MAX_CHILDREN, test_cost: Callab
     if merge:
         start, prim_index = collapse_dp.regroup_prims(t, owner, count)
         extra = dict(leaf_count=count, leaf_start=start, prim_index=prim_index, merged=True)
-    return _finish(t, kept, anchor, slot, k, table, ci=ci, objective=objective, **extra)
+    return finish(t, kept, anchor, slot, k, table, ci=ci, objective=objective, **extra)
 
 
 def collapse(tree, method: str | CollapseConfig = "dp", **options) -> CollapseResult:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import jaxbvh
-from jaxbvh.cli.commands import _common
+from jaxbvh.cli import command_kit
 from jaxbvh.io import TREE_SUFFIXES
 
 HELP = "build a BVH over a mesh (default: the bundled mesh) and report its costs"
@@ -11,11 +11,11 @@ HELP = "build a BVH over a mesh (default: the bundled mesh) and report its costs
 
 def add_parser(subparsers):
     parser = subparsers.add_parser("build", help=HELP, description=HELP + ".")
-    _common.add_mesh_arg(parser)
-    _common.add_builder_args(parser)
+    command_kit.add_mesh_arg(parser)
+    command_kit.add_builder_args(parser)
     parser.add_argument("-o", "--output", metavar="TREE.npz", default=None,
                         help="save the tree (interchange .npz with its scene frame)")
-    _common.add_json(parser)
+    command_kit.add_json(parser)
     return parser
 
 
@@ -23,20 +23,20 @@ def run(args) -> dict:
     if args.mesh is not None and str(args.mesh).lower().endswith(TREE_SUFFIXES):
         raise ValueError(f"{args.mesh} is a tree file; build takes a mesh "
                          "(use 'jaxbvh stats' for trees)")
-    builder = _common.builder_config(args)  # every builder option checked before any work
+    builder = command_kit.builder_config(args)  # every builder option checked before any work
     names = ["load", "build", "validate"] + (["save"] if args.output else [])
-    with _common.Stages(args, names) as stages:
+    with command_kit.Stages(args, names) as stages:
         with stages("load"):
-            mesh = _common.mesh_or_default(args.mesh)
-        tree, _, _ = _common.build_mesh_tree(mesh, builder, stages)
+            mesh = command_kit.mesh_or_default(args.mesh)
+        tree, _, _ = command_kit.build_mesh_tree(mesh, builder, stages)
         if args.output:
             with stages("save"):
                 jaxbvh.save(args.output, tree, frame=mesh.frame)
-    result = {"command": "build", **_common.mesh_info(mesh),
+    result = {"command": "build", **command_kit.mesh_info(mesh),
               "builder": builder.method, "max_leaf": builder.max_leaf}
     if builder.method == "binned":
         result["bins"] = builder.bins
-    result.update(_common.tree_stats(tree, builder))
+    result.update(command_kit.tree_stats(tree, builder))
     result.update({
         "valid": True,
         "frame_origin": [float(x) for x in mesh.frame.origin],

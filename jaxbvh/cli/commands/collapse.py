@@ -19,8 +19,8 @@ import time
 import numpy as np
 
 import jaxbvh
+from jaxbvh.cli import command_kit
 from jaxbvh.cli import options as config_options
-from jaxbvh.cli.commands import _common
 from jaxbvh.io import Mesh
 from jaxbvh.wide import collapse
 from jaxbvh.wide.collapse import CollapseConfig
@@ -45,8 +45,8 @@ def add_parser(subparsers):
                         help=f"cost of testing k child boxes: ceil(k / W), or k for W = 0 (default: {SIMD_WIDTH})")
     parser.add_argument("-o", "--output", metavar="OUT.npz", default=None,
                         help="save the wide tree (interchange .npz with its frame)")
-    _common.add_builder_args(parser)
-    _common.add_json(parser)
+    command_kit.add_builder_args(parser)
+    command_kit.add_json(parser)
     return parser
 
 
@@ -68,17 +68,17 @@ def _config(args, builder, kind: str) -> CollapseConfig:
 def run(args) -> dict:
     import jax
 
-    builder = _common.builder_config(args)  # the builder options too, before any work
+    builder = command_kit.builder_config(args)  # the builder options too, before any work
     config = _config(args, builder, "tree" if str(args.input).lower().endswith(".npz") else "mesh")
     names = ["load", "build", "validate", "collapse", "check"] + (["save"] if args.output else [])
-    with _common.Stages(args, names) as stages:
+    with command_kit.Stages(args, names) as stages:
         with stages("load"):
-            loaded = (_common.load_tree(args.input, binary=True)
-                      if str(args.input).lower().endswith(".npz") else _common.load_input(args.input))
+            loaded = (command_kit.load_tree(args.input, binary=True)
+                      if str(args.input).lower().endswith(".npz") else command_kit.load_input(args.input))
         if isinstance(loaded, Mesh):
-            tree, prim_lo, prim_hi = _common.build_mesh_tree(loaded, builder, stages)
+            tree, prim_lo, prim_hi = command_kit.build_mesh_tree(loaded, builder, stages)
             frame = loaded.frame
-            info = {"kind": "mesh", **_common.mesh_info(loaded), "builder": args.builder}
+            info = {"kind": "mesh", **command_kit.mesh_info(loaded), "builder": args.builder}
         else:
             tree, frame = loaded.tree, loaded.frame
             with stages("build"):

@@ -10,8 +10,8 @@ tree the insertion build makes from it (one primitive per leaf, nodes of up to
 from __future__ import annotations
 
 import jaxbvh
+from jaxbvh.cli import command_kit
 from jaxbvh.cli import options as config_options
-from jaxbvh.cli.commands import _common
 from jaxbvh.io import TREE_SUFFIXES
 from jaxbvh.stochastic import evolve
 from jaxbvh.stochastic.evolve import EvolveConfig
@@ -25,12 +25,12 @@ OPTIONS = config_options.ConfigOptions({"evolve": EvolveConfig}, exclude=("dtype
 def add_parser(subparsers):
     # option values are checked in run() by EvolveConfig, so a bad one is a one-line error like bad input
     parser = subparsers.add_parser("evolve", help=HELP, description=HELP + ".")
-    _common.add_mesh_arg(parser, required=True)
+    command_kit.add_mesh_arg(parser, required=True)
     OPTIONS.add_to(parser)
-    _common.add_seed(parser)
+    command_kit.add_seed(parser)
     parser.add_argument("-o", "--output", metavar="BEST.npz", default=None,
                         help="save the best tree (interchange .npz with its scene frame)")
-    _common.add_json(parser)
+    command_kit.add_json(parser)
     return parser
 
 
@@ -41,11 +41,11 @@ def run(args) -> dict:
     if str(args.mesh).lower().endswith(TREE_SUFFIXES):
         raise ValueError(f"{args.mesh} is a tree file; evolve builds from a mesh")
     names = ["load", "evolve", "validate"] + (["save"] if args.output else [])
-    with _common.Stages(args, names) as stages:
+    with command_kit.Stages(args, names) as stages:
         with stages("load"):
-            mesh = _common.mesh_or_default(args.mesh)
+            mesh = command_kit.mesh_or_default(args.mesh)
             lo, hi = mesh.local_boxes()
-        bar = _common.progress(args, total=config.generations + 1, desc="generations")
+        bar = command_kit.progress(args, total=config.generations + 1, desc="generations")
 
         def on_generation(g, best):
             bar.update(1)
@@ -60,7 +60,7 @@ def run(args) -> dict:
         if args.output:
             with stages("save"):
                 jaxbvh.save(args.output, tree, frame=mesh.frame)
-    out = {"command": "evolve", **_common.mesh_info(mesh),
+    out = {"command": "evolve", **command_kit.mesh_info(mesh),
            "population": config.population, "generations": config.generations,
            "crossover": config.crossover, "mutation": config.mutation,
            "expected_swaps": config.mutation * mesh.n_triangles, "max_children": config.max_children,
@@ -70,5 +70,5 @@ def run(args) -> dict:
            if result.random_median else 0.0,
            "history": [float(x) for x in result.history],
            "seconds": result.seconds,  # includes compiling (cached across runs by the CLI)
-           "tree": _common.tree_stats(tree), "valid": True, "output": args.output}
+           "tree": command_kit.tree_stats(tree), "valid": True, "output": args.output}
     return out

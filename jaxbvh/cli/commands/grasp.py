@@ -10,8 +10,8 @@ from __future__ import annotations
 import time
 
 import jaxbvh
+from jaxbvh.cli import command_kit
 from jaxbvh.cli import options as config_options
-from jaxbvh.cli.commands import _common
 from jaxbvh.io import TREE_SUFFIXES
 from jaxbvh.stochastic import grasp
 from jaxbvh.stochastic.grasp import DEFAULT_DEVIATIONS, GraspConfig
@@ -27,12 +27,12 @@ OPTIONS = config_options.ConfigOptions({"grasp": GraspConfig}, exclude=("chunk_p
 def add_parser(subparsers):
     # option values are checked in run() by GraspConfig, so a bad one is a one-line error like bad input
     parser = subparsers.add_parser("grasp", help=HELP, description=HELP + ".")
-    _common.add_mesh_arg(parser, required=True)
+    command_kit.add_mesh_arg(parser, required=True)
     OPTIONS.add_to(parser)
-    _common.add_seed(parser)
+    command_kit.add_seed(parser)
     parser.add_argument("-o", "--output", metavar="BEST.npz", default=None,
                         help="save the best tree (interchange .npz with its scene frame)")
-    _common.add_json(parser)
+    command_kit.add_json(parser)
     return parser
 
 
@@ -44,12 +44,12 @@ def run(args) -> dict:
     if str(args.mesh).lower().endswith(TREE_SUFFIXES):
         raise ValueError(f"{args.mesh} is a tree file; grasp builds from a mesh")
     names = ["load", "grasp", "validate"] + (["save"] if args.output else [])
-    with _common.Stages(args, names) as stages:
+    with command_kit.Stages(args, names) as stages:
         with stages("load"):
-            mesh = _common.mesh_or_default(args.mesh)
+            mesh = command_kit.mesh_or_default(args.mesh)
             lo, hi = mesh.local_boxes()
         noise = grasp.resolve_noise(lo.shape[0], config.noise, config.deviations)
-        bar = _common.progress(args, total=config.trials, desc="trials")
+        bar = command_kit.progress(args, total=config.trials, desc="trials")
 
         def on_chunk(done, best):
             bar.update(done - bar.n)
@@ -69,7 +69,7 @@ def run(args) -> dict:
 
     objectives = result.objectives
     return {
-        "command": "grasp", **_common.mesh_info(mesh),
+        "command": "grasp", **command_kit.mesh_info(mesh),
         "objective": config.objective,
         "base": result.base,  # the greedy sweep tree
         "best": result.objective,

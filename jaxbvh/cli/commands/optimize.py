@@ -22,8 +22,8 @@ import time
 import numpy as np
 
 import jaxbvh
+from jaxbvh.cli import command_kit
 from jaxbvh.cli import options as config_options
-from jaxbvh.cli.commands import _common
 from jaxbvh.io import Mesh
 from jaxbvh.optimize import DEFAULT_METHOD, OPTIMIZERS, optimize, pipeline
 
@@ -63,32 +63,32 @@ def add_parser(subparsers):
     parser.add_argument("--method", choices=tuple(OPTIMIZERS), default=DEFAULT_METHOD,
                         help="; ".join(f"{name}: {o.paper}" for name, o in OPTIMIZERS.items())
                              + f" (default: {DEFAULT_METHOD})")
-    _common.add_seed(parser, "random seed for annealing")
+    command_kit.add_seed(parser, "random seed for annealing")
     parser.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
                         help="stop after about this many seconds (compiling apart) with the best "
                              "tree so far (default: run to convergence)")
     parser.add_argument("-o", "--output", metavar="OUT.npz", default=None,
                         help="save the optimized tree (interchange .npz with its frame)")
     OPTIONS.add_to(parser, "method options (fields of each method's Config; defaults per method)")
-    _common.add_builder_args(parser)
-    _common.add_json(parser)
+    command_kit.add_builder_args(parser)
+    command_kit.add_json(parser)
     return parser
 
 
 def make_config(args, builder=None):
     """The Config of ``args.method`` from the options given (the Config's defaults for the
     rest), with the SAH constants of ``builder`` (None: of the builder options in ``args``)."""
-    builder = _common.builder_config(args) if builder is None else builder
+    builder = command_kit.builder_config(args) if builder is None else builder
     return OPTIONS.config(args.method, args, ct=builder.ct, ci=builder.ci)
 
 
 def _load(args, builder, stages):
     """``(tree, prim_lo, prim_hi, frame, info)`` of the input (a mesh is built first)."""
     with stages("load"):
-        loaded = _common.load_input(args.input)
+        loaded = command_kit.load_input(args.input)
     if isinstance(loaded, Mesh):
-        tree, prim_lo, prim_hi = _common.build_mesh_tree(loaded, builder, stages)
-        return tree, prim_lo, prim_hi, loaded.frame, {"kind": "mesh", **_common.mesh_info(loaded),
+        tree, prim_lo, prim_hi = command_kit.build_mesh_tree(loaded, builder, stages)
+        return tree, prim_lo, prim_hi, loaded.frame, {"kind": "mesh", **command_kit.mesh_info(loaded),
                                                       "builder": args.builder}
     with stages("build"):
         pass
@@ -112,14 +112,14 @@ def run(args) -> dict:
 
     if args.time_budget is not None and not args.time_budget > 0:
         raise ValueError(f"--time-budget must be > 0 seconds, got {args.time_budget}")
-    builder = _common.builder_config(args)
+    builder = command_kit.builder_config(args)
     config = make_config(args, builder)
     names = ["load", "build", "validate", "optimize", "check"] + (["save"] if args.output else [])
-    with _common.Stages(args, names) as stages:
+    with command_kit.Stages(args, names) as stages:
         tree, prim_lo, prim_hi, frame, info = _load(args, builder, stages)
         before = jaxbvh.all_costs(tree, config.ct, config.ci)
         totals = {"hc": getattr(config, "max_passes", None), "sa": getattr(config, "steps", None)}
-        bar = _common.progress(args, total=totals.get(args.method), desc=f"{args.method}")
+        bar = command_kit.progress(args, total=totals.get(args.method), desc=f"{args.method}")
 
         def on_step(info):
             bar.update(1)

@@ -21,7 +21,7 @@ import numpy as np
 
 import jaxbvh
 from jaxbvh import rays, twolevel
-from jaxbvh.cli.commands import _common
+from jaxbvh.cli import command_kit
 from jaxbvh.io import load_mesh
 from jaxbvh.rays import traversal as traverse
 from jaxbvh.twolevel import brefs
@@ -42,8 +42,8 @@ def add_parser(subparsers):
                         help=f"BRef slots per instance, >= 1 (default: {DEFAULT_BUDGET:g})")
     # the builder of the object BVHs and of the single BVH: the two-level builder's
     # (binned SAH, one primitive per leaf), not jaxbvh.build's sweep
-    _common.add_builder_args(parser, default=fm.DEFAULT_BUILDER)
-    parser.add_argument("--top-bins", type=_common._int_at_least(2), default=DEFAULT_BINS, metavar="B",
+    command_kit.add_builder_args(parser, default=fm.DEFAULT_BUILDER)
+    parser.add_argument("--top-bins", type=command_kit._int_at_least(2), default=DEFAULT_BINS, metavar="B",
                         help=f"bins per axis of the top-level build (default: {DEFAULT_BINS})")
     parser.add_argument("--overlap", type=float, default=DEFAULT_OVERLAP, metavar="F",
                         help="<= 4 BRefs whose boxes overlap by at most F of the shorter extent on "
@@ -53,12 +53,12 @@ def add_parser(subparsers):
     parser.add_argument("--object-space", action="store_true",
                         help="build every object in its own frame, also those placed by one instance "
                         "(default: those are built in world space)")
-    parser.add_argument("--rays", type=_common._int_at_least(1), default=None, metavar="N",
+    parser.add_argument("--rays", type=command_kit._int_at_least(1), default=None, metavar="N",
                         help="trace N random rays through all three: box and primitive tests per ray")
-    _common.add_seed(parser, "random seed of the rays")
+    command_kit.add_seed(parser, "random seed of the rays")
     parser.add_argument("-o", "--output", metavar="FLAT.npz", default=None,
                         help="save the re-braided tree flattened to world space (validated first)")
-    _common.add_json(parser)
+    command_kit.add_json(parser)
     return parser
 
 
@@ -75,10 +75,10 @@ def run(args) -> dict:
     import jax
 
     brefs.check_options(args.threshold, args.budget, args.top_bins, args.overlap)
-    builder = _common.builder_config(args)
+    builder = command_kit.builder_config(args)
     names = ["load", "objects", "two-level", "rebraid", "single", "check"] + (["rays"] if args.rays else []) \
         + (["save"] if args.output else [])
-    with _common.Stages(args, names) as stages:
+    with command_kit.Stages(args, names) as stages:
         with stages("load"):
             mesh = load_mesh(args.scene)
         with stages("objects"):
@@ -129,7 +129,7 @@ def run(args) -> dict:
             with stages("save"):
                 jaxbvh.save(args.output, flats["rebraid"], frame=mesh.frame)
 
-    result = {"command": "rebraid", **_common.mesh_info(mesh), "builder": builder.method,
+    result = {"command": "rebraid", **command_kit.mesh_info(mesh), "builder": builder.method,
               "threshold": args.threshold, "budget": args.budget,
               "slots": brefs.brefs_capacity(len(mesh.instances), args.threshold, args.budget),
               "two_level": out["two_level"], "rebraid": out["rebraid"], "single": out["single"],

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import jaxbvh
-from jaxbvh.cli.commands import _common
+from jaxbvh.cli import command_kit
 from jaxbvh.io import Mesh, boxes_in_frame
 
 HELP = ("report nodes, depth, leaf sizes and costs of a tree (.npz) or of a mesh's BVH; "
@@ -17,24 +17,24 @@ def add_parser(subparsers):
                              "or a mesh file, built with the default builder")
     parser.add_argument("--mesh", metavar="MESH", default=None,
                         help="for a tree: also validate it against this mesh's triangle boxes")
-    _common.add_builder_args(parser)
-    _common.add_json(parser)
+    command_kit.add_builder_args(parser)
+    command_kit.add_json(parser)
     return parser
 
 
 def run(args) -> dict:
-    builder = _common.builder_config(args)  # every builder option checked before any work
+    builder = command_kit.builder_config(args)  # every builder option checked before any work
     names = ["load", "build", "validate"]
-    with _common.Stages(args, names) as stages:
+    with command_kit.Stages(args, names) as stages:
         with stages("load"):
-            loaded = _common.load_input(args.input, check=False)  # problems are reported below
+            loaded = command_kit.load_input(args.input, check=False)  # problems are reported below
         if isinstance(loaded, Mesh):
             if args.mesh is not None:
                 raise ValueError(f"--mesh applies to a tree file; {args.input} is a mesh")
-            tree, _, _ = _common.build_mesh_tree(loaded, builder, stages)
-            result = {"command": "stats", "kind": "mesh", **_common.mesh_info(loaded),
+            tree, _, _ = command_kit.build_mesh_tree(loaded, builder, stages)
+            result = {"command": "stats", "kind": "mesh", **command_kit.mesh_info(loaded),
                       "builder": builder.method, "max_leaf": builder.max_leaf}
-            result.update(_common.tree_stats(tree, builder))
+            result.update(command_kit.tree_stats(tree, builder))
             result.update({"valid": True, "validated_against": "mesh",
                            "seconds": stages.seconds["build"]})
             return result
@@ -52,7 +52,7 @@ def _tree_stats(loaded, args, costs, stages) -> dict:
         problems = jaxbvh.check(tree)
         against = "structure only (pass --mesh to check boxes)"
         if not problems and args.mesh is not None:
-            mesh = _common.mesh_or_default(args.mesh)
+            mesh = command_kit.mesh_or_default(args.mesh)
             world_lo, world_hi = mesh.prim_boxes()
             lo, hi = boxes_in_frame(world_lo, world_hi, frame, tree.lo.dtype)
             referenced = int(tree.prim_count.sum())
@@ -66,7 +66,7 @@ def _tree_stats(loaded, args, costs, stages) -> dict:
             against = "mesh"
     structure_ok = against == "mesh" or not problems
     if structure_ok:
-        result.update(_common.tree_stats(tree, costs))
+        result.update(command_kit.tree_stats(tree, costs))
     result.update({
         "frame_origin": [float(x) for x in frame.origin],
         "frame_scale": float(frame.scale),

@@ -7,8 +7,8 @@ import inspect
 import numpy as np
 
 from jaxbvh import rays
+from jaxbvh.cli import command_kit
 from jaxbvh.cli import options as config_options
-from jaxbvh.cli.commands import _common
 from jaxbvh.configs import SAHCosts
 from jaxbvh.io import load_mesh
 from jaxbvh.rays import traversal as traverse
@@ -27,7 +27,7 @@ def add_parser(subparsers):
     parser.add_argument("tree", metavar="TREE", help="a tree .npz (jaxbvh build -o, or another "
                                                     "library's export) over MESH's triangles")
     parser.add_argument("mesh", metavar="MESH", help="the mesh the tree was built over")
-    parser.add_argument("--rays", type=_common._int_at_least(1), default=100_000, metavar="N",
+    parser.add_argument("--rays", type=command_kit._int_at_least(1), default=100_000, metavar="N",
                         help="number of rays (camera: about N pixels, 4:3) (default: 100000)")
     parser.add_argument("--kind", choices=KINDS, default="random",
                         help="random: origins in the root box, uniform directions; camera: "
@@ -35,8 +35,8 @@ def add_parser(subparsers):
                              "(default: random)")
     parser.add_argument("--mode", choices=MODES, default=TRAVERSAL["mode"],
                         help="closest hit, any hit (shadow rays) or all hits (default: %(default)s)")
-    _common.add_seed(parser)
-    parser.add_argument("--batch", type=_common._int_at_least(1), default=TRAVERSAL["batch"], metavar="B",
+    command_kit.add_seed(parser)
+    parser.add_argument("--batch", type=command_kit._int_at_least(1), default=TRAVERSAL["batch"], metavar="B",
                         help="rays per jitted batch (default: %(default)s)")
     parser.add_argument("--save", metavar="HITS.npz", default=None,
                         help="write origin, direction (world space), t and prim (-1: miss) "
@@ -46,7 +46,7 @@ def add_parser(subparsers):
                              "tests per pixel (the measured rays with --kind camera, else a "
                              "separate 320 x 240 camera view); needs matplotlib")
     COSTS.add_to(parser)
-    _common.add_json(parser)
+    command_kit.add_json(parser)
     return parser
 
 
@@ -61,10 +61,10 @@ def run(args) -> dict:
 
     costs = COSTS.config(None, args)
     if args.image:
-        _common.require_matplotlib("--image")
-    with _common.Stages(args, ["load", "trace", "write"]) as stages:
+        command_kit.require_matplotlib("--image")
+    with command_kit.Stages(args, ["load", "trace", "write"]) as stages:
         with stages("load"):
-            loaded = _common.load_tree(args.tree, check=False)  # checked below, with the mesh
+            loaded = command_kit.load_tree(args.tree, check=False)  # checked below, with the mesh
             mesh = load_mesh(args.mesh)
             tree, frame = loaded.tree, loaded.frame
             referenced = int(np.asarray(tree.prim_count).sum())
@@ -74,7 +74,7 @@ def run(args) -> dict:
             dtype = np.asarray(tree.lo).dtype
             triangles = triangles_in_frame(mesh, frame, dtype)
             # before any jitted loop; a leaf box that misses its triangle would lose hits
-            _common.check_tree_file(loaded, triangles.min(axis=1), triangles.max(axis=1))
+            command_kit.check_tree_file(loaded, triangles.min(axis=1), triangles.max(axis=1))
             key = jax.random.key(args.seed)
             origin, direction = rays.make_rays(key, args.kind, tree, triangles, args.rays)
         with stages("trace"):

@@ -10,13 +10,12 @@ from __future__ import annotations
 
 import itertools
 import json
-from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
 from helpers import random_tree
-from hypothesis import HealthCheck, example, given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 import jaxbvh
@@ -27,9 +26,7 @@ from jaxbvh.tree import pad_to
 from jaxbvh.wide import collapse, collapse_dp, levels
 from jaxbvh.wide import collapse_reference as ref
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 NODES, PRIMS = 128, 64  # one capacity for every random tree: one compile per configuration
-SETTINGS = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
 
@@ -101,7 +98,7 @@ def _schedule_and_sweeps(tree):
     return lv.order, lv.starts, lv.levels, lv.position, levels.depth_of(lv), size[:n], depth[:n], lv.pad
 
 
-@settings(max_examples=15, **SETTINGS)
+@settings(max_examples=15)
 @given(trees)
 @example((1, 1, 1, "random"))  # no interior node: no level
 def test_level_order_is_breadth_first(spec):
@@ -150,7 +147,7 @@ COSTS = {"k": None, "ceil(k/4)": collapse.node_test_cost(4), "ceil(k/8)": collap
          "user": even_widths_cheap}
 
 
-@settings(max_examples=30, **SETTINGS)
+@settings(max_examples=30)
 @given(trees, st.sampled_from([2, 3, 8]), st.sampled_from(list(COSTS)))
 @example((1, 1, 1, "random"), 8, "k")        # one leaf: nothing to collapse
 @example((2, 2, 1, "random"), 8, "k")        # root and two leaves
@@ -206,7 +203,7 @@ def brute_force(tree, k, cost):
     return best
 
 
-@settings(max_examples=25, **SETTINGS)
+@settings(max_examples=25)
 @given(st.integers(0, 2**31), st.integers(2, 9), st.sampled_from([2, 3, 8]), st.sampled_from(list(COSTS)),
        st.sampled_from(["random", "grid"]))
 def test_dp_is_the_least_of_all_collapses(seed, n, k, cost_name, kind):
@@ -219,7 +216,6 @@ def test_dp_is_the_least_of_all_collapses(seed, n, k, cost_name, kind):
     assert float(result.objective) >= best * (1 - 1e-5) - 1e-6  # never below the least
 
 
-@settings(max_examples=20, **SETTINGS)
 @given(trees, st.sampled_from([2, 3, 8]))
 def test_dp_not_worse_than_greedy_qbvh_binary(spec, k):
     tree, lo, hi = random_tree(*spec)
@@ -238,7 +234,7 @@ def test_dp_not_worse_than_greedy_qbvh_binary(spec, k):
 # ----------------------------------------------------------------------------------
 
 
-@settings(max_examples=30, **SETTINGS)
+@settings(max_examples=30)
 @given(trees, st.sampled_from([None, 2, 3, 5]))
 @example((3, 30, 1, "point"), None)
 @example((3, 30, 1, "point"), 3)
@@ -272,7 +268,6 @@ def test_greedy_rule_is_the_papers():
     assert children_of(collapse.greedy(tree, max_children=2).tree) == {0: [1, 4], 1: [2, 3]}
 
 
-@settings(max_examples=20, **SETTINGS)
 @given(trees)
 @example((1, 1, 1, "random"))
 @example((2, 2, 1, "random"))
@@ -362,7 +357,7 @@ def test_save_and_load_the_wide_tree(tmp_path):
     assert float(collapse.rcost(loaded)) == pytest.approx(float(result.rcost), rel=1e-6)
 
 
-@settings(max_examples=15, **SETTINGS)
+@settings(max_examples=15)
 @given(trees, st.sampled_from([2, 4]))
 @example((3, 30, 1, "point"), 4)
 def test_merging_leaves_equals_reference_and_lowers_the_total(spec, max_leaf):

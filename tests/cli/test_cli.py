@@ -7,65 +7,24 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import (
+    BROKEN,
+    REPO,
+    SHARED_DATA,
+    assert_one_line_error,
+    broken_arrays,
+    broken_tree_file,
+    grid_obj,
+    run_cli,
+    run_json,
+    three_triangle_files,
+)
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import jaxbvh
 from jaxbvh import cli
-from jaxbvh.cli.commands import _common
-
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
-
-
-@pytest.fixture
-def cache_dir(_compilation_cache_out_of_home):
-    """The suite's compilation-cache folder (tests/conftest.py)."""
-    return _compilation_cache_out_of_home
-
-
-def run_cli(capsys, *argv):
-    """``(exit status, stdout, stderr)`` of ``jaxbvh ARGV``."""
-    status = cli.main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return status, out, err
-
-
-def run_json(capsys, *argv, status: int = 0) -> dict:
-    """The JSON result of ``jaxbvh ARGV --json``, which must exit with ``status``."""
-    got, out, err = run_cli(capsys, *argv, "--json")
-    assert got == status, err
-    lines = out.strip().splitlines()
-    assert len(lines) == 1, out  # one JSON object, nothing else on stdout
-    return json.loads(lines[0])
-
-
-def assert_one_line_error(status, out, err, *fragments):
-    assert status == 2
-    assert out == ""
-    assert "Traceback" not in err
-    lines = err.strip().splitlines()
-    assert len(lines) == 1, err
-    assert lines[0].startswith("jaxbvh: error: ")
-    for fragment in fragments:
-        assert fragment in lines[0], lines[0]
-
-
-def grid_obj(path: Path, n: int = 3, seed: int = 0) -> Path:
-    """A bumpy n x n grid of 2 n^2 triangles."""
-    rng = np.random.default_rng(seed)
-    xs, ys = np.meshgrid(np.arange(n + 1.0), np.arange(n + 1.0), indexing="ij")
-    zs = rng.random(xs.shape)
-    vertices = np.stack([xs, ys, zs], -1).reshape(-1, 3)
-    faces = []
-    for i in range(n):
-        for j in range(n):
-            a, b, c, d = i * (n + 1) + j, (i + 1) * (n + 1) + j, (i + 1) * (n + 1) + j + 1, i * (n + 1) + j + 1
-            faces += [(a, b, c), (a, c, d)]
-    text = "".join(f"v {x!r} {y!r} {z!r}\n" for x, y, z in vertices.tolist())
-    text += "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in faces)
-    path.write_text(text)
-    return path
-
+from jaxbvh.cli import command_kit
 
 # ----------------------------------------------------------------------------------
 # Global behaviour
@@ -126,9 +85,9 @@ def test_compilation_cache_dir(cache_dir, monkeypatch, capsys):
 def test_table_and_json_formatting():
     result = {"triangles": 5856, "sah": np.float32(25.5), "valid": True, "output": None,
               "origin": np.zeros(3), "nested": {"a": 1}, "big": float("inf")}
-    table = _common.format_table(result)
+    table = command_kit.format_table(result)
     assert "triangles  5,856" in table and "nested.a" in table and "valid      yes" in table
-    plain = _common._plain(result)
+    plain = command_kit.json_ready(result)
     assert json.loads(json.dumps(plain, allow_nan=False))["big"] == "inf"
 
 
@@ -136,9 +95,9 @@ def test_progress_is_off_without_a_terminal(capsys):
     class Args:
         json = False
 
-    assert not _common.show_progress(Args())  # capsys: stderr is not a TTY
+    assert not command_kit.show_progress(Args())  # capsys: stderr is not a TTY
     Args.json = True
-    assert not _common.show_progress(Args())
+    assert not command_kit.show_progress(Args())
 
 
 # ----------------------------------------------------------------------------------
@@ -258,10 +217,10 @@ def test_stats_table_output(capsys, tmp_path):
     assert rows["nodes"] == "3" and rows["valid"] == "yes" and "sah" in rows
 
 
-@pytest.mark.skipif(not (SHARED / "trees").is_dir(), reason=f"shared data not found at {SHARED}")
+@pytest.mark.skipif(not (SHARED_DATA / "trees").is_dir(), reason=f"shared data not found at {SHARED_DATA}")
 def test_stats_of_a_foreign_tree_against_its_mesh(capsys):
-    result = run_json(capsys, "stats", SHARED / "trees" / "legocar_binned_ref.npz",
-                      "--mesh", SHARED / "meshes" / "legocar.obj")
+    result = run_json(capsys, "stats", SHARED_DATA / "trees" / "legocar_binned_ref.npz",
+                      "--mesh", SHARED_DATA / "meshes" / "legocar.obj")
     assert result["valid"] is True
     assert result["sah"] == pytest.approx(30.212, abs=1e-3)  # the value tinybvh reports
 
@@ -312,7 +271,7 @@ def test_stats_of_a_mesh(capsys, tmp_path):
     assert result["kind"] == "mesh" and result["valid"] is True and result["triangles"] == 8
 
 
-@settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=8, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(n=st.integers(1, 3), seed=st.integers(0, 2**16), max_leaf=st.sampled_from([1, 3]))
 def test_build_then_stats_agree(capsys, tmp_path, n, seed, max_leaf):
     mesh = grid_obj(tmp_path / f"grid{n}_{seed}.obj", n, seed)
@@ -327,51 +286,6 @@ def test_build_then_stats_agree(capsys, tmp_path, n, seed, max_leaf):
 # ----------------------------------------------------------------------------------
 # Broken tree files: every command that reads a tree checks it before any jitted loop
 # ----------------------------------------------------------------------------------
-
-
-def three_triangle_files(tmp_path):
-    """An OBJ of three triangles and a valid world-space tree over them.
-
-    Nodes: 0 root (1, 2); 1 interior (3, 4); leaves 2, 3, 4 hold triangles 2, 0, 1.
-    Returns ``(mesh path, interchange arrays)``.
-    """
-    mesh = tmp_path / "three.obj"
-    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 2 0 0\nv 2 1 0\nv 4 0 0\nv 4 1 1\n"
-                    "f 1 2 3\nf 2 4 5\nf 4 6 7\n")
-    tri_lo = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0]], np.float32)
-    tri_hi = np.array([[1, 1, 0], [2, 1, 0], [4, 1, 1]], np.float32)
-    arrays = {
-        "child": np.array([[1, 2], [3, 4], [-1, -1], [-1, -1], [-1, -1]], np.int32),
-        "prim_start": np.array([0, 0, 0, 1, 2], np.int32),
-        "prim_count": np.array([0, 0, 1, 1, 1], np.int32),
-        "prim_index": np.array([2, 0, 1], np.int32),
-        "lo": np.stack([tri_lo.min(0), tri_lo[:2].min(0), tri_lo[2], tri_lo[0], tri_lo[1]]),
-        "hi": np.stack([tri_hi.max(0), tri_hi[:2].max(0), tri_hi[2], tri_hi[0], tri_hi[1]]),
-        "root": np.int32(0),
-    }
-    return mesh, arrays
-
-
-def _broken(arrays, **changes):
-    out = {k: np.array(v) for k, v in arrays.items()}
-    for key, (index, value) in changes.items():
-        out[key][index] = value
-    return out
-
-
-BROKEN = {
-    "self-loop": dict(child=((0,), [0, 2])),           # the root lists itself as a child
-    "cycle": dict(child=((1,), [3, 0])),               # node 1 lists the root
-    "shared-child": dict(child=((1,), [3, 2])),        # leaf 2 under the root and under 1
-    "nan-box": dict(lo=((0,), [np.nan, 0, 0])),        # NaN in the root box
-}
-
-
-def broken_tree_file(tmp_path, kind):
-    mesh, arrays = three_triangle_files(tmp_path)
-    path = tmp_path / f"{kind}.npz"
-    np.savez(path, **_broken(arrays, **BROKEN[kind]))
-    return mesh, path
 
 
 def test_the_unbroken_tree_is_valid(capsys, tmp_path):
@@ -427,7 +341,7 @@ def test_traversal_is_bounded_on_a_broken_tree(tmp_path):
     good = jaxbvh.from_interchange(arrays)
     assert rays.closest_hit(good, tri, origin, direction).prim.tolist() == [0, 2]
     for kind in ("self-loop", "cycle"):
-        tree = jaxbvh.from_interchange(_broken(arrays, **BROKEN[kind]))
+        tree = jaxbvh.from_interchange(broken_arrays(arrays, **BROKEN[kind]))
         with pytest.raises(jaxbvh.InvalidTreeError, match="did not end"):
             rays.closest_hit(tree, tri, origin, direction)
 
@@ -531,7 +445,7 @@ def test_second_run_compiles_nothing(tmp_path):
                 ["build", str(mesh), "--builder", "ploc", "--json"],
                 ["rebraid", str(_instanced_scene(tmp_path / "scene.glb")), "--rays", "16", "--json"]]
     env = {**__import__("os").environ, "JAXBVH_CACHE_DIR": str(tmp_path / "cache"),
-           "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+           "PYTHONPATH": str(REPO)}
 
     def run():
         proc = subprocess.run([sys.executable, "-c", _COUNT_COMPILES, json.dumps(commands)], env=env,

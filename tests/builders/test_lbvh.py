@@ -8,10 +8,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import canonical
-from hypothesis import HealthCheck, given, settings
+from helpers import canonical, local_boxes, padded
+from hypothesis import given, settings
 from hypothesis import strategies as st
-from strategies import box_sets, boxes, triangle_soups
+from strategies import box_sets, triangle_soups
 
 import jaxbvh
 from jaxbvh.builders import lbvh, morton
@@ -19,24 +19,6 @@ from jaxbvh.builders import lbvh_reference as reference
 from jaxbvh.builders import morton_reference as reference_morton
 from jaxbvh.builders.configs import LBVHConfig, make_config
 from jaxbvh.numerics import scene_scale
-from jaxbvh.tree.frame import Frame
-
-SETTINGS = settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-CAP = 64  # every hypothesis case pads to this capacity: one compiled program per mode
-
-
-def local_boxes(tri, dtype=np.float32):
-    lo, hi = boxes(tri)
-    frame = Frame.fit(lo, hi)
-    return frame.to_local(lo).astype(dtype), frame.to_local(hi).astype(dtype)
-
-
-def padded(lo, hi, cap=CAP):
-    n = lo.shape[0]
-    lo_p = np.full((cap, 3), np.inf, lo.dtype)
-    hi_p = np.full((cap, 3), -np.inf, hi.dtype)
-    lo_p[:n], hi_p[:n] = lo, hi
-    return lo_p, hi_p
 
 
 def build(lo, hi, max_leaf=1, morton_bits=30):
@@ -45,7 +27,7 @@ def build(lo, hi, max_leaf=1, morton_bits=30):
                       LBVHConfig(max_leaf=max_leaf, morton_bits=morton_bits))
 
 
-@SETTINGS
+@settings(max_examples=30)
 @given(data=box_sets(max_size=48), bits=st.sampled_from(morton.CODE_BITS), max_leaf=st.sampled_from([1, 3]))
 def test_lbvh_equals_reference(data, bits, max_leaf):
     lo, hi = data
@@ -57,7 +39,7 @@ def test_lbvh_equals_reference(data, bits, max_leaf):
     assert np.asarray(got.prim_count).max() <= max_leaf
 
 
-@SETTINGS
+@settings(max_examples=30)
 @given(tri=triangle_soups(max_size=40), bits=st.sampled_from(morton.CODE_BITS), max_leaf=st.sampled_from([1, 4]))
 def test_lbvh_equals_reference_on_extreme_soups(tri, bits, max_leaf):
     """Degenerate, flat, one-point and grid scenes, scales 1e-30 .. 1e30, duplicate centres."""
@@ -67,7 +49,7 @@ def test_lbvh_equals_reference_on_extreme_soups(tri, bits, max_leaf):
     assert canonical(got) == canonical(reference.build(lo, hi, LBVHConfig(max_leaf=max_leaf, morton_bits=bits)))
 
 
-@settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=8)
 @given(data=box_sets(min_size=2, max_size=40), bits=st.sampled_from(morton.CODE_BITS))
 def test_float64_lbvh_equals_reference(data, bits):
     with jax.enable_x64(True):
@@ -78,7 +60,6 @@ def test_float64_lbvh_equals_reference(data, bits):
         assert canonical(got) == canonical(reference.build(lo, hi, LBVHConfig(max_leaf=2, morton_bits=bits)))
 
 
-@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(tri=triangle_soups(max_size=40), bits=st.sampled_from(morton.CODE_BITS))
 def test_keys_equal_reference_keys(tri, bits):
     lo, hi = local_boxes(tri)

@@ -7,15 +7,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from helpers import SHARED_DATA
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import jaxbvh
 from jaxbvh.io import Mesh, MeshError, TreeFile, boxes_in_frame, bundled_mesh_path, load_any, load_mesh
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 needs_shared = pytest.mark.skipif(
-    not SHARED.is_dir(), reason=f"shared test data not found at {SHARED} (clone without ../shared)")
+    not SHARED_DATA.is_dir(), reason=f"shared test data not found at {SHARED_DATA} (clone without ../shared)")
 
 
 def write(path: Path, text: str) -> Path:
@@ -220,7 +220,7 @@ def meshes(draw):
     return vertices, faces
 
 
-@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=25, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(data=meshes())
 def test_random_obj_round_trip(tmp_path, data):
     vertices, faces = data
@@ -262,7 +262,7 @@ def assert_instances_rebuild_world(mesh: Mesh):
 
 @needs_shared
 def test_drone_scene():
-    path = SHARED / "scenes" / "drone" / "scene.gltf"
+    path = SHARED_DATA / "scenes" / "drone" / "scene.gltf"
     mesh = load_mesh(path)
     assert mesh.n_triangles == 32720
     assert len(mesh.objects) == 39 and len(mesh.instances) == 39
@@ -272,7 +272,7 @@ def test_drone_scene():
 
 @needs_shared
 def test_legocar_material_groups():
-    path = SHARED / "meshes" / "legocar.obj"
+    path = SHARED_DATA / "meshes" / "legocar.obj"
     mesh = load_mesh(path)
     assert mesh.n_triangles == 10992 and len(mesh.objects) == 8
     assert mesh.degenerate > 0  # it has zero-area triangles; they are kept

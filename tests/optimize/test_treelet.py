@@ -2,21 +2,17 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import jax
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from helpers import NODES, SHARED_DATA, assert_same_tree, check_result, random_tree, tree_cases
+from hypothesis import given, settings
 from hypothesis import strategies as st
-from test_reinsert import NODES, assert_same_tree, check_result, random_tree, trees
 
 import jaxbvh
 from jaxbvh.optimize import driver, treelet
 from jaxbvh.optimize import treelet_reference as ref
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-SETTINGS = dict(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 MIN_GAIN = float(64 * np.finfo(np.float32).eps)
 
 
@@ -32,8 +28,7 @@ def test_split_tables():
     assert popcount[0b1011] == 3 and single[0b100] == 2 and single[0b110] == -1
 
 
-@settings(**SETTINGS)
-@given(trees, st.sampled_from([4, 6]), st.data())
+@given(tree_cases, st.sampled_from([4, 6]), st.data())
 def test_dynamic_programme_equals_brute_force(case, n, data):
     """The recursion over subsets finds the least cost over every binary tree of the
     treelet's leaves (all (2k - 3)!! of them), in NumPy and in JAX."""
@@ -60,8 +55,7 @@ def test_dynamic_programme_equals_brute_force(case, n, data):
         assert bool(got.improves) == (best_j < current_j * (1 - MIN_GAIN))
 
 
-@settings(**SETTINGS)
-@given(trees, st.sampled_from([3, 5, 7]))
+@given(tree_cases, st.sampled_from([3, 5, 7]))
 def test_treelets_grow_by_their_largest_leaf(case, n):
     """Karras & Aila's formation rule, checked on the result rather than replayed: a
     treelet is the subtree of ``root`` cut at its leaves, it has ``n`` leaves unless none
@@ -80,8 +74,8 @@ def test_treelets_grow_by_their_largest_leaf(case, n):
             assert smallest >= max(t.area[x] for x in expandable) * (1 - 2 * MIN_GAIN)
 
 
-@settings(**{**SETTINGS, "max_examples": 15})
-@given(trees)
+@settings(max_examples=15)
+@given(tree_cases)
 def test_restructure_equals_reference(case):
     tree, plo, phi = random_tree(*case)
     result = treelet.restructure(tree, split_axes=False)
@@ -112,9 +106,9 @@ def test_split_axes_is_a_traced_setting():
     compiled result (``split_axes`` is a traced Param, as reinsertion's)."""
     tree, plo, phi = random_tree(14, 30, 2)
     treelet.restructure(tree, split_axes=False)
-    before = driver.advance._cache_size(), driver._finish._cache_size()
+    before = driver.advance._cache_size(), driver.finish._cache_size()
     with_axes = treelet.restructure(tree, split_axes=True)
-    assert (driver.advance._cache_size(), driver._finish._cache_size()) == before
+    assert (driver.advance._cache_size(), driver.finish._cache_size()) == before
     check_result(tree, with_axes, plo, phi)
     assert_same_tree(with_axes.tree, jaxbvh.tree.assign_split_axes(treelet.restructure(tree, split_axes=False).tree),
                      fields=("axis", "lo", "hi"))
@@ -149,9 +143,9 @@ def test_bad_arguments_raise_value_error():
             treelet.restructure(tree, **kwargs)
 
 
-@pytest.mark.skipif(not (DATA / "trees").exists(), reason=f"shared data not found at {DATA}")
+@pytest.mark.skipif(not (SHARED_DATA / "trees").exists(), reason=f"shared data not found at {SHARED_DATA}")
 def test_real_tree_pass_equals_reference():
-    tree, _ = jaxbvh.load(DATA / "trees" / "legocar_binned_ref.npz")
+    tree, _ = jaxbvh.load(SHARED_DATA / "trees" / "legocar_binned_ref.npz")
     result = treelet.restructure(tree, max_passes=1, split_axes=False)
     expected, info = ref.restructure(tree, max_passes=1)
     assert_same_tree(result.tree, expected)

@@ -3,21 +3,17 @@
 from __future__ import annotations
 
 import re
-from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import canonical
-from hypothesis import HealthCheck, given, settings
+from helpers import SHARED_DATA, canonical
+from hypothesis import given, settings
 from hypothesis import strategies as st
 from strategies import box_sets
 
 import jaxbvh
 from jaxbvh.tree import cost_reference as reference
 from jaxbvh.tree.frame import Frame
-
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
-SETTINGS = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
 @given(st.integers(0, 10**6))
@@ -58,7 +54,7 @@ def shuffled(arrays, rng):
                 hi=arrays["hi"][inv], root=np.int32(perm[int(arrays["root"])]))
 
 
-@SETTINGS
+@settings(max_examples=25)
 @given(data=box_sets(max_size=40), max_leaf=st.sampled_from([1, 3]), seed=st.integers(0, 2**31))
 def test_any_node_order_and_root_loads_to_the_same_tree(data, max_leaf, seed, tmp_path_factory):
     lo, hi = data
@@ -181,7 +177,7 @@ DAMAGE_NAMED = {
 }
 
 
-@SETTINGS
+@settings(max_examples=25)
 @given(data=box_sets(min_size=4, max_size=30), seed=st.integers(0, 2**31),
        kind=st.sampled_from(sorted(DAMAGE_NAMED)))
 def test_validate_catches_damage(data, seed, kind):
@@ -213,21 +209,21 @@ REFERENCE_TREES = {  # name: (mesh file, SAH tinybvh reported in shared/data/REA
 }
 
 
-@pytest.mark.skipif(not SHARED.exists(), reason="needs ../shared/data (reference trees and meshes)")
+@pytest.mark.skipif(not SHARED_DATA.exists(), reason="needs ../shared/data (reference trees and meshes)")
 @pytest.mark.parametrize("name", sorted(REFERENCE_TREES))
 def test_tinybvh_trees_load_validate_and_cost_what_tinybvh_says(name):
     from jaxbvh.io import load_mesh
 
     mesh_file, tinybvh_sah = REFERENCE_TREES[name]
-    tree, frame = jaxbvh.load(SHARED / "trees" / f"{name}_binned_ref.npz")
+    tree, frame = jaxbvh.load(SHARED_DATA / "trees" / f"{name}_binned_ref.npz")
     assert frame.is_identity
-    mesh = load_mesh(SHARED / mesh_file)
+    mesh = load_mesh(SHARED_DATA / mesh_file)
     lo, hi = mesh.prim_boxes()
     jaxbvh.validate(tree, lo.astype(np.float32), hi.astype(np.float32))
     assert float(jaxbvh.sah(jaxbvh.to_jax(tree))) == pytest.approx(tinybvh_sah, abs=1e-3)
 
 
-@SETTINGS
+@settings(max_examples=25)
 @given(data=box_sets(max_size=30), extra=st.integers(0, 20))
 def test_padding_is_inert(data, extra):
     lo, hi = data

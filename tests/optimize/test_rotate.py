@@ -12,15 +12,14 @@ import os
 import subprocess
 import sys
 import textwrap
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
-from helpers import random_tree
-from hypothesis import HealthCheck, example, given, settings
+from helpers import REPO, SHARED_DATA, random_tree
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 import jaxbvh
@@ -31,10 +30,7 @@ from jaxbvh.optimize import rotate_reference as ref
 from jaxbvh.optimize.rotate import ANNEAL, HILL_CLIMB, AnnealConfig, HillClimbConfig
 from jaxbvh.optimize.schedules import EXPONENTIAL_FINAL, constant_schedule, kensler_schedule
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 NODES, PRIMS = 128, 64  # one capacity for all random trees
-REPO = Path(__file__).resolve().parents[1]
-SETTINGS = dict(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
 
@@ -81,7 +77,7 @@ def _apply_move(tree, n, move):
     return t.replace(left=child[:, 0].copy(), right=child[:, 1].copy(), parent=parent, lo=lo, hi=hi)
 
 
-@settings(max_examples=10, deadline=None)
+@settings(max_examples=10)
 @given(trees)
 def test_score_moves_matches_cost_of_moved_tree(case):
     seed, n, leaf, grid = case
@@ -109,7 +105,7 @@ def test_score_moves_matches_cost_of_moved_tree(case):
 # ----------------------------------------------------------------------------------
 
 
-@settings(**SETTINGS)
+@settings(max_examples=25)
 @given(trees)
 def test_hill_climb_equals_reference_pass_by_pass(case):
     seed, n, leaf, grid = case
@@ -128,9 +124,9 @@ def test_hill_climb_equals_reference_pass_by_pass(case):
     assert sah <= float(full.sah_start) * (1 + 1e-6)
 
 
-@pytest.mark.skipif(not (DATA / "trees").exists(), reason=f"shared data not found at {DATA}")
+@pytest.mark.skipif(not (SHARED_DATA / "trees").exists(), reason=f"shared data not found at {SHARED_DATA}")
 def test_hill_climb_equals_reference_on_a_real_tree():
-    tree, _ = jaxbvh.load(DATA / "trees" / "legocar_binned_ref.npz")
+    tree, _ = jaxbvh.load(SHARED_DATA / "trees" / "legocar_binned_ref.npz")
     result = rotate.hill_climb(tree, split_axes=False, max_passes=3)
     expected, info = ref.hill_climb(tree, max_passes=3)
     assert_same_tree(result.tree, expected)
@@ -273,7 +269,7 @@ def test_configs_keep_the_documented_defaults():
 # ----------------------------------------------------------------------------------
 
 
-@settings(**{**SETTINGS, "max_examples": 15})
+@settings(max_examples=15)
 @given(trees, st.integers(0, 2**31), st.booleans())
 @example((117371, 9, 1, "grid"), 0, False)  # exact ties at T = 1e-7 once split JAX from NumPy
 def test_anneal_equals_reference_fed_the_same_draws(case, key_seed, keep_best):
@@ -309,7 +305,7 @@ OPTAX_SCHEDULES = {
 
 
 @pytest.mark.parametrize("name", list(OPTAX_SCHEDULES))
-@settings(**{**SETTINGS, "max_examples": 5})
+@settings(max_examples=5)
 @given(case=trees, key_seed=st.integers(0, 2**31))
 def test_anneal_with_optax_schedules_equals_reference(name, case, key_seed):
     seed, n, leaf, grid = case
@@ -410,7 +406,7 @@ def test_batch_of_trees_equals_one_by_one():
         assert_same_tree(got, rotate.anneal(key, tree, steps=8, period=4).tree)
 
 
-def _plain(a):
+def json_ready(a):
     """An array of the state as NumPy (keys as their data)."""
     return np.asarray(jax.random.key_data(a) if jnp.issubdtype(a.dtype, jax.dtypes.prng_key) else a)
 
@@ -432,7 +428,7 @@ def test_vmapped_step_gives_each_tree_its_own_result(optimizer, config):
         states = step(states)
     again = step(states)  # done states do not change
     for a, b in zip(jax.tree_util.tree_leaves(states), jax.tree_util.tree_leaves(again)):
-        np.testing.assert_array_equal(_plain(a), _plain(b))
+        np.testing.assert_array_equal(json_ready(a), json_ready(b))
     results = jax.vmap(optimizer.result)(states)
     steps = []
     for k, ((tree, plo, phi), got) in enumerate(zip(cases, jaxbvh.tree.unstack_trees(results.tree))):
@@ -455,7 +451,7 @@ def test_vmapped_step_gives_each_tree_its_own_result(optimizer, config):
 # ----------------------------------------------------------------------------------
 
 
-@settings(max_examples=10, deadline=None)
+@settings(max_examples=10)
 @given(trees)
 def test_split_axes_match_reference_and_keep_cost(case):
     seed, n, leaf, grid = case

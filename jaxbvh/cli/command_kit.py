@@ -268,16 +268,16 @@ def mesh_info(mesh: Mesh) -> dict:
 # ----------------------------------------------------------------------------------
 
 
-def _plain(value):
+def json_ready(value):
     """JSON-able form of numpy scalars/arrays, paths and non-finite floats."""
     if isinstance(value, dict):
-        return {str(k): _plain(v) for k, v in value.items()}
+        return {str(k): json_ready(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
+        return [json_ready(v) for v in value]
     if isinstance(value, np.ndarray):
-        return _plain(value.tolist())
+        return json_ready(value.tolist())
     if isinstance(value, np.generic):
-        return _plain(value.item())
+        return json_ready(value.item())
     if isinstance(value, float) and not math.isfinite(value):
         return None if math.isnan(value) else ("inf" if value > 0 else "-inf")
     if value is None or isinstance(value, (bool, int, float, str)):
@@ -311,7 +311,7 @@ def format_table(result: dict) -> str:
             else:
                 rows.append((name, _format(value)))
 
-    add("", _plain(result))
+    add("", json_ready(result))
     width = max((len(k) for k, _ in rows), default=0)
     return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)
 
@@ -319,6 +319,6 @@ def format_table(result: dict) -> str:
 def print_result(result: dict, as_json: bool = False, file=None) -> None:
     file = file or sys.stdout
     if as_json:
-        print(json.dumps(_plain(result), allow_nan=False), file=file)
+        print(json.dumps(json_ready(result), allow_nan=False), file=file)
     else:
         print(format_table(result), file=file)

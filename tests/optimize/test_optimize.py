@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_reinsert import assert_same_tree, random_tree
+from helpers import assert_same_tree, random_tree
 
 import jaxbvh
 from jaxbvh.optimize import OPTIMIZERS, make_config, optimize, pipeline, reinsert, treelet
@@ -138,7 +138,7 @@ def test_time_budget_stops_the_pipeline_after_its_first_step():
 
 
 def test_cli_methods_give_valid_saved_trees(capsys, tmp_path):
-    from test_cli import grid_obj, run_json
+    from helpers import grid_obj, run_json
 
     mesh = grid_obj(tmp_path / "grid.obj", n=5)
     results = {}
@@ -167,7 +167,7 @@ def test_cli_methods_give_valid_saved_trees(capsys, tmp_path):
     (["--method", "treelet", "--time-budget", "-1"], "--time-budget"),
 ])
 def test_cli_bad_options_are_one_line_errors(capsys, tmp_path, argv, fragment):
-    from test_cli import assert_one_line_error, grid_obj, run_cli
+    from helpers import assert_one_line_error, grid_obj, run_cli
 
     mesh = grid_obj(tmp_path / "grid.obj")
     assert_one_line_error(*run_cli(capsys, "optimize", mesh, *argv), fragment)
@@ -176,7 +176,7 @@ def test_cli_bad_options_are_one_line_errors(capsys, tmp_path, argv, fragment):
 @pytest.mark.parametrize("method", ["reinsert", "treelet"])
 @pytest.mark.parametrize("kind", ["cycle", "nan-box"])
 def test_cli_methods_refuse_broken_trees(capsys, tmp_path, method, kind):
-    from test_cli import assert_one_line_error, broken_tree_file, run_cli
+    from helpers import assert_one_line_error, broken_tree_file, run_cli
 
     mesh, path = broken_tree_file(tmp_path, kind)
     assert_one_line_error(*run_cli(capsys, "optimize", path, "--method", method), "invalid BVH", path.name)

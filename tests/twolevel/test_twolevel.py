@@ -13,7 +13,7 @@ import math
 import jax
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import jaxbvh
@@ -27,8 +27,6 @@ from tests.strategies import triangle_soups
 SHAPES = {"nodes": 128, "prims": 64, "instances": 8, "brefs": 32}
 FLAT = (512, 256)  # flattened trees padded to one shape for the traversal
 STACK = 48
-SETTINGS = dict(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow,
-                                                                       HealthCheck.data_too_large])
 
 
 def _transform(rng, kind):
@@ -119,7 +117,7 @@ OPTIONS = st.fixed_dictionaries({
 # ----------------------------------------------------------------------------------
 
 
-@settings(**SETTINGS)
+@settings(max_examples=10)
 @given(mesh=st.one_of(random_scenes(), forest_scenes()), options=OPTIONS, world_space=st.booleans())
 def test_top_level_equals_reference_bref_by_bref(mesh, options, world_space):
     trees = fm.build_objects(mesh, world_space=world_space)
@@ -163,7 +161,7 @@ def test_top_level_equals_reference_on_forests(seed, spread, threshold, budget):
         np.testing.assert_array_equal(getattr(res, key)[:count], br[key][res.position[:count]], err_msg=key)
 
 
-@settings(**SETTINGS)
+@settings(max_examples=10)
 @given(mesh=st.one_of(random_scenes(), forest_scenes()), options=OPTIONS)
 def test_flattened_tree_is_valid_and_traversal_finds_the_closest_hits(mesh, options):
     trees = fm.build_objects(mesh)
@@ -200,7 +198,7 @@ def test_flattened_tree_is_valid_and_traversal_finds_the_closest_hits(mesh, opti
 # ----------------------------------------------------------------------------------
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=30)
 @given(seed=st.integers(0, 2**32 - 1), exponent=st.sampled_from([0, -20, 20]))
 def test_world_boxes_are_conservative_and_monotone(seed, exponent):
     rng = np.random.default_rng(seed)

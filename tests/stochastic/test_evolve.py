@@ -18,7 +18,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from helpers import REPO
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import jaxbvh
@@ -28,8 +29,6 @@ from jaxbvh.builders import insertion_reference as ref_insertion
 from jaxbvh.stochastic import evolve
 from jaxbvh.stochastic import evolve_reference as ref
 
-REPO = Path(__file__).resolve().parents[1]
-SETTINGS = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow])
 P = 8
 
 
@@ -53,7 +52,7 @@ def draws_of(key, n, generations, crossover, mutation, population=P):
 # ----------------------------------------------------------------------------------
 
 
-@settings(max_examples=6, **SETTINGS)
+@settings(max_examples=6)
 @given(seed=st.integers(0, 2**31), n=st.integers(17, 24), crossover=st.sampled_from([0.7, 1.0]),
        mutation=st.sampled_from([0.002, 0.1]))
 def test_run_equals_reference_generation_by_generation(seed, n, crossover, mutation):
@@ -77,7 +76,7 @@ def test_run_equals_reference_generation_by_generation(seed, n, crossover, mutat
 # ----------------------------------------------------------------------------------
 
 
-@settings(max_examples=30, **SETTINGS)
+@settings(max_examples=30)
 @given(seed=st.integers(0, 2**31), n=st.integers(2, 24), cut=st.integers(1, 23))
 def test_order_crossover_is_the_papers(seed, n, cut):
     cut = min(cut, n - 1)
@@ -93,7 +92,7 @@ def test_order_crossover_is_the_papers(seed, n, cut):
     assert (child[n:] == np.arange(n, capacity)).all()  # padding untouched
 
 
-@settings(max_examples=15, **SETTINGS)
+@settings(max_examples=15)
 @given(seed=st.integers(0, 2**31), n=st.integers(17, 24))
 def test_next_population_keeps_the_elite_and_makes_permutations(seed, n):
     key = jax.random.key(seed)
@@ -189,7 +188,7 @@ def test_bad_options_are_refused():
 
 _SUBPROCESS = textwrap.dedent("""
     import json, sys
-    sys.path.insert(0, {repo!r}); sys.path.insert(0, {tests!r})
+    sys.path[:0] = [{repo!r}, {tests!r}, {here!r}]
     import jax, numpy as np
     from jaxbvh.stochastic import evolve
     from test_evolve import boxes
@@ -201,7 +200,7 @@ _SUBPROCESS = textwrap.dedent("""
 
 
 def test_population_split_over_two_devices_gives_the_same_run():
-    code = _SUBPROCESS.format(repo=str(REPO), tests=str(REPO / "tests"))
+    code = _SUBPROCESS.format(repo=str(REPO), tests=str(REPO / "tests"), here=str(Path(__file__).resolve().parent))
     env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAX_PLATFORMS": "cpu"}
     proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -230,7 +229,7 @@ def test_ray_costs_use_the_same_rays_for_every_tree():
     orders = np.stack([np.random.default_rng(s).permutation(200) for s in range(2)])
     trees, costs = insertion.build_batch(lo, hi, orders)
     trees = [insertion.tree_at(trees, i) for i in range(2)]
-    for tree in trees:  # a piece of a real mesh (wide traversal itself: tests/test_rays.py)
+    for tree in trees:  # a piece of a real mesh (wide traversal itself: tests/rays/test_rays.py)
         jaxbvh.validate(tree, lo, hi)
     key = jax.random.key(1)
     measured = evolve.ray_costs(key, trees + trees[:1], tri, rays=300)

@@ -7,11 +7,11 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from tests.test_cli import assert_one_line_error, grid_obj, run_cli, run_json
 
 import jaxbvh
 from jaxbvh import scenes
 from jaxbvh.io import boxes_in_frame, load_mesh
-from tests.test_cli import assert_one_line_error, grid_obj, run_cli, run_json
 
 
 @pytest.fixture(autouse=True, scope="module")

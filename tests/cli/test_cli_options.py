@@ -14,10 +14,10 @@ import argparse
 import dataclasses
 import inspect
 import re
-from pathlib import Path
 from typing import Any
 
 import pytest
+from helpers import REPO
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -29,7 +29,7 @@ from jaxbvh.cli.synopsis import synopsis
 from jaxbvh.optimize import DEFAULT_METHOD, OPTIMIZERS, optimize, pipeline, reinsert, treelet
 from jaxbvh.twolevel import objects as two_level_objects
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+README = REPO / "README.md"
 
 #: the established options that set knobs, per command (dropping one, or offering a knob
 #: under another name, fails)
@@ -214,7 +214,7 @@ def values(kind: type, choices) -> st.SearchStrategy:
     return st.one_of(st.sampled_from(known), st.text(min_size=1, max_size=4))
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=300)
 @given(case=st.sampled_from(CASES), data=st.data())
 def test_an_option_refuses_exactly_what_its_config_refuses(case, data):
     command, flag, method = case

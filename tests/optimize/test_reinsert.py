@@ -1,18 +1,16 @@
 """Parallel reinsertion (jaxbvh.optimize.reinsert) against its NumPy twin and the invariants.
 
-Random trees are padded to one capacity so every jitted function compiles once.
+Random tree_cases are padded to one capacity so every jitted function compiles once.
 """
 
 from __future__ import annotations
-
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import random_tree
-from hypothesis import HealthCheck, given, settings
+from helpers import NODES, SHARED_DATA, assert_same_tree, check_result, random_tree, tree_cases
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import jaxbvh
@@ -20,41 +18,10 @@ from jaxbvh import numerics
 from jaxbvh.optimize import driver, reinsert, reinsert_moves, reinsert_rules, reinsert_search
 from jaxbvh.optimize import reinsert_reference as ref
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-NODES, PRIMS = 128, 64  # one capacity for all random trees
-SETTINGS = dict(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 MIN_GAIN = numerics.min_gain(np.float32)
 ITERATION = jax.jit(reinsert_moves.iteration)
 FIND = jax.jit(reinsert_moves.find)
 PREPARE = jax.jit(reinsert_search.prepare)
-
-
-def assert_same_tree(a, b, fields=("left", "right", "parent", "lo", "hi", "root")):
-    a, b = jaxbvh.to_numpy(a), jaxbvh.to_numpy(b)
-    for field in fields:
-        np.testing.assert_array_equal(np.asarray(getattr(a, field)), np.asarray(getattr(b, field)),
-                                      err_msg=field)
-
-
-def check_result(tree, result, prim_lo, prim_hi, ct=1.0):
-    """Valid, leaves untouched, SAH as reported and never worse than the start."""
-    jaxbvh.validate(result.tree, prim_lo, prim_hi)
-    t, out = jaxbvh.to_numpy(tree), jaxbvh.to_numpy(result.tree)
-    leaf = t.prim_count > 0
-    for field in ("prim_start", "prim_count", "prim_index"):
-        np.testing.assert_array_equal(getattr(out, field), getattr(t, field))
-    np.testing.assert_array_equal(out.lo[leaf], t.lo[leaf])
-    np.testing.assert_array_equal(out.hi[leaf], t.hi[leaf])
-    assert out.left.shape == t.left.shape  # same capacity
-    sah = float(jaxbvh.sah(jaxbvh.to_jax(out), ct))
-    assert float(result.sah) == pytest.approx(sah, rel=1e-6)
-    assert sah <= float(result.sah_start) * (1 + 1e-6)
-    return sah
-
-
-trees = st.builds(lambda seed, n, leaf, grid: (seed, n, leaf, grid),
-                  st.integers(0, 2**31), st.integers(2, 40), st.integers(1, 3),
-                  st.sampled_from(["random", "grid"]))
 
 
 def _search_all(tree, max_steps):
@@ -73,7 +40,7 @@ def _search_all(tree, max_steps):
 OCTAVES = jax.jit(lambda area, parent, root, need: reinsert_rules.octaves_holding(area, parent, root, need, xp=jnp))
 
 
-@settings(**{**SETTINGS, "max_examples": 60})
+@settings(max_examples=60)
 @given(st.lists(st.tuples(st.integers(-1, NODES - 1), st.integers(-40, 2), st.sampled_from([0.0, 1.0, 1.7])),
                 min_size=1, max_size=NODES),
        st.integers(0, NODES - 1), st.sampled_from([1 / 32, 0.2, 0.5, 1.0, 1e-9]))
@@ -104,8 +71,7 @@ def test_first_octaves_traced_equal_the_host_rule(rows, root, first_fraction):
 # ----------------------------------------------------------------------------------
 
 
-@settings(**SETTINGS)
-@given(trees, st.sampled_from([1, 3, 8, 1024]))
+@given(tree_cases, st.sampled_from([1, 3, 8, 1024]))
 def test_search_equals_reference_node_by_node(case, max_steps):
     """Every node's best place, gain and common ancestor, also when the step bound cuts
     the walk short."""
@@ -124,8 +90,7 @@ def test_search_equals_reference_node_by_node(case, max_steps):
             assert gain[a] == pytest.approx(float(g), rel=1e-4, abs=1e-6)
 
 
-@settings(**SETTINGS)
-@given(trees)
+@given(tree_cases)
 def test_each_gain_is_the_drop_in_interior_area_of_its_move(case):
     """Applying one found move alone lowers the sum of interior areas by its gain."""
     tree, plo, phi = random_tree(*case)
@@ -158,8 +123,7 @@ def _one_iteration(tree, octaves=reinsert.ALL_OCTAVES):
     return s, m, np.asarray(taken), np.asarray(gains), new, int(moves), float(total), float(sah)
 
 
-@settings(**SETTINGS)
-@given(trees)
+@given(tree_cases)
 def test_iteration_equals_the_reference_applying_the_same_batch(case):
     """The parallel iteration's tree is the selected batch applied one move at a time, in
     rank order; the SAH drops by the batch's total gain (the moves are independent)."""
@@ -180,8 +144,7 @@ def test_iteration_equals_the_reference_applying_the_same_batch(case):
     assert after == pytest.approx(sah, rel=1e-5)
 
 
-@settings(**SETTINGS)
-@given(trees)
+@given(tree_cases)
 def test_selection_is_the_greedy_choice_over_disjoint_lock_sets(case):
     """The rounds of the JAX selection give the sequential greedy choice of the twin,
     fed the same moves, and the taken moves lock disjoint node sets."""
@@ -209,8 +172,8 @@ def test_selection_is_the_greedy_choice_over_disjoint_lock_sets(case):
 # ----------------------------------------------------------------------------------
 
 
-@settings(**{**SETTINGS, "max_examples": 15})
-@given(trees, st.sampled_from([1.0, 0.2]))
+@settings(max_examples=15)
+@given(tree_cases, st.sampled_from([1.0, 0.2]))
 def test_reinsert_equals_reference(case, first_fraction):
     tree, plo, phi = random_tree(*case)
     result = reinsert.reinsert(tree, first_fraction=first_fraction, split_axes=False)
@@ -270,7 +233,7 @@ def test_tiny_trees_and_zero_traversal_cost():
 
 
 def test_no_retrace_for_trees_of_one_capacity():
-    """Settings are traced values: new trees of one capacity and new settings reuse the
+    """Settings are traced values: new tree_cases of one capacity and new settings reuse the
     compiled loop of steps."""
     reinsert.reinsert(random_tree(1, 20)[0])
     before = driver.advance._cache_size()
@@ -292,11 +255,11 @@ def test_bad_arguments_raise_value_error():
         reinsert.reinsert(wide)
 
 
-@pytest.mark.skipif(not (DATA / "trees").exists(), reason=f"shared data not found at {DATA}")
+@pytest.mark.skipif(not (SHARED_DATA / "tree_cases").exists(), reason=f"shared data not found at {SHARED_DATA}")
 def test_real_tree_iterations_equal_reference():
     """legocar (tinybvh, leaves of up to 32 triangles): three iterations from the largest
     parent areas, node for node as the twin; valid, leaves untouched, SAH lower."""
-    tree, _ = jaxbvh.load(DATA / "trees" / "legocar_binned_ref.npz")
+    tree, _ = jaxbvh.load(SHARED_DATA / "tree_cases" / "legocar_binned_ref.npz")
     result = reinsert.reinsert(tree, max_iterations=3, first_fraction=0.02, split_axes=False)
     expected, info = ref.reinsert(tree, max_iterations=3, first_fraction=0.02)
     assert_same_tree(result.tree, expected)

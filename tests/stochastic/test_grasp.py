@@ -11,11 +11,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import canonical
-from hypothesis import HealthCheck, example, given, settings
+from helpers import assert_one_line_error, cache_dir, canonical, grid_obj, run_cli, run_json  # noqa: F401
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from strategies import box_sets, boxes, triangle_soups
-from test_cli import assert_one_line_error, cache_dir, grid_obj, run_cli, run_json  # noqa: F401
 
 import jaxbvh
 from jaxbvh import numerics
@@ -23,7 +22,6 @@ from jaxbvh.stochastic import grasp
 from jaxbvh.stochastic import grasp_reference as ref
 from jaxbvh.tree.frame import Frame
 
-SETTINGS = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow])
 RCLS = st.sampled_from(["axes", 1, 2, 3, 5, 20])
 CHUNK = 96  # forests of at most 96 primitives: capacities 24, 48, 96 only (few compiles)
 
@@ -46,7 +44,7 @@ def random_boxes(seed: int, n: int):
 # ----------------------------------------------------------------------------------
 
 
-@settings(max_examples=30, **SETTINGS)
+@settings(max_examples=30)
 @given(data=box_sets(min_size=17, max_size=24), rcl=RCLS, noise=st.sampled_from([0.2, 0.5, 1.0]),
        seed=st.integers(0, 2**31 - 1), trial=st.integers(0, 10**6))
 @example(data=random_boxes(3, 24), rcl=20, noise=1.0, seed=0, trial=0)  # deep ranks of big lists
@@ -62,7 +60,7 @@ def test_trial_equals_reference_fed_the_same_draws(data, rcl, noise, seed, trial
     assert canonical(got) == canonical(want)
 
 
-@settings(max_examples=12, **SETTINGS)
+@settings(max_examples=12)
 @given(tri=triangle_soups(min_size=17, max_size=24), rcl=RCLS, noise=st.sampled_from([0.3, 1.0]), seed=st.integers(0, 99))
 def test_trial_equals_reference_on_extreme_soups(tri, rcl, noise, seed):
     lo, hi = local_boxes(tri)
@@ -72,7 +70,7 @@ def test_trial_equals_reference_on_extreme_soups(tri, rcl, noise, seed):
     assert canonical(got) == canonical(ref.randomized_build(key, lo, hi, noise=noise, rcl=rcl))
 
 
-@settings(max_examples=6, **SETTINGS)
+@settings(max_examples=6)
 @given(data=box_sets(min_size=9, max_size=16), rcl=st.sampled_from(["axes", 4]), seed=st.integers(0, 99))
 def test_float64_trial_equals_reference(data, rcl, seed):
     with jax.enable_x64(True):
@@ -90,7 +88,7 @@ def test_float64_trial_equals_reference(data, rcl, seed):
         np.testing.assert_allclose(result.objectives, whole, rtol=1e-12)
 
 
-@settings(max_examples=15, **SETTINGS)
+@settings(max_examples=15)
 @given(tri=triangle_soups(min_size=17, max_size=24), rcl=RCLS, seed=st.integers(0, 99))
 def test_noise_zero_is_the_sweep_builder(tri, rcl, seed):
     lo, hi = local_boxes(tri)

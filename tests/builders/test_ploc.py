@@ -8,11 +8,10 @@ import math
 import jax
 import numpy as np
 import pytest
-from helpers import canonical
-from hypothesis import HealthCheck, given, settings
+from helpers import canonical, local_boxes, padded
+from hypothesis import given, settings
 from hypothesis import strategies as st
 from strategies import box_sets, triangle_soups
-from test_lbvh import local_boxes, padded
 
 import jaxbvh
 from jaxbvh import cli
@@ -21,8 +20,6 @@ from jaxbvh.builders import ploc_reference as reference
 from jaxbvh.builders.configs import PLOCConfig
 from jaxbvh.numerics import scene_scale
 
-SETTINGS = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-
 
 def build(lo, hi, radius, max_leaf=1, morton_bits=30):
     """PLOC at the fixed test capacity (what jaxbvh.build does, padded further)."""
@@ -30,7 +27,7 @@ def build(lo, hi, radius, max_leaf=1, morton_bits=30):
                       PLOCConfig(radius=radius, max_leaf=max_leaf, morton_bits=morton_bits))
 
 
-@SETTINGS
+@settings(max_examples=25)
 @given(data=box_sets(max_size=48), radius=st.sampled_from([1, 3, 16]), max_leaf=st.sampled_from([1, 3]))
 def test_ploc_equals_reference(data, radius, max_leaf):
     lo, hi = data
@@ -42,7 +39,7 @@ def test_ploc_equals_reference(data, radius, max_leaf):
     assert np.asarray(got.prim_count).max() <= max_leaf
 
 
-@SETTINGS
+@settings(max_examples=25)
 @given(tri=triangle_soups(max_size=40), bits=st.sampled_from([30, 63]), max_leaf=st.sampled_from([1, 4]))
 def test_ploc_equals_reference_on_extreme_soups(tri, bits, max_leaf):
     """Degenerate, flat, one-point and grid scenes (many exactly equal areas), extreme scales."""
@@ -53,7 +50,7 @@ def test_ploc_equals_reference_on_extreme_soups(tri, bits, max_leaf):
     assert canonical(got) == canonical(want)
 
 
-@settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=8)
 @given(data=box_sets(min_size=2, max_size=40))
 def test_float64_ploc_equals_reference(data):
     with jax.enable_x64(True):

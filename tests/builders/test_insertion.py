@@ -9,7 +9,7 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given, settings
 from hypothesis import strategies as st
 from strategies import box_sets, boxes, triangle_soups
 
@@ -21,7 +21,6 @@ from jaxbvh.tree import cost_reference as ref_cost
 from jaxbvh.tree.frame import Frame
 
 CAP = 48  # one capacity for every random case
-SETTINGS = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
 def local_boxes(tri, dtype=np.float32):
@@ -50,7 +49,7 @@ def order_of(seed, n):
     return np.random.default_rng(seed).permutation(n)
 
 
-@settings(max_examples=40, **SETTINGS)
+@settings(max_examples=40)
 @given(data=box_sets(max_size=CAP), seed=st.integers(0, 2**31), max_children=st.sampled_from([2, 3, 8]))
 def test_jax_build_equals_reference_node_by_node(data, seed, max_children):
     lo, hi = data
@@ -65,7 +64,7 @@ def test_jax_build_equals_reference_node_by_node(data, seed, max_children):
     assert float(jaxbvh.goldsmith_salmon_cost(got)) == pytest.approx(ref_cost.goldsmith_salmon_cost(want), rel=1e-5)
 
 
-@settings(max_examples=25, **SETTINGS)
+@settings(max_examples=25)
 @given(tri=triangle_soups(max_size=CAP), seed=st.integers(0, 2**31))
 def test_extreme_and_degenerate_soups(tri, seed):
     """Scales 1e-30 .. 1e30, flat and one-point scenes, many exact ties."""
@@ -78,7 +77,6 @@ def test_extreme_and_degenerate_soups(tri, seed):
     assert np.isfinite(cost) and cost >= 0
 
 
-@settings(max_examples=20, **SETTINGS)
 @given(data=box_sets(min_size=2, max_size=30), seed=st.integers(0, 2**31), max_children=st.sampled_from([2, 8]))
 def test_insertion_costs_add_up_to_the_tree_cost(data, seed, max_children):
     """The candidate costs are exact: the increases chosen sum to sum(area x children)."""
@@ -155,7 +153,7 @@ def test_batch_equals_single_builds_and_costs():
         assert float(costs[i]) == float(jaxbvh.goldsmith_salmon_cost(tree))
 
 
-@settings(max_examples=6, **SETTINGS)
+@settings(max_examples=6)
 @given(data=box_sets(min_size=9, max_size=24), seed=st.integers(0, 2**31))
 def test_float64_build_equals_reference(data, seed):
     with jax.enable_x64(True):

@@ -33,7 +33,7 @@ def test_kensler_schedule_values():
         kensler_schedule(0)
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=25)
 @given(steps=st.integers(1, 3000), period=st.integers(1, 100), hottest=st.floats(0, 3),
        boundary=st.integers(0, 3000), data=st.data())
 def test_kensler_schedule_composes_under_optax_join(steps, period, hottest, boundary, data):

@@ -8,12 +8,12 @@ against Embree (embreex, optional) on the shared real meshes.
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import jax
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from helpers import SHARED_DATA
+from hypothesis import given
 from hypothesis import strategies as st
 
 from jaxbvh import rays
@@ -22,7 +22,6 @@ from jaxbvh.rays import traversal_reference as ref
 from jaxbvh.tree import BVH, depth, from_interchange
 from jaxbvh.wide import collapse
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 COUNTERS = ("box_tests", "prim_tests", "nodes_visited", "leaves_visited")
 
 def assert_t_close(got, expected, triangles, direction, prim):
@@ -184,7 +183,6 @@ def assert_same_as_reference(tree, triangles, origin, direction, mode, **kwargs)
 # ----------------------------------------------------------------------------------
 
 
-@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 48), max_leaf=st.sampled_from([1, 3]),
        arity=st.sampled_from([2, 4]))
 def test_closest_hit_equals_brute_force(seed, n, max_leaf, arity):
@@ -419,15 +417,15 @@ REAL = [("bunny", "meshes/stanford-bunny.obj"), ("legocar", "meshes/legocar.obj"
 
 
 def _real_scene(name, mesh):
-    if not (DATA / "trees" / f"{name}_binned_ref.npz").exists():
-        pytest.skip(f"shared data not found at {DATA} (reference trees and meshes)")
+    if not (SHARED_DATA / "trees" / f"{name}_binned_ref.npz").exists():
+        pytest.skip(f"shared data not found at {SHARED_DATA} (reference trees and meshes)")
     import trimesh
 
     import jaxbvh
 
-    tree, frame = jaxbvh.load(DATA / "trees" / f"{name}_binned_ref.npz")
+    tree, frame = jaxbvh.load(SHARED_DATA / "trees" / f"{name}_binned_ref.npz")
     assert frame.is_identity
-    loaded = trimesh.load(DATA / mesh, process=False)
+    loaded = trimesh.load(SHARED_DATA / mesh, process=False)
     if isinstance(loaded, trimesh.Scene):
         loaded = loaded.to_geometry()
     tri = np.asarray(loaded.vertices, np.float64)[np.asarray(loaded.faces)].astype(np.float32)
