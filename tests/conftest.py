@@ -8,8 +8,6 @@ import os
 import pytest
 from hypothesis import settings
 
-from jaxbvh.testing import plugin  # noqa: F401  (registers the hypothesis profiles)
-
 # The kit's plugin: its hypothesis profiles "ci" and "dev" and its mesh fixtures (also
 # its entry point, when the installed metadata is current; the same name, so loaded once).
 pytest_plugins = ["jaxbvh.testing.plugin"]
@@ -18,7 +16,11 @@ pytest_plugins = ["jaxbvh.testing.plugin"]
 # "ci" is what `python -m pytest` runs (.ci/run too), a fixed seed per test; "dev" random
 # draws and five times the examples, to hunt locally (profiles: jaxbvh.testing.plugin):
 # HYPOTHESIS_PROFILE=dev python -m pytest tests/builders/test_build.py
-settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
+
+
+def pytest_configure(config):
+    """After the plugin registered the profiles, before any test module is collected."""
+    settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 
 @pytest.fixture(autouse=True, scope="session")

@@ -130,23 +130,28 @@ def optimal_treelet(tree, leaves, *, ct: float = 1.0, ci: float = 1.0):
 
     Returns ``(shape, cost)``: ``shape`` nested pairs of the leaf ids, ``cost`` the
     treelet's area-weighted cost ``sum over its interior nodes of ct * area + sum over
-    its leaves of area * C(leaf)`` (unnormalised, float64; ``C`` the leaf subtree's SAH).
-    Divide by the root's area for the SAH change a treelet optimizer can make.
+    its leaves of area * C(leaf)`` (``C`` the leaf subtree's SAH), divided by the tree
+    root's area: the treelet's share of the tree's SAH (in the tree's dtype, as the
+    treelet optimizer's NumPy twin computes areas; unnormalised if the root's area is 0).
     """
     _check_small(len(leaves), "optimal_treelet")
-    return treelet_brute_force(TreeletTree(tree, ct, ci), [int(x) for x in leaves])
+    t = TreeletTree(tree, ct, ci)
+    shape, cost = treelet_brute_force(t, [int(x) for x in leaves])
+    root_area = t.area[t.root]
+    return shape, float(cost / root_area) if root_area > 0 else float(cost)
 
 
-def optimal_collapse(tree, *, max_children: int = 4, ci: float = 1.0, test_cost=None):
+def optimal_collapse(tree, *, max_children: int = 4, test_cost=None):
     """The best wide tree a collapse of binary ``tree`` can make (Susano Pinto's cost, a
-    child test cost ``test_cost`` per visited node, ``ci`` per primitive), by trying
+    child test cost ``test_cost`` per visited node), by trying
     every set of interior nodes to keep (the root always; at most 12 interior nodes).
 
     A kept node's children are its nearest kept descendants and the leaves below it
-    through removed nodes, at most ``max_children`` of them; leaves stay leaves. Returns
-    ``(wide tree, cost)``: a :class:`~jaxbvh.tree.layout.WideBVH` on the input's node ids
-    and ``R + leaf cost`` (unnormalised, the tree's dtype), as
-    :func:`jaxbvh.wide.collapse_reference.rcost` computes it.
+    through removed nodes, at most ``max_children`` of them; leaves stay leaves (so their
+    cost is the same for every collapse and left out). Returns ``(wide tree, cost)``: a
+    :class:`~jaxbvh.tree.layout.WideBVH` on the input's node ids and its node cost ``R``
+    (root-normalised areas times the test cost, the tree's dtype), as
+    :func:`jaxbvh.wide.collapse_reference.rcost` computes it. Ties: the first found.
     """
     t = to_numpy(tree)
     child = np.asarray(t.child)
@@ -168,8 +173,8 @@ def optimal_collapse(tree, *, max_children: int = 4, ci: float = 1.0, test_cost=
         children = {n: kids_of(n, kept) for n in kept}
         if max(len(c) for c in children.values()) > max_children:
             continue
-        r, leaf = rcost(t, children, test_cost=test_cost, ci=ci)
-        if best is None or r + leaf < best[1]:
-            best = (children, r + leaf)
+        r, _ = rcost(t, children, test_cost=test_cost)
+        if best is None or r < best[1]:
+            best = (children, r)
     children, cost = best
     return to_wide(t, children, arity=max_children), cost
