@@ -19,11 +19,19 @@ from jaxbvh.tree.layout import to_numpy
 from jaxbvh.tree.validate import check
 
 
+def _is_tree(tree, name: str = "tree"):
+    """Refuse what is not a tree in one line (``jaxbvh.load`` returns ``(tree, frame)``)."""
+    if not all(hasattr(tree, f) for f in ("child", "parent", "prim_count", "prim_index", "root")):
+        hint = " (jaxbvh.load returns (tree, frame))" if isinstance(tree, tuple) else ""
+        raise TypeError(f"{name}: expected a BVH or WideBVH, got {type(tree).__name__}{hint}")
+
+
 def assert_valid_tree(tree, lo=None, hi=None, n_prims: int | None = None) -> None:
     """Fail unless ``tree`` is a valid BVH over primitive boxes ``lo``, ``hi`` [n, 3]
     (given in the tree's frame; optional: without them only ``n_prims`` primitives, or
     as many as the leaves reference, are expected, and primitive containment is not
     checked). The message names the first broken invariant and counts the others."""
+    _is_tree(tree)
     problems = check(tree, lo, hi, n_prims)
     if problems:
         more = f" (and {len(problems) - 1} more: {'; '.join(problems[1:3])})" if len(problems) > 1 else ""
@@ -101,6 +109,7 @@ def assert_same_tree(a, b, *, boxes: bool = True, child_order: bool = True) -> N
     also ignores the order of each node's children. The message gives the path from the
     root (``root.1.0``: the root's second child's first child) and what each tree has."""
     for name, tree in (("first", a), ("second", b)):
+        _is_tree(tree, f"{name} tree")
         problems = check(tree)
         if problems:
             raise AssertionError(f"{name} tree is invalid: {problems[0]}")

@@ -158,6 +158,16 @@ def test_same_tree_refuses_an_invalid_tree():
     assert "second tree is invalid" in one_line_failure(assert_same_tree, tree, jaxbvh.from_interchange(t))
 
 
+def test_what_is_not_a_tree_is_refused_in_one_line(tmp_path):
+    lo = np.array([[0, 0, 0], [2, 0, 0]], np.float32)
+    tree, _ = oracles.optimal_tree(lo, lo + 1)
+    jaxbvh.save(tmp_path / "t.npz", tree)
+    with pytest.raises(TypeError, match=r"expected a BVH or WideBVH, got tuple \(jaxbvh.load returns"):
+        assert_valid_tree(jaxbvh.load(tmp_path / "t.npz"), lo, lo + 1)
+    with pytest.raises(TypeError, match="second tree: expected"):
+        assert_same_tree(tree, {"child": None})
+
+
 def test_costs_close_fails_past_rtol_in_one_line():
     assert_costs_close(1.0, 1.0 + 1e-7, rtol=1e-6)
     message = one_line_failure(assert_costs_close, 1.0, 1.1, rtol=1e-3)
