@@ -175,6 +175,29 @@ def test_costs_close_fails_past_rtol_in_one_line():
     assert "not finite" in one_line_failure(assert_costs_close, 1.0, float("nan"))
 
 
+@settings(max_examples=10)
+@given(kit.trees(arity=None))
+def test_interchange_files_keep_drawn_trees(tmp_path_factory, built):
+    # the kit's trees (wide, shuffled runs, padding) survive the file another library writes
+    path = tmp_path_factory.mktemp("tree") / "t.npz"
+    jaxbvh.save(path, built.tree)
+    loaded, _ = jaxbvh.load(path)
+    assert_same_tree(built.tree, loaded)
+    assert_valid_tree(loaded, built.lo, built.hi)
+
+
+def test_the_guides_worked_example_a_tree_tinybvh_wrote(shared_data, shared_mesh):
+    # docs/testing.md: tinybvh's binned tree over legocar, checked through the interchange .npz
+    mesh = shared_mesh("legocar")
+    tree, _ = jaxbvh.load(shared_data / "trees" / "legocar_binned_ref.npz")
+    lo, hi = (b.astype(np.float32) for b in mesh.prim_boxes())
+    assert_valid_tree(tree, lo, hi)
+    assert_costs_close(tree, 30.212, rtol=1e-4)  # the SAH the peer harness printed
+    grown = hi.copy()
+    grown[7] = np.nextafter(hi[7], np.float32(np.inf))  # triangle 7 pokes out of its leaf
+    assert "do not contain primitive(s) 7" in one_line_failure(assert_valid_tree, tree, lo, grown)
+
+
 # Oracles
 
 @settings(max_examples=15)
