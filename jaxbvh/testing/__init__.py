@@ -12,7 +12,8 @@ module              what it holds
 ``oracles``         brute-force hits, exact costs, optimal trees, treelets and collapses
                     by enumeration on small inputs
 ``trees``           the plain-NumPy construction behind the tree strategies:
-                    :func:`make_tree`, :func:`random_tree`, :func:`plant_defect`
+                    :func:`make_tree`, :func:`random_tree`, :func:`renumber`,
+                    :func:`plant_defect`
 ``plugin``          the pytest plugin (entry point ``jaxbvh.testing.plugin``): mesh
                     fixtures and the hypothesis profiles ``dev`` and ``ci``
 ==================  =====================================================================
@@ -24,7 +25,7 @@ another library wrote: ``docs/testing.md``.
 
 from jaxbvh.testing import oracles
 from jaxbvh.testing.assertions import assert_costs_close, assert_same_tree, assert_valid_tree, canonical
-from jaxbvh.testing.trees import DEFECTS, Built, make_tree, plant_defect, random_tree
+from jaxbvh.testing.trees import DEFECTS, Built, make_tree, plant_defect, random_tree, renumber
 
 __all__ = ["assert_valid_tree", "assert_same_tree", "assert_costs_close", "canonical", "oracles",
-           "DEFECTS", "Built", "make_tree", "plant_defect", "random_tree"]
+           "DEFECTS", "Built", "make_tree", "plant_defect", "random_tree", "renumber"]

@@ -18,6 +18,7 @@ strategy                   draws
                            and node order, and its primitive boxes
 :func:`broken_trees`       :class:`Broken`: a tree with one named defect
                            (:data:`jaxbvh.testing.trees.DEFECTS`)
+:func:`renumbered`         the same tree with other node ids and run places
 =========================  ==============================================================
 """
 
@@ -32,7 +33,7 @@ from hypothesis.extra import numpy as hnp
 
 from jaxbvh.io.meshes import Mesh
 from jaxbvh.scenes import assemble
-from jaxbvh.testing.trees import DEFECTS, NEED_INTERIOR, Built, Choices, make_tree, plant_defect
+from jaxbvh.testing.trees import DEFECTS, NEED_INTERIOR, Built, Choices, make_tree, plant_defect, renumber
 from jaxbvh.tree.layout import BVH, WideBVH, pad_to
 
 SOUP_KINDS = ("random", "clustered", "flat", "degenerate", "one_point", "grid")
@@ -200,6 +201,13 @@ def trees(draw, min_size: int = 1, max_size: int = 24, *, arity: int | None = 2,
     if extra_nodes or extra_prims:
         built = built._replace(tree=pad_to(built.tree, nodes + extra_nodes, n + extra_prims))
     return built
+
+
+@st.composite
+def renumbered(draw, tree):
+    """``tree`` with drawn node ids and leaf-run places
+    (:func:`jaxbvh.testing.trees.renumber`): the same tree to :func:`assert_same_tree`."""
+    return renumber(tree, _Drawn(draw))
 
 
 class Broken(NamedTuple):

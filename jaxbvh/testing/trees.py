@@ -154,6 +154,30 @@ def random_tree(seed: int, n: int, max_leaf: int = 1, kind: str = "random", *, d
     return built.tree, built.lo, built.hi
 
 
+def renumber(tree, choices: Choices):
+    """The same tree (NumPy) with node ids permuted (the root moves with them) and the
+    leaves' runs moved to new places in ``prim_index``: what a reader of another library's
+    trees must accept. Padding is dropped; the capacity stays the same."""
+    t = to_numpy(tree)
+    child = np.asarray(t.child)
+    count, start, index = np.asarray(t.prim_count), np.asarray(t.prim_start), np.asarray(t.prim_index)
+    nodes = child.shape[0]
+    new = np.array(choices.permutation(nodes))  # old id -> new id
+    inv = np.argsort(new)
+    moved = child[inv]
+    leaves = np.flatnonzero(count > 0)
+    runs, at = np.zeros(nodes, np.int32), 0
+    prim_index = np.full(index.shape[0], -1, np.int32)
+    for j in choices.permutation(len(leaves)):
+        leaf = leaves[j]
+        prim_index[at:at + count[leaf]] = index[start[leaf]:start[leaf] + count[leaf]]
+        runs[leaf], at = at, at + count[leaf]
+    arrays = dict(child=np.where(moved >= 0, new[np.maximum(moved, 0)], -1).astype(np.int32),
+                  prim_start=runs[inv], prim_count=count[inv].astype(np.int32), prim_index=prim_index,
+                  lo=np.asarray(t.lo)[inv], hi=np.asarray(t.hi)[inv], root=np.int32(new[int(t.root)]))
+    return from_interchange(arrays, pad=False)
+
+
 # ----------------------------------------------------------------------------------
 # Defects
 # ----------------------------------------------------------------------------------
