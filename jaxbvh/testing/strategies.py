@@ -98,15 +98,18 @@ def boxes(tri: np.ndarray):
 
 
 @st.composite
-def box_sets(draw, min_size: int = 1, max_size: int = 40):
+def box_sets(draw, min_size: int = 1, max_size: int = 40, extreme: bool = False):
     """Float32 primitive boxes ``(lo, hi)`` [n, 3] in [-1.3, 1.3]: some points, and with a
-    drawn flag centres snapped to a grid of quarters (shared centres, equal costs)."""
+    drawn flag centres snapped to a grid of quarters (shared centres, equal costs). With
+    ``extreme``, scaled by one of 1e-30, 1e-10, 1e10, 1e30 (or not), then cast (rounding
+    keeps ``lo <= hi``)."""
     n = draw(st.integers(min_size, max_size))
     centre = draw(lattice((n, 3), -1, 1))
     half = draw(lattice((n, 3), 0, 0.3)) * ~draw(_flags(n))[:, None]
     if draw(st.booleans()):
         centre = np.round(centre * 4) / 4
-    return (centre - half).astype(np.float32), (centre + half).astype(np.float32)
+    scale = 10.0 ** draw(st.sampled_from([0, -30, -10, 10, 30])) if extreme else 1.0
+    return ((centre - half) * scale).astype(np.float32), ((centre + half) * scale).astype(np.float32)
 
 
 @st.composite

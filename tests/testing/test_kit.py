@@ -46,7 +46,7 @@ def one_line_failure(check, *args, **kwargs) -> str:
 
 # Strategies
 
-@given(kit.trees(arity=None))
+@given(kit.trees(arity=None, boxes=kit.box_sets(1, 24, extreme=True)))
 def test_drawn_trees_are_valid_of_their_arity(built):
     assert_valid_tree(built.tree, built.lo, built.hi)
     width = np.asarray(built.tree.child).shape[1]
