@@ -1,0 +1,213 @@
+"""MkDocs hook: the parts of the site made from the code, so they cannot drift from it.
+
+A page asks for a generated part with an HTML comment on a line of its own,
+``<!-- gen: KIND ARGS -->``; :func:`expand` replaces it (an unknown kind fails the build):
+
+===================================  ===============================================
+``knobs jaxbvh.x.SomeConfig``        a table of the Config's knobs: default, meaning,
+                                     command-line flag (from the dataclass fields and
+                                     the commands' ``ConfigOptions``)
+``synopsis``                         ``python -m jaxbvh.cli.synopsis``, the usage of
+                                     every command
+``help COMMAND``                     ``jaxbvh COMMAND --help``, at a fixed width
+``include PATH``                     a file of the repository (``bench/results/*.md``),
+                                     its headings demoted below the page's
+``api PACKAGE``                      a ``:::`` block (mkdocstrings) per public module
+                                     of the package (no ``_private``, no twins)
+``twins``                            a ``:::`` block per NumPy twin (``*_reference``)
+===================================  ===============================================
+
+It also publishes the benchmark plots (``bench/results/*.png``) at ``bench/NAME.png``,
+so a page links to ``bench/optimize.png`` and the picture is the one the bench wrote.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import importlib
+import os
+import pkgutil
+import re
+from contextlib import contextmanager
+from pathlib import Path
+
+from mkdocs.structure.files import File
+
+REPO = Path(__file__).resolve().parents[2]
+MARK = re.compile(r"^<!-- gen: (\S+)(.*?) -->$", re.M)
+WIDTH = 100  # columns of generated --help text (as the synopsis)
+
+
+# ----------------------------------------------------------------------------------
+# knob tables
+# ----------------------------------------------------------------------------------
+
+
+def _command_options():
+    """Every ConfigOptions the command line builds: the commands' module-level ones and
+    the builder options every building command shares."""
+    from jaxbvh.cli import command_kit, commands
+    from jaxbvh.cli.options import ConfigOptions
+
+    found = [command_kit.builder_options()]
+    for info in pkgutil.iter_modules(commands.__path__):
+        module = importlib.import_module(f"{commands.__name__}.{info.name}")
+        found += [v for v in vars(module).values() if isinstance(v, ConfigOptions)]
+    return found
+
+
+def flags_by_knob() -> dict[tuple[type, str], set[str]]:
+    """``(Config class, field name) -> {flag}``: which flags set each knob, on any command."""
+    out: dict[tuple[type, str], set[str]] = {}
+    for options in _command_options():
+        for flag, knobs in options.knobs.items():
+            for knob in knobs:
+                config = options.bases[knob.method]
+                for name in knob.path[:-1]:
+                    config = getattr(config, name)
+                for cls in type(config).__mro__:  # a knob declared on a base class too
+                    out.setdefault((cls, knob.path[-1]), set()).add(flag)
+    return out
+
+
+def _cell(text: str) -> str:
+    return " ".join(str(text).split()).replace("|", "\\|")
+
+
+def _default(field: dataclasses.Field) -> str:
+    from jaxbvh.cli.options import shown
+
+    value = field.default
+    if dataclasses.is_dataclass(value):
+        return f"`{type(value).__module__}.{type(value).__qualname__}()`"
+    if callable(value):
+        return f"`{getattr(value, '__name__', value)}`"
+    if isinstance(value, (bool, type(None))):
+        return f"`{value!r}`"
+    return f"`{shown(value)}`"
+
+
+def knob_table(dotted: str) -> str:
+    """A Markdown table of the knobs of the Config class ``dotted`` (module.Class)."""
+    from jaxbvh.cli.options import field_docs
+
+    module, _, name = dotted.rpartition(".")
+    Config = getattr(importlib.import_module(module), name)
+    if not dataclasses.is_dataclass(Config):
+        raise ValueError(f"gen knobs: {dotted} is not a Config dataclass")
+    docs = field_docs(Config)
+    flags = flags_by_knob()
+    rows = ["| knob | default | what it sets | command line |", "|---|---|---|---|"]
+    for field in dataclasses.fields(Config):
+        text = field.metadata.get("help") or docs.get(field.name, "")
+        flag = ", ".join(f"`{f}`" for f in sorted(flags.get((Config, field.name), ()))) or "(library only)"
+        rows.append(f"| `{field.name}` | {_default(field)} | {_cell(text)} | {flag} |")
+    return "\n".join(rows)
+
+
+# ----------------------------------------------------------------------------------
+# the command line
+# ----------------------------------------------------------------------------------
+
+
+@contextmanager
+def _columns(width: int):
+    """argparse sizes help to the terminal (``COLUMNS``): fix it while formatting."""
+    old = os.environ.get("COLUMNS")
+    os.environ["COLUMNS"] = str(width + 2)
+    try:
+        yield
+    finally:
+        if old is None:
+            os.environ.pop("COLUMNS", None)
+        else:
+            os.environ["COLUMNS"] = old
+
+
+def synopsis_block() -> str:
+    from jaxbvh.cli.synopsis import synopsis
+
+    return f"```text\n{synopsis()}\n```"
+
+
+def help_block(command: str) -> str:
+    from jaxbvh.cli import make_parser
+
+    parser, _ = make_parser()
+    action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    if command not in action.choices:
+        raise ValueError(f"gen help: no command {command!r}; commands: {', '.join(action.choices)}")
+    with _columns(WIDTH):
+        text = action.choices[command].format_help()
+    return f"```text\n{text.rstrip()}\n```"
+
+
+# ----------------------------------------------------------------------------------
+# files and API blocks
+# ----------------------------------------------------------------------------------
+
+
+def include(path: str, level: int) -> str:
+    """The file at ``path`` (repository-relative), headings moved below level ``level``."""
+    text = (REPO / path).read_text()
+    return re.sub(r"^(#+) ", lambda m: "#" * min(6, len(m.group(1)) + level) + " ", text, flags=re.M)
+
+
+def public_modules(package: str, twins: bool = False) -> list[str]:
+    """Modules under ``package``, public ones (no ``_`` in any part), twins or not twins."""
+    root = importlib.import_module(package)
+    names = [package] if not twins else []
+    for info in pkgutil.walk_packages(root.__path__, package + "."):
+        parts = info.name.split(".")
+        if any(p.startswith("_") for p in parts):
+            continue
+        if info.name.endswith("_reference") == twins:
+            names.append(info.name)
+    return names
+
+
+def api_blocks(modules: list[str]) -> str:
+    return "\n\n".join(f"## `{m}`\n\n::: {m}" for m in modules)
+
+
+def _level(markdown: str, at: int) -> int:
+    """The level of the last heading before position ``at`` (0 if none)."""
+    heads = re.findall(r"^(#+) ", markdown[:at], re.M)
+    return len(heads[-1]) if heads else 0
+
+
+def expand(markdown: str) -> str:
+    """``markdown`` with every ``<!-- gen: ... -->`` line replaced (module docstring)."""
+    def one(match: re.Match) -> str:
+        kind, args = match.group(1), match.group(2).split()
+        if kind == "knobs" and len(args) == 1:
+            return knob_table(args[0])
+        if kind == "synopsis" and not args:
+            return synopsis_block()
+        if kind == "help" and len(args) == 1:
+            return help_block(args[0])
+        if kind == "include" and len(args) == 1:
+            return include(args[0], _level(markdown, match.start()))
+        if kind == "api" and len(args) == 1:
+            return api_blocks(public_modules(args[0]))
+        if kind == "twins" and not args:
+            return api_blocks(public_modules("jaxbvh", twins=True))
+        raise ValueError(f"unknown generated part: {match.group(0)}")
+
+    return MARK.sub(one, markdown)
+
+
+# ----------------------------------------------------------------------------------
+# MkDocs events
+# ----------------------------------------------------------------------------------
+
+
+def on_page_markdown(markdown, page, config, files):
+    return expand(markdown)
+
+
+def on_files(files, config):
+    for png in sorted((REPO / "bench" / "results").glob("*.png")):
+        files.append(File.generated(config, f"bench/{png.name}", abs_src_path=str(png)))
+    return files
