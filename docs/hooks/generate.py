@@ -1,20 +1,25 @@
 """MkDocs hook: the parts of the site made from the code, so they cannot drift from it.
 
 A page asks for a generated part with an HTML comment on a line of its own,
-``<!-- gen: KIND ARGS -->``; :func:`expand` replaces it (an unknown kind fails the build):
+``<!-- gen: KIND ARGS -->``; :func:`expand` replaces it, indented as the comment is (inside
+an admonition), and an unknown kind fails the build:
 
 ===================================  ===============================================
-``knobs jaxbvh.x.SomeConfig``        a table of the Config's knobs: default, meaning,
+``knobs jaxbvh.x.SomeConfig [new]``  a table of the Config's knobs: default, meaning,
                                      command-line flag (from the dataclass fields and
-                                     the commands' ``ConfigOptions``)
+                                     the commands' ``ConfigOptions``); ``new``: only
+                                     those its dataclass bases do not have
 ``synopsis``                         ``python -m jaxbvh.cli.synopsis``, the usage of
                                      every command
 ``help COMMAND``                     ``jaxbvh COMMAND --help``, at a fixed width
 ``include PATH``                     a file of the repository (``bench/results/*.md``),
-                                     its headings demoted below the page's
+                                     its headings demoted below the page's (bold lines
+                                     inside an admonition: out of the page's outline)
 ``api PACKAGE``                      a ``:::`` block (mkdocstrings) per public module
                                      of the package (no ``_private``, no twins)
 ``twins``                            a ``:::`` block per NumPy twin (``*_reference``)
+``docstring MODULE``                 the module's docstring, as the API pages show it
+                                     (where a page explains what the code documents once)
 ===================================  ===============================================
 
 It also publishes the benchmark plots (``bench/results/*.png``) at ``bench/NAME.png``,
@@ -29,13 +34,17 @@ import importlib
 import os
 import pkgutil
 import re
+import sys
 from contextlib import contextmanager
 from pathlib import Path
 
 from mkdocs.structure.files import File
 
+sys.path.insert(0, str(Path(__file__).parent))  # the sibling griffe extension, for its converter
+from rest_docstrings import markdown_of  # noqa: E402
+
 REPO = Path(__file__).resolve().parents[2]
-MARK = re.compile(r"^<!-- gen: (\S+)(.*?) -->$", re.M)
+MARK = re.compile(r"^(?P<indent>[ \t]*)<!-- gen: (?P<kind>\S+)(?P<args>.*?) -->$", re.M)
 WIDTH = 100  # columns of generated --help text (as the synopsis)
 
 
@@ -88,8 +97,9 @@ def _default(field: dataclasses.Field) -> str:
     return f"`{shown(value)}`"
 
 
-def knob_table(dotted: str) -> str:
-    """A Markdown table of the knobs of the Config class ``dotted`` (module.Class)."""
+def knob_table(dotted: str, new: bool = False) -> str:
+    """A Markdown table of the knobs of the Config class ``dotted`` (module.Class); with
+    ``new``, only the knobs that none of its dataclass bases has."""
     from jaxbvh.cli.options import field_docs
 
     module, _, name = dotted.rpartition(".")
@@ -99,7 +109,11 @@ def knob_table(dotted: str) -> str:
     docs = field_docs(Config)
     flags = flags_by_knob()
     rows = ["| knob | default | what it sets | command line |", "|---|---|---|---|"]
+    inherited = {f.name for base in Config.__mro__[1:] if dataclasses.is_dataclass(base)
+                 for f in dataclasses.fields(base)} if new else set()
     for field in dataclasses.fields(Config):
+        if field.name in inherited:
+            continue
         text = field.metadata.get("help") or docs.get(field.name, "")
         flag = ", ".join(f"`{f}`" for f in sorted(flags.get((Config, field.name), ()))) or "(library only)"
         rows.append(f"| `{field.name}` | {_default(field)} | {_cell(text)} | {flag} |")
@@ -148,9 +162,12 @@ def help_block(command: str) -> str:
 # ----------------------------------------------------------------------------------
 
 
-def include(path: str, level: int) -> str:
-    """The file at ``path`` (repository-relative), headings moved below level ``level``."""
+def include(path: str, level: int, nested: bool = False) -> str:
+    """The file at ``path`` (repository-relative), headings moved below level ``level``,
+    or made bold lines when ``nested`` (inside an admonition)."""
     text = (REPO / path).read_text()
+    if nested:
+        return re.sub(r"^#+ (.*)$", r"**\1**", text, flags=re.M)
     return re.sub(r"^(#+) ", lambda m: "#" * min(6, len(m.group(1)) + level) + " ", text, flags=re.M)
 
 
@@ -168,7 +185,19 @@ def public_modules(package: str, twins: bool = False) -> list[str]:
 
 
 def api_blocks(modules: list[str]) -> str:
-    return "\n\n".join(f"## `{m}`\n\n::: {m}" for m in modules)
+    """One section per module; a package shows its docstring only (its modules follow)."""
+    def block(m):
+        package = hasattr(importlib.import_module(m), "__path__")
+        options = "\n    options:\n      members: false" if package else ""
+        return f"## `{m}`\n\n::: {m}{options}"
+
+    return "\n\n".join(block(m) for m in modules)
+
+
+def docstring_of(module: str) -> str:
+    import inspect
+
+    return markdown_of(inspect.getdoc(importlib.import_module(module)) or "")
 
 
 def _level(markdown: str, at: int) -> int:
@@ -180,17 +209,23 @@ def _level(markdown: str, at: int) -> int:
 def expand(markdown: str) -> str:
     """``markdown`` with every ``<!-- gen: ... -->`` line replaced (module docstring)."""
     def one(match: re.Match) -> str:
-        kind, args = match.group(1), match.group(2).split()
-        if kind == "knobs" and len(args) == 1:
-            return knob_table(args[0])
+        indent = match.group("indent")
+        text = part(match.group("kind"), match.group("args").split(), match)
+        return "\n".join(indent + line if line else line for line in text.split("\n"))
+
+    def part(kind: str, args: list[str], match: re.Match) -> str:
+        if kind == "knobs" and (args[1:] in ([], ["new"])):
+            return knob_table(args[0], new=args[1:] == ["new"])
         if kind == "synopsis" and not args:
             return synopsis_block()
         if kind == "help" and len(args) == 1:
             return help_block(args[0])
         if kind == "include" and len(args) == 1:
-            return include(args[0], _level(markdown, match.start()))
+            return include(args[0], _level(markdown, match.start()), nested=bool(match.group("indent")))
         if kind == "api" and len(args) == 1:
             return api_blocks(public_modules(args[0]))
+        if kind == "docstring" and len(args) == 1:
+            return docstring_of(args[0])
         if kind == "twins" and not args:
             return api_blocks(public_modules("jaxbvh", twins=True))
         raise ValueError(f"unknown generated part: {match.group(0)}")
