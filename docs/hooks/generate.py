@@ -8,7 +8,7 @@ an admonition), and an unknown kind fails the build:
 ``knobs jaxbvh.x.SomeConfig [new]``  a table of the Config's knobs: default, meaning,
                                      command-line flag (from the dataclass fields and
                                      the commands' ``ConfigOptions``); ``new``: only
-                                     those its dataclass bases do not have
+                                     those its nearest public base does not have
 ``synopsis``                         ``python -m jaxbvh.cli.synopsis``, the usage of
                                      every command
 ``help COMMAND``                     ``jaxbvh COMMAND --help``, at a fixed width
@@ -99,7 +99,7 @@ def _default(field: dataclasses.Field) -> str:
 
 def knob_table(dotted: str, new: bool = False) -> str:
     """A Markdown table of the knobs of the Config class ``dotted`` (module.Class); with
-    ``new``, only the knobs that none of its dataclass bases has."""
+    ``new``, only the knobs its nearest public dataclass base does not have."""
     from jaxbvh.cli.options import field_docs
 
     module, _, name = dotted.rpartition(".")
@@ -109,8 +109,10 @@ def knob_table(dotted: str, new: bool = False) -> str:
     docs = field_docs(Config)
     flags = flags_by_knob()
     rows = ["| knob | default | what it sets | command line |", "|---|---|---|---|"]
-    inherited = {f.name for base in Config.__mro__[1:] if dataclasses.is_dataclass(base)
-                 for f in dataclasses.fields(base)} if new else set()
+    # the knobs of its nearest public dataclass base (a private one, _MortonConfig, is
+    # part of what the subclass adds)
+    bases = [b for b in Config.__mro__[1:] if dataclasses.is_dataclass(b) and not b.__name__.startswith("_")]
+    inherited = {f.name for f in dataclasses.fields(bases[0])} if new and bases else set()
     for field in dataclasses.fields(Config):
         if field.name in inherited:
             continue
