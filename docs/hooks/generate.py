@@ -187,11 +187,12 @@ def public_modules(package: str, twins: bool = False) -> list[str]:
 
 
 def api_blocks(modules: list[str]) -> str:
-    """One section per module; a package shows its docstring only (its modules follow)."""
+    """One section per module; a package shows its docstring only, under the page's own
+    title (its modules follow)."""
     def block(m):
-        package = hasattr(importlib.import_module(m), "__path__")
-        options = "\n    options:\n      members: false" if package else ""
-        return f"## `{m}`\n\n::: {m}{options}"
+        if hasattr(importlib.import_module(m), "__path__"):
+            return f"::: {m}\n    options:\n      members: false"
+        return f"## `{m}`\n\n::: {m}"
 
     return "\n\n".join(block(m) for m in modules)
 
