@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import importlib
 import os
 import pkgutil
@@ -66,6 +67,7 @@ def _command_options():
     return found
 
 
+@functools.lru_cache(maxsize=None)  # one walk of the parsers per build
 def flags_by_knob() -> dict[tuple[type, str], set[str]]:
     """``(Config class, field name) -> {flag}``: which flags set each knob, on any command."""
     out: dict[tuple[type, str], set[str]] = {}
