@@ -18,12 +18,19 @@ an admonition), and an unknown kind fails the build:
 ``api PACKAGE``                      a ``:::`` block (mkdocstrings) per public module
                                      of the package (no ``_private``, no twins)
 ``twins``                            a ``:::`` block per NumPy twin (``*_reference``)
+``toplevel``                         ``jaxbvh`` itself and a ``:::`` block per top-level
+                                     module (``configs``, ``numerics``, ...)
+``other-results``                    every ``bench/results`` table and plot that no page
+                                     includes or shows (so a new result is never left out)
 ``docstring MODULE``                 the module's docstring, as the API pages show it
                                      (where a page explains what the code documents once)
 ===================================  ===============================================
 
 It also publishes the benchmark plots (``bench/results/*.png``) at ``bench/NAME.png``,
-so a page links to ``bench/optimize.png`` and the picture is the one the bench wrote.
+so a page links to ``bench/optimize.png`` and the picture is the one the bench wrote;
+and it gives every public package of ``jaxbvh`` an API page in the nav's "API reference"
+(``api/NAME.md``, generated when the folder has none), so a new package is documented
+without editing ``mkdocs.yml``.
 """
 
 from __future__ import annotations
@@ -205,13 +212,35 @@ def docstring_of(module: str) -> str:
     return markdown_of(inspect.getdoc(importlib.import_module(module)) or "")
 
 
+def toplevel_blocks() -> str:
+    """``jaxbvh`` (its docstring) and every public top-level module that is not a package."""
+    root = importlib.import_module("jaxbvh")
+    modules = [f"jaxbvh.{info.name}" for info in pkgutil.iter_modules(root.__path__)
+               if not info.ispkg and not info.name.startswith("_")]
+    return "## `jaxbvh`\n\n::: jaxbvh\n    options:\n      members: false\n\n" + api_blocks(modules)
+
+
+def other_results(docs_dir: Path) -> str:
+    """Every ``bench/results/*.md`` no page includes and every plot no page shows."""
+    pages = "\n".join(p.read_text() for p in docs_dir.rglob("*.md"))
+    results = REPO / "bench" / "results"
+    parts = []
+    for md in sorted(results.glob("*.md")):
+        if f"<!-- gen: include bench/results/{md.name} -->" not in pages:
+            parts.append(f"### `{md.name}`\n\n" + include(f"bench/results/{md.name}", 3))
+    for png in sorted(results.glob("*.png")):
+        if f"(bench/{png.name})" not in pages:
+            parts.append(f"### `{png.name}`\n\n![{png.stem}](bench/{png.name})")
+    return "\n\n".join(parts) or "None: every result is on a page above."
+
+
 def _level(markdown: str, at: int) -> int:
     """The level of the last heading before position ``at`` (0 if none)."""
     heads = re.findall(r"^(#+) ", markdown[:at], re.M)
     return len(heads[-1]) if heads else 0
 
 
-def expand(markdown: str) -> str:
+def expand(markdown: str, docs_dir: Path = REPO / "docs") -> str:
     """``markdown`` with every ``<!-- gen: ... -->`` line replaced (module docstring)."""
     def one(match: re.Match) -> str:
         indent = match.group("indent")
@@ -231,6 +260,10 @@ def expand(markdown: str) -> str:
             return api_blocks(public_modules(args[0]))
         if kind == "docstring" and len(args) == 1:
             return docstring_of(args[0])
+        if kind == "toplevel" and not args:
+            return toplevel_blocks()
+        if kind == "other-results" and not args:
+            return other_results(docs_dir)
         if kind == "twins" and not args:
             return api_blocks(public_modules("jaxbvh", twins=True))
         raise ValueError(f"unknown generated part: {match.group(0)}")
@@ -244,10 +277,30 @@ def expand(markdown: str) -> str:
 
 
 def on_page_markdown(markdown, page, config, files):
-    return expand(markdown)
+    return expand(markdown, Path(config["docs_dir"]))
+
+
+API_SECTION = "API reference"
+API_BEFORE = "api/shared.md"  # new package pages go before this entry
+
+
+def public_packages() -> list[str]:
+    root = importlib.import_module("jaxbvh")
+    return [info.name for info in pkgutil.iter_modules(root.__path__) if info.ispkg and not info.name.startswith("_")]
 
 
 def on_files(files, config):
     for png in sorted((REPO / "bench" / "results").glob("*.png")):
         files.append(File.generated(config, f"bench/{png.name}", abs_src_path=str(png)))
+    # runs before the nav is built from config["nav"]: a package without a page gets one
+    section = next(entry[API_SECTION] for entry in config["nav"] if isinstance(entry, dict) and API_SECTION in entry)
+    listed = [next(iter(e.values())) if isinstance(e, dict) else e for e in section]
+    for name in public_packages():
+        uri = f"api/{name}.md"
+        if files.get_file_from_path(uri) is None:
+            files.append(File.generated(config, uri, content=f"# `jaxbvh.{name}`\n\n<!-- gen: api jaxbvh.{name} -->\n"))
+        if uri not in listed:
+            at = listed.index(API_BEFORE) if API_BEFORE in listed else len(section)
+            section.insert(at, {f"jaxbvh.{name}": uri})
+            listed.insert(at, uri)
     return files
