@@ -55,6 +55,7 @@ def pytest_configure(config):
 
 
 def pytest_addoption(parser):
+    """The ini option ``jaxbvh_shared_data``: where the shared data folder is."""
     parser.addini("jaxbvh_shared_data", "folder of shared meshes, scenes and reference trees "
                   "(default: $JAXBVH_SHARED_DATA, else ../shared/data beside the rootdir)", default="")
 
