@@ -108,7 +108,10 @@ BUGS = {
     "drop": (DEFECTS["lost_primitive"], 3),
     "ulp": (DEFECTS["primitive_outside_leaf"], 1),
     "cycle": (DEFECTS["cycle"], 2),
-    "overflow": (DEFECTS["nan_box"], 1),
+    # 1 when this module runs alone, 5 beside the suite's other modules (jaxbvh.cli imported):
+    # the scale is drawn after the coordinates, so removing a triangle shifts the draws the
+    # scale reads and the shrinker must get around that; see docs/testing.md
+    "overflow": (DEFECTS["nan_box"], 5),
 }
 
 
