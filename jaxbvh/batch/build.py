@@ -207,7 +207,8 @@ def build(meshes, config: BuilderConfig | str | None = None, *, method: str | No
       devices: the devices to split the batch axis over (None: all of ``jax.devices()``;
         an int: the first that many).
       errors: ``"raise"`` or ``"keep"`` (module docstring).
-      on_chunk: called as ``on_chunk(done, total)`` (meshes) after every compiled call.
+      on_chunk: called as ``on_chunk(index)`` after every compiled call, ``index`` the
+        input positions of the meshes it built.
 
     Returns:
       :class:`BuildResult`; ``result.trees.unstack()`` gives every built mesh's tree, in
@@ -229,7 +230,7 @@ def build_checked(inputs: Inputs, config: BuilderConfig, batch: BatchConfig, dev
     if positions.size == 0:
         return TreeBatch((), total)
     sizes = [inputs.boxes[int(i)][0].shape[0] for i in positions]
-    groups, done = {}, 0
+    groups = {}
     for chunk in chunks(sizes, batch, BYTES_PER_SLOT["build"], len(devs)):
         rows = positions[chunk.filled]
         stacked = stack_inputs(inputs.boxes, rows, chunk.capacity, dtype)
@@ -238,9 +239,8 @@ def build_checked(inputs: Inputs, config: BuilderConfig, batch: BatchConfig, dev
         trees = jax.tree_util.tree_map(lambda a: np.asarray(a)[:real], trees)
         groups.setdefault(chunk.capacity, []).append((trees, positions[chunk.index],
                                                       np.asarray(stacked.n[:real], np.int64)))
-        done += real
         if on_chunk is not None:
-            on_chunk(done, len(positions))
+            on_chunk(positions[chunk.index])
     return TreeBatch(tuple(_join(parts) for _, parts in sorted(groups.items())), total)
 
 

@@ -70,7 +70,8 @@ def optimize(trees: TreeBatch, method: str = DEFAULT_METHOD, config=None, *, key
         ``init``'s default key, as the single run does).
       batch: :class:`~jaxbvh.batch.plan.BatchConfig` (only its memory bound applies: the
         groups are the input's). devices: as :func:`jaxbvh.batch.build`.
-      on_chunk: called as ``on_chunk(done, total)`` after every compiled call.
+      on_chunk: called as ``on_chunk(index)`` after every compiled call, ``index`` the
+        input positions of the meshes it optimized.
 
     Returns:
       :class:`BatchOptimizeResult`.
@@ -86,7 +87,7 @@ def optimize(trees: TreeBatch, method: str = DEFAULT_METHOD, config=None, *, key
     m = trees.size
     out = dict(sah=np.full(m, np.nan), sah_start=np.full(m, np.nan), steps=np.full(m, -1, np.int64),
                moves=np.full(m, -1, np.int64), converged=np.zeros(m, bool))
-    groups, done, total = [], 0, sum(len(g) for g in trees.groups)
+    groups = []
     for group in trees.groups:
         most = max_rows(group.capacity, BYTES_PER_SLOT["optimize"], batch.memory_mb, len(devs))
         parts = []
@@ -104,9 +105,8 @@ def optimize(trees: TreeBatch, method: str = DEFAULT_METHOD, config=None, *, key
             for field in out:
                 out[field][at] = getattr(res, field)
             parts.append(res.tree)
-            done += rows.size
             if on_chunk is not None:
-                on_chunk(done, total)
+                on_chunk(at)
         joined = jax.tree_util.tree_map(lambda *a: np.concatenate(a), *parts)
         groups.append(Group(joined, group.index, group.prims))
     return BatchOptimizeResult(TreeBatch(tuple(groups), m), **out)
