@@ -10,8 +10,9 @@ is computed by the same program whichever device holds it, so one device and sev
 give identical trees (tested on two fake CPU devices).
 
 Several hosts: start every process with :func:`jax.distributed.initialize` first; then
-``jax.devices()`` lists the devices of all hosts and the same code shards over them
-(``docs/batches.md``).
+``jax.devices()`` lists the devices of all hosts and the same code shards over them,
+every process getting the whole batch back (``process_allgather``; not tested here: one
+host only; ``docs/batches.md``).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from typing import Callable
 
 import jax
 import numpy as np
+from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
@@ -62,4 +64,7 @@ def on_devices(fn: Callable, args: tuple, devices: tuple, **static):
     if len(devices) > 1:
         sharding = NamedSharding(Mesh(np.array(devices), (AXIS,)), P(AXIS))
         args = jax.device_put(args, sharding)
-    return call(*args)
+    out = call(*args)
+    if jax.process_count() > 1:  # several hosts: every process gets the whole batch back
+        out = multihost_utils.process_allgather(out, tiled=True)
+    return out

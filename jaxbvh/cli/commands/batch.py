@@ -188,7 +188,9 @@ def run(args) -> dict:
               "seconds": time.perf_counter() - started, "output_dir": str(out_dir),
               "valid": failed == 0, "rows": rows}
     if not getattr(args, "json", False):
+        # people get the rows as a table here, and the totals below it
         print(table(rows, optimizer is not None), file=sys.stdout)
+        del result["rows"]
     return result
 
 
@@ -204,10 +206,12 @@ def table(rows, optimized: bool) -> str:
         cells = [name, f"{r['triangles']:,}", f"{r['sah_built']:.4f}"]
         cells += [f"{r['sah']:.4f}"] if optimized else []
         lines.append(cells + [f"{r['seconds']:.3f}"])
-    widths = [max(len(h), *(len(line[j]) for line in lines if j < len(line) and not line[-1].startswith("error")))
+    widths = [max([len(h)] + [len(line[j]) for line in lines if j < len(line) and (j < 2 or len(line) == len(head))])
               for j, h in enumerate(head)]
-    out = ["  ".join(h.ljust(w) for h, w in zip(head, widths))]
+    out = ["  ".join(h.ljust(w) for h, w in zip(head, widths)).rstrip()]
     for line in lines:
-        out.append("  ".join(c.ljust(w) for c, w in zip(line, widths)) if not line[-1].startswith("error")
-                   else "  ".join(c.ljust(w) for c, w in zip(line[:2], widths)) + "  " + line[2])
+        if len(line) == len(head):
+            out.append("  ".join(c.ljust(w) for c, w in zip(line, widths)).rstrip())
+        else:  # name, triangles, then the error
+            out.append("  ".join(c.ljust(w) for c, w in zip(line[:2], widths)) + "  " + line[2])
     return "\n".join(out)
