@@ -41,8 +41,8 @@ def add_parser(subparsers):
     parser = subparsers.add_parser("batch", help=HELP, description=HELP + ".")
     parser.add_argument("action", choices=ACTIONS, help="build the trees, or build and optimize them")
     parser.add_argument("inputs", metavar="INPUT", nargs="+", help="mesh files, globs or folders of meshes")
-    parser.add_argument("-o", "--output", metavar="OUTDIR", required=True,
-                        help="folder for the trees (OUTDIR/<name>.npz; made if missing)")
+    parser.add_argument("-o", "--output", metavar="OUTDIR", default=None,
+                        help="folder for the trees (OUTDIR/<name>.npz; made if missing; required)")
     parser.add_argument("--method", choices=tuple(OPTIMIZERS), default=DEFAULT_METHOD,
                         help=f"optimizer of 'batch optimize' (default: {DEFAULT_METHOD})")
     command_kit.add_seed(parser, "random seed for annealing (mesh i gets fold_in(key(seed), i))")
@@ -117,6 +117,8 @@ def run(args) -> dict:
     elif given:
         raise ValueError(f"{', '.join(given)}: optimizer options apply to 'batch optimize' only")
     batch_config = args.batch_options.config(None, args)
+    if args.output is None:
+        raise ValueError("batch needs -o OUTDIR, the folder for the trees")
     out_dir = Path(args.output)
     if out_dir.exists() and not out_dir.is_dir():
         raise ValueError(f"--output {out_dir} is a file, not a folder")
