@@ -4,8 +4,11 @@ Groups. Meshes are sorted by size, largest first; the largest not yet placed ope
 group whose capacity is its own capacity bucket (:func:`jaxbvh.tree.layout.capacity_bucket`),
 and every mesh whose own bucket is at least ``(1 - max_padding)`` of that capacity joins
 it. So one giant mesh never pads the small ones, and ``max_padding`` trades compiles
-(one program per group) against padded work: 0 gives one group per capacity bucket
-(at most 1.5x padding), the default 0.5 about one group per doubling (at most 3x).
+(one program per group) against padded work: the default 0 gives one group per capacity
+bucket (at most 1.5x padding, as a single tree has), 0.5 about one group per doubling
+(at most 3x). On a CPU, padded slots cost as much as real ones (bench_batch.py: a batch
+with 0.5 took 5x the loop of single builds), so the default pads no more than a single
+build does.
 
 Chunks. A group runs in chunks of ``rows`` trees, one compiled call each. ``rows`` is the
 largest batch-size bucket (``1`` or a capacity bucket, times the device count, so
@@ -43,7 +46,7 @@ class BatchConfig(Checked):
 
     memory_mb: float = knob(1024.0, check=real(above=0.0), metavar="MB",
                             help="bound on one compiled call's estimated peak memory (MiB)")
-    max_padding: float = knob(0.5, check=real(0.0, below=1.0), metavar="F",
+    max_padding: float = knob(0.0, check=real(0.0, below=1.0), metavar="F",
                               help="fraction of a group's capacity a mesh may leave unused")
 
 
