@@ -31,12 +31,11 @@ from jaxbvh.builders import lbvh, morton, ploc, topdown
 from jaxbvh.builders.configs import DEFAULT_BUILDER, BuilderConfig, make_config
 from jaxbvh.builders.dispatch import BUILDERS
 from jaxbvh.builders.inputs import check_prim_boxes, prepare
-from jaxbvh.numerics import working_dtype
 
 
 @dataclasses.dataclass(frozen=True)
 class Inputs:
-    """Checked inputs of the meshes that can be built: boxes in the working dtype."""
+    """The meshes that can be built (their boxes, checked) and the messages of those that cannot."""
 
     boxes: dict       # position -> (lo [n, 3], hi [n, 3]) NumPy
     errors: dict      # position -> one-line message of a mesh that cannot be built
@@ -102,7 +101,8 @@ class Stacked:
 
 
 def stack_inputs(boxes: dict, rows, capacity: int, dtype) -> Stacked:
-    """The prepared inputs of the meshes ``rows`` [R] (positions in ``boxes``) at ``capacity``."""
+    """The prepared inputs of the meshes ``rows`` [R] (positions in ``boxes``) at ``capacity``;
+    ``dtype``: the Config's (None: what :func:`jaxbvh.build` picks for the boxes)."""
     made = {}
     for i in dict.fromkeys(int(r) for r in rows):
         lo, hi, n, scale = prepare(*boxes[i], capacity=capacity, dtype=dtype)
@@ -218,8 +218,7 @@ def build(meshes, config: BuilderConfig | str | None = None, *, method: str | No
     batch = BatchConfig() if batch is None else batch
     devs = batch_devices.resolve(devices)
     inputs = check_inputs(meshes, errors)
-    dtype = working_dtype(config.dtype, np.float32)
-    return BuildResult(build_checked(inputs, config, batch, devs, dtype, on_chunk), inputs.errors)
+    return BuildResult(build_checked(inputs, config, batch, devs, config.dtype, on_chunk), inputs.errors)
 
 
 def build_checked(inputs: Inputs, config: BuilderConfig, batch: BatchConfig, devs: tuple, dtype,
