@@ -62,7 +62,7 @@ def pieces(tri: np.ndarray, rng, low: int, high: int) -> list[np.ndarray]:
     centre = tri.mean(axis=1)
     while todo:
         ids = todo.pop()
-        stop = int(np.exp(rng.uniform(np.log(2 * low), np.log(high))))
+        stop = int(np.exp(rng.uniform(np.log(min(2 * low, high)), np.log(high))))
         if ids.size <= stop:
             if ids.size >= low:
                 out.append(tri[ids])
@@ -90,7 +90,8 @@ def mesh_set(count: int, low: int, high: int, seed: int = 0) -> list[tuple[str, 
         # every fifth mesh a procedural tree (about 500-2,000 triangles)
         for j in range(max(1, count // 25)):
             v, f = jaxbvh.scenes.tree_mesh(jax.random.key(1000 * k + j), levels=int(rng.integers(3, 5)))
-            out.append((f"tree.{k}.{j}", v[f]))
+            if low <= f.shape[0] <= high:
+                out.append((f"tree.{k}.{j}", v[f]))
         k += 1
     order = rng.permutation(len(out))[:count]
     return [out[i] for i in order]
