@@ -10,6 +10,7 @@ import jaxbvh
 
 
 def _folder(tmp_path):
+    tmp_path.mkdir()
     grid_obj(tmp_path / "a.obj", 2, 0)
     grid_obj(tmp_path / "b.obj", 3, 1)
     (tmp_path / "nan.obj").write_text("v 0 0 0\nv nan 0 0\nv 0 1 0\nf 1 2 3\n")
