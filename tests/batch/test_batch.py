@@ -120,7 +120,7 @@ def test_batched_collapse_equals_single_collapse():
                                                     for n in (5, 9))]
     trees = batch.build(meshes, batch=ONE_GROUP).trees
     for got, tree in zip(batch.collapse(trees, "dp"), trees.unstack()):
-        want = jaxbvh.collapse(tree, "dp")
+        want = jaxbvh.collapse.collapse(tree, "dp")
         np.testing.assert_array_equal(np.asarray(got.tree.child), np.asarray(want.tree.child))
         assert float(got.rcost) == float(want.rcost)
 
