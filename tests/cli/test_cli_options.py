@@ -47,6 +47,9 @@ ESTABLISHED = {
     "evolve": {"--population", "--generations", "--crossover", "--mutation", "--max-children"},
     "grasp": {"--trials", "--noise", "--deviations", "--rcl", "--objective"},
     "rebraid": {"--max-leaf", "--bins"},
+    "batch": {"--max-leaf", "--bins", "--radius", "--morton-bits", "--ct", "--ci", "--iterations",
+              "--max-passes", "--treelet-leaves", "--first-fraction", "--round-gain", "--memory-mb",
+              "--max-padding"},
 }
 
 
@@ -65,9 +68,10 @@ def knob_actions(command: str) -> list[argparse.Action]:
 
 
 def positionals(command: str) -> list[str]:
-    """Placeholder values of ``command``'s required positional arguments."""
-    return [f"input{i}.npz" for i, a in enumerate(SUBPARSERS[command]._actions)
-            if not a.option_strings and a.nargs is None]
+    """Placeholder values of ``command``'s required positional arguments (the first
+    choice of one that has choices, as ``batch build``)."""
+    return [a.choices[0] if a.choices else f"input{i}.npz" for i, a in enumerate(SUBPARSERS[command]._actions)
+            if not a.option_strings and a.nargs in (None, "+")]
 
 
 def parse(command: str, *argv) -> argparse.Namespace:
