@@ -38,6 +38,7 @@ MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
 
 
 def add_parser(subparsers):
+    """Add the ``batch`` subparser (its options and help) to ``subparsers``; returns it."""
     parser = subparsers.add_parser("batch", help=HELP, description=HELP + ".")
     parser.add_argument("action", choices=ACTIONS, help="build the trees, or build and optimize them")
     parser.add_argument("inputs", metavar="INPUT", nargs="+", help="mesh files, globs or folders of meshes")
@@ -108,6 +109,7 @@ class Clock:
 
 
 def run(args) -> dict:
+    """Run ``jaxbvh batch`` on parsed ``args``; returns the result the command prints (a row per mesh)."""
     # every option first: the builder's, the optimizer's, the batch's, the folder
     builder = command_kit.builder_config(args)
     optimizer = None
