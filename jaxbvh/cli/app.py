@@ -22,6 +22,7 @@ import importlib
 import os
 import pkgutil
 import sys
+import warnings
 from pathlib import Path
 
 from jaxbvh import __version__
@@ -136,6 +137,22 @@ def _error_line(exc: BaseException) -> str:
     return " ".join(text.split())  # one line
 
 
+@contextlib.contextmanager
+def one_line_warnings():
+    """Warnings as ``jaxbvh: warning: MESSAGE`` lines on stderr (no source line, no file
+    of ours), for the duration of one command; Python's own display is put back after."""
+    before = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        print(f"jaxbvh: warning: {' '.join(str(message).split())}", file=file or sys.stderr)
+
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        warnings.showwarning = before
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``jaxbvh`` console script; returns the exit status."""
 
@@ -145,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as exc:  # --help, --version, usage errors (argparse prints them)
         return int(exc.code or 0)
     try:
-        with compilation_cache_on():
+        with compilation_cache_on(), one_line_warnings():
             result = modules[args.command].run(args)
     except (MeshError, InvalidTreeError, ValueError, FileNotFoundError, OSError) as exc:
         print(f"jaxbvh: error: {_error_line(exc)}", file=sys.stderr)

@@ -8,6 +8,7 @@ import json
 import math
 import sys
 import time
+from typing import NamedTuple
 
 import numpy as np
 
@@ -149,6 +150,50 @@ def check_tree_file(loaded: TreeFile, prim_lo=None, prim_hi=None) -> TreeFile:
     if problems:
         raise InvalidTreeError([f"{loaded.path}: {problems[0]}"] + problems[1:])
     return loaded
+
+
+class MeshCheck(NamedTuple):
+    """A tree file checked against its mesh (:func:`check_against_mesh`)."""
+
+    triangles: np.ndarray  # float [F, 3, 3]: the mesh's triangles in the tree's frame and dtype
+    problems: list         # str: broken invariants, the first naming the file; empty: valid
+    precision: str         # the float type the triangles were rounded to for the check
+
+
+def check_against_mesh(loaded: TreeFile, mesh: Mesh) -> MeshCheck:
+    """Check a tree file against the mesh it was built over, in its stored precision.
+
+    The mesh's float64 world triangles are moved into the tree's frame and rounded (to
+    nearest, as the builders do) to the dtype the tree's boxes are stored in; every leaf
+    must contain its triangles exactly there, so float16 boxes rounded to nearest
+    (widened to float32 on load) are refused. A float64 tree whose boxes contain the
+    triangles only as rounded to float32 (a float32 build saved as float64: its boxes
+    miss the float64 triangles by up to half a float32 ulp) is valid at float32: the
+    triangles returned, which rays are traced against, are then the float32 ones, and
+    ``precision`` says so.
+    """
+    tree, frame = loaded.tree, loaded.frame
+    dtype = np.asarray(tree.lo).dtype
+    local = mesh.triangles if frame.is_identity else frame.to_local(mesh.triangles)
+    referenced = int(np.asarray(tree.prim_count).sum())
+    if referenced != mesh.n_triangles:
+        problem = (f"{loaded.path}: the tree's leaves hold {referenced} primitives but "
+                   f"{mesh.path} has {mesh.n_triangles} triangles")
+        return MeshCheck(local.astype(dtype), [problem], str(dtype))
+    precisions = [dtype] + ([np.dtype(np.float32)] if dtype == np.float64 else [])
+    for precision in precisions:
+        triangles = local.astype(precision).astype(dtype)  # exact widening after the rounding
+        problems = check(tree, triangles.min(axis=1), triangles.max(axis=1))
+        if not problems:
+            break
+        if precision == dtype:
+            first = problems
+    else:
+        problems = first  # report the check in the stored precision
+        precision = dtype
+    if problems:
+        problems = [f"{loaded.path}: {problems[0]}"] + problems[1:]
+    return MeshCheck(triangles if not problems else local.astype(dtype), problems, str(precision))
 
 
 def require_matplotlib(option: str) -> None:

@@ -13,6 +13,7 @@ from jaxbvh.configs import SAHCosts
 from jaxbvh.io import load_mesh
 from jaxbvh.rays import traversal as traverse
 from jaxbvh.rays.measure import KINDS, MODES
+from jaxbvh.tree.validate import InvalidTreeError
 
 #: --ct, --ci: the SAH constants of the cost reported beside the ray counts
 COSTS = config_options.ConfigOptions({"trace": SAHCosts})
@@ -50,12 +51,6 @@ def add_parser(subparsers):
     return parser
 
 
-def triangles_in_frame(mesh, frame, dtype) -> np.ndarray:
-    """The mesh's triangles [F, 3, 3] in ``frame`` (the tree's), cast to ``dtype``."""
-    tri = mesh.triangles
-    return (tri if frame.is_identity else frame.to_local(tri)).astype(dtype)
-
-
 def run(args) -> dict:
     import jax
 
@@ -67,21 +62,20 @@ def run(args) -> dict:
             loaded = command_kit.load_tree(args.tree, check=False)  # checked below, with the mesh
             mesh = load_mesh(args.mesh)
             tree, frame = loaded.tree, loaded.frame
-            referenced = int(np.asarray(tree.prim_count).sum())
-            if referenced != mesh.n_triangles:
-                raise ValueError(f"the tree's leaves hold {referenced} primitives but "
-                                 f"{args.mesh} has {mesh.n_triangles} triangles")
             dtype = np.asarray(tree.lo).dtype
-            triangles = triangles_in_frame(mesh, frame, dtype)
-            # before any jitted loop; a leaf box that misses its triangle would lose hits
-            command_kit.check_tree_file(loaded, triangles.min(axis=1), triangles.max(axis=1))
+            # before any jitted loop; a leaf box that misses its triangle would lose hits.
+            # The triangles are those the check passed in (the tree's stored precision)
+            checked = command_kit.check_against_mesh(loaded, mesh)
+            if checked.problems:
+                raise InvalidTreeError(checked.problems)
+            triangles = checked.triangles
             key = jax.random.key(args.seed)
             origin, direction = rays.make_rays(key, args.kind, tree, triangles, args.rays)
         with stages("trace"):
             hits, summary = rays.measure(tree, triangles, origin, direction, mode=args.mode,
                                          ct=costs.ct, ci=costs.ci, batch=args.batch)
         result = {"command": "trace", "tree": loaded.path, "mesh": str(mesh.path),
-                  "triangles": mesh.n_triangles, "kind": args.kind, "seed": args.seed,
+                  "triangles": mesh.n_triangles, "checked_in": checked.precision, "kind": args.kind, "seed": args.seed,
                   "arity": int(np.asarray(tree.child).shape[1]),
                   "stack_capacity": traverse.stack_capacity(tree)}
         result.update(summary)
