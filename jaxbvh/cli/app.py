@@ -6,8 +6,10 @@ printed as a table, or as one JSON object with ``--json``.
 
 Exit status: 0 when done; 1 when the command ran but reports an invalid tree (the result
 says ``"valid": false`` and lists the problems: ``jaxbvh stats``); 2 for bad input
-(missing or malformed files, trees a command cannot work on, bad options), after one line
-``jaxbvh: error: ...`` on stderr.
+(missing or malformed files, trees a command cannot work on, bad options, options out of
+range, whether argparse or the command finds them), after one line ``jaxbvh: error:
+...`` on stderr (no usage block: :class:`Parser`). Warnings are one line each too,
+``jaxbvh: warning: ...`` (:func:`one_line_warnings`).
 
 JAX's persistent compilation cache is on: compiled programs are reused across runs.
 It lives in ``~/.cache/jaxbvh/jax`` unless ``JAXBVH_CACHE_DIR`` names another folder;
@@ -108,8 +110,19 @@ def _load_commands() -> dict:
     return {name: importlib.import_module(f"jaxbvh.cli.commands.{name}") for name in command_names()}
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse's parser with usage errors in the tool's one-line form:
+    ``jaxbvh: error: COMMAND: MESSAGE (see jaxbvh COMMAND --help)``, exit status 2,
+    like every other bad input (argparse would print the usage block first)."""
+
+    def error(self, message):
+        command = self.prog.split(" ", 1)[1] + ": " if " " in self.prog else ""
+        text = " ".join(f"{command}{message} (see {self.prog} --help)".split())
+        self.exit(EXIT_USAGE, f"jaxbvh: error: {text}\n")
+
+
 def make_parser() -> tuple[argparse.ArgumentParser, dict]:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="jaxbvh",
         description="Build, inspect and optimize BVHs for ray tracing (JAX).",
         epilog=f"JAX compilation cache: {cache_dir()} (set JAXBVH_CACHE_DIR to move it).")
