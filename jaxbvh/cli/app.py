@@ -31,6 +31,7 @@ from jaxbvh import __version__
 from jaxbvh.cli import command_kit, commands
 from jaxbvh.io import MeshError, use_mesh_cache
 from jaxbvh.io import meshes as io
+from jaxbvh.optimize import driver
 from jaxbvh.tree.validate import InvalidTreeError
 
 # the order commands are listed in ``--help``; modules of ``jaxbvh.cli.commands`` not named
@@ -184,7 +185,15 @@ def main(argv: list[str] | None = None) -> int:
         print("jaxbvh: interrupted", file=sys.stderr)
         return 130
     command_kit.print_result(result, as_json=getattr(args, "json", False))
-    return EXIT_INVALID if result.get("valid") is False else 0
+    status = EXIT_INVALID if result.get("valid") is False else 0
+    if argv is None and driver.compiling():
+        # a run whose time budget ran out while compiling left a worker in XLA: the
+        # result is out, so end now (the interpreter's shutdown would abort under it, and
+        # waiting for it would break the budget); only as the process's own entry point
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(status)
+    return status
 
 
 if __name__ == "__main__":

@@ -267,7 +267,9 @@ def _box_problems(a: _Arrays, links: _Links, runs: _Runs, n_prims: int, prim_lo,
         malformed = links.real & ~sound.all(1)
         problems.append(f"node(s) {few_ids(np.flatnonzero(malformed))} have non-finite or inverted boxes")
     rows, kids = links.rows, links.kids
-    out = _outside(lo[kids], hi[kids], lo[rows], hi[rows])
+    # np.take: several times faster than x[ids] on [N, 3] rows at millions of ids
+    take = lambda x, ids: np.take(x, ids, axis=0)  # noqa: E731
+    out = _outside(take(lo, kids), take(hi, kids), take(lo, rows), take(hi, rows))
     if out is not None:
         problems.append(f"box of node(s) {few_ids(rows[out])} does not contain the box of child(ren) "
                         f"{few_ids(kids[out])}")
@@ -275,7 +277,7 @@ def _box_problems(a: _Arrays, links: _Links, runs: _Runs, n_prims: int, prim_lo,
         plo, phi = np.asarray(prim_lo), np.asarray(prim_hi)
         ok = (runs.prims >= 0) & (runs.prims < n_prims)
         p, owner = (runs.prims, runs.owner) if ok.all() else (runs.prims[ok], runs.owner[ok])
-        outside = _outside(plo[p], phi[p], lo[owner], hi[owner])
+        outside = _outside(take(plo, p), take(phi, p), take(lo, owner), take(hi, owner))
         if outside is not None:
             problems.append(f"leaf box(es) {few_ids(np.unique(owner[outside]))} do not contain "
                             f"primitive(s) {few_ids(p[outside])}")

@@ -70,8 +70,10 @@ def add_parser(subparsers):
                              + f" (default: {DEFAULT_METHOD})")
     command_kit.add_seed(parser, "random seed for annealing")
     parser.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
-                        help="stop after about this many seconds (compiling apart) with the best "
-                             "tree so far (default: run to convergence)")
+                        help="wall-clock seconds from the start of optimizing, compiling included: "
+                             "stop then with the best tree so far; when compiling alone takes longer, "
+                             "the start tree comes back unchanged, with a warning (default: run to "
+                             "convergence)")
     parser.add_argument("-o", "--output", metavar="OUT.npz", default=None,
                         help="save the optimized tree (interchange .npz with its frame)")
     OPTIONS.add_to(parser, "method options (fields of each method's Config; defaults per method)")
