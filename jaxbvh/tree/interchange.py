@@ -115,12 +115,14 @@ def from_interchange(arrays, *, pad: bool = True, dtype=None):
     for key in ("prim_start", "prim_count"):
         a = _integer_array(arrays, key)
         if a.shape != (nodes,):
-            raise ValueError(f"tree '{key}' must be int [{nodes}], got {a.dtype} {a.shape}")
+            raise ValueError(f"tree '{key}' must be int [{nodes}] (a row per row of 'child'), "
+                             f"got {a.dtype} {a.shape}")
         fields[key] = a
     for key in ("lo", "hi"):
         a = np.asarray(arrays[key])
         if a.shape != (nodes, 3):
-            raise ValueError(f"tree '{key}' must be float [{nodes}, 3], got {a.dtype} {a.shape}")
+            raise ValueError(f"tree '{key}' must be float [{nodes}, 3] (a row per row of 'child'), "
+                             f"got {a.dtype} {a.shape}")
         fields[key] = _box_array(key, a, dtype)
     prim_index = _integer_array(arrays, "prim_index")
     if prim_index.ndim != 1:
