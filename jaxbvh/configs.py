@@ -98,7 +98,10 @@ def integer(minimum: int | None = None, maximum: int | None = INT_MAX) -> Callab
         whole = isinstance(value, numbers.Real) and not isinstance(value, bool) and _is_whole(value)
         in_range = whole and (minimum is None or value >= minimum) and (maximum is None or value <= maximum)
         if not in_range:
-            what = _interval("an integer", minimum, maximum, None, None)
+            # the int32 bound is named only to a value that passed it: "an integer >= 1"
+            # is what a user who typed 0 needs to read
+            shown_max = maximum if maximum != INT_MAX or (whole and value > INT_MAX) else None
+            what = _interval("an integer", minimum, shown_max, None, None)
             raise ValueError(f"{name} must be {what}, got {value!r}")
         return int(value)
 
