@@ -7,8 +7,11 @@ trimesh's ``Scene.to_geometry()`` order: instances in ``scene.graph.nodes_geomet
 order, each instance's faces in their stored order, vertices moved to world space (a
 mirroring transform reverses the winding of its faces, as trimesh does).
 
-Nothing is dropped silently. Files without triangles, non-finite coordinates and face
-indices that name no vertex raise :class:`MeshError` naming the file and the problem.
+Nothing is dropped silently. Files without triangles, non-finite coordinates, face
+indices that name no vertex (an OBJ's index 0 included: OBJ counts from 1) and binary STL
+files cut short raise :class:`MeshError` naming the file and the problem. Text that is
+not UTF-8 is read as Latin-1 (:func:`_lenient_text`): the geometry of these formats is
+ASCII, and trimesh would otherwise need an optional dependency to read a stray byte.
 Zero-area triangles are kept (a BVH handles them fine) and counted in
 :attr:`Mesh.degenerate`. Scene geometry that is not a triangle mesh (lines, points next
 to meshes) is listed in :attr:`Mesh.skipped` and reported with a warning.
