@@ -246,20 +246,22 @@ def check_against_mesh(loaded: TreeFile, mesh: Mesh) -> MeshCheck:
         problem = (f"{loaded.path}: the tree's leaves hold {referenced} primitives but "
                    f"{mesh.path} has {mesh.n_triangles} triangles")
         return MeshCheck(local.astype(dtype), [problem], str(dtype))
-    precisions = [dtype] + ([np.dtype(np.float32)] if dtype == np.float64 else [])
-    for precision in precisions:
-        triangles = local.astype(precision).astype(dtype)  # exact widening after the rounding
-        problems = check(tree, triangles.min(axis=1), triangles.max(axis=1))
-        if not problems:
-            break
-        if precision == dtype:
-            first = problems
-    else:
-        problems = first  # report the check in the stored precision
-        precision = dtype
+    stored = _checked_in(loaded, local, dtype, dtype)
+    if stored.problems and dtype == np.float64:
+        as_float32 = _checked_in(loaded, local, np.dtype(np.float32), dtype)
+        if not as_float32.problems:
+            return as_float32
+    return stored
+
+
+def _checked_in(loaded: TreeFile, local, precision, dtype) -> MeshCheck:
+    """The check of :func:`check_against_mesh` with the triangles ``local`` (float64, in
+    the tree's frame) rounded to ``precision`` and widened (exactly) to ``dtype``."""
+    triangles = local.astype(precision).astype(dtype)
+    problems = check(loaded.tree, triangles.min(axis=1), triangles.max(axis=1))
     if problems:
         problems = [f"{loaded.path}: {problems[0]}"] + problems[1:]
-    return MeshCheck(triangles if not problems else local.astype(dtype), problems, str(precision))
+    return MeshCheck(triangles, problems, str(np.dtype(precision)))
 
 
 def require_matplotlib(option: str) -> None:
