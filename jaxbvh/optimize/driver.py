@@ -15,12 +15,14 @@ Time budget. ``time_budget`` (seconds) is wall time counted from the call to
 it. The programs (the loop of steps and ``result``) are compiled ahead of time in a
 worker thread while the caller waits at most the budget; when compiling alone outruns
 it, :func:`run` returns the start tree unchanged (``steps`` 0, not converged) with a
-``UserWarning`` saying so, and the worker finishes in the background (JAX's persistent
-cache, when on, keeps the programs for the next run). Otherwise the run stops at the end
-of the chunk that crosses the budget (chunks grow only while short, so the overshoot
-stays small) and returns the state it reached: the best tree so far for every optimizer
-(all of them only lower the SAH, except annealing, which keeps its best). No host
-callback runs inside a compiled program, so every compiled piece is cached.
+``UserWarning`` saying so, and the worker finishes in the background (its programs then
+serve later runs in this process; the command line does not wait for it, so there a
+budget must exceed the compile time once, after which the persistent cache serves).
+Otherwise the run stops at the end of the chunk that crosses the budget (chunks grow
+only while short, so the overshoot stays small) and returns the state it reached: the
+best tree so far for every optimizer (all of them only lower the SAH, except annealing,
+which keeps its best). No host callback runs inside a compiled program, so every
+compiled piece is cached.
 
 Batches. :func:`init_batch` starts any optimizer on a batch of trees (one capacity,
 :func:`jaxbvh.tree.batching.stack_trees`): each tree's state is made by ``init`` on the
@@ -177,8 +179,9 @@ def prepare_within(optimizer, tree, config, key, state, budget: TimeBudget):
     if worker.is_alive() or budget.spent():
         _workers.append(worker)
         warnings.warn(f"time budget of {budget.seconds:g} s ran out while {optimizer.name} was being "
-                      "prepared and compiled: returning the start tree unchanged (give a budget "
-                      "above the compile time; compiled programs are cached across runs)", stacklevel=3)
+                      "prepared and compiled: returning the start tree unchanged; a budget above the "
+                      "compile time compiles once, and a compilation cache (the command line's "
+                      "persists) makes later runs start sooner", stacklevel=3)
         return None
     return done["ready"]
 
