@@ -117,12 +117,15 @@ class Parser(argparse.ArgumentParser):
     like every other bad input (argparse would print the usage block first)."""
 
     def error(self, message):
+        """Print ``message`` as one ``jaxbvh: error:`` line and exit with status 2."""
         command = self.prog.split(" ", 1)[1] + ": " if " " in self.prog else ""
         text = " ".join(f"{command}{message} (see {self.prog} --help)".split())
         self.exit(EXIT_USAGE, f"jaxbvh: error: {text}\n")
 
 
 def make_parser() -> tuple[argparse.ArgumentParser, dict]:
+    """The ``jaxbvh`` parser with one subparser per command, and ``{command: module}`` (each
+    module has ``add_parser`` and ``run``)."""
     parser = Parser(
         prog="jaxbvh",
         description="Build, inspect and optimize BVHs for ray tracing (JAX).",

@@ -28,6 +28,7 @@ BYTES_PER_TRIANGLE_PER_MEMBER = 256
 
 
 def add_parser(subparsers):
+    """Add the ``evolve`` subparser (its options and help) to ``subparsers``; returns it."""
     # option values are checked in run() by EvolveConfig, so a bad one is a one-line error like bad input
     parser = subparsers.add_parser("evolve", help=HELP, description=HELP + ".")
     command_kit.add_mesh_arg(parser, required=True)
@@ -40,6 +41,7 @@ def add_parser(subparsers):
 
 
 def run(args) -> dict:
+    """Run ``jaxbvh evolve`` on parsed ``args``; returns the result the command prints."""
     config = OPTIONS.config(None, args)  # the library's checks, one-line errors
     if config.generations > command_kit.MAX_RUNS:
         raise ValueError(f"--generations {config.generations:,} is more than this command runs: "

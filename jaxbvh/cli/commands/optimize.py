@@ -61,6 +61,7 @@ BYTES_PER_NODE_PER_CHAIN = 400
 
 
 def add_parser(subparsers):
+    """Add the ``optimize`` subparser (its options and help) to ``subparsers``; returns it."""
     parser = subparsers.add_parser("optimize", help=HELP, description=HELP + ".")
     parser.add_argument("input", metavar="INPUT",
                         help="a mesh/scene file (built with the default builder first) or a "
@@ -115,6 +116,7 @@ def _check(tree, optimized, prim_lo, prim_hi) -> None:
 
 
 def run(args) -> dict:
+    """Run ``jaxbvh optimize`` on parsed ``args``; returns the result the command prints."""
     if args.time_budget is not None and not args.time_budget > 0:
         raise ValueError(f"--time-budget must be > 0 seconds, got {args.time_budget}")
     builder = command_kit.builder_config(args)

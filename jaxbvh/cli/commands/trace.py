@@ -28,6 +28,7 @@ HELP = "trace rays through a tree (.npz) over its mesh; report box and primitive
 
 
 def add_parser(subparsers):
+    """Add the ``trace`` subparser (its options and help) to ``subparsers``; returns it."""
     parser = subparsers.add_parser("trace", help=HELP, description=HELP + ".")
     parser.add_argument("tree", metavar="TREE", help="a tree .npz (jaxbvh build -o, or another "
                                                     "library's export) over MESH's triangles")
@@ -87,6 +88,7 @@ def depth_warning(tree, rays: int, batch: int) -> str | None:
 
 
 def run(args) -> dict:
+    """Run ``jaxbvh trace`` on parsed ``args``; returns the result the command prints."""
     costs = COSTS.config(None, args)
     command_kit.check_fits("--rays", args.rays, BYTES_PER_RAY, "rays, their hits and counters")
     if args.image:
