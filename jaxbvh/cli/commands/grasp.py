@@ -43,6 +43,9 @@ def run(args) -> dict:
     import numpy as np
 
     config = OPTIONS.config(None, args)  # the library's checks, one-line errors
+    if config.trials > command_kit.MAX_RUNS:
+        raise ValueError(f"--trials {config.trials:,} is more than this command runs: "
+                         f"at most {command_kit.MAX_RUNS:,} (each builds a tree: hours of work already)")
     if str(args.mesh).lower().endswith(TREE_SUFFIXES):
         raise ValueError(f"{args.mesh} is a tree file; grasp builds from a mesh")
     names = ["load", "grasp", "validate"] + (["save"] if args.output else [])
@@ -59,7 +62,7 @@ def run(args) -> dict:
 
         with stages("grasp"):
             start = time.perf_counter()
-            result = grasp.grasp(jax.random.key(args.seed), lo, hi, config, on_chunk=on_chunk)
+            result = grasp.grasp(command_kit.seed_key(args.seed), lo, hi, config, on_chunk=on_chunk)
             tree = jax.block_until_ready(result.tree)
             seconds = time.perf_counter() - start
         bar.close()
