@@ -43,6 +43,17 @@ room that opening may fill. The root segment is ``[0, C)`` with the instances' B
    room after it, the right half starts at ``start + n_L + spare_L``. So how much a
    subtree may open does not depend on the order segments are processed in.
 
+BRef boxes
+==========
+A BRef's box is the world box of its node if the node is a leaf, else the union of the
+world boxes of its two children (one level down). Under a rotation the conservative world
+box of an object node (the box of its 8 transformed corners) is much looser than its
+children's together, and rotated instances reach the top level only through these boxes
+(a pile of rotated instances); the union still contains every triangle below the node and
+every child's world box, so the flattened tree stays valid
+(:func:`jaxbvh.twolevel.flatten` keeps the BRef boxes for the BRefs' own nodes). Under
+the identity it is the node's own box.
+
 Primitive counts are exact by default (``Forest.subtree_prims``); ``estimate=True``
 uses the paper's estimate instead: the root has its object's count, a child gets
 ``max(parent // 2, 1)`` (binary object trees). ``threshold = inf`` never opens: the

@@ -178,19 +178,23 @@ def slots_of(mesh, threshold: float = _brefs.DEFAULT_THRESHOLD, budget: float | 
 # ----------------------------------------------------------------------------------
 #
 # The flattened re-braided tree and the flattened plain two-level tree share every node
-# below the BRefs. The plain tree has, besides its top level, the object nodes *above*
-# the BRefs (the opened ones, each an interior node with its conservative world box);
-# the re-braided tree has its larger top level instead. With both roots on the same box
-# the difference of their SAH is therefore exactly
+# strictly below the BRefs. The plain tree has, besides its top level, the object nodes
+# *above* the BRefs (the opened ones, each an interior node: an object's root with its
+# BRef box, a deeper one with its world box) and the BRefs' own nodes with their world
+# boxes; the re-braided tree has its larger top level instead, and the BRefs' nodes with
+# their (tighter) BRef boxes. With both roots on the same box the difference of their SAH
+# (Ct = Ci = 1) is therefore exactly
 #
-#     Ct / A_root * (sum of A over re-braided top interior nodes
-#                    - sum of A over plain top interior nodes - sum of A over opened nodes),
+#     1 / A_root * (sum of A over re-braided top interior nodes
+#                   - sum of A over plain top interior nodes - sum of A over opened nodes
+#                   - sum over BRefs below a root of (A world - A BRef box) x their cost),
 #
 # O(BRefs) to compute, whatever the scene's size. Opening can make it positive: the top
-# level's binned SAH over BRefs is greedy and coarse, so where it splits an opened
-# node's children apart and then regroups them with other objects' pieces it builds a
-# worse hierarchy than the object's own (measured: the drone at threshold 0.01, 1.04x
-# two-level). The top level is then the plain one.
+# level bins BRefs by primitive count, a greedy and coarse estimate of what a subtree
+# costs, so where it splits an opened node's children apart and then regroups them with
+# other objects' pieces it builds a worse hierarchy than the object's own (measured: the
+# drone at threshold 0.01, 1.04x two-level; a by-material tree in the tests). The top
+# level is then the plain one.
 
 
 def _same_root_box(braided, plain):
@@ -211,8 +215,12 @@ def _interior_area(top) -> float:
 
 
 def _opened_area(node, instance, forest, instances) -> float:
-    """Sum of the half-areas of the world boxes of the object nodes above the BRefs
-    ``(node, instance)`` [B] int32 -- the nodes opening removed (float64)."""
+    """What the nodes above the BRefs ``(node, instance)`` [B] cost in the plain tree and
+    the BRefs' own nodes cost there beyond their BRef boxes: the half-areas of the opened
+    nodes' boxes as the plain flattened tree has them (an object's root: its BRef box;
+    below: its world box), plus, for every BRef below its object's root, (world box
+    half-area - BRef box half-area) x its cost (1 interior, its count a leaf; Ct = Ci = 1).
+    float64."""
     node, instance = np.asarray(node, np.int64), np.asarray(instance, np.int64)
     parent = np.asarray(forest.parent)
     nf = parent.shape[0]
@@ -230,9 +238,34 @@ def _opened_area(node, instance, forest, instances) -> float:
         return 0.0
     key = np.unique(np.concatenate(pairs))
     i, n = key // nf, key % nf
+    root = parent[n] < 0
+    loose = _area(*_world(forest, instances, n, i))
+    tight = _area(*_bref_box_np(forest, instances, n, i))
+    below = parent[node] >= 0
+    b_n, b_i = node[below], instance[below]
+    cost = np.where(np.asarray(forest.left)[b_n] >= 0, 1.0, np.asarray(forest.prim_count)[b_n].astype(np.float64))
+    extra = (_area(*_world(forest, instances, b_n, b_i)) - _area(*_bref_box_np(forest, instances, b_n, b_i))) * cost
+    return float(np.where(root, tight, loose).sum() + extra.sum())
+
+
+def _world(forest, instances, n, i):
+    """World boxes of forest nodes ``n`` under instances ``i`` (NumPy)."""
     to_scene, margin = np.asarray(instances.to_scene), np.asarray(instances.margin)
-    lo, hi = world_boxes(np.asarray(forest.lo)[n], np.asarray(forest.hi)[n], to_scene[i], margin[i])
-    return float(half_area(lo.astype(np.float64), hi.astype(np.float64)).sum())
+    return world_boxes(np.asarray(forest.lo)[n], np.asarray(forest.hi)[n], to_scene[i], margin[i])
+
+
+def _bref_box_np(forest, instances, n, i):
+    """BRef boxes (jaxbvh.twolevel.brefs, "BRef boxes") of forest nodes ``n`` under ``i``."""
+    left, right = np.asarray(forest.left)[n], np.asarray(forest.right)[n]
+    inner = (left >= 0)[:, None]
+    lo, hi = _world(forest, instances, n, i)
+    l_lo, l_hi = _world(forest, instances, np.maximum(left, 0), i)
+    r_lo, r_hi = _world(forest, instances, np.maximum(right, 0), i)
+    return np.where(inner, np.minimum(l_lo, r_lo), lo), np.where(inner, np.maximum(l_hi, r_hi), hi)
+
+
+def _area(lo, hi):
+    return half_area(np.asarray(lo, np.float64), np.asarray(hi, np.float64))
 
 
 def _keep_rebraided(braided, plain, forest, instances) -> bool:
@@ -345,6 +378,9 @@ def _flatten(tl):
     pad_f[:cf.size], pad_i[:cf.size] = cf, ci_
     w_lo, w_hi = _world_boxes_jit(f.lo[pad_f], f.hi[pad_f], inst.to_scene[pad_i], inst.margin[pad_i])
     lo[cid], hi[cid] = np.asarray(w_lo)[:cf.size], np.asarray(w_hi)[:cf.size]
+    # a BRef's own node keeps its BRef box (the union of its children's world boxes,
+    # jaxbvh.twolevel.brefs "BRef boxes"), which is the top-level leaf's box
+    lo[top_leaf], hi[top_leaf] = top.lo[top_leaf], top.hi[top_leaf]
     exact = inst.margin[ci_] == 0
     axis[cid] = np.where(exact & (f.left[cf] >= 0), f.axis[cf], -1)
     # leaves: runs of world triangle ids
