@@ -214,13 +214,14 @@ def _interior_area(top) -> float:
     return float(half_area(np.asarray(top.lo, np.float64)[inner], np.asarray(top.hi, np.float64)[inner]).sum())
 
 
-def _opened_area(node, instance, forest, instances) -> float:
+def _opened_area(node, instance, forest, instances, boxes: str = "world") -> float:
     """What the nodes above the BRefs ``(node, instance)`` [B] cost in the plain tree and
     the BRefs' own nodes cost there beyond their BRef boxes: the half-areas of the opened
     nodes' boxes as the plain flattened tree has them (an object's root: its BRef box;
     below: its world box), plus, for every BRef below its object's root, (world box
     half-area - BRef box half-area) x its cost (1 interior, its count a leaf; Ct = Ci = 1).
-    float64."""
+    ``boxes="object"``: nodes below a BRef's own node costed as :func:`sah` does with that
+    footing (the area of the transformed box, what the traversal tests). float64."""
     node, instance = np.asarray(node, np.int64), np.asarray(instance, np.int64)
     parent = np.asarray(forest.parent)
     nf = parent.shape[0]
@@ -239,12 +240,13 @@ def _opened_area(node, instance, forest, instances) -> float:
     key = np.unique(np.concatenate(pairs))
     i, n = key // nf, key % nf
     root = parent[n] < 0
-    loose = _area(*_world(forest, instances, n, i))
+    footing = _world_area if boxes == "world" else _object_area
+    loose = footing(forest, instances, n, i)
     tight = _area(*_bref_box_np(forest, instances, n, i))
     below = parent[node] >= 0
     b_n, b_i = node[below], instance[below]
     cost = np.where(np.asarray(forest.left)[b_n] >= 0, 1.0, np.asarray(forest.prim_count)[b_n].astype(np.float64))
-    extra = (_area(*_world(forest, instances, b_n, b_i)) - _area(*_bref_box_np(forest, instances, b_n, b_i))) * cost
+    extra = (footing(forest, instances, b_n, b_i) - _area(*_bref_box_np(forest, instances, b_n, b_i))) * cost
     return float(np.where(root, tight, loose).sum() + extra.sum())
 
 
@@ -252,6 +254,20 @@ def _world(forest, instances, n, i):
     """World boxes of forest nodes ``n`` under instances ``i`` (NumPy)."""
     to_scene, margin = np.asarray(instances.to_scene), np.asarray(instances.margin)
     return world_boxes(np.asarray(forest.lo)[n], np.asarray(forest.hi)[n], to_scene[i], margin[i])
+
+
+def _world_area(forest, instances, n, i):
+    return _area(*_world(forest, instances, n, i))
+
+
+def _object_area(forest, instances, n, i):
+    """Half-areas of the parallelepipeds the object boxes of nodes ``n`` become under
+    instances ``i`` (as :func:`sah` with ``boxes="object"``)."""
+    ext = np.maximum(np.asarray(forest.hi, np.float64)[n] - np.asarray(forest.lo, np.float64)[n], 0)
+    linear = np.asarray(instances.to_scene, np.float64)[i][:, :, :3]
+    e0, e1, e2 = (linear[:, :, k] * ext[:, k:k + 1] for k in range(3))
+    return (np.linalg.norm(np.cross(e0, e1), axis=1) + np.linalg.norm(np.cross(e1, e2), axis=1)
+            + np.linalg.norm(np.cross(e2, e0), axis=1))
 
 
 def _bref_box_np(forest, instances, n, i):
@@ -269,14 +285,18 @@ def _area(lo, hi):
 
 
 def _keep_rebraided(braided, plain, forest, instances) -> bool:
-    """The re-braided top level lowers the SAH (module comment above), by more than
-    rounding could account for (1e-6 relative; ties keep the plain one)."""
+    """The re-braided top level lowers the SAH (module comment above) on both footings of
+    :func:`sah`, by more than rounding could account for (1e-6 relative; ties keep the
+    plain one)."""
     count = int(braided.count)
     if count == int(plain.count):
         return False  # nothing opened: the same BRefs, and the plain top level is as good
     node, instance = np.asarray(braided.node)[:count], np.asarray(braided.instance)[:count]
-    gained = _interior_area(plain.top) + _opened_area(node, instance, forest, instances)
-    return _interior_area(braided.top) < gained * (1 - 1e-6)
+    added = _interior_area(braided.top)
+    # lower on both footings: world boxes (the paper's Table 1) and object frames (what the
+    # two-level traversal tests below a BRef; under rotations the two can disagree)
+    return all(added < (_interior_area(plain.top) + _opened_area(node, instance, forest, instances, boxes))
+               * (1 - 1e-6) for boxes in ("world", "object"))
 
 
 def build(mesh, builder: BuilderConfig | None = None, *, threshold: float = _brefs.DEFAULT_THRESHOLD,

@@ -471,6 +471,8 @@ def test_rebraided_sah_never_exceeds_two_level(mesh, options):
     tl = twolevel.build_from(mesh, trees, threshold=options["threshold"], budget=options["budget"],
                              overlap=options["overlap"], estimate=options["estimate"], shapes=SHAPES, info=info)
     assert twolevel.sah(tl) <= twolevel.sah(plain) * (1 + 1e-6), info
+    # ... and in object frames, what the two-level traversal tests below a BRef
+    assert twolevel.sah(tl, boxes="object") <= twolevel.sah(plain, boxes="object") * (1 + 1e-6), info
     if info["kept"] == "two-level":  # the plain top level, BRef for BRef
         assert int(tl.bref_count) == len(mesh.instances)
     # the flattened tree stays valid with the root on the instances' box
