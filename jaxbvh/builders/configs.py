@@ -13,6 +13,8 @@ class              method           knobs beyond ``max_leaf, ct, ci, pad, dtype`
 :class:`MedianConfig`  ``"median"``     none (``ct``, ``ci`` unused: it never prices a split)
 :class:`LBVHConfig`    ``"lbvh"``       ``morton_bits``
 :class:`PLOCConfig`    ``"ploc"``       ``morton_bits``, ``radius``
+:class:`SBVHConfig`    ``"sbvh"``       ``bins``, ``alpha``, ``reference_capacity`` (needs the
+                                        triangles, not only their boxes)
 =================  ===============  =====================================================
 """
 
@@ -23,7 +25,7 @@ from collections import OrderedDict
 from typing import Any, ClassVar
 
 from jaxbvh.builders.morton import CODE_BITS, check_code_bits
-from jaxbvh.configs import Checked, ci_knob, ct_knob, integer, knob
+from jaxbvh.configs import Checked, ci_knob, ct_knob, integer, knob, real
 
 
 def _code_bits(name, value):
@@ -105,10 +107,33 @@ class PLOCConfig(_MortonConfig):
                        help="neighbours on each side a cluster looks at")
 
 
+@dataclasses.dataclass(frozen=True)
+class SBVHConfig(BuilderConfig):
+    """Spatial-split BVH (Stich, Friedrich & Dietrich 2009): binned object splits, and
+    where the children of a node's best object split overlap by more than ``alpha``
+    times the root's area, binned spatial splits that clip straddling triangles to the
+    plane; a triangle may then sit in several leaves. Needs the triangles
+    (``jaxbvh.build(..., triangles=tri)``); :mod:`jaxbvh.builders.sbvh`.
+
+    ``bins``: bins per axis for both kinds of split. ``alpha``: the paper's overlap
+    threshold (1e-5; 0 tries spatial splits at every node, a large value never).
+    ``reference_capacity``: slots for references as a multiple of the triangle count
+    (at least 1); when they run out, nodes take object splits and the build says so.
+    """
+
+    method: ClassVar[str] = "sbvh"
+
+    bins: int = knob(16, check=integer(2), metavar="B", help="bins per axis")
+    alpha: float = knob(1e-5, check=real(0.0), metavar="A",
+                        help="overlap (fraction of the root's area) above which spatial splits are tried")
+    reference_capacity: float = knob(2.0, check=real(1.0, 64.0), metavar="F",
+                                     help="reference slots as a multiple of the triangle count")
+
+
 # method name -> Config class. An OrderedDict: ``method in BUILDERS`` and iterating give
 # the names in this order, and hypothesis' sampled_from takes it (it refuses plain dicts)
 BUILDERS: OrderedDict[str, type[BuilderConfig]] = OrderedDict(
-    (c.method, c) for c in (SweepConfig, BinnedConfig, MedianConfig, LBVHConfig, PLOCConfig))
+    (c.method, c) for c in (SweepConfig, BinnedConfig, MedianConfig, LBVHConfig, PLOCConfig, SBVHConfig))
 DEFAULT_BUILDER = "sweep"  # the method of jaxbvh.build(lo, hi) and of the command line
 
 # every builder knob: the keyword form of jaxbvh.build takes any of them for any method
