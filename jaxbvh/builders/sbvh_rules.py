@@ -17,13 +17,12 @@ itself (exact), the other two are interpolated, which rounds: they are widened b
 below 5 of them), so the box never misses a sliver of the triangle. The result is
 intersected with the reference's box: a reference covers the triangle's part inside the
 half-spaces of its ancestors' spatial splits, and clipping keeps that true for each
-child. Products whose rounding must not change under XLA's fused multiply-adds sit
-behind an optimization barrier, so JAX and NumPy compute the same boxes.
+child. No product feeds an add directly (XLA on CPU would fuse the two into a
+multiply-add, rounded once, which NumPy does not): JAX and NumPy compute the same boxes.
 """
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -37,16 +36,22 @@ def _xp(*arrays):
     return np if all(isinstance(a, (np.ndarray, np.generic, float, int)) for a in arrays) else jnp
 
 
-def _exact(xp, value):
-    """``value`` kept as rounded on its own (no fusing into a later add)."""
-    return value if xp is np else jax.lax.optimization_barrier(value)
+def _full(xp, divisor, like):
+    """``divisor`` with the shape of ``like``, as an array XLA cannot see as a broadcast.
+
+    XLA rewrites a division by a broadcast value into a multiplication by its
+    reciprocal, which rounds differently from NumPy's division; ``like - like`` is 0
+    for finite values and XLA does not fold it (it would be NaN for inf).
+    """
+    return divisor if xp is np else divisor + (like - like)
 
 
 def plane_at(lo, ext, j, bins: int):
     """Position of spatial plane ``j`` of a node whose box on the axis is ``[lo, lo + ext]``."""
     xp = _xp(lo, ext, j)
     dt = lo.dtype
-    return lo + _exact(xp, (ext * xp.asarray(j, dt)) / xp.asarray(bins, dt))
+    steps = ext * xp.asarray(j, dt)
+    return lo + steps / _full(xp, xp.asarray(bins, dt), steps)  # a division before the add: no fused multiply-add
 
 
 def bin_of(x, lo, ext, bins: int):
@@ -54,7 +59,7 @@ def bin_of(x, lo, ext, bins: int):
     0 where it is not)."""
     xp = _xp(x, lo, ext)
     dt = x.dtype
-    raw = xp.floor((x - lo) * xp.asarray(bins, dt) / xp.where(ext > 0, ext, xp.ones((), dt)))
+    raw = xp.floor((x - lo) * xp.asarray(bins, dt) / _full(xp, xp.where(ext > 0, ext, xp.ones((), dt)), x))
     return xp.where(ext > 0, xp.clip(raw, 0, bins - 1), 0).astype(xp.int32)
 
 
@@ -76,10 +81,13 @@ def crossings(tri, axis_mask, plane):
     a_i, a_j = va[..., i], va[..., j]
     p = plane[..., None]
     crosses = ((a_i < p) & (a_j > p)) | ((a_i > p) & (a_j < p))
-    t = (p - a_i) / xp.where(crosses, a_j - a_i, xp.ones((), dt))
     v_i, v_j = tri[..., i, :], tri[..., j, :]
-    x = v_i + _exact(xp, (v_j - v_i) * t[..., None])
-    margin = _exact(xp, xp.asarray(CLIP_MARGIN_EPS * np.finfo(dt).eps, dt) * (xp.abs(v_i) + xp.abs(v_j)))
+    denominator = _full(xp, xp.where(crosses, a_j - a_i, xp.ones((), dt))[..., None], v_i)
+    # a division last, never a product, before the add: XLA cannot fuse it into a
+    # multiply-add, so JAX rounds as NumPy does
+    x = v_i + ((v_j - v_i) * (p - a_i)[..., None]) / denominator
+    # 8 eps is a power of two: the product is exact, fused or not
+    margin = xp.asarray(CLIP_MARGIN_EPS * np.finfo(dt).eps, dt) * (xp.abs(v_i) + xp.abs(v_j))
     on_axis = axis_mask[..., None, :]
     x_lo = xp.where(on_axis, p[..., None], x - margin)
     x_hi = xp.where(on_axis, p[..., None], x + margin)
