@@ -12,7 +12,7 @@ import time
 import numpy as np
 
 import jaxbvh
-from jaxbvh.builders.configs import BUILDERS, DEFAULT_BUILDER, BuilderConfig
+from jaxbvh.builders.configs import ALL_BUILDERS, TRIANGLE_BUILDERS, DEFAULT_BUILDER, BuilderConfig
 from jaxbvh.cli import options as config_options
 from jaxbvh.configs import SAHCosts
 from jaxbvh.io import Mesh, TreeFile, bundled_mesh_path, load_any, load_mesh
@@ -54,11 +54,11 @@ BUILDER_EXCLUDE = ("pad", "dtype")
 def builder_options(default: BuilderConfig | None = None) -> config_options.ConfigOptions:
     """The builder options; ``default``: a Config whose values are its builder's defaults
     (None: every builder's class defaults)."""
-    configs = dict(BUILDERS)
+    configs = dict(ALL_BUILDERS)
     if default is not None:
         configs[default.method] = default
     return config_options.ConfigOptions(configs, exclude=BUILDER_EXCLUDE, method_flag="--builder",
-                                        families=dict.fromkeys(BUILDERS, "builders"),
+                                        families=dict.fromkeys(ALL_BUILDERS, "builders"),
                                         check_while_parsing=True)
 
 
@@ -67,9 +67,10 @@ def add_builder_args(parser, *, default: BuilderConfig | None = None) -> None:
     the builder (its method and values) when no option says otherwise (None:
     :data:`~jaxbvh.builders.configs.DEFAULT_BUILDER` with its class defaults)."""
     method = DEFAULT_BUILDER if default is None else default.method
-    parser.add_argument("--builder", choices=list(BUILDERS), default=method,
+    parser.add_argument("--builder", choices=list(ALL_BUILDERS), default=method,
                         help="sweep, binned or median (top-down SAH engine), lbvh or ploc (bottom-up "
-                             "from Morton order: much faster on big inputs) (default: %(default)s)")
+                             "from Morton order: much faster on big inputs), sbvh (spatial splits: "
+                             "triangles in several leaves) (default: %(default)s)")
     options = builder_options(default)
     options.add_to(parser, "builder options (knobs of each builder's Config)")
     parser.set_defaults(builder_options=options)
@@ -220,12 +221,16 @@ def build_mesh_tree(mesh: Mesh, builder: BuilderConfig, stages: Stages):
     import jax
 
     lo, hi = mesh.local_boxes()
+    triangles = mesh.local_triangles() if builder.method in TRIANGLE_BUILDERS else None
     with stages("build"):
-        tree = jaxbvh.build(lo, hi, builder)
+        tree = jaxbvh.build(lo, hi, builder, triangles=triangles)
         # the capacity a saved copy loads with: same shape, same compiled programs
         tree = compact(jax.block_until_ready(tree))
     with stages("validate"):
-        jaxbvh.validate(tree, lo, hi)
+        if triangles is None:
+            jaxbvh.validate(tree, lo, hi)
+        else:  # a triangle may sit in several leaves: each leaf box holds a piece of it
+            jaxbvh.validate(tree, lo, hi, references=True, triangles=triangles)
     return tree, lo, hi
 
 
