@@ -234,6 +234,17 @@ def build_mesh_tree(mesh: Mesh, builder: BuilderConfig, stages: Stages):
     return tree, lo, hi
 
 
+def references_per_primitive(tree) -> float:
+    """Leaf slots per distinct primitive the leaves name (1.0 without references)."""
+    t = jaxbvh.to_numpy(tree)
+    leaves = np.flatnonzero(np.asarray(t.prim_count) > 0)
+    if not leaves.size:
+        return 1.0
+    slots = tree_mod.concat_ranges(np.asarray(t.prim_start)[leaves], np.asarray(t.prim_count)[leaves])
+    prims = np.asarray(t.prim_index)[slots]
+    return float(prims.size / max(np.unique(prims).size, 1))
+
+
 def tree_stats(tree, costs=SAHCosts()) -> dict:
     """Nodes, leaves, depth, leaf sizes and all costs of ``tree`` as plain Python values;
     ``costs``: a Config with the SAH's ``ct``, ``ci`` (a builder's, or :class:`SAHCosts`)."""
@@ -251,6 +262,8 @@ def tree_stats(tree, costs=SAHCosts()) -> dict:
         "leaf_size_mean": float(leaf_sizes.mean()) if leaf_sizes.size else 0.0,
         "leaf_size_max": int(leaf_sizes.max()) if leaf_sizes.size else 0,
         "primitives": int(leaf_sizes.sum()),
+        # > 1 only in trees with references (spatial splits): leaf slots per distinct primitive
+        "references_per_triangle": references_per_primitive(t),
         "capacity": int(np.asarray(t.prim_count).shape[0]),
         "dtype": str(np.asarray(t.lo).dtype),
     }

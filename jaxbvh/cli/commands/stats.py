@@ -48,17 +48,23 @@ def _tree_stats(loaded, args, costs, stages) -> dict:
     options' ``--ct``, ``--ci``)."""
     tree, frame = loaded.tree, loaded.frame
     result = {"command": "stats", "kind": "tree", "input": loaded.path}
+    # a primitive in several leaves: a tree with references (spatial splits), checked as one
+    references = command_kit.references_per_primitive(tree) > 1
     with stages("validate"):
-        problems = jaxbvh.check(tree)
+        problems = jaxbvh.check(tree, references=references)
         against = "structure only (pass --mesh to check boxes)"
         if not problems and args.mesh is not None:
             mesh = command_kit.mesh_or_default(args.mesh)
             world_lo, world_hi = mesh.prim_boxes()
             lo, hi = boxes_in_frame(world_lo, world_hi, frame, tree.lo.dtype)
             referenced = int(tree.prim_count.sum())
-            if referenced != mesh.n_triangles:
+            if referenced != mesh.n_triangles and not references:
                 problems = [f"the tree's leaves hold {referenced} primitives but "
                             f"{mesh.path} has {mesh.n_triangles} triangles"]
+            elif references:
+                triangles = frame.to_local(mesh.triangles).astype(tree.lo.dtype) if not frame.is_identity \
+                    else mesh.triangles.astype(tree.lo.dtype)
+                problems = jaxbvh.check(tree, lo, hi, references=True, triangles=triangles)
             else:
                 problems = jaxbvh.check(tree, lo, hi)
             result.update({"mesh": str(mesh.path), "triangles": mesh.n_triangles,
