@@ -55,6 +55,9 @@ references (segment sums and minima keyed by node, axis and bin) score both kind
 split for all open nodes at once, and a split reference's second piece takes a fresh
 slot. Nodes are numbered level by level, root 0; the loop ends when a level opens no
 node (at most ``2 R`` levels: every level adds nodes, and there are fewer than ``2 R``).
+The per-node arrays of a level have F slots, F at least its open nodes; the loop runs in
+stages of growing F (:func:`stage_slots`), so the narrow top levels do not pay for the
+widest level's arrays.
 """
 
 from __future__ import annotations
@@ -191,16 +194,21 @@ def _initial(scene: _Scene, n) -> _State:
 
 
 def _no_spatial(slots, dt):
+    """A :class:`~jaxbvh.builders.sbvh_splits.Split` of no candidate for every slot."""
     inf = jnp.full(slots, jnp.inf, dt)
     zi = jnp.zeros(slots, jnp.int32)
     box = jnp.zeros((slots, 3), dt)
     return splits.Split(inf, zi, zi, box, box, box, box, zi, zi)
 
 
-def _level(scene: _Scene, s: _State, *, bins: int) -> _State:
-    """Build one level: every open node becomes a leaf or is split, its children open."""
-    slots = s.ref_prim.shape[0]  # F = R: a level has at most one open node per reference
-    nodes = 2 * slots
+def _level(scene: _Scene, s: _State, *, bins: int, slots: int) -> _State:
+    """Build one level: every open node becomes a leaf or is split, its children open.
+
+    ``slots``: F, at least the number of open nodes (static: the size of the per-node
+    arrays of the split searches).
+    """
+    refs = s.ref_prim.shape[0]
+    nodes = 2 * refs
     dt = scene.tri.dtype
     open_nodes = s.next_free - s.level_start
     in_level = (s.ref_node >= s.level_start) & (s.ref_node < s.next_free)
@@ -210,12 +218,12 @@ def _level(scene: _Scene, s: _State, *, bins: int) -> _State:
     count = splits.segment(jax.ops.segment_sum, in_level.astype(jnp.int32), seg, slots)
     node_lo = splits.segment(jax.ops.segment_min, s.ref_lo, seg, slots)
     node_hi = splits.segment(jax.ops.segment_max, s.ref_hi, seg, slots)
-    tri_r = scene.tri[jnp.clip(s.ref_prim, 0, slots - 1)]
+    tri_r = scene.tri[jnp.clip(s.ref_prim, 0, refs - 1)]
 
     obj, bin3 = splits.object_split(s.ref_lo, s.ref_hi, seg, slots, scene.scale, bins)
     found = obj.cost < jnp.inf
     tried = is_open & found & (count > 1) & (splits.overlap_area(obj, scene.scale) > scene.threshold)
-    empty_bins = splits.Bins(jnp.zeros((slots, 3), jnp.int32), jnp.zeros((slots, 3), jnp.int32))
+    empty_bins = splits.Bins(jnp.zeros((refs, 3), jnp.int32), jnp.zeros((refs, 3), jnp.int32))
     spatial, ref_bins = jax.lax.cond(
         jnp.any(tried),
         lambda: splits.spatial_split(tri_r, s.ref_lo, s.ref_hi, seg, node_lo, node_hi, tried, slots,
@@ -239,14 +247,14 @@ def _level(scene: _Scene, s: _State, *, bins: int) -> _State:
                                     scene.scale, bins)
 
     def no_sides():
-        none = jnp.zeros(slots, bool)
+        none = jnp.zeros(refs, bool)
         return (splits.Sides(none, none, s.ref_lo, s.ref_hi, s.ref_lo, s.ref_hi), jnp.zeros(slots, bool),
                 jnp.zeros(slots, jnp.int32))
 
     side, ok, extra = jax.lax.cond(jnp.any(wants), sides, no_sides)
     asking = wants & ok
     asked = jnp.cumsum(jnp.where(asking, extra, 0))
-    granted = asking & (asked <= slots - s.n_refs)
+    granted = asking & (asked <= refs - s.n_refs)
     short = s.short | jnp.any(asking & ~granted)
 
     # children: two per split node, in node order
@@ -256,7 +264,7 @@ def _level(scene: _Scene, s: _State, *, bins: int) -> _State:
     # halves by triangle id where no object plane was found (rare: computed only then)
     halves = split & ~found
     by_id = jax.lax.cond(jnp.any(halves), lambda: splits.rank_by_prim(s.ref_prim, seg, slots),
-                         lambda: jnp.zeros(slots, jnp.int32))
+                         lambda: jnp.zeros(refs, jnp.int32))
     obj_axis_r = take(obj.axis, seg, 0)
     obj_left = jnp.take_along_axis(bin3, obj_axis_r[:, None], axis=1)[:, 0] <= take(obj.plane, seg, 0)
     obj_left = jnp.where(take(found, seg, False), obj_left, by_id < take(count // 2, seg, 0))
@@ -267,7 +275,7 @@ def _level(scene: _Scene, s: _State, *, bins: int) -> _State:
     both = moving & goes_left & goes_right
     # the upper piece of a split reference takes a fresh slot
     fresh = s.n_refs + jnp.cumsum(both.astype(jnp.int32)) - both
-    fresh = jnp.where(both, fresh, slots)
+    fresh = jnp.where(both, fresh, refs)
     l_node, r_node = take(left_id, seg, nodes), take(right_id, seg, nodes)
     ref_node = jnp.where(moving, jnp.where(goes_left, l_node, r_node), s.ref_node)
     ref_lo = jnp.where(both[:, None], side.left_lo, s.ref_lo)
@@ -312,6 +320,26 @@ def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int) -> SBVHBuil
     dtype; ``bins`` static. Returns an :class:`SBVHBuild`.
     """
     scene = _Scene(tri, scale, threshold, max_leaf, ct, ci)
-    state = jax.lax.while_loop(lambda s: s.next_free > s.level_start, partial(_level, scene, bins=bins),
-                               _initial(scene, n))
+    state = _initial(scene, n)
+    for slots in stage_slots(tri.shape[0]):  # levels with few open nodes run on small arrays
+        state = jax.lax.while_loop(lambda s, f=slots: (s.next_free > s.level_start)
+                                   & (s.next_free - s.level_start <= f),
+                                   partial(_level, scene, bins=bins, slots=slots), state)
     return SBVHBuild(_tree(state), state.n_refs, state.spatial, state.short)
+
+
+#: growth of the per-level slot arrays from one stage to the next (:func:`stage_slots`)
+STAGE_GROWTH = 8
+
+
+def stage_slots(refs: int) -> list[int]:
+    """Slot counts F of the engine's stages for ``refs`` reference slots: 64, 512, ...
+    up to ``refs``. A level runs in the first stage whose F holds its open nodes; the
+    open nodes of a level are at most ``refs``, so the last stage takes any level. Each
+    stage compiles the level once more, and saves the work of per-node arrays sized
+    for the widest level on every narrow one (the top of the tree)."""
+    out, f = [], 64
+    while f < refs:
+        out.append(f)
+        f *= STAGE_GROWTH
+    return out + [refs]
