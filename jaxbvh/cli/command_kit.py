@@ -136,17 +136,20 @@ def load_tree(path, *, binary: bool = False, check: bool = True) -> TreeFile:
     return loaded
 
 
-def check_tree_file(loaded: TreeFile, prim_lo=None, prim_hi=None) -> TreeFile:
+def check_tree_file(loaded: TreeFile, prim_lo=None, prim_hi=None, *, triangles=None) -> TreeFile:
     """Raise :class:`~jaxbvh.tree.validate.InvalidTreeError` (naming the file) if the tree is broken.
 
     Every command that reads a tree calls this before any jitted loop: a cycle, a
     shared child or a NaN box would otherwise make a traversal or an optimizer loop run
     to its bound or return nonsense. The check is :func:`jaxbvh.check`: structure,
     primitive ids, finite boxes that contain their children, and with ``prim_lo``,
-    ``prim_hi`` [n, 3] (in the tree's frame) leaves that contain their primitives.
+    ``prim_hi`` [n, 3] (in the tree's frame) leaves that contain their primitives. A tree
+    that names a primitive in several leaves (spatial splits) is checked in references
+    mode, its leaf boxes together covering each of ``triangles`` [n, 3, 3] when given.
     """
-
-    problems = check(loaded.tree, prim_lo, prim_hi)
+    references = references_per_primitive(loaded.tree) > 1
+    problems = check(loaded.tree, prim_lo, prim_hi, references=references,
+                     triangles=triangles if references else None)
     if problems:
         raise InvalidTreeError([f"{loaded.path}: {problems[0]}"] + problems[1:])
     return loaded

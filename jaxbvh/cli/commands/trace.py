@@ -68,13 +68,14 @@ def run(args) -> dict:
             mesh = load_mesh(args.mesh)
             tree, frame = loaded.tree, loaded.frame
             referenced = int(np.asarray(tree.prim_count).sum())
-            if referenced != mesh.n_triangles:
+            references = command_kit.references_per_primitive(tree) > 1  # spatial splits
+            if referenced != mesh.n_triangles and not references:
                 raise ValueError(f"the tree's leaves hold {referenced} primitives but "
                                  f"{args.mesh} has {mesh.n_triangles} triangles")
             dtype = np.asarray(tree.lo).dtype
             triangles = triangles_in_frame(mesh, frame, dtype)
             # before any jitted loop; a leaf box that misses its triangle would lose hits
-            command_kit.check_tree_file(loaded, triangles.min(axis=1), triangles.max(axis=1))
+            command_kit.check_tree_file(loaded, triangles.min(axis=1), triangles.max(axis=1), triangles=triangles)
             key = jax.random.key(args.seed)
             origin, direction = rays.make_rays(key, args.kind, tree, triangles, args.rays)
         with stages("trace"):
