@@ -248,6 +248,15 @@ def references_per_primitive(tree) -> float:
     return float(prims.size / max(np.unique(prims).size, 1))
 
 
+def validate_any(tree, prim_lo=None, prim_hi=None, **kwargs):
+    """:func:`jaxbvh.validate`, in references mode when the tree names a primitive in
+    several leaves (an SBVH, ours or another library's); returns the tree."""
+    references = references_per_primitive(tree) > 1
+    if references:
+        kwargs.pop("n_prims", None)  # counted from the ids (leaf slots are references, not primitives)
+    return jaxbvh.validate(tree, prim_lo, prim_hi, references=references, **kwargs)
+
+
 def tree_stats(tree, costs=SAHCosts()) -> dict:
     """Nodes, leaves, depth, leaf sizes and all costs of ``tree`` as plain Python values;
     ``costs``: a Config with the SAH's ``ct``, ``ci`` (a builder's, or :class:`SAHCosts`)."""
