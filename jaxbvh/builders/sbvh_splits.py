@@ -12,7 +12,6 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from jaxbvh.builders import sbvh_rules as rules
 from jaxbvh.numerics import TIE_TOLERANCE, half_area, take
@@ -111,7 +110,6 @@ class Bins(NamedTuple):
 def _axis_bins(tri_r, ref_lo, ref_hi, seg, node_lo, ext, tried, slots: int, axis: int, bins: int):
     """Spatial bins of one axis: entry and exit counts [F, B], estimated bin boxes
     [F, B, 3], and each reference's entry and exit bin [R]."""
-    dt = ref_lo.dtype
     live = (seg < slots) & take(tried, seg, False)
     lo_r, ext_r = take(node_lo[:, axis], seg, 0), take(ext, seg, 0)
     b0 = rules.bin_of(ref_lo[:, axis], lo_r, ext_r, bins)
@@ -143,18 +141,43 @@ def _axis_bins(tri_r, ref_lo, ref_hi, seg, node_lo, ext, tried, slots: int, axis
     key = jnp.concatenate(keys)
     box_lo = segment(jax.ops.segment_min, jnp.concatenate(points_lo), key, slots * bins).reshape(slots, bins, 3)
     box_hi = segment(jax.ops.segment_max, jnp.concatenate(points_hi), key, slots * bins).reshape(slots, bins, 3)
-    del dt
     return entries, exits, box_lo, box_hi, b0, b1
 
 
+def compact_sizes(refs: int) -> list[int]:
+    """Buffer sizes the spatial search gathers the references of tried nodes into: a
+    64th and an 8th of the slots (at least 64) and all of them."""
+    return sorted({min(refs, max(64, refs // 64)), min(refs, max(64, refs // 8)), refs})
+
+
 def spatial_split(tri_r, ref_lo, ref_hi, seg, node_lo, node_hi, tried, slots: int, scale, bins: int):
-    """Binned spatial split of the slots ``tried`` [F] bool: ``(split, bins)``."""
+    """Binned spatial split of the slots ``tried`` [F] bool: ``(split, bins)``.
+
+    Only the references of tried nodes are binned (deep nodes are rarely tried: their
+    overlap falls below the threshold): they are gathered first into the smallest
+    buffer of :func:`compact_sizes` that holds them (one compiled branch per size).
+    """
+    refs = seg.shape[0]
     ext = node_hi - node_lo  # [F, 3]
-    per_axis = [_axis_bins(tri_r, ref_lo, ref_hi, seg, node_lo, ext[:, a], tried, slots, a, bins) for a in range(3)]
-    entries, exits, box_lo, box_hi, b0, b1 = (jnp.stack(v, axis=1) for v in zip(*per_axis))
-    usable = (ext > 0) & tried[:, None]
-    split = _sweep_bins((entries, exits), box_lo, box_hi, usable, scale, bins)
-    return split, Bins(b0, b1)
+    live = (seg < slots) & take(tried, seg, False)
+    order = jnp.argsort(~live, stable=True)  # the live references first
+
+    def search(size: int):
+        def run():
+            idx = order[:size]
+            sub_seg = jnp.where(live[idx], seg[idx], slots)
+            per_axis = [_axis_bins(tri_r[idx], ref_lo[idx], ref_hi[idx], sub_seg, node_lo, ext[:, a], tried,
+                                   slots, a, bins) for a in range(3)]
+            entries, exits, box_lo, box_hi, b0, b1 = (jnp.stack(v, axis=1) for v in zip(*per_axis))
+            split = _sweep_bins((entries, exits), box_lo, box_hi, (ext > 0) & tried[:, None], scale, bins)
+            full = jnp.zeros((refs, 3), jnp.int32)
+            return split, Bins(full.at[idx].set(b0), full.at[idx].set(b1))
+        return run
+
+    sizes = compact_sizes(refs)
+    n_live = jnp.sum(live, dtype=jnp.int32)
+    branch = sum((n_live > size).astype(jnp.int32) for size in sizes[:-1])
+    return jax.lax.switch(branch, [search(size) for size in sizes])
 
 
 class Sides(NamedTuple):
@@ -235,5 +258,3 @@ def rank_by_prim(prim, seg, slots: int):
     rank_sorted = pos - take(first, sorted_seg, 0)
     return jnp.zeros(seg.shape[0], jnp.int32).at[order].set(rank_sorted)
 
-
-_ = np  # NumPy only for types in docstrings
