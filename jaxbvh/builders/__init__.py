@@ -25,6 +25,7 @@ from jaxbvh.builders.configs import (
                                      ALL_BUILDERS,
                                      BUILDERS,
                                      DEFAULT_BUILDER,
+                                     TRIANGLE_BUILDERS,
                                      BinnedConfig,
                                      BuilderConfig,
                                      LBVHConfig,
@@ -32,7 +33,6 @@ from jaxbvh.builders.configs import (
                                      PLOCConfig,
                                      SBVHConfig,
                                      SweepConfig,
-                                     TRIANGLE_BUILDERS,
 )
 from jaxbvh.builders.dispatch import build
 from jaxbvh.builders.sbvh import SBVHBuild, build_sbvh

@@ -12,7 +12,7 @@ import time
 import numpy as np
 
 import jaxbvh
-from jaxbvh.builders.configs import ALL_BUILDERS, TRIANGLE_BUILDERS, DEFAULT_BUILDER, BuilderConfig
+from jaxbvh.builders.configs import ALL_BUILDERS, DEFAULT_BUILDER, TRIANGLE_BUILDERS, BuilderConfig
 from jaxbvh.cli import options as config_options
 from jaxbvh.configs import SAHCosts
 from jaxbvh.io import Mesh, TreeFile, bundled_mesh_path, load_any, load_mesh
