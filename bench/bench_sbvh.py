@@ -106,9 +106,9 @@ def one_mesh(name: str, args, work: Path) -> dict:
     jaxbvh.save(ours, jaxbvh.tree.interchange.compact(built.tree), frame=mesh.frame)
     if not args.no_peer:
         tiny = peer(mesh_path, args.repeat, str(work / name))
-        hq = jaxbvh.load(tiny["hq_npz"])
+        hq, _ = jaxbvh.load(tiny["hq_npz"])
         world = mesh.triangles.astype(np.float32)
-        hq_problems = jaxbvh.check(hq.tree, world.min(1), world.max(1), references=True, triangles=world)
+        hq_problems = jaxbvh.check(hq, world.min(1), world.max(1), references=True, triangles=world)
         row["tinybvh"] = {"binned": {k: tiny["binned"][k] for k in ("sah", "ms")},
                           "hq": {"sah": tiny["hq"]["sah"], "ms": tiny["hq"]["ms"],
                                  "references_per_triangle": tiny["hq"]["refs"] / tiny["hq"]["tris"],

@@ -8,6 +8,9 @@ as other BVH libraries export them; when the boxes are scene-relative two more a
 
 Padding is removed on the way out and added on the way in (capacity buckets,
 :mod:`jaxbvh.tree.layout`); node ids may be in any order and the root anywhere.
+``prim_index`` may name a primitive in several leaves (a tree with references: our
+SBVH, tinybvh's ``BuildHQ``); nothing here assumes each id once, and
+``jaxbvh.validate(tree, ..., references=True)`` checks such a tree.
 """
 
 from __future__ import annotations
