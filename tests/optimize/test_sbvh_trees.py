@@ -64,8 +64,16 @@ def test_all_hits_lists_each_triangle_once(ref_tree):
     lo, hi = boxes(tri)
     plain = jaxbvh.build(lo, hi, method="binned", bins=8)
     rng = np.random.default_rng(1)
-    origin = np.concatenate([rng.uniform(0, 1, (64, 2)), np.full((64, 1), 1.0)], axis=1).astype(np.float32)
-    direction = np.tile(np.float32([0, 0, -1]), (64, 1))
+    # grazing rays along the slivers, in their slab: they pass through the boxes of several
+    # pieces of a split triangle and pierce it once
+    m = 512
+    along = np.stack([np.ones(m), rng.uniform(-0.05, 0.05, m), rng.uniform(-0.02, 0.02, m)], 1)
+    origin = np.stack([np.full(m, -0.5), rng.uniform(0, 1, m), rng.uniform(0, 0.02, m)], 1)
+    swap = np.arange(m) % 2 == 1  # half of them along y
+    along[swap] = along[swap][:, [1, 0, 2]]
+    origin[swap] = origin[swap][:, [1, 0, 2]]
+    direction = (along / np.linalg.norm(along, axis=1)[:, None]).astype(np.float32)
+    origin = origin.astype(np.float32)
     got = jaxbvh.rays.traversal.all_hits(tree, tri, origin, direction, max_hits=64)
     want = jaxbvh.rays.traversal.all_hits(plain, tri, origin, direction, max_hits=64)
     np.testing.assert_array_equal(got.hit_count, want.hit_count)
