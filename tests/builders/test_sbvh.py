@@ -47,6 +47,22 @@ def test_jax_sbvh_equals_reference(tri, alpha, max_leaf, bins):
         (want.references, want.spatial_splits, want.out_of_capacity)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_jax_sbvh_equals_reference_where_spatial_splits_and_unsplitting_happen(seed):
+    """Long triangles at random angles among small ones: many spatial splits, clipped and
+    unsplit references (the soups above rarely need spatial splits)."""
+    rng = np.random.default_rng(seed)
+    n = 80  # a fifth of them large: seeds 0, 1, 2 unsplit 7, 6, 3 straddlers (of 29, 12, 16)
+    size = np.where(rng.random((n, 1, 1)) < 0.2, 1.0, 0.1)
+    tri = (rng.uniform(-1, 1, (n, 1, 3)) + rng.normal(size=(n, 3, 3)) * size).astype(np.float32)
+    config = SBVHConfig(alpha=0.0, max_leaf=2, bins=8)
+    got = build_sbvh(tri, config, capacity=2 * SLOTS)
+    want = reference.build(tri, config, capacity=2 * SLOTS)
+    assert want.spatial_splits > 0
+    assert canonical(got.tree) == canonical(want.tree)
+    assert (int(got.references), int(got.spatial_splits)) == (want.references, want.spatial_splits)
+
+
 @settings(max_examples=30)
 @given(tri=triangle_soups(max_size=40), alpha=st.sampled_from([0.0, 1e-5]), max_leaf=st.sampled_from([1, 4]))
 def test_every_sbvh_tree_is_valid_with_references_and_covers_every_triangle(tri, alpha, max_leaf):
