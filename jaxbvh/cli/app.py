@@ -108,6 +108,8 @@ def _load_commands() -> dict:
 
 
 def make_parser() -> tuple[argparse.ArgumentParser, dict]:
+    """The ``jaxbvh`` parser with one subparser per command, and ``{command: module}`` (each
+    module has ``add_parser`` and ``run``)."""
     parser = argparse.ArgumentParser(
         prog="jaxbvh",
         description="Build, inspect and optimize BVHs for ray tracing (JAX).",

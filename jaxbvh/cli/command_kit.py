@@ -22,6 +22,7 @@ from jaxbvh.tree.validate import InvalidTreeError, check
 
 
 def add_json(parser) -> None:
+    """Add ``--json`` (print the result as one JSON object on stdout) to ``parser``."""
     parser.add_argument("--json", action="store_true",
                         help="print the result as one JSON object on stdout")
 
@@ -200,6 +201,7 @@ class Stages:
             self.bar.update(1)
 
     def close(self):
+        """Close the progress bar."""
         self.bar.close()
 
     def __enter__(self):
@@ -284,6 +286,8 @@ def tree_stats(tree, costs=SAHCosts()) -> dict:
 
 
 def mesh_info(mesh: Mesh) -> dict:
+    """The report's entries about ``mesh``: input path, triangles, degenerate triangles,
+    objects, instances (JSON-ready)."""
     return {
         "input": str(mesh.path),
         "triangles": mesh.n_triangles,
@@ -347,6 +351,8 @@ def format_table(result: dict) -> str:
 
 
 def print_result(result: dict, as_json: bool = False, file=None) -> None:
+    """Print a command's ``result``: one JSON object with ``as_json``, else a table of its
+    entries (default file: stdout)."""
     file = file or sys.stdout
     if as_json:
         print(json.dumps(json_ready(result), allow_nan=False), file=file)

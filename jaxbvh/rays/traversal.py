@@ -330,15 +330,18 @@ def in_batches(run: Callable, origin, direction, t_min, t_max, *, batch: int, dt
 
 
 def closest_hit(tree, triangles, origin, direction, **kwargs) -> Hits:
-    """Closest hit of every ray (:func:`trace` with ``mode="closest"``)."""
+    """Closest hit of every ray (:func:`trace` with ``mode="closest"``): ``triangles``
+    [T, 3, 3], ``origin``, ``direction`` [R, 3] in the tree's frame; :class:`Hits` of [R]."""
     return trace(tree, triangles, origin, direction, mode="closest", **kwargs)
 
 
 def any_hit(tree, triangles, origin, direction, **kwargs) -> Hits:
-    """First hit found for every ray, e.g. for shadow rays (``mode="any"``)."""
+    """First hit found for every ray, e.g. for shadow rays (``mode="any"``); arrays as
+    :func:`closest_hit`."""
     return trace(tree, triangles, origin, direction, mode="any", **kwargs)
 
 
 def all_hits(tree, triangles, origin, direction, *, max_hits: int = 16, **kwargs) -> Hits:
-    """Every hit along every ray: ``hit_count`` and the first ``max_hits`` (``mode="all"``)."""
+    """Every hit along every ray: ``hit_count`` [R] and the first ``max_hits`` (``mode="all"``);
+    arrays as :func:`closest_hit`."""
     return trace(tree, triangles, origin, direction, mode="all", max_hits=max_hits, **kwargs)

@@ -7,20 +7,11 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
-from tests.test_cli import assert_one_line_error, grid_obj, run_cli, run_json
+from helpers import assert_one_line_error, grid_obj, run_cli, run_json
 
 import jaxbvh
 from jaxbvh import scenes
 from jaxbvh.io import boxes_in_frame, load_mesh
-
-
-@pytest.fixture(autouse=True, scope="module")
-def cache_dir(tmp_path_factory):
-    """Keep the compilation cache of the tests out of the user's home."""
-    path = tmp_path_factory.mktemp("jax-cache")
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setenv("JAXBVH_CACHE_DIR", str(path))
-        yield path
 
 
 @pytest.fixture(scope="module")

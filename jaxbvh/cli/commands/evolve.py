@@ -23,6 +23,7 @@ OPTIONS = config_options.ConfigOptions({"evolve": EvolveConfig}, exclude=("dtype
 
 
 def add_parser(subparsers):
+    """Add the ``evolve`` subparser (its options and help) to ``subparsers``; returns it."""
     # option values are checked in run() by EvolveConfig, so a bad one is a one-line error like bad input
     parser = subparsers.add_parser("evolve", help=HELP, description=HELP + ".")
     command_kit.add_mesh_arg(parser, required=True)
@@ -35,6 +36,7 @@ def add_parser(subparsers):
 
 
 def run(args) -> dict:
+    """Run ``jaxbvh evolve`` on parsed ``args``; returns the result the command prints."""
     import jax
 
     config = OPTIONS.config(None, args)  # the library's checks, one-line errors

@@ -25,6 +25,7 @@ OPTIONS = config_options.ConfigOptions({"grasp": GraspConfig}, exclude=("chunk_p
 
 
 def add_parser(subparsers):
+    """Add the ``grasp`` subparser (its options and help) to ``subparsers``; returns it."""
     # option values are checked in run() by GraspConfig, so a bad one is a one-line error like bad input
     parser = subparsers.add_parser("grasp", help=HELP, description=HELP + ".")
     command_kit.add_mesh_arg(parser, required=True)
@@ -37,6 +38,7 @@ def add_parser(subparsers):
 
 
 def run(args) -> dict:
+    """Run ``jaxbvh grasp`` on parsed ``args``; returns the result the command prints."""
     import jax
     import numpy as np
 

@@ -56,6 +56,7 @@ OPTIONS = config_options.ConfigOptions({name: o.Config for name, o in OPTIMIZERS
 
 
 def add_parser(subparsers):
+    """Add the ``optimize`` subparser (its options and help) to ``subparsers``; returns it."""
     parser = subparsers.add_parser("optimize", help=HELP, description=HELP + ".")
     parser.add_argument("input", metavar="INPUT",
                         help="a mesh/scene file (built with the default builder first) or a "
@@ -108,6 +109,7 @@ def _check(tree, optimized, prim_lo, prim_hi) -> None:
 
 
 def run(args) -> dict:
+    """Run ``jaxbvh optimize`` on parsed ``args``; returns the result the command prints."""
     import jax
 
     if args.time_budget is not None and not args.time_budget > 0:

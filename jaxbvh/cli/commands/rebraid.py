@@ -32,6 +32,7 @@ HELP = "compare two-level, re-braided and single BVHs of a multi-object scene (B
 
 
 def add_parser(subparsers):
+    """Add the ``rebraid`` subparser (its options and help) to ``subparsers``; returns it."""
     parser = subparsers.add_parser("rebraid", help=HELP, description=HELP + ".")
     parser.add_argument("scene", metavar="SCENE", help="a scene or mesh file (glTF, OBJ, ...); its "
                         "objects and instances are kept")
@@ -72,6 +73,7 @@ def _timed(fn):
 
 
 def run(args) -> dict:
+    """Run ``jaxbvh rebraid`` on parsed ``args``; returns the result the command prints."""
     import jax
 
     brefs.check_options(args.threshold, args.budget, args.top_bins, args.overlap)

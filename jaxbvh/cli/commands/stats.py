@@ -11,6 +11,7 @@ HELP = ("report nodes, depth, leaf sizes and costs of a tree (.npz) or of a mesh
 
 
 def add_parser(subparsers):
+    """Add the ``stats`` subparser (its options and help) to ``subparsers``; returns it."""
     parser = subparsers.add_parser("stats", help=HELP, description=HELP + ".")
     parser.add_argument("input", metavar="MESH_OR_TREE",
                         help="a tree .npz (jaxbvh build -o, or another library's export) "
@@ -23,6 +24,7 @@ def add_parser(subparsers):
 
 
 def run(args) -> dict:
+    """Run ``jaxbvh stats`` on parsed ``args``; returns the result the command prints."""
     builder = command_kit.builder_config(args)  # every builder option checked before any work
     names = ["load", "build", "validate"]
     with command_kit.Stages(args, names) as stages:

@@ -23,6 +23,7 @@ HELP = "trace rays through a tree (.npz) over its mesh; report box and primitive
 
 
 def add_parser(subparsers):
+    """Add the ``trace`` subparser (its options and help) to ``subparsers``; returns it."""
     parser = subparsers.add_parser("trace", help=HELP, description=HELP + ".")
     parser.add_argument("tree", metavar="TREE", help="a tree .npz (jaxbvh build -o, or another "
                                                     "library's export) over MESH's triangles")
@@ -57,6 +58,7 @@ def triangles_in_frame(mesh, frame, dtype) -> np.ndarray:
 
 
 def run(args) -> dict:
+    """Run ``jaxbvh trace`` on parsed ``args``; returns the result the command prints."""
     import jax
 
     costs = COSTS.config(None, args)
