@@ -13,6 +13,8 @@ module             what it holds
 ``lbvh``           Karras' radix tree over Morton codes (bottom-up)
 ``ploc``           Meister & Bittner's locally ordered clustering (bottom-up)
 ``bottom_up``      the shared finish of the bottom-up builders (boxes, leaf collapse)
+``sbvh``           spatial splits (Stich et al.): from triangles, references in several
+                   leaves; ``sbvh_splits`` its split searches, ``sbvh_rules`` the clipping
 ``insertion``      Goldsmith & Salmon insertion (wide trees, Ng & Trifonov's GA uses it)
 =================  =====================================================================
 
@@ -20,16 +22,20 @@ Each module's NumPy twin sits beside it as ``<module>_reference``.
 """
 
 from jaxbvh.builders.configs import (
+                                     ALL_BUILDERS,
                                      BUILDERS,
                                      DEFAULT_BUILDER,
+                                     TRIANGLE_BUILDERS,
                                      BinnedConfig,
                                      BuilderConfig,
                                      LBVHConfig,
                                      MedianConfig,
                                      PLOCConfig,
+                                     SBVHConfig,
                                      SweepConfig,
 )
 from jaxbvh.builders.dispatch import build
+from jaxbvh.builders.sbvh import SBVHBuild, build_sbvh
 
-__all__ = ["BUILDERS", "DEFAULT_BUILDER", "BuilderConfig", "SweepConfig", "BinnedConfig", "MedianConfig",
-           "LBVHConfig", "PLOCConfig", "build"]
+__all__ = ["ALL_BUILDERS", "TRIANGLE_BUILDERS", "BUILDERS", "DEFAULT_BUILDER", "BuilderConfig", "SweepConfig", "BinnedConfig", "MedianConfig",
+           "LBVHConfig", "PLOCConfig", "SBVHConfig", "SBVHBuild", "build", "build_sbvh"]

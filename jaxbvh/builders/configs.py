@@ -1,7 +1,9 @@
 """One frozen Config per builder: its knobs, their defaults, their checks.
 
 :func:`jaxbvh.build` takes one of these (``jaxbvh.build(lo, hi, BinnedConfig(bins=8))``);
-:data:`BUILDERS` maps each method name to its class. The defaults here are the only
+:data:`BUILDERS` maps each method that builds from boxes to its class,
+:data:`TRIANGLE_BUILDERS` those that need the triangles (``"sbvh"``), :data:`ALL_BUILDERS`
+both. The defaults here are the only
 ones: :func:`jaxbvh.build`'s keyword form, the command line's options and their
 ``--help`` all read them from these classes (:mod:`jaxbvh.configs` says how).
 
@@ -13,6 +15,8 @@ class              method           knobs beyond ``max_leaf, ct, ci, pad, dtype`
 :class:`MedianConfig`  ``"median"``     none (``ct``, ``ci`` unused: it never prices a split)
 :class:`LBVHConfig`    ``"lbvh"``       ``morton_bits``
 :class:`PLOCConfig`    ``"ploc"``       ``morton_bits``, ``radius``
+:class:`SBVHConfig`    ``"sbvh"``       ``bins``, ``alpha``, ``reference_capacity`` (needs the
+                                        triangles, not only their boxes)
 =================  ===============  =====================================================
 """
 
@@ -23,7 +27,7 @@ from collections import OrderedDict
 from typing import Any, ClassVar
 
 from jaxbvh.builders.morton import CODE_BITS, check_code_bits
-from jaxbvh.configs import Checked, ci_knob, ct_knob, integer, knob
+from jaxbvh.configs import Checked, ci_knob, ct_knob, integer, knob, real
 
 
 def _code_bits(name, value):
@@ -105,14 +109,43 @@ class PLOCConfig(_MortonConfig):
                        help="neighbours on each side a cluster looks at")
 
 
+@dataclasses.dataclass(frozen=True)
+class SBVHConfig(BuilderConfig):
+    """Spatial-split BVH (Stich, Friedrich & Dietrich 2009): binned object splits, and
+    where the children of a node's best object split overlap by more than ``alpha``
+    times the root's area, binned spatial splits that clip straddling triangles to the
+    plane; a triangle may then sit in several leaves. Needs the triangles
+    (``jaxbvh.build(..., triangles=tri)``); :mod:`jaxbvh.builders.sbvh`.
+
+    ``bins``: bins per axis for both kinds of split. ``alpha``: the paper's overlap
+    threshold (1e-5; 0 tries spatial splits at every node, a large value never).
+    ``reference_capacity``: slots for references as a multiple of the triangle count
+    (at least 1); when they run out, nodes take object splits and the build says so.
+    """
+
+    method: ClassVar[str] = "sbvh"
+
+    bins: int = knob(16, check=integer(2), metavar="B", help="bins per axis")
+    alpha: float = knob(1e-5, check=real(0.0), metavar="A",
+                        help="overlap (fraction of the root's area) above which spatial splits are tried")
+    reference_capacity: float = knob(2.0, check=real(1.0, 64.0), metavar="F",
+                                     help="reference slots as a multiple of the triangle count")
+
+
 # method name -> Config class. An OrderedDict: ``method in BUILDERS`` and iterating give
 # the names in this order, and hypothesis' sampled_from takes it (it refuses plain dicts)
 BUILDERS: OrderedDict[str, type[BuilderConfig]] = OrderedDict(
     (c.method, c) for c in (SweepConfig, BinnedConfig, MedianConfig, LBVHConfig, PLOCConfig))
+# the builders that need the triangles, not only their boxes (jaxbvh.build(..., triangles=tri));
+# kept apart so that code building from boxes alone can take any of BUILDERS
+TRIANGLE_BUILDERS: OrderedDict[str, type[BuilderConfig]] = OrderedDict((c.method, c) for c in (SBVHConfig,))
+# every builder: what jaxbvh.build, make_config and the command line's --builder take
+ALL_BUILDERS: OrderedDict[str, type[BuilderConfig]] = OrderedDict(list(BUILDERS.items())
+                                                                   + list(TRIANGLE_BUILDERS.items()))
 DEFAULT_BUILDER = "sweep"  # the method of jaxbvh.build(lo, hi) and of the command line
 
 # every builder knob: the keyword form of jaxbvh.build takes any of them for any method
-KNOBS = tuple(OrderedDict.fromkeys(f.name for c in BUILDERS.values() for f in dataclasses.fields(c)))
+KNOBS = tuple(OrderedDict.fromkeys(f.name for c in ALL_BUILDERS.values() for f in dataclasses.fields(c)))
 
 
 def make_config(method: str = DEFAULT_BUILDER, **options) -> BuilderConfig:
@@ -122,11 +155,11 @@ def make_config(method: str = DEFAULT_BUILDER, **options) -> BuilderConfig:
     the command line and the two-level builder pass them); a name no builder knows is a
     ``TypeError``, a bad value a ``ValueError`` naming the knob.
     """
-    if method not in BUILDERS:
-        raise ValueError(f"unknown builder {method!r}; choose one of {', '.join(BUILDERS)}")
+    if method not in ALL_BUILDERS:
+        raise ValueError(f"unknown builder {method!r}; choose one of {', '.join(ALL_BUILDERS)}")
     unknown = sorted(set(options) - set(KNOBS))
     if unknown:
         raise TypeError(f"unknown builder option(s) {', '.join(unknown)}; builders take {', '.join(KNOBS)}")
-    cls = BUILDERS[method]
+    cls = ALL_BUILDERS[method]
     own = {f.name for f in dataclasses.fields(cls)}
     return cls(**{k: v for k, v in options.items() if k in own})

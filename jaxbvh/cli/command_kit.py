@@ -14,7 +14,7 @@ from typing import NamedTuple
 import numpy as np
 
 import jaxbvh
-from jaxbvh.builders.configs import BUILDERS, DEFAULT_BUILDER, BuilderConfig
+from jaxbvh.builders.configs import ALL_BUILDERS, DEFAULT_BUILDER, TRIANGLE_BUILDERS, BuilderConfig
 from jaxbvh.cli import options as config_options
 from jaxbvh.configs import INT_MAX, SAHCosts
 from jaxbvh.io import Mesh, TreeFile, bundled_mesh_path, load_any, load_mesh
@@ -62,11 +62,11 @@ BUILDER_EXCLUDE = ("pad", "dtype")
 def builder_options(default: BuilderConfig | None = None) -> config_options.ConfigOptions:
     """The builder options; ``default``: a Config whose values are its builder's defaults
     (None: every builder's class defaults)."""
-    configs = dict(BUILDERS)
+    configs = dict(ALL_BUILDERS)
     if default is not None:
         configs[default.method] = default
     return config_options.ConfigOptions(configs, exclude=BUILDER_EXCLUDE, method_flag="--builder",
-                                        families=dict.fromkeys(BUILDERS, "builders"),
+                                        families=dict.fromkeys(ALL_BUILDERS, "builders"),
                                         check_while_parsing=True)
 
 
@@ -75,9 +75,10 @@ def add_builder_args(parser, *, default: BuilderConfig | None = None) -> None:
     the builder (its method and values) when no option says otherwise (None:
     :data:`~jaxbvh.builders.configs.DEFAULT_BUILDER` with its class defaults)."""
     method = DEFAULT_BUILDER if default is None else default.method
-    parser.add_argument("--builder", choices=list(BUILDERS), default=method,
+    parser.add_argument("--builder", choices=list(ALL_BUILDERS), default=method,
                         help="sweep, binned or median (top-down SAH engine), lbvh or ploc (bottom-up "
-                             "from Morton order: much faster on big inputs) (default: %(default)s)")
+                             "from Morton order: much faster on big inputs), sbvh (spatial splits: "
+                             "triangles in several leaves) (default: %(default)s)")
     options = builder_options(default)
     options.add_to(parser, "builder options (knobs of each builder's Config)")
     parser.set_defaults(builder_options=options)
@@ -203,17 +204,20 @@ def load_tree(path, *, binary: bool = False, check: bool = True) -> TreeFile:
     return loaded
 
 
-def check_tree_file(loaded: TreeFile, prim_lo=None, prim_hi=None) -> TreeFile:
+def check_tree_file(loaded: TreeFile, prim_lo=None, prim_hi=None, *, triangles=None) -> TreeFile:
     """Raise :class:`~jaxbvh.tree.validate.InvalidTreeError` (naming the file) if the tree is broken.
 
     Every command that reads a tree calls this before any jitted loop: a cycle, a
     shared child or a NaN box would otherwise make a traversal or an optimizer loop run
     to its bound or return nonsense. The check is :func:`jaxbvh.check`: structure,
     primitive ids, finite boxes that contain their children, and with ``prim_lo``,
-    ``prim_hi`` [n, 3] (in the tree's frame) leaves that contain their primitives.
+    ``prim_hi`` [n, 3] (in the tree's frame) leaves that contain their primitives. A tree
+    that names a primitive in several leaves (spatial splits) is checked in references
+    mode, its leaf boxes together covering each of ``triangles`` [n, 3, 3] when given.
     """
-
-    problems = check(loaded.tree, prim_lo, prim_hi)
+    references = references_per_primitive(loaded.tree) > 1
+    problems = check(loaded.tree, prim_lo, prim_hi, references=references,
+                     triangles=triangles if references else None)
     if problems:
         raise InvalidTreeError([f"{loaded.path}: {problems[0]}"] + problems[1:])
     return loaded
@@ -237,13 +241,14 @@ def check_against_mesh(loaded: TreeFile, mesh: Mesh) -> MeshCheck:
     triangles only as rounded to float32 (a float32 build saved as float64: its boxes
     miss the float64 triangles by up to half a float32 ulp) is valid at float32: the
     triangles returned, which rays are traced against, are then the float32 ones, and
-    ``precision`` says so.
+    ``precision`` says so. A tree that names a primitive in several leaves (spatial
+    splits) is checked in references mode: its leaf boxes together cover each triangle.
     """
     tree, frame = loaded.tree, loaded.frame
     dtype = np.asarray(tree.lo).dtype
     local = mesh.triangles if frame.is_identity else frame.to_local(mesh.triangles)
     referenced = int(np.asarray(tree.prim_count).sum())
-    if referenced != mesh.n_triangles:
+    if referenced != mesh.n_triangles and not references_per_primitive(tree) > 1:
         problem = (f"{loaded.path}: the tree's leaves hold {referenced} primitives but "
                    f"{mesh.path} has {mesh.n_triangles} triangles")
         return MeshCheck(local.astype(dtype), [problem], str(dtype))
@@ -259,7 +264,9 @@ def _checked_in(loaded: TreeFile, local, precision, dtype) -> MeshCheck:
     """The check of :func:`check_against_mesh` with the triangles ``local`` (float64, in
     the tree's frame) rounded to ``precision`` and widened (exactly) to ``dtype``."""
     triangles = local.astype(precision).astype(dtype)
-    problems = check(loaded.tree, triangles.min(axis=1), triangles.max(axis=1))
+    references = references_per_primitive(loaded.tree) > 1
+    problems = check(loaded.tree, triangles.min(axis=1), triangles.max(axis=1), references=references,
+                     triangles=triangles if references else None)
     if problems:
         problems = [f"{loaded.path}: {problems[0]}"] + problems[1:]
     return MeshCheck(triangles, problems, str(np.dtype(precision)))
@@ -335,13 +342,37 @@ def build_mesh_tree(mesh: Mesh, builder: BuilderConfig, stages: Stages):
     import jax
 
     lo, hi = mesh.local_boxes()
+    triangles = mesh.local_triangles() if builder.method in TRIANGLE_BUILDERS else None
     with stages("build"):
-        tree = jaxbvh.build(lo, hi, builder)
+        tree = jaxbvh.build(lo, hi, builder, triangles=triangles)
         # the capacity a saved copy loads with: same shape, same compiled programs
         tree = compact(jax.block_until_ready(tree))
     with stages("validate"):
-        jaxbvh.validate(tree, lo, hi)
+        if triangles is None:
+            jaxbvh.validate(tree, lo, hi)
+        else:  # a triangle may sit in several leaves: each leaf box holds a piece of it
+            jaxbvh.validate(tree, lo, hi, references=True, triangles=triangles)
     return tree, lo, hi
+
+
+def references_per_primitive(tree) -> float:
+    """Leaf slots per distinct primitive the leaves name (1.0 without references)."""
+    t = jaxbvh.to_numpy(tree)
+    leaves = np.flatnonzero(np.asarray(t.prim_count) > 0)
+    if not leaves.size:
+        return 1.0
+    slots = tree_mod.concat_ranges(np.asarray(t.prim_start)[leaves], np.asarray(t.prim_count)[leaves])
+    prims = np.asarray(t.prim_index)[slots]
+    return float(prims.size / max(np.unique(prims).size, 1))
+
+
+def validate_any(tree, prim_lo=None, prim_hi=None, **kwargs):
+    """:func:`jaxbvh.validate`, in references mode when the tree names a primitive in
+    several leaves (an SBVH, ours or another library's); returns the tree."""
+    references = references_per_primitive(tree) > 1
+    if references:
+        kwargs.pop("n_prims", None)  # counted from the ids (leaf slots are references, not primitives)
+    return jaxbvh.validate(tree, prim_lo, prim_hi, references=references, **kwargs)
 
 
 def tree_stats(tree, costs=SAHCosts()) -> dict:
@@ -361,6 +392,8 @@ def tree_stats(tree, costs=SAHCosts()) -> dict:
         "leaf_size_mean": float(leaf_sizes.mean()) if leaf_sizes.size else 0.0,
         "leaf_size_max": int(leaf_sizes.max()) if leaf_sizes.size else 0,
         "primitives": int(leaf_sizes.sum()),
+        # > 1 only in trees with references (spatial splits): leaf slots per distinct primitive
+        "references_per_triangle": references_per_primitive(t),
         "capacity": int(np.asarray(t.prim_count).shape[0]),
         "dtype": str(np.asarray(t.lo).dtype),
     }

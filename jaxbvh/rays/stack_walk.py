@@ -47,6 +47,9 @@ class Hits:
     ``stack_overflow`` and ``step_limit`` bool (:mod:`jaxbvh.rays.traversal`). All-hits
     mode adds ``hit_count`` int32 [R], ``hit_prims`` int32 [R, H] (-1 past the end),
     ``hit_t`` float [R, H] and ``hits_overflow`` bool [R]; the other modes leave them None.
+    Hits are distinct primitives: in a tree with references a triangle reached again
+    from another leaf is not counted again (exact while the list holds every hit, i.e.
+    without ``hits_overflow``).
     """
 
     t: Any
@@ -203,6 +206,10 @@ def _record(f: Found, valid, t, u, v, prim, *, mode, max_hits) -> Found:
     else:
         take = valid & ((t < best) | ((t == best) & (prim < f.prim)))
     if mode == "all":
+        # a tree with references (spatial splits) reaches one triangle from several
+        # leaves: a primitive already listed is the same hit, not a new one
+        valid = valid & ~jnp.any(f.prims == prim)
+        take = take & valid
         slot = jnp.where(valid & (f.count < max_hits), f.count, max_hits)
         f = f._replace(best=jnp.where(take, t, best),
                        prims=f.prims.at[slot].set(prim, mode="drop"),

@@ -170,6 +170,8 @@ def _visit_leaf(a: _Tree, triangles, ray: _Ray, node, mode, max_hits) -> bool:
             ray.t, ray.prim, ray.u, ray.v = t, prim, u, v
             return True
         if mode == "all":
+            if any(p == prim for p, _ in ray.hit_list):
+                continue  # the same triangle from another leaf (a tree with references)
             ray.hit_count += 1
             if len(ray.hit_list) < max_hits:
                 ray.hit_list.append((prim, t))

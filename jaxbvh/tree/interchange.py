@@ -18,6 +18,9 @@ box still contains what it contained, with a warning naming the array: float16 w
 to float32 exactly, long double narrows to float64 rounded outward. Boxes that hold
 subnormal coordinates are scaled out of that range by a power of two (exact) and the
 frame scaled back (:func:`_out_of_subnormals`): the device would flush them to zero.
+``prim_index`` may name a primitive in several leaves (a tree with references: our
+SBVH, tinybvh's ``BuildHQ``); nothing here assumes each id once, and
+``jaxbvh.validate(tree, ..., references=True)`` checks such a tree.
 """
 
 from __future__ import annotations

@@ -13,6 +13,15 @@ A valid tree (binary or wide; layout in :mod:`jaxbvh.tree.layout`):
 6. Every real box is well formed (``lo <= hi``, finite) and contains its children's
    boxes and, for a leaf, the boxes of its primitives (exactly, no tolerance).
 
+Trees with references (``references=True``; spatial splits, :mod:`jaxbvh.builders.sbvh`)
+may name a primitive in several leaves, each holding a piece of it, so 5. and the leaf
+half of 6. become (:func:`_reference_problems`): every primitive is referenced at least
+once and at most once per leaf; a referencing leaf's box meets the primitive's box, and
+the boxes of all its referencing leaves together span it; with ``triangles``, those boxes
+together cover the whole triangle, checked at the corners, along the edges and inside
+(:data:`COVER_STEPS` steps per edge, exact float64 comparisons; a zero-area triangle is
+a segment or a point and is checked as one).
+
 :func:`check` first makes sure the arrays agree in shape and that the root and child
 ids index them (if not, that is the only problem reported: the invariants index with
 those ids), then runs one function per invariant (``_root_problems`` ...
@@ -79,13 +88,16 @@ class _Runs(NamedTuple):
     prims: np.ndarray     # int64 [S]: primitive ids in those slots
 
 
-def check(tree, prim_lo=None, prim_hi=None, n_prims: int | None = None) -> list[str]:
+def check(tree, prim_lo=None, prim_hi=None, n_prims: int | None = None, *, references: bool = False,
+          triangles=None) -> list[str]:
     """All invariant violations of ``tree`` as readable lines (empty list: valid).
 
     ``prim_lo``, ``prim_hi``: [n, 3] primitive boxes in the tree's frame (optional; the
     leaf-contains-primitive check and the primitive count come from them).
     ``n_prims``: number of primitives when no boxes are given (default: the number the
-    leaves reference). Problems come invariant by invariant (module docstring); arrays
+    leaves reference; with ``references``, one more than the largest id).
+    ``references``: the tree may name a primitive in several leaves (module
+    docstring); ``triangles`` [n, 3, 3] (in the tree's frame) then adds the coverage check. Problems come invariant by invariant (module docstring); arrays
     of the wrong shape, or ids that do not index them, are reported alone.
     """
     a = _arrays(tree)
@@ -96,10 +108,16 @@ def check(tree, prim_lo=None, prim_hi=None, n_prims: int | None = None) -> list[
     runs = _runs(a, links.visits)
     if prim_lo is not None:
         n_prims = int(np.asarray(prim_lo).shape[0])
+    if triangles is not None and n_prims is None:
+        n_prims = int(np.asarray(triangles).shape[0])
     if n_prims is None:
-        n_prims = int(runs.slots.size)
-    return (_root_problems(a, links) + _reach_problems(a, links) + _parent_problems(a, links)
-            + _kind_problems(a, links) + _primitive_problems(a, runs, n_prims)
+        n_prims = int(runs.prims.max()) + 1 if references and runs.prims.size else int(runs.slots.size)
+    structure = _root_problems(a, links) + _reach_problems(a, links) + _parent_problems(a, links) \
+        + _kind_problems(a, links)
+    if references:
+        return (structure + _reference_problems(a, runs, n_prims, prim_lo, prim_hi, triangles)
+                + _box_problems(a, links, runs, n_prims, None, None))
+    return (structure + _primitive_problems(a, runs, n_prims)
             + _box_problems(a, links, runs, n_prims, prim_lo, prim_hi))
 
 
@@ -293,12 +311,74 @@ def _outside(inner_lo, inner_hi, outer_lo, outer_hi):
     return below.any(1) | above.any(1)
 
 
-def validate(tree, prim_lo=None, prim_hi=None, n_prims: int | None = None):
+
+#: steps per edge of the coverage check's barycentric grid ((S + 1)(S + 2) / 2 points per triangle)
+COVER_STEPS = 8
+
+
+def _cover_points(triangles) -> np.ndarray:
+    """Points [n, K, 3] float64 of each triangle: corners, edge points and a grid inside."""
+    tri = np.asarray(triangles, np.float64)
+    s = COVER_STEPS
+    weights = np.array([(i, j, s - i - j) for i in range(s + 1) for j in range(s + 1 - i)], np.float64)
+    return np.einsum("kv,nvc->nkc", weights, tri) / s
+
+
+def _reference_problems(a: _Arrays, runs: _Runs, n_prims: int, prim_lo, prim_hi, triangles) -> list[str]:
+    """5. and 6. for trees with references (module docstring)."""
+    problems = []
+    if runs.past_end.size:
+        problems.append(f"leaf/leaves {few_ids(runs.past_end)} run past prim_index "
+                        f"({a.prim_index.shape[0]} slots)")
+    if len(np.unique(runs.slots)) != len(runs.slots):
+        problems.append("leaves share prim_index slots")
+    bad_prim = (runs.prims < 0) | (runs.prims >= n_prims)
+    if bad_prim.any():
+        problems.append(f"leaves reference primitive ids outside [0, {n_prims}): {few_ids(runs.prims[bad_prim])}")
+    prims, owner = runs.prims[~bad_prim], runs.owner[~bad_prim]
+    seen = np.bincount(prims, minlength=n_prims) if n_prims else np.zeros(0, np.int64)
+    if (seen == 0).any():
+        problems.append(f"primitive(s) {few_ids(np.flatnonzero(seen == 0))} referenced by no leaf")
+    pairs = np.unique(np.stack([owner, prims]), axis=1).shape[1] if prims.size else 0
+    if pairs != prims.size:
+        problems.append("a leaf references one primitive more than once")
+    if prim_lo is not None and prim_hi is not None and prims.size:
+        plo, phi = np.asarray(prim_lo), np.asarray(prim_hi)
+        apart = (a.lo[owner] > phi[prims]).any(1) | (a.hi[owner] < plo[prims]).any(1)
+        if apart.any():
+            problems.append(f"leaf box(es) {few_ids(np.unique(owner[apart]))} do not meet primitive(s) "
+                            f"{few_ids(prims[apart])} they reference")
+        span_lo = np.full(plo.shape, np.inf)
+        span_hi = np.full(phi.shape, -np.inf)
+        np.minimum.at(span_lo, prims, a.lo[owner].astype(np.float64))
+        np.maximum.at(span_hi, prims, a.hi[owner].astype(np.float64))
+        short = ((span_lo > plo) | (span_hi < phi)).any(1) & (seen > 0)
+        if short.any():
+            problems.append(f"primitive(s) {few_ids(np.flatnonzero(short))} reach past the leaf boxes "
+                            "that reference them")
+    if triangles is not None and prims.size:
+        points = _cover_points(triangles)
+        covered = np.zeros(points.shape[:2], bool)
+        lo, hi = a.lo.astype(np.float64), a.hi.astype(np.float64)
+        for first in range(0, prims.size, 1 << 15):  # bounded memory: [chunk, K, 3]
+            p, o = prims[first:first + (1 << 15)], owner[first:first + (1 << 15)]
+            pts = points[p]
+            inside = ((pts >= lo[o][:, None]) & (pts <= hi[o][:, None])).all(-1)
+            np.logical_or.at(covered, p, inside)
+        bare = np.flatnonzero(~covered.all(1) & (seen > 0))
+        if bare.size:
+            problems.append(f"triangle(s) {few_ids(bare)} not covered by the leaf boxes that reference them "
+                            f"(checked at {points.shape[1]} points each)")
+    return problems
+
+
+def validate(tree, prim_lo=None, prim_hi=None, n_prims: int | None = None, *, references: bool = False,
+             triangles=None):
     """Raise :class:`InvalidTreeError` listing every broken invariant; return the tree.
 
     Same arguments as :func:`check`.
     """
-    problems = check(tree, prim_lo, prim_hi, n_prims)
+    problems = check(tree, prim_lo, prim_hi, n_prims, references=references, triangles=triangles)
     if problems:
         raise InvalidTreeError(problems)
     return tree

@@ -22,7 +22,7 @@ from helpers import REPO
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jaxbvh.builders.configs import BUILDERS, DEFAULT_BUILDER
+from jaxbvh.builders.configs import ALL_BUILDERS, BUILDERS, DEFAULT_BUILDER
 from jaxbvh.cli import make_parser
 from jaxbvh.cli.commands import optimize as optimize_command
 from jaxbvh.cli.options import ConfigOptions, add_config_options, field_docs, shown, with_flags
@@ -150,7 +150,7 @@ def field_names(config) -> set[str]:
 def test_method_choices_default_to_the_library():
     for command in ("build", "stats", "collapse", "optimize"):
         action = next(a for a in SUBPARSERS[command]._actions if a.dest == "builder")
-        assert action.default == DEFAULT_BUILDER and list(action.choices) == list(BUILDERS)
+        assert action.default == DEFAULT_BUILDER and list(action.choices) == list(ALL_BUILDERS)
     action = next(a for a in SUBPARSERS["rebraid"]._actions if a.dest == "builder")
     assert action.default == two_level_objects.DEFAULT_BUILDER.method == "binned"
     action = next(a for a in SUBPARSERS["optimize"]._actions if a.dest == "method")

@@ -86,7 +86,7 @@ def run(args) -> dict:
             with stages("build"):
                 pass
             with stages("validate"):
-                jaxbvh.validate(tree)  # load_tree checked it; this is the same check, timed
+                command_kit.validate_any(tree)  # load_tree checked it; this is the same check, timed
             prim_lo = prim_hi = None
             info = {"kind": "tree", "input": loaded.path}
         tree = jaxbvh.to_numpy(tree)
@@ -103,7 +103,7 @@ def run(args) -> dict:
             seconds = time.perf_counter() - start
         wide = jaxbvh.to_numpy(result.tree)
         with stages("check"):
-            jaxbvh.validate(wide, prim_lo, prim_hi, n_prims=jaxbvh.tree.prim_total(tree))
+            command_kit.validate_any(wide, prim_lo, prim_hi, n_prims=jaxbvh.tree.prim_total(tree))
         if args.output:
             with stages("save"):
                 jaxbvh.save(args.output, wide, frame=frame)

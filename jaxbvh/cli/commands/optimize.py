@@ -101,12 +101,12 @@ def _load(args, builder, stages):
     with stages("build"):
         pass
     with stages("validate"):
-        jaxbvh.validate(loaded.tree)
+        command_kit.validate_any(loaded.tree)
     return loaded.tree, None, None, loaded.frame, {"kind": "tree", "input": loaded.path}
 
 
 def _check(tree, optimized, prim_lo, prim_hi) -> None:
-    jaxbvh.validate(optimized, prim_lo, prim_hi)
+    command_kit.validate_any(optimized, prim_lo, prim_hi)
     if prim_lo is None:
         # the leaves (whose boxes stand for the primitives) must be untouched
         leaf = np.asarray(tree.prim_count) > 0

@@ -50,8 +50,10 @@ def _tree_stats(loaded, args, costs, stages) -> dict:
     options' ``--ct``, ``--ci``)."""
     tree, frame = loaded.tree, loaded.frame
     result = {"command": "stats", "kind": "tree", "input": loaded.path}
+    # a primitive in several leaves: a tree with references (spatial splits), checked as one
+    references = command_kit.references_per_primitive(tree) > 1
     with stages("validate"):
-        problems = jaxbvh.check(tree)
+        problems = jaxbvh.check(tree, references=references)
         against = "structure only (pass --mesh to check boxes)"
         if not problems and args.mesh is not None:
             mesh = command_kit.mesh_or_default(args.mesh)

@@ -1,0 +1,345 @@
+"""Spatial-split BVH (SBVH; Stich, Friedrich & Dietrich 2009), one level at a time (jitted).
+
+A triangle that straddles a split plane can be *split*: each child keeps a reference to
+it whose box is the box of the triangle's piece on its side. Trees get fewer overlapping
+boxes where triangles are long, thin or large (CAD, architecture), at the price of more
+references than triangles. The tree is an ordinary :class:`~jaxbvh.tree.layout.BVH`
+whose ``prim_index`` may name a triangle in several leaves (a tree *with references*;
+``jaxbvh.validate(..., references=True)`` checks it).
+
+Entry. Spatial splits need the triangles, not only their boxes: :func:`build_sbvh` takes
+``triangles`` [n, 3, 3], and ``jaxbvh.build(lo, hi, method="sbvh", triangles=tri)``
+passes them on (``lo``, ``hi`` must be their boxes).
+
+Rules (the NumPy twin :mod:`jaxbvh.builders.sbvh_reference` keeps the same ones; planes,
+bins and clipping are written once in :mod:`jaxbvh.builders.sbvh_rules`). For every node,
+over its references (box, triangle):
+
+1. **Object split**: the binned builder's rule over the reference boxes' centres
+   (:mod:`jaxbvh.builders.topdown`): ``B`` bins per axis over the centre bounds, the
+   planes between them priced ``A_L N_L + A_R N_R``; least cost, ties (within
+   ``TIE_TOLERANCE``) to the lowest axis, then the lowest plane.
+2. **Spatial split**, tried only when the object split's two boxes overlap by more than
+   ``alpha`` times the root's half-area (areas on the scene's scale): ``B`` equal bins
+   of the node's box per axis; a reference enters the bin of its box's low corner and
+   leaves by the bin of its high corner; each bin's box is estimated from the reference's
+   triangle corners and the crossings of the inner planes its box spans, clamped to the
+   reference's box. Plane ``k`` (after bin ``k``) has ``N_L`` = entries at or before
+   ``k``, ``N_R`` = exits after it, priced on the bins' boxes; the same tie rule. It is
+   taken when its cost times ``1 + TIE_TOLERANCE`` is below the object split's (ties go
+   to the object split, which duplicates nothing).
+3. **Reference unsplitting** (the paper's Section 4.4): a straddling reference goes
+   whole to one side when that is cheaper (``C_1 = A(L + b) N_L + A_R (N_R - 1)``,
+   ``C_2 = A_L (N_L - 1) + A(R + b) N_R`` against ``C_split = A_L N_L + A_R N_R``, by
+   more than the tie tolerance; the left side wins a tie between them), each priced on
+   its own against the split's totals. A straddler whose piece on one side clips to
+   nothing (the plane within its box's rounding margin) goes whole to the other side.
+   If unsplitting empties a side, it is not done; if a side is empty even then, the
+   node takes its object split. Kept-split references are clipped: each side gets the
+   box of the triangle's piece in its half-space (the plane included) intersected with
+   the reference's box, which therefore always covers the triangle's part in the
+   node's region (the rules module explains the rounding margin).
+4. **Leaf test** as the other builders: one reference, or at most ``max_leaf`` and
+   ``Ci N <= Ct + Ci cost / A`` within the tie tolerance, ``cost`` the split to be taken
+   (``N`` counts references). A node whose centres all coincide (no object plane) is
+   split into halves by triangle id, and tries no spatial split.
+5. **Reference capacity**: ``R`` slots (``reference_capacity`` times ``n``). The nodes of
+   a level ask, in node order, for the slots their spatial splits add; a node whose
+   request, added to those before it on its level, exceeds the slots free at the
+   level's start takes its object split instead, and the result says so
+   (``out_of_capacity``).
+
+The engine keeps every reference in a slot of fixed arrays ([R]) with the node that
+holds it; one ``while_loop`` step builds one level: per-node reductions over the
+references (segment sums and minima keyed by node, axis and bin) score both kinds of
+split for all open nodes at once, and a split reference's second piece takes a fresh
+slot. Nodes are numbered level by level, root 0; the loop ends when a level opens no
+node (at most ``2 R`` levels: every level adds nodes, and there are fewer than ``2 R``).
+The per-node arrays of a level have F slots, F at least its open nodes; the loop runs in
+stages of growing F (:func:`stage_slots`), so the narrow top levels do not pay for the
+widest level's arrays.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxbvh.builders import sbvh_splits as splits
+from jaxbvh.builders.configs import SBVHConfig
+from jaxbvh.numerics import TIE_TOLERANCE, half_area, scene_scale, take, working_dtype
+from jaxbvh.tree.layout import BVH, capacity_bucket
+from jaxbvh.tree.validate import few_ids
+
+__all__ = ["SBVHBuild", "build_sbvh", "check_triangles", "reference_slots"]
+
+
+class SBVHBuild(NamedTuple):
+    """What :func:`build_sbvh` returns."""
+
+    tree: BVH             # the BVH (JAX arrays; 2 R node slots, R primitive slots)
+    references: Any       # int32: references used (>= n; the leaves' primitive total)
+    spatial_splits: Any   # int32: nodes split by a spatial split
+    out_of_capacity: Any  # bool: some node took an object split for want of reference slots
+
+
+def check_triangles(triangles) -> np.ndarray:
+    """Host-side check of ``triangles`` [n, 3, 3]; returns them as a NumPy float array.
+
+    ``ValueError`` naming the problem: wrong shape, none, NaN or infinite coordinates.
+    """
+    tri = np.asarray(triangles)
+    if tri.ndim != 3 or tri.shape[1:] != (3, 3):
+        raise ValueError(f"triangles must have shape [n, 3, 3], got {tri.shape}")
+    if tri.shape[0] == 0:
+        raise ValueError("triangles: none given (n = 0); a BVH needs at least one")
+    if not np.issubdtype(tri.dtype, np.floating):
+        tri = tri.astype(np.float64)
+    bad = ~np.isfinite(tri).all(axis=(1, 2))
+    if bad.any():
+        ids = np.flatnonzero(bad)
+        raise ValueError(f"triangles: {ids.size} of {tri.shape[0]} have NaN or infinite coordinates "
+                         f"(first: {few_ids(ids)})")
+    return tri
+
+
+def reference_slots(n: int, config: SBVHConfig, capacity: int | None = None) -> int:
+    """Reference slots ``R`` for ``n`` triangles: ``capacity`` if given (at least ``n``),
+    else ``ceil(reference_capacity * n)``, rounded up to a capacity bucket when ``pad``."""
+    if capacity is not None:
+        if capacity < n:
+            raise ValueError(f"capacity {capacity} is below the {n} triangles")
+        return int(capacity)
+    slots = max(n, int(np.ceil(config.reference_capacity * n)))
+    return capacity_bucket(slots) if config.pad else slots
+
+
+def build_sbvh(triangles, config: SBVHConfig | None = None, *, capacity: int | None = None) -> SBVHBuild:
+    """SBVH over ``triangles`` [n, 3, 3] (module docstring).
+
+    Pass scene-relative coordinates (``jaxbvh.io.Mesh.local_triangles()``) for float32
+    accuracy far from the origin. ``config``: an :class:`SBVHConfig` (default: its
+    defaults). ``capacity``: reference slots in place of ``reference_capacity`` (inputs
+    of many sizes then share one compiled program). Returns an :class:`SBVHBuild`.
+    """
+    config = SBVHConfig() if config is None else config
+    if not isinstance(config, SBVHConfig):
+        raise TypeError(f"config must be an SBVHConfig, got {type(config).__name__}")
+    tri = check_triangles(triangles)
+    dt = working_dtype(config.dtype, tri.dtype)
+    tri = tri.astype(dt)
+    n = tri.shape[0]
+    slots = reference_slots(n, config, capacity)
+    lo, hi = tri.min(1), tri.max(1)
+    scale = dt.type(scene_scale(lo, hi))
+    threshold = dt.type(config.alpha) * half_area(lo.min(0), hi.max(0), scale)
+    tri_p = np.zeros((slots, 3, 3), dt)  # padding triangles are never read: no reference names them
+    tri_p[:n] = tri
+    return engine(jnp.asarray(tri_p), jnp.int32(n), jnp.int32(config.max_leaf), jnp.asarray(config.ct, dt),
+                  jnp.asarray(config.ci, dt), jnp.asarray(scale, dt), jnp.asarray(threshold, dt), bins=config.bins)
+
+
+class _Scene(NamedTuple):
+    """What every level reads and no level changes."""
+
+    tri: Any        # [R, 3, 3] triangles (rows past n unused)
+    scale: Any      # the scene's power-of-two area scale
+    threshold: Any  # alpha times the root's half-area: overlap above which spatial splits are tried
+    max_leaf: Any   # int32
+    ct: Any         # SAH traversal and intersection costs (leaf test)
+    ci: Any
+
+
+class _State(NamedTuple):
+    """The loop state. Reference arrays have R slots, node arrays 2 R; the open nodes of
+    the level are the ids ``level_start .. next_free - 1``."""
+
+    ref_prim: Any     # [R] int32 triangle of each reference, -1 for a free slot
+    ref_lo: Any       # [R, 3] reference boxes (free: the empty box)
+    ref_hi: Any
+    ref_node: Any     # [R] int32 node holding the reference (2 R for a free slot)
+    n_refs: Any       # int32 slots in use (they are the first ones)
+    left: Any         # [2 R] int32 children, -1 for leaves and unused nodes
+    right: Any
+    parent: Any       # [2 R] int32, -1 for the root and unused nodes
+    axis: Any         # [2 R] int32 split axis, -1 for leaves
+    lo: Any           # [2 R, 3] node boxes, written when the node is open
+    hi: Any
+    prim_count: Any   # [2 R] int32 references of a leaf, 0 otherwise
+    level_start: Any  # int32 first open node
+    next_free: Any    # int32 first unused node id
+    spatial: Any      # int32 spatial splits taken
+    short: Any        # bool: a spatial split was refused for want of slots
+
+
+def _initial(scene: _Scene, n) -> _State:
+    slots = scene.tri.shape[0]
+    nodes = 2 * slots
+    dt = scene.tri.dtype
+    used = jnp.arange(slots) < n
+    ints = jnp.full(nodes, -1, jnp.int32)
+    return _State(
+        ref_prim=jnp.where(used, jnp.arange(slots, dtype=jnp.int32), -1),
+        ref_lo=jnp.where(used[:, None], scene.tri.min(1), jnp.inf),
+        ref_hi=jnp.where(used[:, None], scene.tri.max(1), -jnp.inf),
+        ref_node=jnp.where(used, 0, nodes).astype(jnp.int32), n_refs=jnp.asarray(n, jnp.int32),
+        left=ints, right=ints, parent=ints, axis=ints,
+        lo=jnp.full((nodes, 3), jnp.inf, dt), hi=jnp.full((nodes, 3), -jnp.inf, dt),
+        prim_count=jnp.zeros(nodes, jnp.int32), level_start=jnp.int32(0), next_free=jnp.int32(1),
+        spatial=jnp.int32(0), short=jnp.asarray(False))
+
+
+def _no_spatial(slots, dt):
+    """A :class:`~jaxbvh.builders.sbvh_splits.Split` of no candidate for every slot."""
+    inf = jnp.full(slots, jnp.inf, dt)
+    zi = jnp.zeros(slots, jnp.int32)
+    box = jnp.zeros((slots, 3), dt)
+    return splits.Split(inf, zi, zi, box, box, box, box, zi, zi)
+
+
+def _level(scene: _Scene, s: _State, *, bins: int, slots: int) -> _State:
+    """Build one level: every open node becomes a leaf or is split, its children open.
+
+    ``slots``: F, at least the number of open nodes (static: the size of the per-node
+    arrays of the split searches).
+    """
+    refs = s.ref_prim.shape[0]
+    nodes = 2 * refs
+    dt = scene.tri.dtype
+    open_nodes = s.next_free - s.level_start
+    in_level = (s.ref_node >= s.level_start) & (s.ref_node < s.next_free)
+    seg = jnp.where(in_level, s.ref_node - s.level_start, slots).astype(jnp.int32)
+    slot_ids = jnp.arange(slots, dtype=jnp.int32)
+    is_open = slot_ids < open_nodes
+    count = splits.segment(jax.ops.segment_sum, in_level.astype(jnp.int32), seg, slots)
+    node_lo = splits.segment(jax.ops.segment_min, s.ref_lo, seg, slots)
+    node_hi = splits.segment(jax.ops.segment_max, s.ref_hi, seg, slots)
+    tri_r = scene.tri[jnp.clip(s.ref_prim, 0, refs - 1)]
+
+    obj, bin3 = splits.object_split(s.ref_lo, s.ref_hi, seg, slots, scene.scale, bins)
+    found = obj.cost < jnp.inf
+    tried = is_open & found & (count > 1) & (splits.overlap_area(obj, scene.scale) > scene.threshold)
+    empty_bins = splits.Bins(jnp.zeros((refs, 3), jnp.int32), jnp.zeros((refs, 3), jnp.int32))
+    spatial, ref_bins = jax.lax.cond(
+        jnp.any(tried),
+        lambda: splits.spatial_split(tri_r, s.ref_lo, s.ref_hi, seg, node_lo, node_hi, tried, slots,
+                                     scene.scale, bins),
+        lambda: (_no_spatial(slots, dt), empty_bins))
+    tol = jnp.asarray(1 + TIE_TOLERANCE, dt)
+    use_spatial = tried & (spatial.cost * tol < obj.cost)
+    best = jnp.where(use_spatial, spatial.cost, obj.cost)
+
+    # the leaf test
+    area = half_area(node_lo, node_hi, scene.scale)
+    count_f = count.astype(dt)
+    estimate = scene.ct + jnp.where(area > 0, scene.ci * best / jnp.where(area > 0, area, 1), scene.ci * count_f)
+    sah_leaf = (scene.ci * count_f <= estimate * tol) | ~found
+    leaf = is_open & ((count <= 1) | ((count <= scene.max_leaf) & sah_leaf))
+    split = is_open & ~leaf
+    wants = split & use_spatial
+
+    def sides():
+        return splits.spatial_sides(tri_r, s.ref_lo, s.ref_hi, seg, node_lo, node_hi, spatial, ref_bins, slots,
+                                    scene.scale, bins)
+
+    def no_sides():
+        none = jnp.zeros(refs, bool)
+        return (splits.Sides(none, none, s.ref_lo, s.ref_hi, s.ref_lo, s.ref_hi), jnp.zeros(slots, bool),
+                jnp.zeros(slots, jnp.int32))
+
+    side, ok, extra = jax.lax.cond(jnp.any(wants), sides, no_sides)
+    asking = wants & ok
+    asked = jnp.cumsum(jnp.where(asking, extra, 0))
+    granted = asking & (asked <= refs - s.n_refs)
+    short = s.short | jnp.any(asking & ~granted)
+
+    # children: two per split node, in node order
+    rank = jnp.cumsum(split.astype(jnp.int32)) - split
+    left_id = jnp.where(split, s.next_free + 2 * rank, nodes)
+    right_id = left_id + 1
+    # halves by triangle id where no object plane was found (rare: computed only then)
+    halves = split & ~found
+    by_id = jax.lax.cond(jnp.any(halves), lambda: splits.rank_by_prim(s.ref_prim, seg, slots),
+                         lambda: jnp.zeros(refs, jnp.int32))
+    obj_axis_r = take(obj.axis, seg, 0)
+    obj_left = jnp.take_along_axis(bin3, obj_axis_r[:, None], axis=1)[:, 0] <= take(obj.plane, seg, 0)
+    obj_left = jnp.where(take(found, seg, False), obj_left, by_id < take(count // 2, seg, 0))
+    spatial_r = take(granted, seg, False)
+    goes_left = jnp.where(spatial_r, side.left, obj_left)
+    goes_right = jnp.where(spatial_r, side.right, ~obj_left)
+    moving = take(split, seg, False)
+    both = moving & goes_left & goes_right
+    # the upper piece of a split reference takes a fresh slot
+    fresh = s.n_refs + jnp.cumsum(both.astype(jnp.int32)) - both
+    fresh = jnp.where(both, fresh, refs)
+    l_node, r_node = take(left_id, seg, nodes), take(right_id, seg, nodes)
+    ref_node = jnp.where(moving, jnp.where(goes_left, l_node, r_node), s.ref_node)
+    ref_lo = jnp.where(both[:, None], side.left_lo, s.ref_lo)
+    ref_hi = jnp.where(both[:, None], side.left_hi, s.ref_hi)
+    ref_prim = s.ref_prim.at[fresh].set(s.ref_prim, mode="drop")
+    ref_node = ref_node.at[fresh].set(r_node, mode="drop")
+    ref_lo = ref_lo.at[fresh].set(side.right_lo, mode="drop")
+    ref_hi = ref_hi.at[fresh].set(side.right_hi, mode="drop")
+
+    node = s.level_start + slot_ids
+    at = jnp.where(is_open, node, nodes)  # scatter target of each open slot
+    at_split = jnp.where(split, node, nodes)
+    split_axis = jnp.where(granted, spatial.axis, jnp.where(found, obj.axis, 0))
+    return _State(
+        ref_prim=ref_prim, ref_lo=ref_lo, ref_hi=ref_hi, ref_node=ref_node,
+        n_refs=s.n_refs + jnp.sum(both, dtype=jnp.int32),
+        left=s.left.at[at_split].set(left_id, mode="drop"), right=s.right.at[at_split].set(right_id, mode="drop"),
+        parent=s.parent.at[left_id].set(node, mode="drop").at[right_id].set(node, mode="drop"),
+        axis=s.axis.at[at_split].set(split_axis, mode="drop"),
+        lo=s.lo.at[at].set(node_lo, mode="drop"), hi=s.hi.at[at].set(node_hi, mode="drop"),
+        prim_count=s.prim_count.at[jnp.where(leaf, node, nodes)].set(count, mode="drop"),
+        level_start=s.next_free, next_free=s.next_free + 2 * jnp.sum(split, dtype=jnp.int32),
+        spatial=s.spatial + jnp.sum(granted, dtype=jnp.int32), short=short)
+
+
+def _tree(s: _State) -> BVH:
+    """The BVH of a finished state: each leaf's references one contiguous run, leaves in node order."""
+    nodes = s.left.shape[0]
+    order = jnp.argsort(s.ref_node, stable=True)  # free slots (node 2 R) last
+    prim_start = (jnp.cumsum(s.prim_count) - s.prim_count).astype(jnp.int32)
+    return BVH(left=s.left, right=s.right, parent=s.parent, lo=s.lo, hi=s.hi,
+               prim_start=jnp.where(s.prim_count > 0, prim_start, 0), prim_count=s.prim_count, axis=s.axis,
+               prim_index=jnp.where(s.ref_node[order] < nodes, s.ref_prim[order], -1), root=jnp.int32(0))
+
+
+@partial(jax.jit, static_argnames=("bins",))
+def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int) -> SBVHBuild:
+    """The level-synchronous SBVH on prepared inputs (:func:`build_sbvh` makes them).
+
+    ``tri`` [R, 3, 3]: the triangles in their first ``n`` rows, R the reference slots;
+    ``max_leaf`` int32; ``ct``, ``ci``, ``scale``, ``threshold``: scalars in ``tri``'s
+    dtype; ``bins`` static. Returns an :class:`SBVHBuild`.
+    """
+    scene = _Scene(tri, scale, threshold, max_leaf, ct, ci)
+    state = _initial(scene, n)
+    for slots in stage_slots(tri.shape[0]):  # levels with few open nodes run on small arrays
+        state = jax.lax.while_loop(lambda s, f=slots: (s.next_free > s.level_start)
+                                   & (s.next_free - s.level_start <= f),
+                                   partial(_level, scene, bins=bins, slots=slots), state)
+    return SBVHBuild(_tree(state), state.n_refs, state.spatial, state.short)
+
+
+#: growth of the per-level slot arrays from one stage to the next (:func:`stage_slots`)
+STAGE_GROWTH = 8
+
+
+def stage_slots(refs: int) -> list[int]:
+    """Slot counts F of the engine's stages for ``refs`` reference slots: 64, 512, ...
+    up to ``refs``. A level runs in the first stage whose F holds its open nodes; the
+    open nodes of a level are at most ``refs``, so the last stage takes any level. Each
+    stage compiles the level once more, and saves the work of per-node arrays sized
+    for the widest level on every narrow one (the top of the tree)."""
+    out, f = [], 64
+    while f < refs:
+        out.append(f)
+        f *= STAGE_GROWTH
+    return out + [refs]

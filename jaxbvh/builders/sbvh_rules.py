@@ -1,0 +1,111 @@
+"""The geometric rules of spatial splits, shared by :mod:`jaxbvh.builders.sbvh` and its twin.
+
+Written once for NumPy and JAX arrays alike (``xp`` is chosen from the inputs), so the
+JAX engine and the NumPy twin bin, place planes and clip with the same expressions.
+
+Planes and bins. A node's spatial bins along axis ``a`` split its box ``[lo, lo + ext]``
+into ``B`` equal slabs; plane ``j`` (``0 .. B``) sits at ``lo + (ext * j) / B`` and the
+bin of a coordinate ``x`` is ``floor((x - lo) * B / ext)`` clipped to ``[0, B - 1]`` (the
+same formula as the binned object split's, :mod:`jaxbvh.builders.topdown`).
+
+Clipping (why a reference box covers its piece of the triangle). The part of a triangle
+on one side of a plane is a convex polygon whose corners are the triangle's corners on
+that side (the plane included) and the points where edges cross the plane. Its box is
+the box of those points; the crossing's coordinate on the split axis is the plane
+itself (exact), the other two are interpolated, which rounds: they are widened by
+``CLIP_MARGIN_EPS`` machine epsilons of ``|v_i| + |v_j|`` (the interpolation's error is
+below 5 of them), so the box never misses a sliver of the triangle. The result is
+intersected with the reference's box: a reference covers the triangle's part inside the
+half-spaces of its ancestors' spatial splits, and clipping keeps that true for each
+child. No product feeds an add directly (XLA on CPU would fuse the two into a
+multiply-add, rounded once, which NumPy does not): JAX and NumPy compute the same boxes.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+#: widening of interpolated clip coordinates, in machine epsilons of ``|v_i| + |v_j|``
+CLIP_MARGIN_EPS = 8
+
+_EDGES = ((0, 1), (1, 2), (2, 0))  # a triangle's edges as vertex pairs
+
+
+def _xp(*arrays):
+    return np if all(isinstance(a, (np.ndarray, np.generic, float, int)) for a in arrays) else jnp
+
+
+def _full(xp, divisor, like):
+    """``divisor`` with the shape of ``like``, as an array XLA cannot see as a broadcast.
+
+    XLA rewrites a division by a broadcast value into a multiplication by its
+    reciprocal, which rounds differently from NumPy's division; ``like - like`` is 0
+    for finite values and XLA does not fold it (it would be NaN for inf).
+    """
+    return divisor if xp is np else divisor + (like - like)
+
+
+def plane_at(lo, ext, j, bins: int):
+    """Position of spatial plane ``j`` of a node whose box on the axis is ``[lo, lo + ext]``."""
+    xp = _xp(lo, ext, j)
+    dt = lo.dtype
+    steps = ext * xp.asarray(j, dt)
+    return lo + steps / _full(xp, xp.asarray(bins, dt), steps)  # a division before the add: no fused multiply-add
+
+
+def bin_of(x, lo, ext, bins: int):
+    """Spatial bin (int32) of coordinate ``x`` in a node of box ``[lo, lo + ext]`` (``ext > 0``;
+    0 where it is not)."""
+    xp = _xp(x, lo, ext)
+    dt = x.dtype
+    raw = xp.floor((x - lo) * xp.asarray(bins, dt) / _full(xp, xp.where(ext > 0, ext, xp.ones((), dt)), x))
+    return xp.where(ext > 0, xp.clip(raw, 0, bins - 1), 0).astype(xp.int32)
+
+
+def axis_coordinate(points, axis_mask):
+    """Coordinate on the axis of ``axis_mask`` ([..., 3] one-hot bool) of ``points`` [..., k, 3]."""
+    xp = _xp(points)
+    return xp.where(axis_mask[..., None, :], points, 0).sum(-1)
+
+
+def crossings(tri, axis_mask, plane):
+    """Where the edges of ``tri`` [..., 3, 3] cross ``plane`` [...] on the one-hot axis
+    ``axis_mask`` [..., 3]: ``(lo, hi, crosses)``, the widened crossing points [..., 3, 3]
+    (per edge; on the axis exactly ``plane``) and which edges cross strictly [..., 3]."""
+    xp = _xp(tri, plane)
+    dt = tri.dtype
+    va = axis_coordinate(tri, axis_mask)  # [..., 3] vertex coordinates on the axis
+    i = np.array([e[0] for e in _EDGES])
+    j = np.array([e[1] for e in _EDGES])
+    a_i, a_j = va[..., i], va[..., j]
+    p = plane[..., None]
+    crosses = ((a_i < p) & (a_j > p)) | ((a_i > p) & (a_j < p))
+    v_i, v_j = tri[..., i, :], tri[..., j, :]
+    denominator = _full(xp, xp.where(crosses, a_j - a_i, xp.ones((), dt))[..., None], v_i)
+    # a division last, never a product, before the add: XLA cannot fuse it into a
+    # multiply-add, so JAX rounds as NumPy does
+    x = v_i + ((v_j - v_i) * (p - a_i)[..., None]) / denominator
+    # 8 eps is a power of two: the product is exact, fused or not
+    margin = xp.asarray(CLIP_MARGIN_EPS * np.finfo(dt).eps, dt) * (xp.abs(v_i) + xp.abs(v_j))
+    on_axis = axis_mask[..., None, :]
+    x_lo = xp.where(on_axis, p[..., None], x - margin)
+    x_hi = xp.where(on_axis, p[..., None], x + margin)
+    return x_lo, x_hi, crosses
+
+
+def halfspace_box(tri, axis_mask, plane, below, ref_lo, ref_hi):
+    """Box of the part of triangle ``tri`` [..., 3, 3] on one side of ``plane`` [...]
+    (``below`` [...] bool: ``x_a <= plane``, else ``x_a >= plane``), intersected with the
+    reference box ``ref_lo``, ``ref_hi`` [..., 3]; ``lo > hi`` somewhere when empty."""
+    xp = _xp(tri, plane, ref_lo)
+    dt = tri.dtype
+    va = axis_coordinate(tri, axis_mask)
+    p = plane[..., None]
+    b = below[..., None]
+    inside = xp.where(b, va <= p, va >= p)  # [..., 3] vertices on the kept side
+    x_lo, x_hi, crosses = crossings(tri, axis_mask, plane)
+    inf = xp.asarray(np.inf, dt)
+    lo = xp.minimum(xp.where(inside[..., None], tri, inf).min(-2), xp.where(crosses[..., None], x_lo, inf).min(-2))
+    hi = xp.maximum(xp.where(inside[..., None], tri, -inf).max(-2), xp.where(crosses[..., None], x_hi, -inf).max(-2))
+    return xp.maximum(lo, ref_lo), xp.minimum(hi, ref_hi)

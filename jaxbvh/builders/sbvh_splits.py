@@ -1,0 +1,260 @@
+"""The two split searches of :mod:`jaxbvh.builders.sbvh` over all open nodes of a level at once.
+
+Every open node of a level has a *slot* ``0 .. F - 1`` (its id minus the level's first
+id); a reference's ``seg`` is its node's slot, ``F`` when its node is not open. Per-slot
+sums, minima and maxima over references are segment reductions with ``F + 1`` segments,
+the last one thrown away. Rules: :mod:`jaxbvh.builders.sbvh`'s docstring.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jaxbvh.builders import sbvh_rules as rules
+from jaxbvh.numerics import TIE_TOLERANCE, half_area, take
+
+
+class Split(NamedTuple):
+    """The best split of one kind per slot, all [F] (boxes [F, 3])."""
+
+    cost: Any      # A_L N_L + A_R N_R; inf without a candidate
+    axis: Any      # int32 axis of the plane
+    plane: Any     # int32 k: between bins k and k + 1
+    left_lo: Any   # box of the left side (object: exact; spatial: the bins' estimate)
+    left_hi: Any
+    right_lo: Any
+    right_hi: Any
+    n_left: Any    # int32 references on each side (spatial: before unsplitting)
+    n_right: Any
+
+
+def segment(op, values, seg, slots):
+    """``op`` (a jax.ops.segment_*) of ``values`` [M, ...] over ``seg`` [M] in ``0 .. slots``, the
+    last segment (references of no open node) dropped: [slots, ...]."""
+    return op(values, seg, num_segments=slots + 1)[:slots]
+
+
+def _best_plane(cost, lo_l, hi_l, lo_r, hi_r, n_l, n_r, bins: int) -> Split:
+    """Tie-rule winner of candidates [F, 3, B - 1] (least cost; within TIE_TOLERANCE the
+    lowest axis, then the lowest plane)."""
+    slots = cost.shape[0]
+    flat = cost.reshape(slots, -1)
+    best = flat.min(axis=1)
+    near = best * jnp.asarray(1 + TIE_TOLERANCE, cost.dtype)
+    first = jnp.argmax((flat <= near[:, None]) & (flat < jnp.inf), axis=1).astype(jnp.int32)
+    axis, plane = first // (bins - 1), first % (bins - 1)
+    row = jnp.arange(slots)
+
+    def pick(v):
+        return v.reshape((slots, -1) + v.shape[3:])[row, first]
+
+    return Split(best, axis, plane, pick(lo_l), pick(hi_l), pick(lo_r), pick(hi_r), pick(n_l), pick(n_r))
+
+
+def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int):
+    """Candidates of binned counts and boxes [F, 3, B(, 3)]: the plane after bin ``k``
+    has on its left the bins ``<= k`` and on its right the others."""
+    n_l = jnp.cumsum(count[0], axis=2)[:, :, : bins - 1]
+    n_r = jnp.flip(jnp.cumsum(jnp.flip(count[1], 2), axis=2), 2)[:, :, 1:]
+    lo_l = jax.lax.cummin(box_lo, axis=2)[:, :, : bins - 1]
+    hi_l = jax.lax.cummax(box_hi, axis=2)[:, :, : bins - 1]
+    lo_r = jax.lax.cummin(box_lo, axis=2, reverse=True)[:, :, 1:]
+    hi_r = jax.lax.cummax(box_hi, axis=2, reverse=True)[:, :, 1:]
+    dt = box_lo.dtype
+    cost = half_area(lo_l, hi_l, scale) * n_l.astype(dt) + half_area(lo_r, hi_r, scale) * n_r.astype(dt)
+    cost = jnp.where(usable[:, :, None] & (n_l > 0) & (n_r > 0), cost, jnp.inf)
+    return _best_plane(cost, lo_l, hi_l, lo_r, hi_r, n_l, n_r, bins)
+
+
+def object_split(ref_lo, ref_hi, seg, slots: int, scale, bins: int):
+    """Binned object split of every slot over its references' box centres: ``(split,
+    bin3)``, ``bin3`` [R, 3] int32 each reference's bin per axis."""
+    dt = ref_lo.dtype
+    centre = jnp.asarray(0.5, dt) * ref_lo + jnp.asarray(0.5, dt) * ref_hi
+    active = seg < slots
+    c = jnp.where(active[:, None], centre, jnp.inf)
+    cmin = segment(jax.ops.segment_min, c, seg, slots)
+    cmax = segment(jax.ops.segment_max, jnp.where(active[:, None], centre, -jnp.inf), seg, slots)
+    span = cmax - cmin
+    low_r, span_r = take(cmin, seg, 0), take(span, seg, 0)
+    bin3 = rules.bin_of(centre, low_r, span_r, bins)  # [R, 3]
+    key = seg[:, None] * (3 * bins) + jnp.arange(3, dtype=jnp.int32)[None, :] * bins + bin3
+    key = jnp.where(active[:, None], key, slots * 3 * bins).ravel()
+    total = slots * 3 * bins
+    ones = jnp.ones(key.shape, jnp.int32)
+    count = segment(jax.ops.segment_sum, ones, key, total).reshape(slots, 3, bins)
+    lo = jnp.broadcast_to(ref_lo[:, None, :], (ref_lo.shape[0], 3, 3)).reshape(-1, 3)
+    hi = jnp.broadcast_to(ref_hi[:, None, :], (ref_hi.shape[0], 3, 3)).reshape(-1, 3)
+    box_lo = segment(jax.ops.segment_min, lo, key, total).reshape(slots, 3, bins, 3)
+    box_hi = segment(jax.ops.segment_max, hi, key, total).reshape(slots, 3, bins, 3)
+    split = _sweep_bins((count, count), box_lo, box_hi, span > 0, scale, bins)
+    return split, bin3
+
+
+def overlap_area(split: Split, scale):
+    """Half-area [F] of the intersection of the two sides' boxes, 0 when they do not meet."""
+    lo, hi = jnp.maximum(split.left_lo, split.right_lo), jnp.minimum(split.left_hi, split.right_hi)
+    return jnp.where(jnp.all(lo <= hi, axis=-1), half_area(lo, hi, scale), 0)
+
+
+class Bins(NamedTuple):
+    """A reference's entry and exit bins per axis, [R, 3] int32."""
+
+    entry: Any
+    exit: Any
+
+
+def _axis_bins(tri_r, ref_lo, ref_hi, seg, node_lo, ext, tried, slots: int, axis: int, bins: int):
+    """Spatial bins of one axis: entry and exit counts [F, B], estimated bin boxes
+    [F, B, 3], and each reference's entry and exit bin [R]."""
+    live = (seg < slots) & take(tried, seg, False)
+    lo_r, ext_r = take(node_lo[:, axis], seg, 0), take(ext, seg, 0)
+    b0 = rules.bin_of(ref_lo[:, axis], lo_r, ext_r, bins)
+    b1 = rules.bin_of(ref_hi[:, axis], lo_r, ext_r, bins)
+    key0 = jnp.where(live, seg * bins + b0, slots * bins)
+    key1 = jnp.where(live, seg * bins + b1, slots * bins)
+    ones = jnp.ones(seg.shape, jnp.int32)
+    entries = segment(jax.ops.segment_sum, ones, key0, slots * bins).reshape(slots, bins)
+    exits = segment(jax.ops.segment_sum, ones, key1, slots * bins).reshape(slots, bins)
+    # the reference's corners, clamped to its box, in their bins
+    corner = jnp.clip(tri_r, ref_lo[:, None, :], ref_hi[:, None, :])  # [R, 3, 3]
+    vb = rules.bin_of(corner[:, :, axis], lo_r[:, None], ext_r[:, None], bins)
+    keys = [jnp.where(live[:, None], seg[:, None] * bins + vb, slots * bins).ravel()]
+    points_lo, points_hi = [corner.reshape(-1, 3)], [corner.reshape(-1, 3)]
+    # the crossings of the inner planes j = 1 .. B - 1 its box spans, in bins j - 1 and j
+    j = jnp.arange(1, bins, dtype=jnp.int32)
+    plane = rules.plane_at(lo_r[:, None], ext_r[:, None], j[None, :], bins)  # [R, B - 1]
+    mask = jnp.broadcast_to(jnp.arange(3) == axis, plane.shape + (3,))
+    x_lo, x_hi, crosses = rules.crossings(jnp.broadcast_to(tri_r[:, None], plane.shape + (3, 3)), mask, plane)
+    c_lo = jnp.where(crosses[..., None], x_lo, jnp.inf).min(-2)
+    c_hi = jnp.where(crosses[..., None], x_hi, -jnp.inf).max(-2)
+    c_lo = jnp.clip(c_lo, ref_lo[:, None, :], ref_hi[:, None, :])
+    c_hi = jnp.clip(c_hi, ref_lo[:, None, :], ref_hi[:, None, :])
+    spans = live[:, None] & crosses.any(-1) & (b0[:, None] < j[None, :]) & (j[None, :] <= b1[:, None])
+    for side in (j - 1, j):
+        keys.append(jnp.where(spans, seg[:, None] * bins + side[None, :], slots * bins).ravel())
+        points_lo.append(c_lo.reshape(-1, 3))
+        points_hi.append(c_hi.reshape(-1, 3))
+    key = jnp.concatenate(keys)
+    box_lo = segment(jax.ops.segment_min, jnp.concatenate(points_lo), key, slots * bins).reshape(slots, bins, 3)
+    box_hi = segment(jax.ops.segment_max, jnp.concatenate(points_hi), key, slots * bins).reshape(slots, bins, 3)
+    return entries, exits, box_lo, box_hi, b0, b1
+
+
+def compact_sizes(refs: int) -> list[int]:
+    """Buffer sizes the spatial search gathers the references of tried nodes into: a
+    64th and an 8th of the slots (at least 64) and all of them."""
+    return sorted({min(refs, max(64, refs // 64)), min(refs, max(64, refs // 8)), refs})
+
+
+def spatial_split(tri_r, ref_lo, ref_hi, seg, node_lo, node_hi, tried, slots: int, scale, bins: int):
+    """Binned spatial split of the slots ``tried`` [F] bool: ``(split, bins)``.
+
+    Only the references of tried nodes are binned (deep nodes are rarely tried: their
+    overlap falls below the threshold): they are gathered first into the smallest
+    buffer of :func:`compact_sizes` that holds them (one compiled branch per size).
+    """
+    refs = seg.shape[0]
+    ext = node_hi - node_lo  # [F, 3]
+    live = (seg < slots) & take(tried, seg, False)
+    order = jnp.argsort(~live, stable=True)  # the live references first
+
+    def search(size: int):
+        def run():
+            idx = order[:size]
+            sub_seg = jnp.where(live[idx], seg[idx], slots)
+            per_axis = [_axis_bins(tri_r[idx], ref_lo[idx], ref_hi[idx], sub_seg, node_lo, ext[:, a], tried,
+                                   slots, a, bins) for a in range(3)]
+            entries, exits, box_lo, box_hi, b0, b1 = (jnp.stack(v, axis=1) for v in zip(*per_axis))
+            split = _sweep_bins((entries, exits), box_lo, box_hi, (ext > 0) & tried[:, None], scale, bins)
+            full = jnp.zeros((refs, 3), jnp.int32)
+            return split, Bins(full.at[idx].set(b0), full.at[idx].set(b1))
+        return run
+
+    sizes = compact_sizes(refs)
+    n_live = jnp.sum(live, dtype=jnp.int32)
+    branch = sum((n_live > size).astype(jnp.int32) for size in sizes[:-1])
+    return jax.lax.switch(branch, [search(size) for size in sizes])
+
+
+class Sides(NamedTuple):
+    """Where each reference of a spatially split node goes, all [R]."""
+
+    left: Any       # bool: a reference (whole, or its lower piece) goes to the left child
+    right: Any      # bool: ... to the right child (both: the reference is split)
+    left_lo: Any    # [R, 3] the lower piece's box (straddlers; others keep their box)
+    left_hi: Any
+    right_lo: Any   # [R, 3] the upper piece's box
+    right_hi: Any
+
+
+def spatial_sides(tri_r, ref_lo, ref_hi, seg, node_lo, node_hi, split: Split, ref_bins: Bins, slots: int,
+                  scale, bins: int):
+    """Sides of every reference under each slot's spatial split (the twin's
+    ``_spatial_sides``: forced unsplits, priced unsplits, then drop the priced ones if a
+    side would be empty): ``(sides, ok [F], extra [F])``; ``ok`` False where a side stays empty."""
+    dt = ref_lo.dtype
+    active = seg < slots
+    axis_r, k_r = take(split.axis, seg, 0), take(split.plane, seg, 0)
+    b0 = jnp.take_along_axis(ref_bins.entry, axis_r[:, None], axis=1)[:, 0]
+    b1 = jnp.take_along_axis(ref_bins.exit, axis_r[:, None], axis=1)[:, 0]
+    straddle = active & (b0 <= k_r) & (b1 > k_r)
+    to_left = active & (b1 <= k_r)
+    to_right = active & (b0 > k_r)
+    mask = axis_r[:, None] == jnp.arange(3)[None, :]
+    node_lo_a = jnp.take_along_axis(take(node_lo, seg, 0), axis_r[:, None], axis=1)[:, 0]
+    ext_a = jnp.take_along_axis(take(node_hi - node_lo, seg, 0), axis_r[:, None], axis=1)[:, 0]
+    plane = rules.plane_at(node_lo_a, ext_a, k_r + 1, bins)
+    true = jnp.ones(seg.shape, bool)
+    lo_l, hi_l = rules.halfspace_box(tri_r, mask, plane, true, ref_lo, ref_hi)
+    lo_r, hi_r = rules.halfspace_box(tri_r, mask, plane, ~true, ref_lo, ref_hi)
+    forced_right = straddle & jnp.any(lo_l > hi_l, axis=1)
+    forced_left = straddle & jnp.any(lo_r > hi_r, axis=1) & ~forced_right
+    # the paper's unsplitting: each straddler priced against the split's totals
+    a_l = half_area(split.left_lo, split.left_hi, scale)
+    a_r = half_area(split.right_lo, split.right_hi, scale)
+    n_l, n_r = split.n_left.astype(dt), split.n_right.astype(dt)
+    c_split = take(a_l * n_l + a_r * n_r, seg, 0)
+    one = jnp.ones((), dt)
+    g = lambda v: take(v, seg, 0)  # noqa: E731  per-reference view of a per-slot value
+    c_left = half_area(jnp.minimum(g(split.left_lo), ref_lo), jnp.maximum(g(split.left_hi), ref_hi), scale) * g(n_l) \
+        + g(a_r) * (g(n_r) - one)
+    c_right = g(a_l) * (g(n_l) - one) \
+        + half_area(jnp.minimum(g(split.right_lo), ref_lo), jnp.maximum(g(split.right_hi), ref_hi), scale) * g(n_r)
+    tol = jnp.asarray(1 + TIE_TOLERANCE, dt)
+    left_wins = c_left * tol < c_split
+    right_wins = c_right * tol < c_split
+    prefer_left = left_wins & (c_left <= c_right)
+    forced = forced_left | forced_right
+    cheap_left = straddle & prefer_left & ~forced
+    cheap_right = straddle & right_wins & ~prefer_left & ~forced
+
+    def sides(only_left, only_right):
+        go_left = to_left | (straddle & ~only_right)
+        go_right = to_right | (straddle & ~only_left)
+        both = (segment(jax.ops.segment_max, go_left.astype(jnp.int32), seg, slots) > 0) \
+            & (segment(jax.ops.segment_max, go_right.astype(jnp.int32), seg, slots) > 0)
+        return go_left, go_right, both
+
+    left1, right1, ok1 = sides(forced_left | cheap_left, forced_right | cheap_right)
+    left2, right2, ok2 = sides(forced_left, forced_right)
+    first = take(ok1, seg, False)
+    go_left, go_right = jnp.where(first, left1, left2), jnp.where(first, right1, right2)
+    ok = ok1 | ok2
+    extra = segment(jax.ops.segment_sum, (go_left & go_right).astype(jnp.int32), seg, slots)
+    return Sides(go_left, go_right, lo_l, hi_l, lo_r, hi_r), ok, extra
+
+
+def rank_by_prim(prim, seg, slots: int):
+    """Rank [R] int32 of each reference among its slot's by triangle id (the halves of a
+    node whose centres all coincide)."""
+    order = jnp.lexsort((prim, seg))
+    sorted_seg = seg[order]
+    pos = jnp.arange(seg.shape[0], dtype=jnp.int32)
+    first = segment(jax.ops.segment_min, pos, sorted_seg, slots)
+    rank_sorted = pos - take(first, sorted_seg, 0)
+    return jnp.zeros(seg.shape[0], jnp.int32).at[order].set(rank_sorted)
+

@@ -1,0 +1,142 @@
+"""SBVH: equal to its NumPy twin, every tree valid with references, every triangle covered,
+the binned builder when no spatial split pays, a bounded reference capacity, clear errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from helpers import canonical
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from strategies import boxes, triangle_soups
+
+import jaxbvh
+from jaxbvh.builders import SBVHConfig, build_sbvh
+from jaxbvh.builders import sbvh_reference as reference
+from jaxbvh.tree.frame import Frame
+
+SLOTS = 96  # one reference capacity for every soup (one compiled program per bins value)
+
+
+def local_triangles(tri, dtype=np.float32):
+    """Triangles in their scene frame, as the command line hands them to the builder."""
+    lo, hi = boxes(tri)
+    return Frame.fit(lo, hi).to_local(tri).astype(dtype)
+
+
+def long_thin_scene():
+    """Long slivers crossing each other on a grid: object splits overlap, spatial splits pay."""
+    tri = []
+    for i in range(6):
+        y = i / 6.0
+        tri.append([[0, y, 0], [1, y + 0.01, 0.01], [1, y, 0.02]])  # along x
+        tri.append([[y, 0, 0.01], [y + 0.01, 1, 0.0], [y, 1, 0.02]])  # along y, in the same slab
+    return np.asarray(tri, np.float32)
+
+
+@settings(max_examples=25)  # the twin costs ~1 s a soup
+@given(tri=triangle_soups(max_size=24), alpha=st.sampled_from([0.0, 1e-5]), max_leaf=st.sampled_from([1, 3]),
+       bins=st.sampled_from([4, 8]))
+def test_jax_sbvh_equals_reference(tri, alpha, max_leaf, bins):
+    tri = local_triangles(tri)
+    config = SBVHConfig(alpha=alpha, max_leaf=max_leaf, bins=bins)
+    got = build_sbvh(tri, config, capacity=SLOTS)
+    want = reference.build(tri, config, capacity=SLOTS)
+    assert canonical(got.tree) == canonical(want.tree)
+    assert (int(got.references), int(got.spatial_splits), bool(got.out_of_capacity)) == \
+        (want.references, want.spatial_splits, want.out_of_capacity)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_jax_sbvh_equals_reference_where_spatial_splits_and_unsplitting_happen(seed):
+    """Long triangles at random angles among small ones: many spatial splits, clipped and
+    unsplit references (the soups above rarely need spatial splits)."""
+    rng = np.random.default_rng(seed)
+    n = 80  # a fifth of them large: seeds 0, 1, 2 unsplit 7, 6, 3 straddlers (of 29, 12, 16)
+    size = np.where(rng.random((n, 1, 1)) < 0.2, 1.0, 0.1)
+    tri = (rng.uniform(-1, 1, (n, 1, 3)) + rng.normal(size=(n, 3, 3)) * size).astype(np.float32)
+    config = SBVHConfig(alpha=0.0, max_leaf=2, bins=8)
+    got = build_sbvh(tri, config, capacity=2 * SLOTS)
+    want = reference.build(tri, config, capacity=2 * SLOTS)
+    assert want.spatial_splits > 0
+    assert canonical(got.tree) == canonical(want.tree)
+    assert (int(got.references), int(got.spatial_splits)) == (want.references, want.spatial_splits)
+
+
+@settings(max_examples=30)
+@given(tri=triangle_soups(max_size=40), alpha=st.sampled_from([0.0, 1e-5]), max_leaf=st.sampled_from([1, 4]))
+def test_every_sbvh_tree_is_valid_with_references_and_covers_every_triangle(tri, alpha, max_leaf):
+    """Degenerate (zero-area, one-point) and thin triangles, scales 1e-30 .. 1e30 included."""
+    tri = local_triangles(tri)
+    lo, hi = boxes(tri)
+    got = build_sbvh(tri, SBVHConfig(alpha=alpha, max_leaf=max_leaf, bins=8), capacity=2 * SLOTS)
+    jaxbvh.validate(got.tree, lo, hi, references=True, triangles=tri)
+    t = jaxbvh.to_numpy(got.tree)
+    assert int(t.prim_count.sum()) == int(got.references) >= tri.shape[0]
+    assert t.prim_count.max() <= max_leaf
+
+
+def test_spatial_splits_pay_on_long_thin_triangles():
+    tri = long_thin_scene()
+    lo, hi = boxes(tri)
+    got = build_sbvh(tri, SBVHConfig(bins=8), capacity=SLOTS)
+    binned = jaxbvh.build(lo, hi, method="binned", bins=8)
+    jaxbvh.validate(got.tree, lo, hi, references=True, triangles=tri)
+    assert int(got.spatial_splits) > 0 and int(got.references) > tri.shape[0]
+    assert float(jaxbvh.sah(got.tree)) < float(jaxbvh.sah(binned))
+
+
+@settings(max_examples=15)
+@given(tri=triangle_soups(max_size=30), max_leaf=st.sampled_from([1, 3]))
+def test_without_spatial_splits_sbvh_is_the_binned_builder(tri, max_leaf):
+    """``alpha`` past any overlap: only object splits, by the binned builder's rule."""
+    tri = local_triangles(tri)
+    lo, hi = boxes(tri)
+    got = build_sbvh(tri, SBVHConfig(alpha=1e30, max_leaf=max_leaf, bins=8), capacity=SLOTS)
+    assert int(got.spatial_splits) == 0 and int(got.references) == tri.shape[0]
+    assert canonical(got.tree) == canonical(jaxbvh.build(lo, hi, method="binned", max_leaf=max_leaf, bins=8))
+
+
+def test_reference_capacity_runs_out_gracefully():
+    """No slot to spare: every spatial split is refused, the build says so and stays valid."""
+    tri = long_thin_scene()
+    lo, hi = boxes(tri)
+    config = SBVHConfig(bins=8)
+    got = build_sbvh(tri, config, capacity=tri.shape[0])
+    want = reference.build(tri, config, capacity=tri.shape[0])
+    assert bool(got.out_of_capacity) and want.out_of_capacity
+    assert int(got.references) == tri.shape[0]
+    assert canonical(got.tree) == canonical(want.tree)
+    jaxbvh.validate(got.tree, lo, hi, references=True, triangles=tri)
+    some = build_sbvh(tri, config, capacity=tri.shape[0] + 3)  # a few slots: granted in node order
+    assert int(some.references) <= tri.shape[0] + 3
+    assert canonical(some.tree) == canonical(reference.build(tri, config, capacity=tri.shape[0] + 3).tree)
+    with pytest.warns(UserWarning, match="reference slots ran out"):
+        jaxbvh.build(lo, hi, method="sbvh", triangles=tri, bins=8, capacity=tri.shape[0])
+
+
+def test_build_takes_sbvh_by_name_and_config():
+    tri = long_thin_scene()
+    lo, hi = boxes(tri)
+    by_name = jaxbvh.build(lo, hi, method="sbvh", triangles=tri, alpha=1e-5, bins=8, reference_capacity=4)
+    by_config = jaxbvh.build(lo, hi, SBVHConfig(bins=8, reference_capacity=4), triangles=tri)
+    assert canonical(by_name) == canonical(by_config)
+    assert "sbvh" in jaxbvh.builders.ALL_BUILDERS and "sbvh" not in jaxbvh.BUILDERS
+
+
+@pytest.mark.parametrize("call, message", [
+    (lambda lo, hi, tri: jaxbvh.build(lo, hi, method="sbvh"), "needs the triangles"),
+    (lambda lo, hi, tri: jaxbvh.build(lo[:2], hi[:2], method="sbvh", triangles=tri), "boxes of the"),
+    (lambda lo, hi, tri: build_sbvh(tri[:, :2]), r"shape \[n, 3, 3\]"),
+    (lambda lo, hi, tri: build_sbvh(np.where(np.arange(12)[:, None, None] == 3, np.nan, tri)),
+     "NaN or infinite"),
+    (lambda lo, hi, tri: build_sbvh(tri, capacity=5), "below the 12 triangles"),
+    (lambda lo, hi, tri: SBVHConfig(alpha=-1.0), "alpha"),
+    (lambda lo, hi, tri: SBVHConfig(reference_capacity=0.5), "reference_capacity"),
+])
+def test_bad_input_is_a_one_line_error(call, message):
+    tri = long_thin_scene()
+    lo, hi = boxes(tri)
+    with pytest.raises(ValueError, match=message) as info:
+        call(lo, hi, tri)
+    assert "\n" not in str(info.value)
