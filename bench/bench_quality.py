@@ -179,7 +179,8 @@ def plot(rows, path):
         ax.set_ylabel("SAH")
         low = min(min([y for _, y, _ in r["curve"]] + [r["sah"]]) for r in mine)
         low = min(low, min(sah for _, _, sah in series))
-        ax.set_ylim(low - 0.01 * abs(low), mine[0]["start_sah"] * 1.005)
+        high = max(mine[0]["start_sah"], max(sah for _, _, sah in series))
+        ax.set_ylim(low - 0.01 * abs(low), high * 1.005)
         ax.legend(fontsize=6)
     for ax in axes.ravel()[len(names):]:
         ax.axis("off")
