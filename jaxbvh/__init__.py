@@ -19,6 +19,8 @@ package            what it holds
 ``twolevel``       two-level BVHs and partial re-braiding (Benthin et al.)
 ``rays``           ray generation, traversal, measured costs
 ``io``             meshes and scenes from files
+``batch``          many meshes at once: trees stacked in capacity groups, every method
+                   vmapped, the batch axis sharded over devices
 ``cli``            the ``jaxbvh`` command
 =================  =====================================================================
 
@@ -26,7 +28,7 @@ package            what it holds
 ``draws`` the random numbers an algorithm and its twin both consume.
 """
 
-from jaxbvh import io, optimize, rays, scenes, twolevel
+from jaxbvh import batch, io, optimize, rays, scenes, twolevel
 from jaxbvh.builders import insertion, lbvh, morton, ploc
 from jaxbvh.builders.dispatch import BUILDERS, build
 from jaxbvh.io import load_mesh
@@ -45,6 +47,6 @@ __all__ = [
     "BVH", "WideBVH", "Frame", "InvalidTreeError", "BUILDERS",
     "build", "check", "validate", "sah", "node_costs", "ng_trifonov_cost", "goldsmith_salmon_cost",
     "all_costs", "save", "load", "to_interchange", "from_interchange", "to_numpy", "to_jax",
-    "capacity_bucket", "load_mesh", "io", "optimize", "rays", "scenes", "twolevel", "insertion", "lbvh",
+    "capacity_bucket", "load_mesh", "batch", "io", "optimize", "rays", "scenes", "twolevel", "insertion", "lbvh",
     "morton", "ploc", "reinsert", "rotate", "treelet", "evolve", "grasp", "collapse",
 ]

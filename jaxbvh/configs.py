@@ -85,18 +85,37 @@ def defaults(config_class) -> dict[str, Any]:
 # ----------------------------------------------------------------------------------
 
 
-def integer(minimum: int | None = None, maximum: int | None = None) -> Callable:
-    """An integer (``2.0`` counts, ``True`` and ``2.5`` do not) in ``[minimum, maximum]``."""
+#: the largest integer a knob takes unless its check says less: counts and sizes end up
+#: in int32 arrays (ids, leaf sizes, loop counters), so a larger one could only overflow
+INT_MAX = 2 ** 31 - 1
+
+
+def integer(minimum: int | None = None, maximum: int | None = INT_MAX) -> Callable:
+    """An integer (``2.0`` counts, ``True`` and ``2.5`` do not) in ``[minimum, maximum]``
+    (``maximum``: :data:`INT_MAX` unless given; None: no bound)."""
 
     def check(name, value):
-        whole = isinstance(value, numbers.Real) and not isinstance(value, bool) and float(value).is_integer()
+        whole = isinstance(value, numbers.Real) and not isinstance(value, bool) and _is_whole(value)
         in_range = whole and (minimum is None or value >= minimum) and (maximum is None or value <= maximum)
         if not in_range:
-            what = _interval("an integer", minimum, maximum, None, None)
+            # the int32 bound is named only to a value that passed it: "an integer >= 1"
+            # is what a user who typed 0 needs to read
+            shown_max = maximum if maximum != INT_MAX or (whole and value > INT_MAX) else None
+            what = _interval("an integer", minimum, shown_max, None, None)
             raise ValueError(f"{name} must be {what}, got {value!r}")
         return int(value)
 
     return check
+
+
+def _is_whole(value) -> bool:
+    """``value`` (a real number) is a whole number; a Python int of any size is."""
+    if isinstance(value, numbers.Integral):
+        return True
+    try:
+        return float(value).is_integer()
+    except OverflowError:
+        return False
 
 
 def real(minimum: float | None = None, maximum: float | None = None, *, finite: bool = True,
@@ -163,8 +182,9 @@ def config_of(config_class) -> Callable:
 
 def _interval(what: str, minimum, maximum, above, below) -> str:
     """``what`` with its bounds: ``in (0, 1]``, ``>= 2``, ``< 1``, ..."""
-    low = f"[{minimum:g}" if minimum is not None else f"({above:g}" if above is not None else None
-    high = f"{maximum:g}]" if maximum is not None else f"{below:g})" if below is not None else None
+    shown = lambda x: str(x) if isinstance(x, int) else f"{x:g}"  # noqa: E731 (no 2.14748e+09)
+    low = f"[{shown(minimum)}" if minimum is not None else f"({shown(above)}" if above is not None else None
+    high = f"{shown(maximum)}]" if maximum is not None else f"{shown(below)})" if below is not None else None
     if low and high:
         return f"{what} in {low}, {high}"
     if low:

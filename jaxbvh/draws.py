@@ -33,8 +33,12 @@ def split_uniforms(key, trial, start, count):
 
 
 def annealing_draws(key, pass_index, capacity: int, dtype=jnp.float32):
-    """The uniforms of one annealing pass: [capacity, 6], row = node id, column = move.
+    """The draws of one annealing pass: [capacity, 6] Exp(1) variates ``E = -log(xi)``
+    (``xi`` uniform), row = node id, column = move.
 
+    Kensler's test ``xi < exp(-de / T)`` is ``de < T E``: a product, exact in IEEE
+    arithmetic, where a logarithm taken by the annealer and again by its twin could
+    differ by an ulp (XLA's ``log`` is not NumPy's) and flip a decision at a tie.
     Kensler annealing (:mod:`jaxbvh.optimize.rotate`) and its twin take their draws from here.
     """
-    return jax.random.uniform(jax.random.fold_in(key, pass_index), (capacity, 6), dtype)
+    return jax.random.exponential(jax.random.fold_in(key, pass_index), (capacity, 6), dtype)

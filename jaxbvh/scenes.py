@@ -264,3 +264,178 @@ def dynamic_scene(key, vertices, faces, *, n_static: int = 32, frames: int = 8,
     return DynamicScene(static_objects=static_objects, static_instances=static_instances,
                         moving_vertices=v, moving_faces=np.asarray(faces, np.int32), frames=frames,
                         radius=half - 1.5, height=height / 2, wobble=wobble)
+
+
+# ----------------------------------------------------------------------------------
+# Scenes whose objects overlap, the kind partial re-braiding is for (issue 22)
+# ----------------------------------------------------------------------------------
+
+
+def by_material(vertices, faces, groups: int = 8, name: str = "by-material") -> Mesh:
+    """One mesh split into objects by a material-like attribute, each placed once.
+
+    Triangles are grouped by the direction of their normal (``groups`` in 2 ... 8: the
+    octant of the normal for 8, the sign pattern of its first ``log2(groups)``
+    components otherwise), the way a scanned or modelled scene's materials scatter: every
+    group spans the whole mesh, so the objects' boxes overlap almost completely (the
+    paper's San Miguel, Rungholt and Powerplant, whose objects are material groups).
+    Empty groups are dropped. Every object keeps the world vertices it uses and is
+    placed by the identity.
+    """
+    if groups not in (2, 4, 8):
+        raise ValueError(f"groups must be 2, 4 or 8, got {groups}")
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int32)
+    tri = v[f]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    bits = int(round(np.log2(groups)))
+    key = sum((normal[:, k] >= 0).astype(np.int64) << k for k in range(bits))
+    objects = []
+    for g in range(groups):
+        mine = f[key == g]
+        if mine.shape[0] == 0:
+            continue
+        used, local = np.unique(mine, return_inverse=True)
+        objects.append((v[used], local.reshape(-1, 3).astype(np.int32)))
+    return assemble(objects, [(k, np.eye(4)) for k in range(len(objects))], name=name)
+
+
+def pile(key, vertices, faces, n_instances: int = 12, *, jitter: float = 0.1, name: str = "pile") -> Mesh:
+    """``n_instances`` uniformly rotated instances of one mesh piled around one centre.
+
+    Positions are uniform in a cube of side ``jitter`` x the mesh's largest extent around
+    the origin, so every instance overlaps every other: rotated instances reach the top
+    level only through the loose world boxes of their rotated object boxes.
+    """
+    if n_instances < 1 or not jitter >= 0:
+        raise ValueError(f"need n_instances >= 1 and jitter >= 0, got {n_instances}, {jitter}")
+    v, size = _centred(vertices)
+    k_rot, k_pos = jax.random.split(key)
+    rotations = random_rotations(k_rot, n_instances)
+    positions = (np.asarray(jax.random.uniform(k_pos, (n_instances, 3)), np.float64) - 0.5) * jitter * size
+    instances = [(0, _transform(r, 1.0, p)) for r, p in zip(rotations, positions)]
+    return assemble([(v, np.asarray(faces, np.int32))], instances, name=name)
+
+
+def rod(length: float, radius: float, sides: int = 6, segments: int = 16):
+    """A closed-ended ``sides``-gon tube along x from 0 to ``length``, cut into
+    ``segments`` rings: ``(vertices, faces)``, ``2 sides segments`` triangles (open ends)."""
+    angle = 2 * np.pi * np.arange(sides) / sides
+    ring = np.stack([np.zeros(sides), radius * np.cos(angle), radius * np.sin(angle)], 1)
+    xs = np.linspace(0.0, length, segments + 1)
+    vertices = np.concatenate([ring + np.array([x, 0.0, 0.0]) for x in xs])
+    faces = []
+    for s in range(segments):
+        for k in range(sides):
+            a, b = s * sides + k, s * sides + (k + 1) % sides
+            faces += [(a, b, a + sides), (b, b + sides, a + sides)]
+    return vertices, np.asarray(faces, np.int32)
+
+
+def rails(key, vertices, faces, n_compact: int = 24, n_rails: int = 6, name: str = "rails") -> Mesh:
+    """Long thin objects across a scene among compact ones (the paper's Powerplant pipes).
+
+    ``n_compact`` instances of the mesh (unit size, scale 0.6-1.2, upright rotations)
+    stand on a square ground of side ``2 sqrt(n_compact)``; ``n_rails`` rods (rails,
+    kerbs, wires), each its own object placed once, run across the whole square at
+    random heights and directions in the ground plane, through the compact objects' boxes.
+    """
+    if n_compact < 1 or n_rails < 1:
+        raise ValueError(f"need n_compact >= 1 and n_rails >= 1, got {n_compact}, {n_rails}")
+    v, size = _centred(vertices)
+    v = v / size
+    side = 2.0 * np.sqrt(n_compact)
+    k_rot, k_scale, k_pos, k_rail = jax.random.split(key, 4)
+    rotations = upright_rotations(k_rot, n_compact)
+    scales = np.asarray(jax.random.uniform(k_scale, (n_compact,), minval=0.6, maxval=1.2), np.float64)
+    positions = (np.asarray(jax.random.uniform(k_pos, (n_compact, 3)), np.float64) - 0.5) * side
+    positions[:, 1] = 0.5 * scales
+    objects = [(v, np.asarray(faces, np.int32))]
+    instances = [(0, _transform(r, s, p)) for r, s, p in zip(rotations, scales, positions)]
+    draw = np.asarray(jax.random.uniform(k_rail, (n_rails, 3)), np.float64)
+    for k in range(n_rails):
+        length = side * np.sqrt(2.0)
+        rv, rf = rod(length, 0.02, segments=32)
+        turn = upright_rotations(jax.random.fold_in(k_rail, k), 1)[0]
+        start = np.array([-0.5 * length, 0.2 + 0.8 * draw[k, 1], (draw[k, 2] - 0.5) * side * 0.5])
+        moved = (rv + start) @ turn.T
+        objects.append((moved, rf))
+        instances.append((len(objects) - 1, np.eye(4)))
+    return assemble(objects, instances, name=name)
+
+
+def mixed(key, vertices, faces, n_once: int = 8, n_instanced: int = 16, name: str = "mixed") -> Mesh:
+    """Objects placed once beside instanced ones, all in one room, overlapping.
+
+    The room (one object, placed once), ``n_once`` distinct objects placed once (the mesh
+    split by material, :func:`by_material`, then each group scaled to the room and
+    moved at random, so each spans a large part of it) and ``n_instanced`` randomly
+    rotated instances of the mesh at unit size scattered through the room.
+    """
+    v, size = _centred(vertices)
+    v = v / size
+    half, height = 4.0, 3.0
+    parts = by_material(v, faces, groups=8).objects[:n_once]
+    k_once, k_inst = jax.random.split(key)
+    shift = (np.asarray(jax.random.uniform(k_once, (len(parts), 3)), np.float64) - 0.5) * np.array([2, 0.5, 2])
+    objects = [room(half, height)]
+    instances = [(0, np.eye(4))]
+    for (pv, pf), d in zip(parts, shift):
+        objects.append((pv * 5.0 + np.array([0.0, 1.5, 0.0]) + d, pf))
+        instances.append((len(objects) - 1, np.eye(4)))
+    shared = len(objects)
+    objects.append((v, np.asarray(faces, np.int32)))
+    k_rot, k_pos = jax.random.split(k_inst)
+    rotations = random_rotations(k_rot, n_instanced)
+    unit = np.asarray(jax.random.uniform(k_pos, (n_instanced, 3)), np.float64)
+    positions = np.stack([-half + 1, 0.5, -half + 1]) + unit * np.stack([2 * half - 2, height - 1, 2 * half - 2])
+    instances += [(shared, _transform(r, 1.0, p)) for r, p in zip(rotations, positions)]
+    return assemble(objects, instances, name=name)
+
+
+def furnished_room(key, n_objects: int = 254, triangles: int = 48, name: str = "room") -> Mesh:
+    """A room of ``n_objects`` distinct objects, each placed once (the shape of San Miguel's
+    254 objects): object 0 is the room's shell, the others are small random closed blobs
+    (``triangles`` each, a perturbed octahedron subdivided) of many sizes standing
+    anywhere in it, most compact and a few long (tables, shelves, beams).
+    """
+    if n_objects < 2:
+        raise ValueError(f"n_objects must be >= 2, got {n_objects}")
+    half, height = 4.0, 3.0
+    rng = np.random.default_rng(np.asarray(jax.random.key_data(key)).ravel().tolist())
+    base_v, base_f = _blob(triangles)
+    objects = [room(half, height)]
+    for _ in range(n_objects - 1):
+        extent = np.exp(rng.uniform(np.log(0.05), np.log(0.8), 3))
+        if rng.uniform() < 0.1:  # a long one
+            extent[rng.integers(3)] = rng.uniform(2.0, 6.0)
+        centre = rng.uniform([-half, 0, -half], [half, height, half])
+        bumps = 1 + 0.3 * rng.uniform(-1, 1, base_v.shape[0])[:, None]
+        objects.append((base_v * bumps * extent + centre, base_f))
+    return assemble(objects, [(k, np.eye(4)) for k in range(n_objects)], name=name)
+
+
+def _blob(triangles: int):
+    """An octahedron subdivided until it has at least ``triangles`` faces (unit radius)."""
+    v = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.float64)
+    f = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
+    for _ in range(8):  # bounded: 8 * 4^8 faces at most
+        if f.shape[0] >= triangles:
+            break
+        mids = {}
+        vs = list(v)
+
+        def mid(a, b):
+            k = (min(a, b), max(a, b))
+            if k not in mids:
+                m = 0.5 * (vs[a] + vs[b])
+                vs.append(m / np.linalg.norm(m))
+                mids[k] = len(vs) - 1
+            return mids[k]
+
+        new = []
+        for a, b, c in f:
+            ab, bc, ca = mid(a, b), mid(b, c), mid(c, a)
+            new += [(a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca)]
+        v, f = np.asarray(vs), np.asarray(new)
+    return v, np.asarray(f, np.int32)

@@ -6,20 +6,21 @@ import gc
 import os
 
 import pytest
-from hypothesis import HealthCheck, settings
+from hypothesis import settings
 
-# One hypothesis profile for the whole suite, chosen by HYPOTHESIS_PROFILE (default "ci").
-# "ci": what `python -m pytest` runs (.ci/run too): a fixed seed per test (derandomize), so a
-# run is repeatable and its time known. "dev": random draws and five times the examples, to
-# hunt locally (tests that set max_examples themselves are costly per example, and say why):
+# The kit's plugin: its hypothesis profiles "ci" and "dev" and its mesh fixtures (also
+# its entry point, when the installed metadata is current; the same name, so loaded once).
+pytest_plugins = ["jaxbvh.testing.plugin"]
+
+# One hypothesis profile for the whole suite, chosen by HYPOTHESIS_PROFILE (default "ci"):
+# "ci" is what `python -m pytest` runs (.ci/run too), a fixed seed per test; "dev" random
+# draws and five times the examples, to hunt locally (profiles: jaxbvh.testing.plugin):
 # HYPOTHESIS_PROFILE=dev python -m pytest tests/builders/test_build.py
-# No deadline: a first example compiles (seconds), the next ones reuse the program.
-# too_slow: generating hundreds of coordinates per example is slow by design;
-# data_too_large: scenes of several triangle soups draw many values.
-settings.register_profile("ci", max_examples=20, deadline=None, derandomize=True, print_blob=True,
-                          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
-settings.register_profile("dev", settings.get_profile("ci"), max_examples=100, derandomize=False)
-settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
+
+
+def pytest_configure(config):
+    """After the plugin registered the profiles, before any test module is collected."""
+    settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 
 @pytest.fixture(autouse=True, scope="session")

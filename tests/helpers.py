@@ -1,7 +1,10 @@
-"""What several test modules share: paths, trees to compare, random trees, the command line run in-process."""
+"""What several test modules share: paths, the command line run in-process, optimizer
+results checked; trees, strategies and assertions come from the public kit
+(:mod:`jaxbvh.testing`), re-exported here under the names test modules import."""
 
 from __future__ import annotations
 
+import functools
 import json
 import sys
 from pathlib import Path
@@ -9,10 +12,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from hypothesis import strategies as st
-from strategies import boxes
 
 import jaxbvh
+import jaxbvh.testing as kit
 from jaxbvh import cli
+from jaxbvh.testing import assert_costs_close, assert_same_tree, assert_valid_tree, random_tree  # noqa: F401
+from jaxbvh.testing.strategies import boxes
 from jaxbvh.tree.frame import Frame
 
 REPO = Path(__file__).resolve().parents[1]
@@ -20,94 +25,17 @@ SHARED_DATA = REPO.parent / "shared" / "data"  # meshes, scenes, reference trees
 NODES, PRIMS = 128, 64  # random_tree's one capacity: one compiled program for all its trees
 CAPACITY = 64  # padded()'s primitive capacity
 
-# canonical() recurses once per level; set at import, not inside a test, so hypothesis
-# does not warn that the limit changed under it
+# canonical forms recurse once per level in some callers; set at import, not inside a
+# test, so hypothesis does not warn that the limit changed under it
 sys.setrecursionlimit(max(10000, sys.getrecursionlimit()))
 
-
-def canonical(tree, with_axis: bool = True):
-    """Tree as nested tuples from the root: node ids and prim order inside leaves ignored.
-
-    Interior: ``(axis, left, right, lo, hi)``; leaf: ``("leaf", sorted prims, lo, hi)``.
-    """
-    t = jaxbvh.to_numpy(tree)
-
-    def rec(n):
-        box = (tuple(np.asarray(t.lo[n]).tolist()), tuple(np.asarray(t.hi[n]).tolist()))
-        if t.prim_count[n] > 0:
-            s, c = int(t.prim_start[n]), int(t.prim_count[n])
-            return ("leaf", tuple(sorted(t.prim_index[s:s + c].tolist())), box)
-        return (int(t.axis[n]) if with_axis else None, rec(int(t.left[n])), rec(int(t.right[n])), box)
-
-    return rec(int(t.root))
-
-
-def random_tree(seed: int, n: int, max_leaf: int = 1, kind: str = "random", *, dtype=np.float32,
-                nodes: int = NODES, prims: int = PRIMS):
-    """Binary tree over ``n`` random boxes by recursive random splits of a permutation (a
-    poor tree, with much to gain), node ids shuffled so they say nothing about the
-    structure, root not 0; padded to ``nodes`` / ``prims`` (one capacity: one compile).
-
-    ``kind``: "random" boxes; "grid" (snapped to a coarse grid: duplicates, flat boxes,
-    many exact ties, exact arithmetic); "point" (every box one point: all areas zero).
-    Leaves hold up to ``max_leaf`` primitives. Returns ``(tree, prim_lo, prim_hi)``.
-    """
-    rng = np.random.default_rng(seed)
-    if kind == "grid":
-        lo = rng.integers(0, 3, (n, 3)).astype(dtype)
-        hi = lo + rng.integers(0, 2, (n, 3)).astype(dtype)
-    elif kind == "point":
-        lo = hi = np.broadcast_to(rng.normal(size=3), (n, 3)).astype(dtype)
-    elif kind == "random":
-        lo = rng.uniform(-5, 5, (n, 3)).astype(dtype)
-        hi = lo + rng.exponential(1.0, (n, 3)).astype(dtype)
-    else:
-        raise ValueError(f"kind must be random, grid or point, got {kind!r}")
-    child, start, count, box_lo, box_hi, prim_index = [], [], [], [], [], []
-
-    def make(ids):
-        i = len(child)
-        child.append([-1, -1]), start.append(0), count.append(0), box_lo.append(None), box_hi.append(None)
-        if len(ids) == 1 or (len(ids) <= max_leaf and rng.random() < 0.5):
-            start[i], count[i] = len(prim_index), len(ids)
-            prim_index.extend(ids)
-            box_lo[i], box_hi[i] = lo[ids].min(0), hi[ids].max(0)
-        else:
-            k = int(rng.integers(1, len(ids)))
-            a, b = make(ids[:k]), make(ids[k:])
-            child[i] = [a, b]
-            box_lo[i], box_hi[i] = np.minimum(box_lo[a], box_lo[b]), np.maximum(box_hi[a], box_hi[b])
-        return i
-
-    make([int(p) for p in rng.permutation(n)])
-    m = len(child)
-    new = rng.permutation(m)
-    old_child = np.array(child)
-    ids = np.full((m, 2), -1, np.int32)
-    for old in range(m):
-        for side in range(2):
-            c = old_child[old, side]
-            ids[new[old], side] = new[c] if c >= 0 else -1
-    inv = np.argsort(new)
-    arrays = dict(child=ids, prim_start=np.array(start, np.int32)[inv],
-                  prim_count=np.array(count, np.int32)[inv], prim_index=np.array(prim_index, np.int32),
-                  lo=np.array(box_lo, dtype)[inv], hi=np.array(box_hi, dtype)[inv],
-                  root=np.int32(new[0]))
-    tree = jaxbvh.from_interchange(arrays, pad=False)
-    return jaxbvh.tree.pad_to(tree, nodes, prims), lo, hi
-
+# Trees to compare: the kit's canonical form, here with the split axis unless asked not to
+canonical = functools.partial(kit.canonical, with_axis=True)
 
 # Random tree cases: (seed, n, max_leaf, kind) for random_tree
 tree_cases = st.builds(lambda seed, n, leaf, grid: (seed, n, leaf, grid),
-                  st.integers(0, 2**31), st.integers(2, 40), st.integers(1, 3),
-                  st.sampled_from(["random", "grid"]))
-
-
-def assert_same_tree(a, b, fields=("left", "right", "parent", "lo", "hi", "root")):
-    a, b = jaxbvh.to_numpy(a), jaxbvh.to_numpy(b)
-    for field in fields:
-        np.testing.assert_array_equal(np.asarray(getattr(a, field)), np.asarray(getattr(b, field)),
-                                      err_msg=field)
+                       st.integers(0, 2**31), st.integers(2, 40), st.integers(1, 3),
+                       st.sampled_from(["random", "grid"]))
 
 
 def check_result(tree, result, prim_lo, prim_hi, ct=1.0):

@@ -129,7 +129,8 @@ def test_every_twin_sits_beside_its_module():
 
 
 TESTS = Path(__file__).resolve().parent
-WHOLE_PACKAGE_TESTS = {"test_architecture.py", "test_notebooks.py"}  # the package's shape, its notebooks
+# the package's shape, its notebooks, its documentation site
+WHOLE_PACKAGE_TESTS = {"test_architecture.py", "test_notebooks.py", "test_docs.py"}
 
 
 def test_tests_follow_the_packages():

@@ -185,7 +185,7 @@ def build_batch(prim_lo, prim_hi, orders, *, max_children: int = DEFAULT_MAX_CHI
 
 
 def tree_at(trees, i: int) -> WideBVH:
-    """Tree ``i`` of a batch made by :func:`build_batch`."""
+    """Tree ``i`` of a batch made by :func:`build_batch` (fields [B, ...] -> one tree's)."""
     return jax.tree_util.tree_map(lambda a: a[i], trees)
 
 

@@ -60,6 +60,8 @@ def x64():
 
 
 def check_code_bits(bits: int) -> int:
+    """The Morton code length ``bits`` as an int, if it is one of :data:`CODE_BITS`; else
+    ``ValueError`` naming ``morton_bits``."""
     if int(bits) not in CODE_BITS:
         raise ValueError(f"morton_bits must be one of {', '.join(map(str, CODE_BITS))}, got {bits}")
     return int(bits)

@@ -36,10 +36,14 @@ def interleave(qx: int, qy: int, qz: int, per_axis: int) -> int:
 
 
 def id_bits(n: int) -> int:
+    """Bits a primitive id of ``n`` primitives takes in the low end of a sort key (at least
+    1)."""
     return max(1, (n - 1).bit_length())
 
 
 def code_length(n: int, bits: int) -> int:
+    """Bits of the Morton code kept in a 63-bit key beside ``n`` primitive ids: ``bits``, or
+    fewer when the ids need the room."""
     return min(bits, 63 - id_bits(n))
 
 

@@ -6,8 +6,10 @@ printed as a table, or as one JSON object with ``--json``.
 
 Exit status: 0 when done; 1 when the command ran but reports an invalid tree (the result
 says ``"valid": false`` and lists the problems: ``jaxbvh stats``); 2 for bad input
-(missing or malformed files, trees a command cannot work on, bad options), after one line
-``jaxbvh: error: ...`` on stderr.
+(missing or malformed files, trees a command cannot work on, bad options, options out of
+range, whether argparse or the command finds them), after one line ``jaxbvh: error:
+...`` on stderr (no usage block: :class:`Parser`). Warnings are one line each too,
+``jaxbvh: warning: ...`` (:func:`one_line_warnings`).
 
 JAX's persistent compilation cache is on: compiled programs are reused across runs.
 It lives in ``~/.cache/jaxbvh/jax`` unless ``JAXBVH_CACHE_DIR`` names another folder;
@@ -22,12 +24,14 @@ import importlib
 import os
 import pkgutil
 import sys
+import warnings
 from pathlib import Path
 
 from jaxbvh import __version__
 from jaxbvh.cli import command_kit, commands
 from jaxbvh.io import MeshError, use_mesh_cache
 from jaxbvh.io import meshes as io
+from jaxbvh.optimize import driver
 from jaxbvh.tree.validate import InvalidTreeError
 
 # the order commands are listed in ``--help``; modules of ``jaxbvh.cli.commands`` not named
@@ -107,8 +111,22 @@ def _load_commands() -> dict:
     return {name: importlib.import_module(f"jaxbvh.cli.commands.{name}") for name in command_names()}
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse's parser with usage errors in the tool's one-line form:
+    ``jaxbvh: error: COMMAND: MESSAGE (see jaxbvh COMMAND --help)``, exit status 2,
+    like every other bad input (argparse would print the usage block first)."""
+
+    def error(self, message):
+        """Print ``message`` as one ``jaxbvh: error:`` line and exit with status 2."""
+        command = self.prog.split(" ", 1)[1] + ": " if " " in self.prog else ""
+        text = " ".join(f"{command}{message} (see {self.prog} --help)".split())
+        self.exit(EXIT_USAGE, f"jaxbvh: error: {text}\n")
+
+
 def make_parser() -> tuple[argparse.ArgumentParser, dict]:
-    parser = argparse.ArgumentParser(
+    """The ``jaxbvh`` parser with one subparser per command, and ``{command: module}`` (each
+    module has ``add_parser`` and ``run``)."""
+    parser = Parser(
         prog="jaxbvh",
         description="Build, inspect and optimize BVHs for ray tracing (JAX).",
         epilog=f"JAX compilation cache: {cache_dir()} (set JAXBVH_CACHE_DIR to move it).")
@@ -136,6 +154,22 @@ def _error_line(exc: BaseException) -> str:
     return " ".join(text.split())  # one line
 
 
+@contextlib.contextmanager
+def one_line_warnings():
+    """Warnings as ``jaxbvh: warning: MESSAGE`` lines on stderr (no source line, no file
+    of ours), for the duration of one command; Python's own display is put back after."""
+    before = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        print(f"jaxbvh: warning: {' '.join(str(message).split())}", file=file or sys.stderr)
+
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        warnings.showwarning = before
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``jaxbvh`` console script; returns the exit status."""
 
@@ -145,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as exc:  # --help, --version, usage errors (argparse prints them)
         return int(exc.code or 0)
     try:
-        with compilation_cache_on():
+        with compilation_cache_on(), one_line_warnings():
             result = modules[args.command].run(args)
     except (MeshError, InvalidTreeError, ValueError, FileNotFoundError, OSError) as exc:
         print(f"jaxbvh: error: {_error_line(exc)}", file=sys.stderr)
@@ -154,7 +188,15 @@ def main(argv: list[str] | None = None) -> int:
         print("jaxbvh: interrupted", file=sys.stderr)
         return 130
     command_kit.print_result(result, as_json=getattr(args, "json", False))
-    return EXIT_INVALID if result.get("valid") is False else 0
+    status = EXIT_INVALID if result.get("valid") is False else 0
+    if argv is None and driver.compiling():
+        # a run whose time budget ran out while compiling left a worker in XLA: the
+        # result is out, so end now (the interpreter's shutdown would abort under it, and
+        # waiting for it would break the budget); only as the process's own entry point
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(status)
+    return status
 
 
 if __name__ == "__main__":

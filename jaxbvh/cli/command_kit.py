@@ -6,15 +6,17 @@ import argparse
 import contextlib
 import json
 import math
+import os
 import sys
 import time
+from typing import NamedTuple
 
 import numpy as np
 
 import jaxbvh
 from jaxbvh.builders.configs import BUILDERS, DEFAULT_BUILDER, BuilderConfig
 from jaxbvh.cli import options as config_options
-from jaxbvh.configs import SAHCosts
+from jaxbvh.configs import INT_MAX, SAHCosts
 from jaxbvh.io import Mesh, TreeFile, bundled_mesh_path, load_any, load_mesh
 from jaxbvh.tree import layout as tree_mod
 from jaxbvh.tree.interchange import compact
@@ -22,6 +24,7 @@ from jaxbvh.tree.validate import InvalidTreeError, check
 
 
 def add_json(parser) -> None:
+    """Add ``--json`` (print the result as one JSON object on stdout) to ``parser``."""
     parser.add_argument("--json", action="store_true",
                         help="print the result as one JSON object on stdout")
 
@@ -39,6 +42,11 @@ def add_mesh_arg(parser, required: bool = False) -> None:
 # ----------------------------------------------------------------------------------
 # Options every command shares: the builder's (from its Configs), the seed
 # ----------------------------------------------------------------------------------
+
+#: the most trials or generations a command runs (grasp --trials, evolve --generations):
+#: each builds at least one tree (a generation: --population of them), tens of
+#: milliseconds on a small mesh, so this many is already hours; the library has no bound
+MAX_RUNS = 100_000
 
 #: the random seed of a command that draws (grasp, evolve, sa, rays) unless --seed says
 DEFAULT_SEED = 0
@@ -82,24 +90,84 @@ def builder_config(args) -> BuilderConfig:
 
 
 def add_seed(parser, what: str = "random seed") -> None:
-    """``--seed S`` (default :data:`DEFAULT_SEED`)."""
+    """``--seed S`` (default :data:`DEFAULT_SEED`): any integer (:func:`seed_key`)."""
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED, metavar="S",
-                        help=f"{what} (default: {DEFAULT_SEED})")
+                        help=f"{what}, any integer (default: {DEFAULT_SEED})")
 
 
-def _int_at_least(minimum: int):
-    """argparse ``type`` accepting integers >= ``minimum``."""
+def seed_key(seed: int):
+    """The ``jax.random`` key of a command-line seed; any integer maps to a key.
+
+    Seeds in ``[0, 2^32)`` give ``jax.random.key(seed)`` (what the library gives them).
+    ``jax.random.key`` keeps only 32 bits of others (without x64: ``2^32`` would be seed
+    0 again) and overflows past 64 bits, so any other seed folds the 32-bit words of its
+    magnitude, then its word count and sign, into a key: distinct seeds, distinct keys.
+    """
+    import jax
+
+    seed = int(seed)
+    if 0 <= seed < 2 ** 32:
+        return jax.random.key(seed)
+    magnitude = abs(seed)
+    words = [(magnitude >> (32 * i)) & 0xFFFFFFFF for i in range(max(1, (magnitude.bit_length() + 31) // 32))]
+    key = jax.random.key(words[0])
+    for word in words[1:] + [len(words), int(seed < 0)]:
+        key = jax.random.fold_in(key, word)
+    return key
+
+
+def int_option(minimum: int, maximum: int = INT_MAX):
+    """argparse ``type`` accepting integers in ``[minimum, maximum]`` (default: int32's
+    largest, the arrays' id and counter type)."""
 
     def parse(text: str) -> int:
         try:
             value = int(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {value}")
+        if not minimum <= value <= maximum:
+            raise argparse.ArgumentTypeError(f"expected an integer in [{minimum}, {maximum}], got {value}")
         return value
 
     return parse
+
+
+#: the old name of :func:`int_option`
+_int_at_least = int_option
+
+
+def memory_bytes() -> int:
+    """Memory this process may count on: ``MemAvailable`` of ``/proc/meminfo`` where there
+    is one, else the machine's physical memory."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return 2 ** 63
+
+
+def check_fits(option: str, value: int, bytes_each: float, what: str) -> None:
+    """Refuse (one-line ``ValueError`` naming ``option``) a ``value`` whose arrays would
+    take more than half of :func:`memory_bytes`: ``bytes_each`` per unit of ``value``;
+    ``what`` says what one unit holds (for the message)."""
+    need, have = value * bytes_each, memory_bytes()
+    if need > have / 2:
+        raise ValueError(f"{option} {value:,} needs about {_size(need)} ({what}); "
+                         f"this machine has {_size(have)} available")
+
+
+def _size(n: float) -> str:
+    for unit in ("B", "KB", "MB", "GB", "TB"):
+        if n < 1024 or unit == "TB":
+            return f"{n:,.0f} {unit}" if unit == "B" else f"{n:,.1f} {unit}"
+        n /= 1024
+    return f"{n:,.1f} PB"
 
 
 def mesh_or_default(path) -> Mesh:
@@ -151,6 +219,52 @@ def check_tree_file(loaded: TreeFile, prim_lo=None, prim_hi=None) -> TreeFile:
     return loaded
 
 
+class MeshCheck(NamedTuple):
+    """A tree file checked against its mesh (:func:`check_against_mesh`)."""
+
+    triangles: np.ndarray  # float [F, 3, 3]: the mesh's triangles in the tree's frame and dtype
+    problems: list         # str: broken invariants, the first naming the file; empty: valid
+    precision: str         # the float type the triangles were rounded to for the check
+
+
+def check_against_mesh(loaded: TreeFile, mesh: Mesh) -> MeshCheck:
+    """Check a tree file against the mesh it was built over, in its stored precision.
+
+    The mesh's float64 world triangles are moved into the tree's frame and rounded (to
+    nearest, as the builders do) to the dtype the tree's boxes are stored in; every leaf
+    must contain its triangles exactly there, so float16 boxes rounded to nearest
+    (widened to float32 on load) are refused. A float64 tree whose boxes contain the
+    triangles only as rounded to float32 (a float32 build saved as float64: its boxes
+    miss the float64 triangles by up to half a float32 ulp) is valid at float32: the
+    triangles returned, which rays are traced against, are then the float32 ones, and
+    ``precision`` says so.
+    """
+    tree, frame = loaded.tree, loaded.frame
+    dtype = np.asarray(tree.lo).dtype
+    local = mesh.triangles if frame.is_identity else frame.to_local(mesh.triangles)
+    referenced = int(np.asarray(tree.prim_count).sum())
+    if referenced != mesh.n_triangles:
+        problem = (f"{loaded.path}: the tree's leaves hold {referenced} primitives but "
+                   f"{mesh.path} has {mesh.n_triangles} triangles")
+        return MeshCheck(local.astype(dtype), [problem], str(dtype))
+    stored = _checked_in(loaded, local, dtype, dtype)
+    if stored.problems and dtype == np.float64:
+        as_float32 = _checked_in(loaded, local, np.dtype(np.float32), dtype)
+        if not as_float32.problems:
+            return as_float32
+    return stored
+
+
+def _checked_in(loaded: TreeFile, local, precision, dtype) -> MeshCheck:
+    """The check of :func:`check_against_mesh` with the triangles ``local`` (float64, in
+    the tree's frame) rounded to ``precision`` and widened (exactly) to ``dtype``."""
+    triangles = local.astype(precision).astype(dtype)
+    problems = check(loaded.tree, triangles.min(axis=1), triangles.max(axis=1))
+    if problems:
+        problems = [f"{loaded.path}: {problems[0]}"] + problems[1:]
+    return MeshCheck(triangles, problems, str(np.dtype(precision)))
+
+
 def require_matplotlib(option: str) -> None:
     """Raise a one-line error naming the extra to install when matplotlib is missing."""
     import importlib.util
@@ -196,6 +310,7 @@ class Stages:
             self.bar.update(1)
 
     def close(self):
+        """Close the progress bar."""
         self.bar.close()
 
     def __enter__(self):
@@ -254,6 +369,8 @@ def tree_stats(tree, costs=SAHCosts()) -> dict:
 
 
 def mesh_info(mesh: Mesh) -> dict:
+    """The report's entries about ``mesh``: input path, triangles, degenerate triangles,
+    objects, instances (JSON-ready)."""
     return {
         "input": str(mesh.path),
         "triangles": mesh.n_triangles,
@@ -317,6 +434,8 @@ def format_table(result: dict) -> str:
 
 
 def print_result(result: dict, as_json: bool = False, file=None) -> None:
+    """Print a command's ``result``: one JSON object with ``as_json``, else a table of its
+    entries (default file: stdout)."""
     file = file or sys.stdout
     if as_json:
         print(json.dumps(json_ready(result), allow_nan=False), file=file)

@@ -1,8 +1,8 @@
 """The synopsis of every command, made from the parsers: ``python -m jaxbvh.cli.synopsis``.
 
-The README's ``## Command line`` section pastes this text (and a test holds the two
-equal), so the flags it lists are the parsers' own, with the metavars and choices
-argparse shows in ``--help``.
+The docs' command-line reference (``docs/cli.md``) is made from this text when the site
+is built (``docs/hooks/generate.py``; a test checks it), so the flags it lists are the
+parsers' own, with the metavars and choices argparse shows in ``--help``.
 """
 
 from __future__ import annotations

@@ -7,8 +7,11 @@ trimesh's ``Scene.to_geometry()`` order: instances in ``scene.graph.nodes_geomet
 order, each instance's faces in their stored order, vertices moved to world space (a
 mirroring transform reverses the winding of its faces, as trimesh does).
 
-Nothing is dropped silently. Files without triangles, non-finite coordinates and face
-indices that name no vertex raise :class:`MeshError` naming the file and the problem.
+Nothing is dropped silently. Files without triangles, non-finite coordinates, face
+indices that name no vertex (an OBJ's index 0 included: OBJ counts from 1) and binary STL
+files cut short raise :class:`MeshError` naming the file and the problem. Text that is
+not UTF-8 is read as Latin-1 (:func:`_lenient_text`): the geometry of these formats is
+ASCII, and trimesh would otherwise need an optional dependency to read a stray byte.
 Zero-area triangles are kept (a BVH handles them fine) and counted in
 :attr:`Mesh.degenerate`. Scene geometry that is not a triangle mesh (lines, points next
 to meshes) is listed in :attr:`Mesh.skipped` and reported with a warning.
@@ -21,10 +24,14 @@ exactly the cast box, and :func:`jaxbvh.tree.validate` holds with no tolerance.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import hashlib
+import json
 import os
+import re
+import urllib.parse
 import warnings
 from importlib import resources
 from pathlib import Path
@@ -130,12 +137,22 @@ def bundled_mesh_path() -> Path:
 
 
 def _read(path: str):
-    """``trimesh.load`` with every failure turned into a :class:`MeshError`."""
+    """``trimesh.load`` with every failure turned into a :class:`MeshError`.
+
+    Before trimesh reads them: a binary STL whose size disagrees with its triangle count
+    and an OBJ face that names vertex 0 are refused (:func:`_check_stl`,
+    :func:`_check_obj`). Text is decoded leniently (:func:`_lenient_text`).
+    """
     import trimesh
 
     suffix = Path(path).suffix.lower().lstrip(".")
+    if suffix == "stl":
+        _check_stl(path)
+    if suffix == "obj":
+        _check_obj(path)
     try:
-        return trimesh.load(path, process=False)
+        with _lenient_text():
+            return trimesh.load(path, process=False)
     except NotImplementedError:
         raise MeshError(f"{path}: unsupported file type '.{suffix}' "
                         "(trimesh reads e.g. obj, ply, stl, off, gltf, glb)") from None
@@ -151,6 +168,76 @@ def _read(path: str):
     except Exception as exc:  # parser errors of every format: ValueError, KeyError, ...
         detail = str(exc) or type(exc).__name__
         raise MeshError(f"{path}: cannot read as .{suffix}: malformed file ({detail})") from None
+
+
+@contextlib.contextmanager
+def _lenient_text():
+    """Text that is not UTF-8 decoded as Latin-1 while trimesh parses.
+
+    trimesh decodes text formats (OBJ, MTL, ASCII STL/PLY, OFF) as UTF-8 and otherwise
+    asks ``charset_normalizer``, an optional dependency it does not install, so one
+    stray byte (an accented name in a comment) fails the whole file. Latin-1 maps every
+    byte to one character, and the numbers and keywords of these formats are ASCII, so
+    the geometry is read unchanged; only names and comments may differ.
+    """
+    import trimesh.util
+
+    original = trimesh.util.decode_text
+
+    def decode(text, initial: str = "utf-8"):
+        if isinstance(text, str):
+            return text
+        try:
+            return text.decode(initial)
+        except UnicodeDecodeError:
+            return text.decode("latin-1")
+
+    trimesh.util.decode_text = decode
+    try:
+        yield
+    finally:
+        trimesh.util.decode_text = original
+
+
+#: a binary STL: an 80-byte header, a uint32 triangle count, 50 bytes per triangle
+_STL_HEADER, _STL_TRIANGLE = 84, 50
+
+
+def _check_stl(path: str) -> None:
+    """Refuse a binary STL whose size does not match its triangle count (truncated or
+    padded); ASCII STL (``solid`` ...) and binary files that match are left to trimesh."""
+    size = os.path.getsize(path)
+    with open(path, "rb") as f:
+        head = f.read(_STL_HEADER)
+    if size >= _STL_HEADER:
+        count = int(np.frombuffer(head[80:84], "<u4")[0])
+        if size == _STL_HEADER + _STL_TRIANGLE * count:
+            return  # a binary STL whose size matches (its header may start with "solid")
+    if head.lstrip().lower().startswith(b"solid"):
+        return  # ASCII
+    if size < _STL_HEADER:
+        raise MeshError(f"{path}: truncated binary STL: {size} bytes, shorter than the "
+                        f"{_STL_HEADER}-byte header")
+    expected = _STL_HEADER + _STL_TRIANGLE * count
+    what = "truncated" if size < expected else "damaged"
+    raise MeshError(f"{path}: {what} binary STL: its header announces {count:,} triangles "
+                    f"({expected:,} bytes), the file has {size:,} bytes")
+
+
+#: an OBJ face record with a vertex index 0 (OBJ counts from 1; negative counts back)
+_OBJ_ZERO_INDEX = re.compile(rb"(?m)^[ \t]*f[ \t](?:[^\n]*?[ \t])?0+(?=[/ \t\r\n]|$)")
+
+
+def _check_obj(path: str) -> None:
+    """Refuse an OBJ face that names vertex 0: OBJ indices start at 1, and trimesh would
+    read 0 as the last vertex, a silent degenerate triangle."""
+    with open(path, "rb") as f:
+        data = f.read()
+    match = _OBJ_ZERO_INDEX.search(data)
+    if match:
+        line = data.count(b"\n", 0, match.start()) + 1
+        raise MeshError(f"{path}: face index 0 on line {line}: OBJ vertex indices start at 1 "
+                        "(negative ones count back from the last vertex)")
 
 
 def _obj_line_records(path: str) -> int:
@@ -239,15 +326,41 @@ def mesh_cache_folder() -> Path | None:
 def _cache_entry(path: str) -> Path | None:
     if _mesh_cache is None:
         return None
-    files = [path]
-    if path.lower().endswith(".gltf"):
-        folder = os.path.dirname(os.path.abspath(path))
-        files += sorted(os.path.join(folder, f) for f in os.listdir(folder))
+    files = [path] + (_gltf_references(path) if path.lower().endswith(".gltf") else [])
     parts = [_CACHE_FORMAT]
     for f in files:
-        st = os.stat(f)
+        try:
+            st = os.stat(f)
+        except OSError:  # a missing buffer: parsing reports it, and nothing is cached
+            parts += [os.path.abspath(f), "missing"]
+            continue
         parts += [os.path.abspath(f), str(st.st_size), str(st.st_mtime_ns)]
     return _mesh_cache / (hashlib.sha256("\0".join(parts).encode()).hexdigest()[:32] + ".npz")
+
+
+def _gltf_references(path: str) -> list[str]:
+    """The files a ``.gltf`` names (its buffers' and images' ``uri``, not ``data:`` URIs),
+    as paths beside it; none when it is not readable JSON (parsing will say so).
+
+    Only these are part of its cache key: other files in the folder (a symlink loop, a
+    dangling link, another scene) are not the scene's and are never looked at.
+    """
+    try:
+        with open(path, "rb") as f:
+            document = json.loads(f.read().decode("utf-8", errors="replace"))
+    except (OSError, ValueError):
+        return []
+    if not isinstance(document, dict):
+        return []
+    folder = os.path.dirname(os.path.abspath(path))
+    found = []
+    for section in ("buffers", "images"):
+        entries = document.get(section)
+        for entry in entries if isinstance(entries, list) else []:
+            uri = entry.get("uri") if isinstance(entry, dict) else None
+            if isinstance(uri, str) and uri and not uri.startswith("data:"):
+                found.append(os.path.join(folder, urllib.parse.unquote(uri)))
+    return sorted(set(found))
 
 
 def _write_cached(entry: Path, mesh: "Mesh") -> None:

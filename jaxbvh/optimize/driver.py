@@ -10,13 +10,19 @@ host reads the progress after each chunk, calls ``on_step`` once per step with a
 the result: the state carries everything, so one call to the limit and many short ones
 give the same tree (tested).
 
-Time budget. ``time_budget`` (seconds) is wall time counted from the end of the first
-chunk (a single step), which also compiles the programs: compiling is not spent from
-it. The run stops at the end of the chunk that crosses it (chunks grow only while short,
-so the overshoot stays small) and returns the state it reached: the best tree so far for
-every optimizer (all of them only lower the SAH, except annealing, which keeps its best).
-No host callback runs inside a compiled program, so every compiled piece is cached
-(also by JAX's persistent cache).
+Time budget. ``time_budget`` (seconds) is wall time counted from the call to
+:func:`run`, as a user reading a clock counts it: ``init`` and compiling are spent from
+it. The programs (the loop of steps and ``result``) are compiled ahead of time in a
+worker thread while the caller waits at most the budget; when compiling alone outruns
+it, :func:`run` returns the start tree unchanged (``steps`` 0, not converged) with a
+``UserWarning`` saying so, and the worker finishes in the background (its programs then
+serve later runs in this process; the command line does not wait for it, so there a
+budget must exceed the compile time once, after which the persistent cache serves).
+Otherwise the run stops at the end of the chunk that crosses the budget (chunks grow
+only while short, so the overshoot stays small) and returns the state it reached: the
+best tree so far for every optimizer (all of them only lower the SAH, except annealing,
+which keeps its best). No host callback runs inside a compiled program, so every
+compiled piece is cached.
 
 Batches. :func:`init_batch` starts any optimizer on a batch of trees (one capacity,
 :func:`jaxbvh.tree.batching.stack_trees`): each tree's state is made by ``init`` on the
@@ -27,7 +33,10 @@ so each tree gets exactly its own single-tree result) and ``result`` vmapped.
 
 from __future__ import annotations
 
+import atexit
+import threading
 import time
+import warnings
 from functools import partial
 from typing import Callable
 
@@ -35,8 +44,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxbvh.optimize.protocol import OptimizerState, StepInfo
+from jaxbvh.optimize.protocol import OptimizeResult, OptimizerState, StepInfo
 from jaxbvh.tree.batching import unstack_trees
+from jaxbvh.tree.cost import sah
+from jaxbvh.tree.layout import to_numpy
 
 #: a chunk of steps grows (doubling, up to this many) while one takes under CHUNK_SECONDS
 MAX_CHUNK = 256
@@ -44,7 +55,7 @@ CHUNK_SECONDS = 0.1
 
 
 class TimeBudget:
-    """``seconds`` of wall time after the first step (``None``: no limit)."""
+    """``seconds`` of wall time from :meth:`start` (``None``: no limit)."""
 
     def __init__(self, seconds: float | None):
         if seconds is not None and not seconds > 0:
@@ -53,7 +64,7 @@ class TimeBudget:
         self.deadline = None
 
     def start(self) -> None:
-        """Start the clock (the driver calls this after the first step)."""
+        """Start the clock (:func:`run` calls this first thing; later calls do nothing)."""
         if self.seconds is not None and self.deadline is None:
             self.deadline = time.perf_counter() + self.seconds
 
@@ -103,11 +114,20 @@ def run(optimizer, tree, config=None, *, key=None, time_budget: float | None = N
     if on_step is not None and not callable(on_step):
         raise ValueError(f"on_step must be a function on_step(info), got {on_step!r}")
     budget = TimeBudget(time_budget)
+    budget.start()  # wall time from here: init and compiling count
     clock = time.perf_counter()
+    trace = []
+    if time_budget is not None:
+        ready = prepare_within(optimizer, tree, config, key, state, budget)
+        if ready is None:
+            return unchanged_result(optimizer, tree, config)
+        state, step_loop, result = ready
+        state = drive(optimizer, state, budget=budget, on_step=on_step, trace=trace, clock=clock,
+                      advance_fn=lambda _step, s, stop: step_loop(s, stop))
+        return jax.device_get(result(state)).replace(trace=tuple(trace))
     if state is None:
         state = optimizer.init(tree, config, key)
-    trace = []
-    if on_step is None and time_budget is None:
+    if on_step is None:
         state = advance(optimizer.step, state, jnp.int32(np.iinfo(np.int32).max))
     else:
         state = drive(optimizer, state, budget=budget, on_step=on_step, trace=trace, clock=clock)
@@ -115,17 +135,84 @@ def run(optimizer, tree, config=None, *, key=None, time_budget: float | None = N
     return out.replace(trace=tuple(trace))
 
 
+#: workers still compiling after their budget ran out (:func:`compiling`)
+_workers: list[threading.Thread] = []
+
+
+def compiling() -> bool:
+    """True while a worker of a run whose budget ran out is still compiling.
+
+    A process must not end under it: the interpreter's shutdown would stop the thread
+    inside XLA and abort the process. :func:`_join_workers` (at exit) waits for it; a
+    command line tool that has printed its result may end at once with ``os._exit``.
+    """
+    return any(w.is_alive() for w in _workers)
+
+
+@atexit.register
+def _join_workers() -> None:
+    for worker in _workers:
+        worker.join()
+
+
+def prepare_within(optimizer, tree, config, key, state, budget: TimeBudget):
+    """``(state, step_loop, result)``: ``init`` (unless ``state`` is given), the loop of
+    steps (``step_loop(state, stop)``) and ``result``, compiled ahead of time, all in a
+    worker thread the caller waits for at most the budget; None when the budget runs
+    out first (module docstring), with a ``UserWarning``."""
+    done: dict = {}
+
+    def work():
+        try:
+            start = optimizer.init(tree, config, key) if state is None else state
+            stop = jnp.int32(0)
+            done["ready"] = (start, advance.lower(optimizer.step, start, stop).compile(),
+                             finish.lower(optimizer.result, start).compile())
+        except BaseException as exc:  # handed to the caller's thread
+            done["error"] = exc
+
+    worker = threading.Thread(target=work, name=f"compile-{optimizer.name}", daemon=True)
+    worker.start()
+    worker.join(timeout=max(budget.left(), 0.0))
+    if "error" in done:
+        raise done["error"]
+    if worker.is_alive() or budget.spent():
+        _workers.append(worker)
+        warnings.warn(f"time budget of {budget.seconds:g} s ran out while {optimizer.name} was being "
+                      "prepared and compiled: returning the start tree unchanged; a budget above the "
+                      "compile time compiles once, and a compilation cache (the command line's "
+                      "persists) makes later runs start sooner", stacklevel=3)
+        return None
+    return done["ready"]
+
+
+def unchanged_result(optimizer, tree, config):
+    """The result of a run that took no step: ``tree`` as given (NumPy), its SAH, no moves,
+    not converged, an empty history."""
+    config = optimizer.Config() if config is None else config
+    ct, ci = getattr(config, "ct", 1.0), getattr(config, "ci", 1.0)
+    tree = to_numpy(tree)
+    start = np.asarray(jax.device_get(sah(tree, ct, ci)))
+    return OptimizeResult(tree=tree, sah=start, sah_start=start, steps=np.int32(0), moves=np.int32(0),
+                          converged=np.bool_(False), history=np.full(1, np.nan, start.dtype),
+                          history_moves=np.zeros(1, np.int32), history_stage=np.zeros(1, np.int32))
+
+
 def drive(optimizer, state: OptimizerState, *, budget: TimeBudget, on_step: Callable | None = None,
-          trace: list | None = None, clock: float | None = None) -> OptimizerState:
+          trace: list | None = None, clock: float | None = None, advance_fn: Callable = None) -> OptimizerState:
     """Chunks of steps until the state is done or the budget is spent (module docstring).
 
     Reports every step to ``on_step`` and appends its ``StepInfo`` to ``trace``.
+    ``advance_fn(step, state, stop)``: the loop of steps (default :data:`advance`; a
+    program compiled ahead of time under a budget).
     """
     clock = time.perf_counter() if clock is None else clock
+    advance_fn = advance if advance_fn is None else advance_fn
+    budget.start()  # no-op when the caller started it
     done_steps, chunk = int(state.progress.step), 1
     while True:
         started = time.perf_counter()
-        state = advance(optimizer.step, state, jnp.int32(done_steps + chunk))
+        state = advance_fn(optimizer.step, state, jnp.int32(done_steps + chunk))
         # whole (small) arrays to the host: slicing on the device would compile a program
         # per slice shape
         progress = jax.device_get(state.progress)
@@ -140,7 +227,6 @@ def drive(optimizer, state: OptimizerState, *, budget: TimeBudget, on_step: Call
                 on_step(info)
         if bool(progress.done) or now < done_steps + chunk:
             return state
-        budget.start()  # no-op after the first chunk, which compiled
         if budget.spent():
             return state
         done_steps = now

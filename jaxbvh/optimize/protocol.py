@@ -103,6 +103,7 @@ class OptimizerState:
     static: Any = dataclasses.field(default=None, metadata=dict(static=True))
 
     def replace(self, **changes) -> "OptimizerState":
+        """A copy with the given parts replaced."""
         return dataclasses.replace(self, **changes)
 
 
@@ -145,6 +146,7 @@ class OptimizeResult:
     trace: tuple = dataclasses.field(default=(), metadata=dict(static=True))
 
     def replace(self, **changes) -> "OptimizeResult":
+        """A copy with the given fields replaced."""
         return dataclasses.replace(self, **changes)
 
 

@@ -45,16 +45,21 @@ class Tree:
     # -- boxes and areas -------------------------------------------------------------
 
     def area_of(self, lo, hi):
+        """Half surface area of the box ``lo``, ``hi`` [3], scaled by the tree's area scale,
+        in its dtype."""
         d = np.maximum((hi - lo) * self.scale, self.dtype(0))
         return d[0] * d[1] + d[1] * d[2] + d[2] * d[0]
 
     def area(self, n):
+        """Half area of node ``n``'s box (:meth:`area_of`)."""
         return self.area_of(self.lo[n], self.hi[n])
 
     def merged_area(self, n, lo, hi):
+        """Half area of the union of node ``n``'s box and the box ``lo``, ``hi``."""
         return self.area_of(np.minimum(self.lo[n], lo), np.maximum(self.hi[n], hi))
 
     def refit(self, n):
+        """Node ``n``'s box made the union of its children's (a leaf keeps its box)."""
         if self.child[n, 0] >= 0:
             a, b = self.child[n]
             self.lo[n] = np.minimum(self.lo[a], self.lo[b])
@@ -63,13 +68,16 @@ class Tree:
     # -- structure ---------------------------------------------------------------------
 
     def is_leaf(self, n):
+        """Whether node ``n`` has no children."""
         return self.child[n, 0] < 0
 
     def sibling(self, n):
+        """The other child of ``n``'s parent."""
         p = self.parent[n]
         return int(self.child[p, 1] if self.child[p, 0] == n else self.child[p, 0])
 
     def post_order(self):
+        """Real node ids, children before parents, from the root."""
         return post_order(self.child, self.root)
 
     def path_up(self, n, top):
@@ -96,6 +104,8 @@ class Tree:
         return float(cost[self.root])
 
     def to_bvh(self):
+        """The working tree as a :class:`~jaxbvh.tree.layout.BVH` (NumPy), on the input's
+        other fields."""
         return self.source.replace(left=self.child[:, 0].astype(np.int32),
                                    right=self.child[:, 1].astype(np.int32),
                                    parent=self.parent.astype(np.int32),

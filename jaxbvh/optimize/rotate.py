@@ -44,8 +44,8 @@ offset by ``k N``): a pass processes each height of all chains together.
 * **Simulated annealing** (:func:`anneal`, :data:`ANNEAL`): candidates in the fixed order above are
   compared with the best found so far (initially "no move"); a better one always becomes
   the best, a worse one when a uniform ``xi`` falls below ``exp(-de / T)`` (``de`` the
-  difference in ``C(n)``; never when ``T == 0``), tested as ``de < -T log(xi)``; the
-  best is applied. One uniform per
+  difference in ``C(n)``; never when ``T == 0``), tested as ``de < T E`` with the Exp(1)
+  variate ``E = -log(xi)``; the best is applied. One draw per
   (pass, node, candidate), drawn by :func:`jaxbvh.draws.annealing_draws` and indexed by node id.
   The temperature of pass ``i`` is ``schedule(i)``, any optax-style schedule or a name
   of :data:`jaxbvh.optimize.schedules.SCHEDULES` (default Kensler's ramped sine,
@@ -300,7 +300,7 @@ def _temperature(i, params: Params, dtype, static: Static):
 
 
 def _draws(keys, i, temperature, cap: int, dtype):
-    """The uniforms of pass ``i`` for the forest [K N, 6] (ones when cold: none is read)."""
+    """The Exp(1) draws of pass ``i`` for the forest [K N, 6] (ones when cold: none is read)."""
     chains = keys.shape[0]
 
     def hot():

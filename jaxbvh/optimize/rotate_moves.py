@@ -166,12 +166,13 @@ def _choose_greedy(cand, cur, legal, tol):
 def _choose_annealing(cand, cur, legal, tol, temperature, draws):
     """Kensler's annealing rule: candidates in order against the best so far.
 
-    ``xi < exp(-de / T)`` is evaluated as ``de < -T log(xi)``: the same test,
-    with the logarithm taken once per candidate outside the sequential chain (six
-    chained exponentials made XLA's compile time explode).
+    ``xi < exp(-de / T)`` is evaluated as ``de < T E`` with ``E = -log(xi)`` drawn as an
+    Exp(1) variate (:func:`jaxbvh.draws.annealing_draws`): no exponential in the
+    sequential chain (six chained exponentials made XLA's compile time explode), and no
+    logarithm the twin would have to repeat to the ulp.
     """
     hot = temperature > 0
-    reach = jnp.where(hot, -temperature * jnp.log(draws), -1)  # [W, 6]; -1: accept none
+    reach = jnp.where(hot, temperature * draws, -1)  # [W, 6]; -1: accept none
     best = cur
     choice = jnp.full(cur.shape, -1, jnp.int32)
     for m in range(6):

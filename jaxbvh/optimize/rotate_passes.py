@@ -273,6 +273,8 @@ def initial_state(tree, ct, ci):
 
 
 def to_tree(tree, st):
+    """``tree`` (a :class:`~jaxbvh.tree.layout.BVH`) with the links and boxes of the rotation
+    state ``st``."""
     return tree.replace(left=st.child[:, 0], right=st.child[:, 1], parent=st.parent,
                         lo=st.lo, hi=st.hi)
 
@@ -307,6 +309,8 @@ def chain_of(st: State, k, chains: int) -> State:
 
 
 def tree_part(st: State) -> State:  # what keep_best keeps: links and boxes
+    """The links and boxes of ``st`` (``child``, ``parent``, ``lo``, ``hi``), what
+    ``keep_best`` keeps."""
     return State(st.child, st.parent, st.lo, st.hi)
 
 

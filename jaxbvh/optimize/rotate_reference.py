@@ -4,7 +4,7 @@ One node at a time, in post-order (children before parent), exactly as the paper
 describes: at each interior node recompute its cost, try the six moves, apply the chosen
 one. Same move order, same slot swaps, same cost formula and the same relative margin
 ``min_gain`` as the JAX version, so both give the same tree pass by pass; annealing
-takes its uniforms from :func:`jaxbvh.draws.annealing_draws`, indexed
+takes its Exp(1) draws ``-log(xi)`` from :func:`jaxbvh.draws.annealing_draws`, indexed
 ``draws[node, move]``.
 """
 
@@ -127,9 +127,8 @@ def _visit(t: _Tree, n, min_gain, temperature=None, draws=None):
             delta = c[3] - best
             accept = False
             if temperature > 0:
-                # xi < exp(-delta / T), written as the JAX version evaluates it
-                with np.errstate(divide="ignore"):
-                    reach = -temperature * np.log(draws[n, c[0]])
+                # xi < exp(-delta / T) as delta < T E, E = -log(xi) the shared Exp(1) draw
+                reach = temperature * draws[n, c[0]]
                 excess = t.dtype(0) if delta <= tol else delta  # ties count as 0
                 accept = excess < reach
             if delta < -tol or accept:
@@ -171,7 +170,7 @@ def anneal(tree, draws, schedule, steps, *, ct=1.0, ci=1.0, keep_best=True, max_
            min_gain=None, split_axes=False):
     """Sequential simulated annealing.
 
-    ``draws(i)``: the [N, 6] uniforms of pass ``i`` (e.g. ``lambda i:
+    ``draws(i)``: the [N, 6] Exp(1) draws of pass ``i`` (e.g. ``lambda i:
     np.asarray(jaxbvh.draws.annealing_draws(key, i, N))``); ``schedule(i)``: the
     temperature of pass ``i < steps``; afterwards ``T = 0`` until a pass makes no move.
     Returns ``(tree, info)`` like :func:`hill_climb`.

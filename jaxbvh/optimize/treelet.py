@@ -384,8 +384,14 @@ def init(tree, config: Config | None = None, key=None) -> OptimizerState:
     del key
     check_tree(tree)
     config = check_config(config, Config, "treelet")
-    tree = to_jax(tree)
     dtype = float_dtype(tree)
+    if dtype not in (np.float32, np.float64):
+        # float16 (as a user's arrays may be) made every pass restructure one treelet and
+        # the next undo it (its areas round the DP's gain away): passes ran to max_passes,
+        # each slow in emulated float16, and never converged. Tree files are widened on load
+        raise ValueError(f"treelet restructuring needs float32 or float64 boxes, got {dtype}: "
+                         "widen them (float16 to float32 is exact)")
+    tree = to_jax(tree)
     min_gain = default_min_gain(dtype) if config.min_gain is None else config.min_gain
     params = Params(*(jnp.asarray(x, dtype) for x in (config.ct, config.ci, min_gain)),
                     split_axes=jnp.bool_(config.split_axes))

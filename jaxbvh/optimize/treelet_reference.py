@@ -56,19 +56,25 @@ class Tree:
                 self.cost[n] = self.ct * self.area[n] + self.cost[a] + self.cost[b]
 
     def area_of(self, lo, hi):
+        """Half surface area of the box ``lo``, ``hi`` [3], scaled by the tree's area scale,
+        in its dtype."""
         d = np.maximum((hi - lo) * self.scale, self.dtype(0))
         return d[0] * d[1] + d[1] * d[2] + d[2] * d[0]
 
     def post_order(self):
+        """Real node ids, children before parents, from the root."""
         return post_order(self.child, self.root)
 
     def heights(self):
+        """``{node: height}``, leaves 0."""
         h = {}
         for n in self.post_order():
             h[n] = 0 if self.child[n, 0] < 0 else 1 + max(h[int(c)] for c in self.child[n])
         return h
 
     def sah(self):
+        """The SAH of the working tree (the root's cost over its area; interior count for a
+        zero-area root)."""
         s = self.area[self.root]
         if s > 0:
             return float(self.cost[self.root] / s)
@@ -76,6 +82,8 @@ class Tree:
         return float(self.ct * self.dtype(interior) + self.ci * self.dtype(self.count.sum()))
 
     def to_bvh(self):
+        """The working tree as a :class:`~jaxbvh.tree.layout.BVH` (NumPy), on the input's
+        other fields."""
         return self.source.replace(left=self.child[:, 0].astype(np.int32),
                                    right=self.child[:, 1].astype(np.int32),
                                    parent=self.parent.astype(np.int32),

@@ -15,7 +15,8 @@ from jaxbvh.tree.layout import capacity_bucket, pad_to, to_numpy
 
 
 def stack_trees(trees):
-    """One batched :class:`BVH` from several, all padded to one capacity bucket."""
+    """One batched :class:`BVH` from several, all padded to one capacity bucket: every
+    field gains a leading axis [B] (``left`` [B, N], ``lo`` [B, N, 3], ``root`` [B]), NumPy."""
     trees = [to_numpy(t) for t in trees]
     if not trees:
         raise ValueError("stack_trees: no trees")
@@ -26,6 +27,7 @@ def stack_trees(trees):
 
 
 def unstack_trees(trees) -> list:
-    """The trees of a batch (:func:`stack_trees`, :func:`optimize_batch`) as a list."""
+    """The trees of a batch (:func:`stack_trees`, :func:`optimize_batch`; fields [B, ...])
+    as a list of B NumPy trees, still padded."""
     t = to_numpy(trees)
     return [jax.tree_util.tree_map(lambda a: a[i], t) for i in range(t.left.shape[0])]

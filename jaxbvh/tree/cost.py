@@ -17,18 +17,24 @@ frame and at any scale:
 Numerics. Areas are computed from box extents multiplied by a power of two chosen from
 the root's largest extent, so they neither overflow (1e30 coordinates in float32) nor
 underflow (1e-30), and the scaling itself is exact. Half-areas are used throughout; the
-factor 2 cancels in every ratio.
+factor 2 cancels in every ratio. XLA on CPU flushes subnormal inputs to zero before any
+scaling can rescue them, so :func:`all_costs` (the host entry) first scales boxes whose
+root extent is small up by that power of two on the host, in NumPy, where subnormals are
+exact: the costs of a tree stored at 1e-40 are those of the same tree at 1.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from functools import partial
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from jaxbvh.numerics import extent_scale, half_area
-from jaxbvh.tree.layout import to_jax
+from jaxbvh.numerics import extent_scale, half_area, scale_for_extent
+from jaxbvh.tree.layout import to_jax, to_numpy
 
 
 def _children(tree):
@@ -105,10 +111,30 @@ def goldsmith_salmon_cost(tree):
                      jnp.sum(n_children).astype(area.dtype))
 
 
+def _scaled_up_on_host(tree):
+    """``tree`` with boxes scaled by ``2^k`` so the root's largest extent lies in [0.5, 1),
+    when that needs ``k > 0`` (small boxes, possibly subnormal: module docstring); else
+    unchanged. Exact: a power of two, and no coordinate can overflow (a nonzero extent is
+    at least one ulp of the coordinates it spans, so they grow to at most ~2^53)."""
+    t = to_numpy(tree)
+    root = int(np.asarray(t.root))
+    lo, hi = np.asarray(t.lo), np.asarray(t.hi)
+    if not (np.isfinite(lo[root]).all() and np.isfinite(hi[root]).all()):
+        return tree
+    # numerics.scale_for_extent: the power of two that brings the largest extent into
+    # [0.5, 1), as an exponent (inf where 2^k overflows float64: float64 subnormals, left)
+    factor = scale_for_extent(np.max(hi[root].astype(np.float64) - lo[root].astype(np.float64)))
+    exponent = int(round(math.log2(factor))) if math.isfinite(factor) else 0
+    if exponent <= 0:
+        return tree
+    return dataclasses.replace(t, lo=np.ldexp(lo, exponent).astype(lo.dtype),
+                               hi=np.ldexp(hi, exponent).astype(hi.dtype))
+
+
 def all_costs(tree, ct=1.0, ci=1.0) -> dict[str, float]:
     """``{"sah", "ng_trifonov", "goldsmith_salmon"}`` as Python floats."""
 
-    t = to_jax(tree)
+    t = to_jax(_scaled_up_on_host(tree))
     return {
         "sah": float(sah(t, ct, ci)),
         "ng_trifonov": float(ng_trifonov_cost(t)),

@@ -52,11 +52,14 @@ def node_costs(tree, ct=1.0, ci=1.0) -> dict[int, float]:
 
 
 def sah(tree, ct=1.0, ci=1.0) -> float:
+    """SAH of ``tree`` (binary or wide) by recursion, float64: the root's cost, a ratio of
+    areas."""
     t = to_numpy(tree)
     return node_costs(t, ct, ci)[int(t.root)]
 
 
 def ng_trifonov_cost(tree) -> float:
+    """Ng & Trifonov's cost: interior areas summed over the root's area (float64)."""
     t = to_numpy(tree)
     root = int(t.root)
     interior = [n for n in _postorder(t) if _children(t, n)]
@@ -67,6 +70,8 @@ def ng_trifonov_cost(tree) -> float:
 
 
 def goldsmith_salmon_cost(tree) -> float:
+    """Goldsmith & Salmon's cost of ``tree`` (float64), as
+    :func:`jaxbvh.tree.cost.goldsmith_salmon_cost` defines it."""
     t = to_numpy(tree)
     root = int(t.root)
     total = 0.0

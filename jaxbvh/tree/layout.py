@@ -79,6 +79,7 @@ class BVH:
         return int(self.left.shape[0])
 
     def replace(self, **changes) -> "BVH":
+        """A copy with the given fields (arrays of the shapes above) replaced."""
         return dataclasses.replace(self, **changes)
 
 
@@ -105,6 +106,7 @@ class WideBVH:
         return int(self.child.shape[1])
 
     def replace(self, **changes) -> "WideBVH":
+        """A copy with the given fields (arrays of the shapes above) replaced."""
         return dataclasses.replace(self, **changes)
 
 
@@ -177,6 +179,7 @@ def concat_ranges(starts, counts) -> np.ndarray:
 
 
 def pad_rows(a: np.ndarray, rows: int, fill) -> np.ndarray:
+    """``a`` [M, ...] extended to [rows, ...] (rows >= M) with ``fill``, in ``a``'s dtype."""
     out = np.full((rows,) + a.shape[1:], fill, dtype=a.dtype)
     out[: a.shape[0]] = a
     return out

@@ -112,12 +112,23 @@ class _Halves(NamedTuple):
 
 
 def _child_box(forest, instances, node, inst):
-    """World boxes of forest nodes under instances (padding: the empty box)."""
+    """BRef boxes of forest nodes under instances (padding: the empty box): the world box
+    of a leaf, and of an interior node the union of its two children's world boxes --
+    under a rotation much tighter than the node's own transformed box, and still
+    containing every triangle below it (:mod:`jaxbvh.twolevel.brefs`, "BRef boxes")."""
     inf = jnp.asarray(jnp.inf, forest.lo.dtype)
     ok = (node >= 0) & (inst >= 0)
     n = jnp.where(ok, node, 0)
     k = jnp.where(ok, inst, 0)
-    lo, hi = world_boxes(forest.lo[n], forest.hi[n], instances.to_scene[k], instances.margin[k])
+    to_scene, margin = instances.to_scene[k], instances.margin[k]
+    lo, hi = world_boxes(forest.lo[n], forest.hi[n], to_scene, margin)
+    inner = forest.left[n] >= 0
+    l_lo, l_hi = world_boxes(forest.lo[jnp.maximum(forest.left[n], 0)], forest.hi[jnp.maximum(forest.left[n], 0)],
+                             to_scene, margin)
+    r_lo, r_hi = world_boxes(forest.lo[jnp.maximum(forest.right[n], 0)], forest.hi[jnp.maximum(forest.right[n], 0)],
+                             to_scene, margin)
+    lo = jnp.where(inner[:, None], jnp.minimum(l_lo, r_lo), lo)
+    hi = jnp.where(inner[:, None], jnp.maximum(l_hi, r_hi), hi)
     return jnp.where(ok[:, None], lo, inf), jnp.where(ok[:, None], hi, -inf)
 
 

@@ -127,8 +127,13 @@ def build_top_level(forest, instances, n_instances, *, threshold=0.1, slots=None
 
 
 def _bref_box(f, instances, n, i):
-    """World box of forest node ``n`` under instance ``i``."""
-    return world_box(f.lo[n], f.hi[n], instances.to_scene[i], instances.margin[i])
+    """BRef box of forest node ``n`` under instance ``i``: its world box if a leaf, else
+    the union of its two children's world boxes."""
+    if f.left[n] < 0:
+        return world_box(f.lo[n], f.hi[n], instances.to_scene[i], instances.margin[i])
+    l_lo, l_hi = world_box(f.lo[f.left[n]], f.hi[f.left[n]], instances.to_scene[i], instances.margin[i])
+    r_lo, r_hi = world_box(f.lo[f.right[n]], f.hi[f.right[n]], instances.to_scene[i], instances.margin[i])
+    return np.minimum(l_lo, r_lo), np.maximum(l_hi, r_hi)
 
 
 def _instances_brefs(f, instances, n_instances, slots, dtype) -> _BRefArray:

@@ -163,6 +163,8 @@ class Placement:
     baked: np.ndarray | None = None
 
     def same(self, other: "Placement") -> bool:
+        """Whether ``other`` places an object identically (same frame, same baked transform
+        or none)."""
         return (np.array_equal(self.frame.origin, other.frame.origin) and self.frame.scale == other.frame.scale
                 and (self.baked is None) == (other.baked is None)
                 and (self.baked is None or np.array_equal(self.baked, other.baked)))

@@ -54,6 +54,7 @@ as the top level sees it.
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from typing import Any
 
@@ -61,6 +62,7 @@ import jax
 import numpy as np
 
 from jaxbvh.builders.configs import BuilderConfig
+from jaxbvh.numerics import half_area
 from jaxbvh.tree.cost import sah as sah_of
 from jaxbvh.tree.layout import BVH, capacity_bucket, concat_ranges, depth, pad_to, to_jax, to_numpy
 from jaxbvh.twolevel import brefs as _brefs
@@ -112,15 +114,18 @@ def _single_instance(forest: Forest, instances: Instances) -> TwoLevelBVH:
 
 
 def build_from(mesh, trees: dict[int, ObjectTree], *, threshold: float = _brefs.DEFAULT_THRESHOLD,
-               budget: float = _brefs.DEFAULT_BUDGET, capacity: int | None = None,
+               budget: float | None = None, capacity: int | None = None,
                top_bins: int = _brefs.DEFAULT_BINS, overlap: float = _brefs.DEFAULT_OVERLAP,
                estimate: bool = False, timings: dict | None = None,
-               shapes: dict | None = None) -> TwoLevelBVH:
+               shapes: dict | None = None, info: dict | None = None) -> TwoLevelBVH:
     """Pack already built object trees and build the top level (see :func:`build`).
 
-    ``timings``, if given, receives ``pack`` and ``top`` seconds (arrays ready);
+    ``timings``, if given, receives ``pack`` and ``top`` seconds (arrays ready; ``top``
+    includes the plain top level and the comparison of :func:`_keep_rebraided`);
     ``shapes``: least array sizes ``{"nodes", "prims", "instances", "brefs"}`` (so that
-    many scenes share one compiled top-level build and traversal).
+    many scenes share one compiled top-level build and traversal); ``info``, if given,
+    receives ``slots`` (the BRef array's size) and ``kept`` (``"rebraided"``,
+    ``"two-level"`` when opening did not lower the SAH, or ``"single object"``).
     """
     _brefs.check_options(threshold, budget, top_bins, overlap)
     start = time.perf_counter()
@@ -128,12 +133,19 @@ def build_from(mesh, trees: dict[int, ObjectTree], *, threshold: float = _brefs.
     forest, instances = pack(mesh, trees, capacity=shapes)
     packed = time.perf_counter()
     n = len(mesh.instances)
+    slots = slots_of(mesh, threshold, budget, capacity)
     if n == 1:
-        tl = _single_instance(forest, instances)
+        tl, kept = _single_instance(forest, instances), "single object"
     else:
-        result = jax.block_until_ready(_brefs.build_top_level(
-            forest, instances, n, threshold=threshold, budget=budget, capacity=capacity,
-            bins=top_bins, overlap=overlap, estimate=estimate, array_size=shapes.get("brefs")))
+        top = dict(bins=top_bins, overlap=overlap, estimate=estimate, array_size=shapes.get("brefs"))
+        plain = jax.block_until_ready(_brefs.build_top_level(forest, instances, n, threshold=math.inf, **top))
+        result, kept = plain, "two-level"
+        if not math.isinf(threshold):
+            braided = jax.block_until_ready(_brefs.build_top_level(
+                forest, instances, n, threshold=threshold, capacity=slots, **top))
+            braided = _same_root_box(braided, plain)
+            if _keep_rebraided(braided, plain, forest, instances):
+                result, kept = braided, "rebraided"
         tl = TwoLevelBVH(top=result.top, bref_node=result.node, bref_instance=result.instance,
                          bref_lo=result.lo, bref_hi=result.hi, bref_prims=result.prims,
                          bref_count=result.count, forest=forest, instances=instances,
@@ -141,13 +153,157 @@ def build_from(mesh, trees: dict[int, ObjectTree], *, threshold: float = _brefs.
     if timings is not None:
         timings["pack"] = packed - start
         timings["top"] = time.perf_counter() - packed
+    if info is not None:
+        info.update(slots=slots, kept=kept)
     return tl
 
 
+def slots_of(mesh, threshold: float = _brefs.DEFAULT_THRESHOLD, budget: float | None = None,
+             capacity: int | None = None) -> int:
+    """The BRef array's size for ``mesh``: ``capacity``, else ``budget`` x #instances, else
+    the scene's default :func:`jaxbvh.twolevel.brefs.scene_slots`; #instances when
+    ``threshold`` is inf (never opening)."""
+    n = len(mesh.instances)
+    if budget is None and capacity is None and not math.isinf(threshold):
+        users: dict[int, int] = {}
+        for obj, _ in mesh.instances:
+            users[obj] = users.get(obj, 0) + 1
+        once = sum(1 for obj, _ in mesh.instances if users[obj] == 1)
+        capacity = _brefs.scene_slots(n, mesh.n_triangles, once)
+    return _brefs.brefs_capacity(n, threshold, _brefs.DEFAULT_BUDGET if budget is None else budget, capacity)
+
+
+# ----------------------------------------------------------------------------------
+# Never worse than two-level
+# ----------------------------------------------------------------------------------
+#
+# The flattened re-braided tree and the flattened plain two-level tree share every node
+# strictly below the BRefs. The plain tree has, besides its top level, the object nodes
+# *above* the BRefs (the opened ones, each an interior node: an object's root with its
+# BRef box, a deeper one with its world box) and the BRefs' own nodes with their world
+# boxes; the re-braided tree has its larger top level instead, and the BRefs' nodes with
+# their (tighter) BRef boxes. With both roots on the same box the difference of their SAH
+# (Ct = Ci = 1) is therefore exactly
+#
+#     1 / A_root * (sum of A over re-braided top interior nodes
+#                   - sum of A over plain top interior nodes - sum of A over opened nodes
+#                   - sum over BRefs below a root of (A world - A BRef box) x their cost),
+#
+# O(BRefs) to compute, whatever the scene's size. Opening can make it positive: the top
+# level bins BRefs by primitive count, a greedy and coarse estimate of what a subtree
+# costs, so where it splits an opened node's children apart and then regroups them with
+# other objects' pieces it builds a worse hierarchy than the object's own (measured: the
+# drone at threshold 0.01, 1.04x two-level; a by-material tree in the tests). The top
+# level is then the plain one.
+
+
+def _same_root_box(braided, plain):
+    """The re-braided top level with its root on the plain root's box (the union of the
+    instances' world boxes, which contains every BRef's box): both trees' SAH then share
+    one normaliser, and the re-braided SAH cannot rise because the root shrank."""
+    top = braided.top
+    root = int(plain.top.root)
+    lo = top.lo.at[int(top.root)].set(plain.top.lo[root])
+    hi = top.hi.at[int(top.root)].set(plain.top.hi[root])
+    return dataclasses.replace(braided, top=dataclasses.replace(top, lo=lo, hi=hi))
+
+
+def _interior_area(top) -> float:
+    """Sum of the half-areas of the interior nodes of a top level (float64)."""
+    inner = np.asarray(top.left) >= 0
+    return float(half_area(np.asarray(top.lo, np.float64)[inner], np.asarray(top.hi, np.float64)[inner]).sum())
+
+
+def _opened_area(node, instance, forest, instances, boxes: str = "world") -> float:
+    """What the nodes above the BRefs ``(node, instance)`` [B] cost in the plain tree and
+    the BRefs' own nodes cost there beyond their BRef boxes: the half-areas of the opened
+    nodes' boxes as the plain flattened tree has them (an object's root: its BRef box;
+    below: its world box), plus, for every BRef below its object's root, (world box
+    half-area - BRef box half-area) x its cost (1 interior, its count a leaf; Ct = Ci = 1).
+    ``boxes="object"``: nodes below a BRef's own node costed as :func:`sah` does with that
+    footing (the area of the transformed box, what the traversal tests). float64."""
+    node, instance = np.asarray(node, np.int64), np.asarray(instance, np.int64)
+    parent = np.asarray(forest.parent)
+    nf = parent.shape[0]
+    pairs = []
+    inst_f, node_f = instance, parent[node]
+    for _ in range(nf + 1):  # bounded by the forest's depth
+        ok = node_f >= 0
+        inst_f, node_f = inst_f[ok], node_f[ok]
+        if node_f.size == 0:
+            break
+        key = np.unique(inst_f * nf + node_f)
+        pairs.append(key)
+        inst_f, node_f = key // nf, parent[key % nf]
+    if not pairs:
+        return 0.0
+    key = np.unique(np.concatenate(pairs))
+    i, n = key // nf, key % nf
+    root = parent[n] < 0
+    footing = _world_area if boxes == "world" else _object_area
+    loose = footing(forest, instances, n, i)
+    tight = _area(*_bref_box_np(forest, instances, n, i))
+    below = parent[node] >= 0
+    b_n, b_i = node[below], instance[below]
+    cost = np.where(np.asarray(forest.left)[b_n] >= 0, 1.0, np.asarray(forest.prim_count)[b_n].astype(np.float64))
+    extra = (footing(forest, instances, b_n, b_i) - _area(*_bref_box_np(forest, instances, b_n, b_i))) * cost
+    return float(np.where(root, tight, loose).sum() + extra.sum())
+
+
+def _world(forest, instances, n, i):
+    """World boxes of forest nodes ``n`` under instances ``i`` (NumPy)."""
+    to_scene, margin = np.asarray(instances.to_scene), np.asarray(instances.margin)
+    return world_boxes(np.asarray(forest.lo)[n], np.asarray(forest.hi)[n], to_scene[i], margin[i])
+
+
+def _world_area(forest, instances, n, i):
+    return _area(*_world(forest, instances, n, i))
+
+
+def _object_area(forest, instances, n, i):
+    """Half-areas of the parallelepipeds the object boxes of nodes ``n`` become under
+    instances ``i`` (as :func:`sah` with ``boxes="object"``)."""
+    ext = np.maximum(np.asarray(forest.hi, np.float64)[n] - np.asarray(forest.lo, np.float64)[n], 0)
+    linear = np.asarray(instances.to_scene, np.float64)[i][:, :, :3]
+    e0, e1, e2 = (linear[:, :, k] * ext[:, k:k + 1] for k in range(3))
+    return (np.linalg.norm(np.cross(e0, e1), axis=1) + np.linalg.norm(np.cross(e1, e2), axis=1)
+            + np.linalg.norm(np.cross(e2, e0), axis=1))
+
+
+def _bref_box_np(forest, instances, n, i):
+    """BRef boxes (jaxbvh.twolevel.brefs, "BRef boxes") of forest nodes ``n`` under ``i``."""
+    left, right = np.asarray(forest.left)[n], np.asarray(forest.right)[n]
+    inner = (left >= 0)[:, None]
+    lo, hi = _world(forest, instances, n, i)
+    l_lo, l_hi = _world(forest, instances, np.maximum(left, 0), i)
+    r_lo, r_hi = _world(forest, instances, np.maximum(right, 0), i)
+    return np.where(inner, np.minimum(l_lo, r_lo), lo), np.where(inner, np.maximum(l_hi, r_hi), hi)
+
+
+def _area(lo, hi):
+    return half_area(np.asarray(lo, np.float64), np.asarray(hi, np.float64))
+
+
+def _keep_rebraided(braided, plain, forest, instances) -> bool:
+    """The re-braided top level lowers the SAH (module comment above) on both footings of
+    :func:`sah`, by more than rounding could account for (1e-6 relative; ties keep the
+    plain one)."""
+    count = int(braided.count)
+    if count == int(plain.count):
+        return False  # nothing opened: the same BRefs, and the plain top level is as good
+    node, instance = np.asarray(braided.node)[:count], np.asarray(braided.instance)[:count]
+    added = _interior_area(braided.top)
+    # lower on both footings: world boxes (the paper's Table 1) and object frames (what the
+    # two-level traversal tests below a BRef; under rotations the two can disagree)
+    return all(added < (_interior_area(plain.top) + _opened_area(node, instance, forest, instances, boxes))
+               * (1 - 1e-6) for boxes in ("world", "object"))
+
+
 def build(mesh, builder: BuilderConfig | None = None, *, threshold: float = _brefs.DEFAULT_THRESHOLD,
-          budget: float = _brefs.DEFAULT_BUDGET, capacity: int | None = None,
+          budget: float | None = None, capacity: int | None = None,
           top_bins: int = _brefs.DEFAULT_BINS, overlap: float = _brefs.DEFAULT_OVERLAP, estimate: bool = False,
-          dtype=None, world_space: bool = True, timings: dict | None = None, **builder_options) -> TwoLevelBVH:
+          dtype=None, world_space: bool = True, timings: dict | None = None, info: dict | None = None,
+          **builder_options) -> TwoLevelBVH:
     """Two-level BVH of ``mesh`` with re-braiding (module docstring).
 
     Object BVHs: ``builder``, a builder Config (None:
@@ -157,9 +313,12 @@ def build(mesh, builder: BuilderConfig | None = None, *, threshold: float = _bre
     float32 unless it says float64, which needs x64); ``world_space``: build objects
     placed by a single instance in world space (:mod:`jaxbvh.twolevel.objects`). Top
     level: ``threshold`` (opening threshold; inf: plain two-level), ``budget`` BRef slots
-    per instance (or ``capacity`` in all), ``top_bins``, ``overlap``, ``estimate`` as
+    per instance (or ``capacity`` in all; neither: the scene's default,
+    :func:`jaxbvh.twolevel.brefs.scene_slots`), ``top_bins``, ``overlap``, ``estimate`` as
     :func:`jaxbvh.twolevel.brefs.build_top_level`. ``timings``, if given, receives
-    ``objects``, ``pack`` and ``top`` seconds.
+    ``objects``, ``pack`` and ``top`` seconds; ``info`` as :func:`build_from`. The
+    re-braided top level is kept only where it lowers the SAH below the plain two-level
+    one (else the plain one is returned, ``info["kept"] == "two-level"``).
     """
     _brefs.check_options(threshold, budget, top_bins, overlap)
     builder = object_builder(builder, **builder_options)  # refused before any work
@@ -168,7 +327,7 @@ def build(mesh, builder: BuilderConfig | None = None, *, threshold: float = _bre
     if timings is not None:
         timings["objects"] = time.perf_counter() - start
     return build_from(mesh, trees, threshold=threshold, budget=budget, capacity=capacity,
-                      top_bins=top_bins, overlap=overlap, estimate=estimate, timings=timings)
+                      top_bins=top_bins, overlap=overlap, estimate=estimate, timings=timings, info=info)
 
 
 # ----------------------------------------------------------------------------------
@@ -239,6 +398,9 @@ def _flatten(tl):
     pad_f[:cf.size], pad_i[:cf.size] = cf, ci_
     w_lo, w_hi = _world_boxes_jit(f.lo[pad_f], f.hi[pad_f], inst.to_scene[pad_i], inst.margin[pad_i])
     lo[cid], hi[cid] = np.asarray(w_lo)[:cf.size], np.asarray(w_hi)[:cf.size]
+    # a BRef's own node keeps its BRef box (the union of its children's world boxes,
+    # jaxbvh.twolevel.brefs "BRef boxes"), which is the top-level leaf's box
+    lo[top_leaf], hi[top_leaf] = top.lo[top_leaf], top.hi[top_leaf]
     exact = inst.margin[ci_] == 0
     axis[cid] = np.where(exact & (f.left[cf] >= 0), f.axis[cf], -1)
     # leaves: runs of world triangle ids

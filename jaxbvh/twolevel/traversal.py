@@ -152,9 +152,9 @@ def closest_hit(tl, origin, direction, *, batch: int = 256,
                 capacity: int | None = None) -> Hits:
     """Closest hit of every ray through the two-level tree (module docstring); NumPy :class:`Hits`.
 
-    Rays are in the scene frame (``Mesh.frame``), ``t`` in units of ``|direction|``,
-    ``prim`` a world triangle id (-1: miss). Raises ``RuntimeError`` if a ray overflows
-    its stack or its step bound.
+    ``origin``, ``direction``: [R, 3] float, in the scene frame (``Mesh.frame``); ``t`` in
+    units of ``|direction|``, ``prim`` a world triangle id (-1: miss). Raises
+    ``RuntimeError`` if a ray overflows its stack or its step bound.
     """
     origin, direction = check_rays(origin, direction)
     capacity = stack_capacity(tl) if capacity is None else capacity

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib.util
 import inspect
 import re
 from typing import Any
@@ -46,6 +47,9 @@ ESTABLISHED = {
     "evolve": {"--population", "--generations", "--crossover", "--mutation", "--max-children"},
     "grasp": {"--trials", "--noise", "--deviations", "--rcl", "--objective"},
     "rebraid": {"--max-leaf", "--bins"},
+    "batch": {"--max-leaf", "--bins", "--radius", "--morton-bits", "--ct", "--ci", "--iterations",
+              "--max-passes", "--treelet-leaves", "--first-fraction", "--round-gain", "--memory-mb",
+              "--max-padding"},
 }
 
 
@@ -64,9 +68,10 @@ def knob_actions(command: str) -> list[argparse.Action]:
 
 
 def positionals(command: str) -> list[str]:
-    """Placeholder values of ``command``'s required positional arguments."""
-    return [f"input{i}.npz" for i, a in enumerate(SUBPARSERS[command]._actions)
-            if not a.option_strings and a.nargs is None]
+    """Placeholder values of ``command``'s required positional arguments (the first
+    choice of one that has choices, as ``batch build``)."""
+    return [a.choices[0] if a.choices else f"input{i}.npz" for i, a in enumerate(SUBPARSERS[command]._actions)
+            if not a.option_strings and a.nargs in (None, "+")]
 
 
 def parse(command: str, *argv) -> argparse.Namespace:
@@ -409,13 +414,29 @@ def test_the_helper_on_a_nested_config():
 
 
 # ----------------------------------------------------------------------------------
-# The README's synopsis
+# The command-line reference's synopsis
 # ----------------------------------------------------------------------------------
 
+DOCS_CLI = REPO / "docs" / "cli.md"
+DOCS_HOOK = REPO / "docs" / "hooks" / "generate.py"
 
-def test_readme_synopsis_is_the_parsers():
-    """README's ``## Command line`` block is ``python -m jaxbvh.cli.synopsis``'s output."""
-    text = README.read_text()
-    section = text[text.index("## Command line"):]
+
+def test_docs_synopsis_is_the_parsers():
+    """The docs' command-line reference asks for the synopsis, and the site's hook writes
+    ``python -m jaxbvh.cli.synopsis``'s output there (so no copy of it can go stale)."""
+    pytest.importorskip("mkdocs", reason="the docs tools are not installed (pip install -e '.[docs]')")
+    pytest.importorskip("griffe", reason="the docs tools are not installed (pip install -e '.[docs]')")
+    spec = importlib.util.spec_from_file_location("docs_generate", DOCS_HOOK)
+    hook = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(hook)
+    page = hook.expand(DOCS_CLI.read_text())
+    section = page[page.index("## Synopsis"):]
     block = re.search(r"```text\n(.*?)\n```", section, re.S).group(1)
-    assert block == synopsis(), "regenerate README's synopsis: python -m jaxbvh.cli.synopsis"
+    assert block == synopsis(), "docs/cli.md's synopsis is not the parsers'"
+    assert "<!-- gen:" not in page, "a generated part of docs/cli.md was left unexpanded"
+
+
+def test_readme_has_no_stale_synopsis():
+    """README points to the reference instead of copying the synopsis (a copy would drift)."""
+    text = README.read_text()
+    assert "jaxbvh COMMAND --help" not in text and "docs/cli.md" in text

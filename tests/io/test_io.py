@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -404,3 +405,71 @@ def test_load_any_tree_and_mesh(tmp_path):
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
     with pytest.raises(ValueError, match=r"junk\.npz"):
         load_any(tmp_path / "junk.npz")
+
+
+# ----------------------------------------------------------------------------------
+# Hostile meshes (issue 23)
+# ----------------------------------------------------------------------------------
+
+
+def test_a_gltf_beside_symlink_loops_and_dangling_links_loads(tmp_path, mesh_cache):
+    """The cache key stats only the files the glTF names (its buffer), never the folder."""
+    scene = trimesh.Scene()
+    scene.add_geometry(trimesh.creation.box(), node_name="a", geom_name="box")
+    for name, data in scene.export(file_type="gltf").items():
+        (tmp_path / name).write_bytes(data)
+    path = next(p for p in tmp_path.iterdir() if p.suffix == ".gltf")
+    (tmp_path / "loop_a.obj").symlink_to(tmp_path / "loop_b.obj")
+    (tmp_path / "loop_b.obj").symlink_to(tmp_path / "loop_a.obj")
+    (tmp_path / "dangling.obj").symlink_to(tmp_path / "nowhere.obj")
+    first = load_mesh(path)
+    assert first.n_triangles == 12 and len(list(mesh_cache.glob("*.npz"))) == 1
+    # the buffer is part of the key: a changed buffer is parsed again
+    buffer = next(p for p in tmp_path.iterdir() if p.suffix == ".bin")
+    data = buffer.read_bytes()
+    buffer.write_bytes(data + b"\0" * 4)
+    load_mesh(path)
+    assert len(list(mesh_cache.glob("*.npz"))) == 2
+
+
+@pytest.mark.parametrize("text", [
+    b"# caf\xe9 au lait\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",          # Latin-1 in a comment
+    b"v 0 0 0\nv 1 0 0\nv 0 1 0\no \xff\xfe\x80name\nf 1 2 3\n",         # bytes no codec reads
+])
+def test_an_obj_that_is_not_utf8_loads(tmp_path, monkeypatch, text):
+    # as on an install without trimesh's optional charset_normalizer (import fails)
+    monkeypatch.setitem(sys.modules, "charset_normalizer", None)
+    path = tmp_path / "latin.obj"
+    path.write_bytes(text)
+    mesh = load_mesh(path)
+    assert mesh.n_triangles == 1
+    assert np.array_equal(mesh.triangles[0], [[0, 0, 0], [1, 0, 0], [0, 1, 0]])
+
+
+def test_a_truncated_binary_stl_is_named_so(tmp_path):
+    whole = tmp_path / "box.stl"
+    trimesh.creation.box().export(whole)
+    data = whole.read_bytes()
+    assert load_mesh(whole).n_triangles == 12
+    cut = tmp_path / "cut.stl"
+    cut.write_bytes(data[:-30])
+    with pytest.raises(MeshError, match=r"cut\.stl: truncated binary STL: its header announces 12 "
+                                        r"triangles \(684 bytes\), the file has 654 bytes"):
+        load_mesh(cut)
+    stub = tmp_path / "stub.stl"
+    stub.write_bytes(data[:40])
+    with pytest.raises(MeshError, match=r"stub\.stl: truncated binary STL: 40 bytes"):
+        load_mesh(stub)
+
+
+@pytest.mark.parametrize("face", ["f 0 1 2", "f 1 2 0", "f 1/1 0/1 2/1", "  f 1 2 00"])
+def test_obj_face_index_zero_is_refused(tmp_path, face):
+    path = write(tmp_path / "zero.obj", f"v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\n{face}\n")
+    with pytest.raises(MeshError, match=r"zero\.obj: face index 0 on line 5: OBJ vertex indices start at 1"):
+        load_mesh(path)
+
+
+def test_obj_indices_that_merely_contain_a_zero_load(tmp_path):
+    vertices = np.arange(33.0).reshape(11, 3) % 7
+    path = write(tmp_path / "ten.obj", obj_text(vertices, [[9, 10, 0], [0, 9, 10]]) + "f 10/0 11 1\n")
+    assert load_mesh(path).n_triangles == 3  # 10, 11 and a texture index 0 are no vertex 0

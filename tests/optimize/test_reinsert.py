@@ -231,9 +231,10 @@ def test_reinsert_with_split_axes_and_float64():
 def test_time_budget_stops_early_with_a_valid_tree():
     tree, plo, phi = random_tree(12, 60, 1)
     full = reinsert.reinsert(tree, first_fraction=0.05)
-    short = reinsert.reinsert(tree, first_fraction=0.05, time_budget=1e-9)
+    with pytest.warns(UserWarning, match="ran out while"):  # compiling counts: the start tree
+        short = reinsert.reinsert(tree, first_fraction=0.05, time_budget=1e-9)
     check_result(tree, short, plo, phi)
-    assert 1 <= short.steps < full.steps <= reinsert.DEFAULT_MAX_ITERATIONS
+    assert short.steps == 0 < full.steps <= reinsert.DEFAULT_MAX_ITERATIONS
     assert not short.converged and full.converged
     log = []
     logged = reinsert.reinsert(tree, on_step=log.append)

@@ -120,9 +120,10 @@ def test_time_budget_progress_float64_and_tiny_trees():
     full = treelet.restructure(tree, on_step=lambda info: log.append((info.step, info.sah, info.moves)))
     assert [i for i, *_ in log] == list(range(full.steps)) and log[-1][2] == 0
     assert bool(full.converged) and [info.stage for info in full.trace] == ["treelet"] * int(full.steps)
-    short = treelet.restructure(tree, time_budget=1e-9)
+    with pytest.warns(UserWarning, match="ran out while"):  # compiling counts: the start tree
+        short = treelet.restructure(tree, time_budget=1e-9)
     check_result(tree, short, plo, phi)
-    assert 1 <= short.steps <= 2 < full.steps and not short.converged
+    assert short.steps == 0 < full.steps and not short.converged
     for n in (1, 2, 3):
         small, slo, shi = random_tree(n, n)
         check_result(small, treelet.restructure(small), slo, shi)

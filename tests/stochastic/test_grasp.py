@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import assert_one_line_error, cache_dir, canonical, grid_obj, run_cli, run_json  # noqa: F401
+from helpers import assert_one_line_error, canonical, grid_obj, run_cli, run_json
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from strategies import box_sets, boxes, triangle_soups

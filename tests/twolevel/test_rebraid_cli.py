@@ -7,20 +7,11 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
-from tests.test_cli import assert_one_line_error, grid_obj, run_cli, run_json
+from helpers import assert_one_line_error, grid_obj, run_cli, run_json
 
 import jaxbvh
 from jaxbvh import scenes
 from jaxbvh.io import boxes_in_frame, load_mesh
-
-
-@pytest.fixture(autouse=True, scope="module")
-def cache_dir(tmp_path_factory):
-    """Keep the compilation cache of the tests out of the user's home."""
-    path = tmp_path_factory.mktemp("jax-cache")
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setenv("JAXBVH_CACHE_DIR", str(path))
-        yield path
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +49,9 @@ def test_json_has_the_three_way_table(capsys, scene, tmp_path):
     for name in ("two_level", "rebraid"):
         assert result[name]["top_seconds"] <= result[name]["seconds"]
     assert result["two_level"]["brefs"] == 6  # the plain top level: one BRef per instance
-    assert 6 <= result["rebraid"]["brefs"] <= result["slots"] == 24
+    assert 6 <= result["rebraid"]["brefs"] <= result["slots"] == 24  # 4 x instances (all shared)
+    assert result["kept"] in ("rebraided", "two-level")
+    assert result["rebraid"]["sah"] <= result["two_level"]["sah"] * (1 + 1e-6)
     assert result["rebraid_vs_two_level"] == pytest.approx(result["rebraid"]["sah"] / result["two_level"]["sah"])
     # -o: the re-braided tree flattened to world space, valid against the scene's triangles
     tree, frame = jaxbvh.load(out)
@@ -77,9 +70,17 @@ def test_text_output_prints_the_table(capsys, scene):
     assert lines[1].split()[1:6] == lines[2].split()[1:6]
 
 
-def test_plain_mesh_has_no_top_level(capsys, tmp_path):
+def test_plain_mesh_has_no_top_level(capsys, tmp_path, monkeypatch):
+    # a plain mesh takes the plain-build path: one build, no object trees, no top level
+    # (issue 23: a million copies of one triangle ran past 120 s where `build` takes 11-28 s)
+    def refuse(*args, **kwargs):
+        raise AssertionError("a plain mesh must not build object trees or a top level")
+
+    monkeypatch.setattr(jaxbvh.twolevel, "build_from", refuse)
+    monkeypatch.setattr(jaxbvh.twolevel, "flatten", refuse)
     result = run_json(capsys, "rebraid", grid_obj(tmp_path / "grid.obj", n=3))
     assert result["objects"] == result["instances"] == 1
+    assert result["path"] == result["kept"] == "single object"
     for name in ("two_level", "rebraid"):
         assert result[name]["brefs"] == 1 and result[name]["top_seconds"] < 0.05
         assert result[name]["sah"] == result["single"]["sah"]  # the same tree
@@ -90,6 +91,7 @@ def test_plain_mesh_has_no_top_level(capsys, tmp_path):
     (["--threshold", "-0.1"], "threshold must be > 0"),
     (["--threshold", "nan"], "threshold must be > 0"),
     (["--budget", "0.5"], "budget must be >= 1"),
+    (["--budget", "1e9"], "budget must be >= 1"),
     (["--overlap", "-1"], "overlap must be >= 0"),
 ])
 def test_bad_options_are_one_line_errors(capsys, scene, argv, fragment):

@@ -10,6 +10,7 @@ HELP = "build a BVH over a mesh (default: the bundled mesh) and report its costs
 
 
 def add_parser(subparsers):
+    """Add the ``build`` subparser (its options and help) to ``subparsers``; returns it."""
     parser = subparsers.add_parser("build", help=HELP, description=HELP + ".")
     command_kit.add_mesh_arg(parser)
     command_kit.add_builder_args(parser)
@@ -20,6 +21,7 @@ def add_parser(subparsers):
 
 
 def run(args) -> dict:
+    """Run ``jaxbvh build`` on parsed ``args``; returns the result the command prints."""
     if args.mesh is not None and str(args.mesh).lower().endswith(TREE_SUFFIXES):
         raise ValueError(f"{args.mesh} is a tree file; build takes a mesh "
                          "(use 'jaxbvh stats' for trees)")

@@ -36,6 +36,7 @@ OPTIONS = config_options.ConfigOptions({"collapse": CollapseConfig}, exclude=("t
 
 
 def add_parser(subparsers):
+    """Add the ``collapse`` subparser (its options and help) to ``subparsers``; returns it."""
     description = __doc__.split("\n\n", 1)[1].strip().replace("``", "")
     parser = subparsers.add_parser("collapse", help=HELP, description=description)
     parser.add_argument("input", metavar="INPUT",
@@ -66,6 +67,7 @@ def _config(args, builder, kind: str) -> CollapseConfig:
 
 
 def run(args) -> dict:
+    """Run ``jaxbvh collapse`` on parsed ``args``; returns the result the command prints."""
     import jax
 
     builder = command_kit.builder_config(args)  # the builder options too, before any work

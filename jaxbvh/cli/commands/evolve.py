@@ -22,7 +22,13 @@ HELP = "genetic algorithm over Goldsmith-Salmon insertion orders (Ng & Trifonov 
 OPTIONS = config_options.ConfigOptions({"evolve": EvolveConfig}, exclude=("dtype",))
 
 
+#: memory of one member of a generation per triangle: its insertion order, its tree
+#: (two nodes a triangle, ~50 bytes a node) and the offspring's copies
+BYTES_PER_TRIANGLE_PER_MEMBER = 256
+
+
 def add_parser(subparsers):
+    """Add the ``evolve`` subparser (its options and help) to ``subparsers``; returns it."""
     # option values are checked in run() by EvolveConfig, so a bad one is a one-line error like bad input
     parser = subparsers.add_parser("evolve", help=HELP, description=HELP + ".")
     command_kit.add_mesh_arg(parser, required=True)
@@ -35,9 +41,11 @@ def add_parser(subparsers):
 
 
 def run(args) -> dict:
-    import jax
-
+    """Run ``jaxbvh evolve`` on parsed ``args``; returns the result the command prints."""
     config = OPTIONS.config(None, args)  # the library's checks, one-line errors
+    if config.generations > command_kit.MAX_RUNS:
+        raise ValueError(f"--generations {config.generations:,} is more than this command runs: "
+                         f"at most {command_kit.MAX_RUNS:,} (each builds a tree: hours of work already)")
     if str(args.mesh).lower().endswith(TREE_SUFFIXES):
         raise ValueError(f"{args.mesh} is a tree file; evolve builds from a mesh")
     names = ["load", "evolve", "validate"] + (["save"] if args.output else [])
@@ -45,6 +53,9 @@ def run(args) -> dict:
         with stages("load"):
             mesh = command_kit.mesh_or_default(args.mesh)
             lo, hi = mesh.local_boxes()
+        # every member of a generation is an insertion order and the tree built from it
+        command_kit.check_fits("--population", config.population, mesh.n_triangles * BYTES_PER_TRIANGLE_PER_MEMBER,
+                               f"an insertion order and a tree of {mesh.n_triangles:,} triangles per member")
         bar = command_kit.progress(args, total=config.generations + 1, desc="generations")
 
         def on_generation(g, best):
@@ -52,7 +63,7 @@ def run(args) -> dict:
             bar.set_postfix(best=f"{best:.4f}")
 
         with stages("evolve"):
-            result = evolve.evolve(jax.random.key(args.seed), lo, hi, config, on_generation=on_generation)
+            result = evolve.evolve(command_kit.seed_key(args.seed), lo, hi, config, on_generation=on_generation)
         bar.close()
         tree = jaxbvh.to_numpy(result.tree)
         with stages("validate"):

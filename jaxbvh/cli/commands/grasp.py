@@ -25,6 +25,7 @@ OPTIONS = config_options.ConfigOptions({"grasp": GraspConfig}, exclude=("chunk_p
 
 
 def add_parser(subparsers):
+    """Add the ``grasp`` subparser (its options and help) to ``subparsers``; returns it."""
     # option values are checked in run() by GraspConfig, so a bad one is a one-line error like bad input
     parser = subparsers.add_parser("grasp", help=HELP, description=HELP + ".")
     command_kit.add_mesh_arg(parser, required=True)
@@ -37,10 +38,14 @@ def add_parser(subparsers):
 
 
 def run(args) -> dict:
+    """Run ``jaxbvh grasp`` on parsed ``args``; returns the result the command prints."""
     import jax
     import numpy as np
 
     config = OPTIONS.config(None, args)  # the library's checks, one-line errors
+    if config.trials > command_kit.MAX_RUNS:
+        raise ValueError(f"--trials {config.trials:,} is more than this command runs: "
+                         f"at most {command_kit.MAX_RUNS:,} (each builds a tree: hours of work already)")
     if str(args.mesh).lower().endswith(TREE_SUFFIXES):
         raise ValueError(f"{args.mesh} is a tree file; grasp builds from a mesh")
     names = ["load", "grasp", "validate"] + (["save"] if args.output else [])
@@ -57,7 +62,7 @@ def run(args) -> dict:
 
         with stages("grasp"):
             start = time.perf_counter()
-            result = grasp.grasp(jax.random.key(args.seed), lo, hi, config, on_chunk=on_chunk)
+            result = grasp.grasp(command_kit.seed_key(args.seed), lo, hi, config, on_chunk=on_chunk)
             tree = jax.block_until_ready(result.tree)
             seconds = time.perf_counter() - start
         bar.close()

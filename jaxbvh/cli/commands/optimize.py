@@ -55,7 +55,13 @@ OPTIONS = config_options.ConfigOptions({name: o.Config for name, o in OPTIMIZERS
                                        families=FAMILIES)
 
 
+#: memory of one annealing chain per node of the tree (the current, best and proposed
+#: trees' arrays, ~50 bytes a node each, with their costs and areas)
+BYTES_PER_NODE_PER_CHAIN = 400
+
+
 def add_parser(subparsers):
+    """Add the ``optimize`` subparser (its options and help) to ``subparsers``; returns it."""
     parser = subparsers.add_parser("optimize", help=HELP, description=HELP + ".")
     parser.add_argument("input", metavar="INPUT",
                         help="a mesh/scene file (built with the default builder first) or a "
@@ -65,8 +71,10 @@ def add_parser(subparsers):
                              + f" (default: {DEFAULT_METHOD})")
     command_kit.add_seed(parser, "random seed for annealing")
     parser.add_argument("--time-budget", type=float, default=None, metavar="SECONDS",
-                        help="stop after about this many seconds (compiling apart) with the best "
-                             "tree so far (default: run to convergence)")
+                        help="wall-clock seconds from the start of optimizing, compiling included: "
+                             "stop then with the best tree so far; when compiling alone takes longer, "
+                             "the start tree comes back unchanged, with a warning (default: run to "
+                             "convergence)")
     parser.add_argument("-o", "--output", metavar="OUT.npz", default=None,
                         help="save the optimized tree (interchange .npz with its frame)")
     OPTIONS.add_to(parser, "method options (fields of each method's Config; defaults per method)")
@@ -108,8 +116,7 @@ def _check(tree, optimized, prim_lo, prim_hi) -> None:
 
 
 def run(args) -> dict:
-    import jax
-
+    """Run ``jaxbvh optimize`` on parsed ``args``; returns the result the command prints."""
     if args.time_budget is not None and not args.time_budget > 0:
         raise ValueError(f"--time-budget must be > 0 seconds, got {args.time_budget}")
     builder = command_kit.builder_config(args)
@@ -117,6 +124,11 @@ def run(args) -> dict:
     names = ["load", "build", "validate", "optimize", "check"] + (["save"] if args.output else [])
     with command_kit.Stages(args, names) as stages:
         tree, prim_lo, prim_hi, frame, info = _load(args, builder, stages)
+        chains = getattr(config, "chains", 1)
+        if chains > 1:  # every chain holds its own trees (current, best, proposals)
+            nodes = int(np.asarray(tree.prim_count).shape[0])
+            command_kit.check_fits("--chains", chains, nodes * BYTES_PER_NODE_PER_CHAIN,
+                                   f"{nodes:,}-node trees per chain")
         before = jaxbvh.all_costs(tree, config.ct, config.ci)
         totals = {"hc": getattr(config, "max_passes", None), "sa": getattr(config, "steps", None)}
         bar = command_kit.progress(args, total=totals.get(args.method), desc=f"{args.method}")
@@ -127,7 +139,7 @@ def run(args) -> dict:
 
         with stages("optimize"):
             start = time.perf_counter()
-            result = optimize(tree, args.method, key=jax.random.key(args.seed), config=config,
+            result = optimize(tree, args.method, key=command_kit.seed_key(args.seed), config=config,
                               time_budget=args.time_budget, on_step=on_step)
             seconds = time.perf_counter() - start
         bar.close()

@@ -8,7 +8,14 @@ the nodes below a top-level leaf costed in their object frames, as the two-level
 traversal tests them, see ``jaxbvh.twolevel.sah``), stored nodes,
 BRefs, total and top-level build seconds, and with ``--rays N`` box and primitive tests
 per ray. Build times are warm: every build runs once untimed first, so compiling is not
-counted (the CLI also caches compiled code on disk).
+counted (the CLI also caches compiled code on disk). The BRef array gets the scene's
+default size unless ``--budget`` says otherwise (``slots`` in the JSON; ``kept`` says
+whether the re-braided top level was kept or, not lowering the SAH, the plain one).
+
+A plain mesh (one object, one identity instance) has nothing to re-braid: its two-level
+BVH is the single BVH, so the command builds that once, as ``jaxbvh build`` does (its
+seconds then include compiling), and reports it in all three rows (``path``: ``"single
+object"``).
 """
 
 from __future__ import annotations
@@ -26,20 +33,22 @@ from jaxbvh.io import load_mesh
 from jaxbvh.rays import traversal as traverse
 from jaxbvh.twolevel import brefs
 from jaxbvh.twolevel import objects as fm
-from jaxbvh.twolevel.brefs import DEFAULT_BINS, DEFAULT_BUDGET, DEFAULT_OVERLAP, DEFAULT_THRESHOLD
+from jaxbvh.twolevel.brefs import DEFAULT_BINS, DEFAULT_OVERLAP, DEFAULT_THRESHOLD
 
 HELP = "compare two-level, re-braided and single BVHs of a multi-object scene (Benthin et al. 2017)"
 
 
 def add_parser(subparsers):
+    """Add the ``rebraid`` subparser (its options and help) to ``subparsers``; returns it."""
     parser = subparsers.add_parser("rebraid", help=HELP, description=HELP + ".")
     parser.add_argument("scene", metavar="SCENE", help="a scene or mesh file (glTF, OBJ, ...); its "
                         "objects and instances are kept")
     parser.add_argument("--threshold", type=float, default=DEFAULT_THRESHOLD,
                         metavar="T", help="open a BRef wider than T of its segment's largest extent "
                         f"(> 0; inf: never; default: {DEFAULT_THRESHOLD})")
-    parser.add_argument("--budget", type=float, default=DEFAULT_BUDGET, metavar="B",
-                        help=f"BRef slots per instance, >= 1 (default: {DEFAULT_BUDGET:g})")
+    parser.add_argument("--budget", type=float, default=None, metavar="B",
+                        help="BRef slots per instance, >= 1 (default: the scene's, the largest of 4 x "
+                        "instances, triangles / 1000 and min(16 x objects placed once, triangles / 64))")
     # the builder of the object BVHs and of the single BVH: the two-level builder's
     # (binned SAH, one primitive per leaf), not jaxbvh.build's sweep
     command_kit.add_builder_args(parser, default=fm.DEFAULT_BUILDER)
@@ -72,25 +81,29 @@ def _timed(fn):
 
 
 def run(args) -> dict:
+    """Run ``jaxbvh rebraid`` on parsed ``args``; returns the result the command prints."""
     import jax
 
     brefs.check_options(args.threshold, args.budget, args.top_bins, args.overlap)
     builder = command_kit.builder_config(args)
     names = ["load", "objects", "two-level", "rebraid", "single", "check"] + (["rays"] if args.rays else []) \
-        + (["save"] if args.output else [])
+        + (["save"] if args.output else [])  # a plain mesh skips objects, two-level and rebraid
     with command_kit.Stages(args, names) as stages:
         with stages("load"):
             mesh = load_mesh(args.scene)
+        if len(mesh.instances) == 1:
+            return _one_object(args, mesh, builder, stages)
         with stages("objects"):
             trees, t_objects = _timed(lambda: fm.build_objects(mesh, builder, world_space=not args.object_space))
         top = dict(top_bins=args.top_bins, overlap=args.overlap, estimate=args.estimate)
         results = {}
+        kept = {}
         for name, threshold in (("two_level", math.inf), ("rebraid", args.threshold)):
             with stages(name.replace("_", "-")):
                 timings = {}
                 twolevel.build_from(mesh, trees, threshold=threshold, budget=args.budget, **top)  # compile
                 tl = twolevel.build_from(mesh, trees, threshold=threshold, budget=args.budget,
-                                         timings=timings, **top)
+                                         timings=timings, info=kept, **top)
             results[name] = (tl, timings)
         lo, hi = mesh.local_boxes()
         with stages("single"):
@@ -130,18 +143,59 @@ def run(args) -> dict:
                 jaxbvh.save(args.output, flats["rebraid"], frame=mesh.frame)
 
     result = {"command": "rebraid", **command_kit.mesh_info(mesh), "builder": builder.method,
-              "threshold": args.threshold, "budget": args.budget,
-              "slots": brefs.brefs_capacity(len(mesh.instances), args.threshold, args.budget),
+              "threshold": args.threshold, "budget": args.budget, "path": "two-level",
+              "slots": kept["slots"], "kept": kept["kept"],
               "two_level": out["two_level"], "rebraid": out["rebraid"], "single": out["single"],
               "rebraid_vs_two_level": out["rebraid"]["sah"] / out["two_level"]["sah"],
               "rebraid_vs_single": out["rebraid"]["sah"] / out["single"]["sah"],
               "top_time_ratio": (out["rebraid"]["top_seconds"] / out["two_level"]["top_seconds"]
                                  if out["two_level"]["top_seconds"] > 0 else None),
               "valid": True, "output": args.output}
+    return _report(args, result)
+
+
+def _report(args, result: dict) -> dict:
     if not args.json:
         print(table(result), file=sys.stdout)
         print(file=sys.stdout)
     return result
+
+
+def _one_object(args, mesh, builder, stages) -> dict:
+    """A plain mesh (one object, one identity instance): the two-level BVH *is* the object's
+    BVH, which is the single BVH, so the command builds that once, as ``jaxbvh build`` does,
+    and reports it in all three rows (no top level, no flattening, one validation)."""
+    import jax
+
+    lo, hi = mesh.local_boxes()
+    with stages("single"):  # built once, as `jaxbvh build` does (seconds include compiling)
+        start = time.perf_counter()
+        single = jax.block_until_ready(jaxbvh.build(lo, hi, builder))
+        seconds = time.perf_counter() - start
+    with stages("check"):
+        single = jaxbvh.to_numpy(single)
+        jaxbvh.validate(single, lo, hi)
+        nodes = jaxbvh.tree.node_count(single)
+        row = {"sah": float(jaxbvh.sah(jaxbvh.to_jax(single))), "nodes": nodes, "seconds": seconds}
+    if args.rays:
+        with stages("rays"):
+            tri = mesh.local_triangles()
+            origin, direction = rays.make_rays(jax.random.key(args.seed), "random", single, tri, args.rays)
+            hits = traverse.closest_hit(single, tri, origin, direction)
+            row.update(box_tests=float(np.mean(hits.box_tests)), prim_tests=float(np.mean(hits.prim_tests)),
+                       hits_agree=1.0)
+    if args.output:
+        with stages("save"):
+            jaxbvh.save(args.output, single, frame=mesh.frame)
+    # the two-level rows: one top-level leaf naming the object's root, costed as nothing
+    leveled = dict(row, sah_object=row["sah"], nodes=nodes + 1, top_nodes=1, flat_nodes=nodes, brefs=1,
+                   top_seconds=0.0)
+    result = {"command": "rebraid", **command_kit.mesh_info(mesh), "builder": builder.method,
+              "threshold": args.threshold, "budget": args.budget, "path": "single object", "slots": 1,
+              "kept": "single object", "two_level": leveled, "rebraid": dict(leveled), "single": row,
+              "rebraid_vs_two_level": 1.0, "rebraid_vs_single": 1.0, "top_time_ratio": None,
+              "valid": True, "output": args.output}
+    return _report(args, result)
 
 
 def table(result: dict) -> str:

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import jaxbvh
 from jaxbvh.cli import command_kit
-from jaxbvh.io import Mesh, boxes_in_frame
+from jaxbvh.io import Mesh
 
 HELP = ("report nodes, depth, leaf sizes and costs of a tree (.npz) or of a mesh's BVH; "
         "exit status 1 if the tree is invalid")
 
 
 def add_parser(subparsers):
+    """Add the ``stats`` subparser (its options and help) to ``subparsers``; returns it."""
     parser = subparsers.add_parser("stats", help=HELP, description=HELP + ".")
     parser.add_argument("input", metavar="MESH_OR_TREE",
                         help="a tree .npz (jaxbvh build -o, or another library's export) "
@@ -23,6 +24,7 @@ def add_parser(subparsers):
 
 
 def run(args) -> dict:
+    """Run ``jaxbvh stats`` on parsed ``args``; returns the result the command prints."""
     builder = command_kit.builder_config(args)  # every builder option checked before any work
     names = ["load", "build", "validate"]
     with command_kit.Stages(args, names) as stages:
@@ -53,14 +55,10 @@ def _tree_stats(loaded, args, costs, stages) -> dict:
         against = "structure only (pass --mesh to check boxes)"
         if not problems and args.mesh is not None:
             mesh = command_kit.mesh_or_default(args.mesh)
-            world_lo, world_hi = mesh.prim_boxes()
-            lo, hi = boxes_in_frame(world_lo, world_hi, frame, tree.lo.dtype)
-            referenced = int(tree.prim_count.sum())
-            if referenced != mesh.n_triangles:
-                problems = [f"the tree's leaves hold {referenced} primitives but "
-                            f"{mesh.path} has {mesh.n_triangles} triangles"]
-            else:
-                problems = jaxbvh.check(tree, lo, hi)
+            # in the precision the boxes are stored in (command_kit.check_against_mesh)
+            checked = command_kit.check_against_mesh(loaded, mesh)
+            problems = checked.problems
+            result["checked_in"] = checked.precision
             result.update({"mesh": str(mesh.path), "triangles": mesh.n_triangles,
                            "degenerate": mesh.degenerate})
             against = "mesh"

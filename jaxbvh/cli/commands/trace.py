@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import inspect
+import math
+import warnings
 
 import numpy as np
 
+import jaxbvh
 from jaxbvh import rays
 from jaxbvh.cli import command_kit
 from jaxbvh.cli import options as config_options
@@ -13,6 +16,8 @@ from jaxbvh.configs import SAHCosts
 from jaxbvh.io import load_mesh
 from jaxbvh.rays import traversal as traverse
 from jaxbvh.rays.measure import KINDS, MODES
+from jaxbvh.tree import layout as tree_layout
+from jaxbvh.tree.validate import InvalidTreeError
 
 #: --ct, --ci: the SAH constants of the cost reported beside the ray counts
 COSTS = config_options.ConfigOptions({"trace": SAHCosts})
@@ -23,11 +28,12 @@ HELP = "trace rays through a tree (.npz) over its mesh; report box and primitive
 
 
 def add_parser(subparsers):
+    """Add the ``trace`` subparser (its options and help) to ``subparsers``; returns it."""
     parser = subparsers.add_parser("trace", help=HELP, description=HELP + ".")
     parser.add_argument("tree", metavar="TREE", help="a tree .npz (jaxbvh build -o, or another "
                                                     "library's export) over MESH's triangles")
     parser.add_argument("mesh", metavar="MESH", help="the mesh the tree was built over")
-    parser.add_argument("--rays", type=command_kit._int_at_least(1), default=100_000, metavar="N",
+    parser.add_argument("--rays", type=command_kit.int_option(1), default=100_000, metavar="N",
                         help="number of rays (camera: about N pixels, 4:3) (default: 100000)")
     parser.add_argument("--kind", choices=KINDS, default="random",
                         help="random: origins in the root box, uniform directions; camera: "
@@ -36,7 +42,7 @@ def add_parser(subparsers):
     parser.add_argument("--mode", choices=MODES, default=TRAVERSAL["mode"],
                         help="closest hit, any hit (shadow rays) or all hits (default: %(default)s)")
     command_kit.add_seed(parser)
-    parser.add_argument("--batch", type=command_kit._int_at_least(1), default=TRAVERSAL["batch"], metavar="B",
+    parser.add_argument("--batch", type=command_kit.int_option(1), default=TRAVERSAL["batch"], metavar="B",
                         help="rays per jitted batch (default: %(default)s)")
     parser.add_argument("--save", metavar="HITS.npz", default=None,
                         help="write origin, direction (world space), t and prim (-1: miss) "
@@ -50,16 +56,41 @@ def add_parser(subparsers):
     return parser
 
 
-def triangles_in_frame(mesh, frame, dtype) -> np.ndarray:
-    """The mesh's triangles [F, 3, 3] in ``frame`` (the tree's), cast to ``dtype``."""
-    tri = mesh.triangles
-    return (tri if frame.is_identity else frame.to_local(tri)).astype(dtype)
+#: memory one ray takes, all told: origin and direction as made (float64 at most), in the
+#: batch and as saved, its hit record and counters, and the summary's copies
+BYTES_PER_RAY = 192
+
+#: a tree deeper than this many times a balanced tree's depth gets a warning (and ...
+DEEP_FACTOR = 8
+#: ... deeper than this many levels: shallow trees are cheap whatever their shape)
+DEEP_LEVELS = 64
+
+
+def depth_warning(tree, rays: int, batch: int) -> str | None:
+    """A warning when the tree's depth makes traversal cost explode, else None.
+
+    A ray that reaches the deepest leaf takes about ``2 * depth`` loop steps (a node step
+    per level, and the sibling it pushed), and a batch of rays runs as long as its
+    longest ray; a balanced tree over the same leaves is ``ceil(log2 leaves)`` deep.
+    """
+    t = jaxbvh.to_numpy(tree)
+    real = tree_layout.real_nodes(t)
+    height = int(tree_layout.depth(t)[real].max()) if real.any() else 0
+    leaves = int((np.asarray(t.prim_count) > 0).sum())
+    balanced = max(1, math.ceil(math.log2(max(leaves, 2))))
+    if height <= DEEP_LEVELS or height <= DEEP_FACTOR * balanced:
+        return None
+    batches = math.ceil(rays / max(1, min(batch, rays)))
+    return (f"tree depth {height:,} (a balanced tree over its {leaves:,} leaves: {balanced}): a ray "
+            f"may take up to ~{2 * height:,} steps (balanced: ~{2 * balanced}), and each of the "
+            f"{batches:,} batches runs as long as its longest ray: up to ~{batches * 2 * height:,} "
+            "sequential steps in all")
 
 
 def run(args) -> dict:
-    import jax
-
+    """Run ``jaxbvh trace`` on parsed ``args``; returns the result the command prints."""
     costs = COSTS.config(None, args)
+    command_kit.check_fits("--rays", args.rays, BYTES_PER_RAY, "rays, their hits and counters")
     if args.image:
         command_kit.require_matplotlib("--image")
     with command_kit.Stages(args, ["load", "trace", "write"]) as stages:
@@ -67,21 +98,27 @@ def run(args) -> dict:
             loaded = command_kit.load_tree(args.tree, check=False)  # checked below, with the mesh
             mesh = load_mesh(args.mesh)
             tree, frame = loaded.tree, loaded.frame
-            referenced = int(np.asarray(tree.prim_count).sum())
-            if referenced != mesh.n_triangles:
-                raise ValueError(f"the tree's leaves hold {referenced} primitives but "
-                                 f"{args.mesh} has {mesh.n_triangles} triangles")
             dtype = np.asarray(tree.lo).dtype
-            triangles = triangles_in_frame(mesh, frame, dtype)
-            # before any jitted loop; a leaf box that misses its triangle would lose hits
-            command_kit.check_tree_file(loaded, triangles.min(axis=1), triangles.max(axis=1))
-            key = jax.random.key(args.seed)
+            # before any jitted loop; a leaf box that misses its triangle would lose hits.
+            # The triangles are those the check passed in (the tree's stored precision)
+            checked = command_kit.check_against_mesh(loaded, mesh)
+            if checked.problems:
+                raise InvalidTreeError(checked.problems)
+            triangles = checked.triangles
+            key = command_kit.seed_key(args.seed)
             origin, direction = rays.make_rays(key, args.kind, tree, triangles, args.rays)
+            deep = depth_warning(tree, args.rays, args.batch)
+            if deep:
+                warnings.warn(deep, stacklevel=1)
         with stages("trace"):
-            hits, summary = rays.measure(tree, triangles, origin, direction, mode=args.mode,
-                                         ct=costs.ct, ci=costs.ci, batch=args.batch)
+            # measure traces one batch first to compile: the bar counts it too
+            warm = min(args.rays, args.batch)
+            with command_kit.progress(args, total=args.rays + warm, desc="rays") as bar:
+                hits, summary = rays.measure(tree, triangles, origin, direction, mode=args.mode,
+                                             ct=costs.ct, ci=costs.ci, batch=args.batch,
+                                             on_batch=bar.update)
         result = {"command": "trace", "tree": loaded.path, "mesh": str(mesh.path),
-                  "triangles": mesh.n_triangles, "kind": args.kind, "seed": args.seed,
+                  "triangles": mesh.n_triangles, "checked_in": checked.precision, "kind": args.kind, "seed": args.seed,
                   "arity": int(np.asarray(tree.child).shape[1]),
                   "stack_capacity": traverse.stack_capacity(tree)}
         result.update(summary)

@@ -1,0 +1,25 @@
+"""Batches of meshes: build, optimize, cost, trace and collapse many trees in a few compiled calls.
+
+=================  =====================================================================
+module             what it holds
+=================  =====================================================================
+``layout``         :class:`TreeBatch`: trees stacked in capacity groups, ``unstack()``
+``plan``           capacity groups and chunks under a memory bound (:class:`BatchConfig`)
+``devices``        the batch axis split over devices (``jax.shard_map``)
+``build``          every builder vmapped: :func:`build`
+``optimize``       every optimizer's ``step`` vmapped: :func:`optimize`
+``measure``        :func:`costs`, :func:`trace` and :func:`collapse` over a batch
+=================  =====================================================================
+
+Every per-tree result equals the single-tree call (``jaxbvh.build``,
+``jaxbvh.optimize.optimize``, ...) node for node; the tests hold them equal.
+"""
+
+from jaxbvh.batch.build import BuildResult, build, mesh_boxes
+from jaxbvh.batch.layout import Group, TreeBatch
+from jaxbvh.batch.measure import collapse, costs, trace
+from jaxbvh.batch.optimize import BatchOptimizeResult, optimize
+from jaxbvh.batch.plan import BatchConfig
+
+__all__ = ["build", "optimize", "costs", "trace", "collapse", "mesh_boxes", "BuildResult",
+           "BatchOptimizeResult", "TreeBatch", "Group", "BatchConfig"]

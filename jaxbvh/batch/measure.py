@@ -1,0 +1,132 @@
+"""Costs, traversal and collapsing over a batch of trees: :func:`costs`, :func:`trace`, :func:`collapse`.
+
+* :func:`costs`: the SAH and the papers' costs (:mod:`jaxbvh.tree.cost`) of every tree,
+  each cost function vmapped over a group: one compiled call per group and cost.
+* :func:`trace`: a ray set per tree (``origin``, ``direction`` [R, 3] each, the same
+  ``R`` for all), :func:`jaxbvh.rays.traversal.trace_batch` vmapped over the trees of a
+  group (triangles padded to the group's capacity: padded primitive slots are never
+  referenced), in slices of ``rays_per_call`` rays; every tree's hits and counts
+  equal the single-tree :func:`jaxbvh.rays.traversal.trace` (tested). The stack holds
+  the deepest tree of the group (a larger stack changes nothing but memory).
+* :func:`collapse`: Pinto's collapse (:func:`jaxbvh.wide.collapse`) of every tree. Its
+  level schedule is made on the host from each tree's depths, so this is a loop of
+  single-tree calls (one compile per capacity), not one vmapped call.
+
+The twin of each is the single-tree function itself, run tree by tree in the tests.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxbvh.batch import devices as batch_devices
+from jaxbvh.batch.layout import TreeBatch
+from jaxbvh.rays.traversal import check_rays, intersect_triangle, stack_capacity, trace_batch
+from jaxbvh.tree.cost import goldsmith_salmon_cost, ng_trifonov_cost, sah
+from jaxbvh.tree.layout import to_jax
+from jaxbvh.wide.collapse import collapse as collapse_one
+
+COSTS = ("sah", "ng_trifonov", "goldsmith_salmon")
+
+
+def _cost_rows(trees, ct, ci):
+    return (jax.vmap(sah)(trees, ct, ci), jax.vmap(ng_trifonov_cost)(trees), jax.vmap(goldsmith_salmon_cost)(trees))
+
+
+def costs(trees: TreeBatch, ct: float = 1.0, ci: float = 1.0, *, devices=None) -> dict[str, np.ndarray]:
+    """``{"sah", "ng_trifonov", "goldsmith_salmon"}``: float64 [M] per mesh (NaN for a mesh
+    left out), each as :func:`jaxbvh.all_costs` gives it for the tree alone."""
+    devs = batch_devices.resolve(devices)
+    out = {name: np.full(trees.size, np.nan) for name in COSTS}
+    for group in trees.groups:
+        t = to_jax(group.trees)
+        rows, pad = _padded_rows(len(group), len(devs))
+        t = jax.tree_util.tree_map(lambda a: a[rows], t)
+        dt = t.lo.dtype
+        ct_r, ci_r = jnp.full(rows.size, ct, dt), jnp.full(rows.size, ci, dt)
+        values = jax.device_get(batch_devices.on_devices(_cost_rows, (t, ct_r, ci_r), devs))
+        for name, v in zip(COSTS, values):
+            out[name][group.index] = np.asarray(v, np.float64)[: len(group)]
+    return out
+
+
+def _padded_rows(count: int, devices: int):
+    """Row ids [R] of a group of ``count`` on ``devices`` (filler rows repeat row 0)."""
+    total = -(-count // devices) * devices
+    rows = np.zeros(total, np.int64)
+    rows[:count] = np.arange(count)
+    return rows, total - count
+
+
+def _trace_rows(trees, triangles, origin, direction, *, mode, capacity, max_hits):
+    def one(tree, tri, o, d):
+        return trace_batch(tree, tri, o, d, 0.0, jnp.inf, intersect=intersect_triangle, mode=mode,
+                           capacity=capacity, max_hits=max_hits)
+    return jax.vmap(one)(trees, triangles, origin, direction)
+
+
+def trace(trees: TreeBatch, triangles, origin, direction, *, mode: str = "closest", max_hits: int = 16,
+          rays_per_call: int = 256, devices=None) -> list:
+    """Trace each mesh's rays through its tree; a list of per-mesh ``Hits`` (NumPy, [R] each).
+
+    ``triangles``: per mesh [n, 3, 3] in the tree's frame; ``origin``, ``direction``: per
+    mesh [R, 3] (one R for all meshes). ``mode``: ``"closest"``, ``"any"``, ``"all"``.
+    Counts per tree: ``hits.box_tests.sum()`` etc. Raises like the single trace on a stack
+    overflow or a ray past the step bound. A mesh left out gets None.
+    """
+    devs = batch_devices.resolve(devices)
+    if not len(triangles) == len(origin) == len(direction) == trees.size:
+        raise ValueError(f"trace: {trees.size} meshes but {len(triangles)} triangle sets, "
+                         f"{len(origin)} origins and {len(direction)} directions")
+    rays = [check_rays(o, d) for o, d in zip(origin, direction)]
+    if len({o.shape[0] for o, _ in rays}) > 1:
+        raise ValueError("trace: every mesh needs the same number of rays")
+    out = [None] * trees.size
+    for group in trees.groups:
+        singles = [group.tree(r, own=False) for r in range(len(group))]
+        capacity = max(stack_capacity(t) for t in singles)
+        rows, _ = _padded_rows(len(group), len(devs))
+        t = jax.tree_util.tree_map(lambda a: jnp.asarray(a)[rows], to_jax(group.trees))
+        dt = np.dtype(t.lo.dtype)
+        tri = np.zeros((rows.size, group.capacity, 3, 3), dt)
+        for k, r in enumerate(rows):
+            mesh_tri = np.asarray(triangles[int(group.index[r])], dt)
+            tri[k, : mesh_tri.shape[0]] = mesh_tri
+        o = np.stack([rays[int(group.index[r])][0] for r in rows]).astype(dt)
+        d = np.stack([rays[int(group.index[r])][1] for r in rows]).astype(dt)
+        parts = []
+        for start in range(0, o.shape[1], rays_per_call):
+            stop = min(start + rays_per_call, o.shape[1])
+            o_s, d_s = _pad_rays(o[:, start:stop], rays_per_call), _pad_rays(d[:, start:stop], rays_per_call)
+            hits = jax.device_get(batch_devices.on_devices(
+                _trace_rows, (t, tri, o_s, d_s), devs, mode=mode, capacity=capacity, max_hits=max_hits))
+            parts.append(jax.tree_util.tree_map(lambda a, n=stop - start: np.asarray(a)[:, :n], hits))
+        hits = jax.tree_util.tree_map(lambda *a: np.concatenate(a, axis=1), *parts)
+        for k in range(len(group)):
+            one = jax.tree_util.tree_map(lambda a, k=k: a[k], hits)
+            _check_hits(one, int(group.index[k]), capacity)
+            out[int(group.index[k])] = one
+    return out
+
+
+def _pad_rays(a: np.ndarray, length: int) -> np.ndarray:
+    """[B, r, 3] rays padded to [B, length, 3] with copies of the first ray (one shape: one compile)."""
+    if a.shape[1] == length:
+        return a
+    pad = np.repeat(a[:, :1], length - a.shape[1], axis=1)
+    return np.concatenate([a, pad], axis=1)
+
+
+def _check_hits(hits, mesh: int, capacity: int) -> None:
+    if np.asarray(hits.step_limit).any():
+        raise ValueError(f"trace: mesh {mesh}: a ray did not end within the step bound (a broken tree)")
+    if np.asarray(hits.stack_overflow).any():
+        raise RuntimeError(f"trace: mesh {mesh}: the traversal stack of {capacity} entries overflowed")
+
+
+def collapse(trees: TreeBatch, method: str = "dp", **options) -> list:
+    """Pinto's collapse of every tree (module docstring): a list of ``CollapseResult`` in
+    input order, each :func:`jaxbvh.collapse` of the mesh's own tree (None: left out)."""
+    return [None if t is None else collapse_one(t, method, **options) for t in trees.unstack()]

@@ -1,0 +1,221 @@
+"""``jaxbvh batch build|optimize INPUT... -o OUTDIR``: many meshes in a few compiled calls.
+
+INPUT is mesh files, globs (quoted, so the shell leaves them) or folders (their mesh
+files, not recursive). Every mesh is loaded, then all are built together
+(:func:`jaxbvh.batch.build`) and, for ``optimize``, optimized together
+(:func:`jaxbvh.batch.optimize`); each tree is validated against its mesh and written to
+``OUTDIR/<name>.npz`` (interchange, with its scene frame). The summary has one row per
+mesh (triangles, SAH after the build and after the optimizer, seconds: the mesh's share
+of its compiled calls) and the totals. A mesh that fails to load, build or validate
+gets its own one-line error in its row, the others are still written, and the exit
+status is 1. Every option is checked before any mesh is read.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+import jaxbvh
+from jaxbvh.batch import BatchConfig, build, costs, optimize
+from jaxbvh.cli import command_kit
+from jaxbvh.cli.commands.optimize import OPTIONS as OPTIMIZER_OPTIONS
+from jaxbvh.cli.options import add_config_options
+from jaxbvh.io import load_mesh
+from jaxbvh.optimize import DEFAULT_METHOD, OPTIMIZERS
+from jaxbvh.tree.interchange import compact
+
+HELP = "build (and optimize) the BVHs of many meshes at once, one tree file per mesh"
+ACTIONS = ("build", "optimize")
+#: file suffixes a folder INPUT contributes (other files in it are passed over)
+MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
+
+
+def add_parser(subparsers):
+    """Add the ``batch`` subparser (its options and help) to ``subparsers``; returns it."""
+    parser = subparsers.add_parser("batch", help=HELP, description=HELP + ".")
+    parser.add_argument("action", choices=ACTIONS, help="build the trees, or build and optimize them")
+    parser.add_argument("inputs", metavar="INPUT", nargs="+", help="mesh files, globs or folders of meshes")
+    parser.add_argument("-o", "--output", metavar="OUTDIR", default=None,
+                        help="folder for the trees (OUTDIR/<name>.npz; made if missing; required)")
+    parser.add_argument("--method", choices=tuple(OPTIMIZERS), default=DEFAULT_METHOD,
+                        help=f"optimizer of 'batch optimize' (default: {DEFAULT_METHOD})")
+    command_kit.add_seed(parser, "random seed for annealing (mesh i gets fold_in(key(seed), i))")
+    parser.set_defaults(batch_options=add_config_options(parser, BatchConfig, title="batch options"))
+    OPTIMIZER_OPTIONS.add_to(parser, "optimizer options of 'batch optimize' (fields of each method's Config)")
+    command_kit.add_builder_args(parser)
+    command_kit.add_json(parser)
+    return parser
+
+
+def expand(inputs) -> list[Path]:
+    """Mesh paths of INPUTs: a folder gives its mesh files (sorted), a glob its matches,
+    a file itself (even if it is not a mesh: its load fails in its own row).
+    ``ValueError`` for an INPUT that names nothing."""
+    out = []
+    for text in inputs:
+        path = Path(text)
+        if path.is_dir():
+            found = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)
+            if not found:
+                raise ValueError(f"{text}: a folder with no mesh files ({', '.join(MESH_SUFFIXES)})")
+            out += found
+        elif glob.has_magic(text):
+            found = sorted(Path(p) for p in glob.glob(text) if Path(p).is_file())
+            if not found:
+                raise ValueError(f"{text}: no file matches")
+            out += found
+        elif path.is_file():
+            out.append(path)
+        else:
+            raise ValueError(f"{text}: no such file or folder")
+    return list(dict.fromkeys(out))
+
+
+def output_names(paths) -> list[str]:
+    """``<stem>.npz`` per path; a stem seen before gets ``-2``, ``-3``, ..."""
+    seen: dict[str, int] = {}
+    names = []
+    for p in paths:
+        seen[p.stem] = seen.get(p.stem, 0) + 1
+        names.append(p.stem + ("" if seen[p.stem] == 1 else f"-{seen[p.stem]}") + ".npz")
+    return names
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__
+
+
+class Clock:
+    """Seconds of compiled calls shared out evenly among the meshes each one ran
+    (``on_chunk(index)`` of :func:`jaxbvh.batch.build` and :func:`jaxbvh.batch.optimize`)."""
+
+    def __init__(self, bar, size: int):
+        self.bar = bar
+        self.seconds = np.zeros(size)
+        self.last = time.perf_counter()
+
+    def __call__(self, index) -> None:
+        now = time.perf_counter()
+        self.seconds[np.asarray(index)] += (now - self.last) / max(len(index), 1)
+        self.bar.update(len(index))
+        self.last = now
+
+
+def run(args) -> dict:
+    """Run ``jaxbvh batch`` on parsed ``args``; returns the result the command prints (a row per mesh)."""
+    # every option first: the builder's, the optimizer's, the batch's, the folder
+    builder = command_kit.builder_config(args)
+    optimizer = None
+    given = OPTIMIZER_OPTIONS.given(args)
+    if args.action == "optimize":
+        optimizer = OPTIMIZER_OPTIONS.config(args.method, args, ct=builder.ct, ci=builder.ci)
+    elif given:
+        raise ValueError(f"{', '.join(given)}: optimizer options apply to 'batch optimize' only")
+    batch_config = args.batch_options.config(None, args)
+    if args.output is None:
+        raise ValueError("batch needs -o OUTDIR, the folder for the trees")
+    out_dir = Path(args.output)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ValueError(f"--output {out_dir} is a file, not a folder")
+    paths = expand(args.inputs)
+    names = output_names(paths)
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+    started = time.perf_counter()
+    rows = [{"mesh": str(p), "output": str(out_dir / n)} for p, n in zip(paths, names)]
+    bar = command_kit.progress(args, total=len(paths), desc="load")
+    meshes = []
+    for row, path in zip(rows, paths):
+        try:
+            mesh = load_mesh(path)
+            row["triangles"] = mesh.n_triangles
+            meshes.append(mesh)
+        except Exception as exc:  # noqa: BLE001 (any load failure is that mesh's row)
+            row["error"] = f"load: {_one_line(exc)}"
+            meshes.append(None)
+        bar.update(1)
+    loaded = [i for i, m in enumerate(meshes) if m is not None]
+    boxes = {i: meshes[i].local_boxes() for i in loaded}
+
+    if loaded:
+        bar.reset(total=len(loaded))
+        bar.set_description("build")
+        clock = Clock(bar, len(loaded))
+        built = build([boxes[i] for i in loaded], builder, batch=batch_config, errors="keep", on_chunk=clock)
+        for k, message in built.errors.items():
+            rows[loaded[k]]["error"] = f"build: {message.replace(f'mesh {k}', 'mesh')}"
+        seconds = clock.seconds
+        trees = built.trees
+        sah_built = costs(trees, builder.ct, builder.ci)["sah"]
+        figures = None
+        if optimizer is not None and trees.groups:
+            bar.reset(total=sum(len(g) for g in trees.groups))
+            bar.set_description(args.method)
+            clock.last = time.perf_counter()
+            keys = [jax.random.fold_in(jax.random.key(args.seed), i) for i in loaded]
+            figures = optimize(trees, args.method, optimizer, keys=keys, batch=batch_config, on_chunk=clock)
+            trees = figures.trees
+        bar.reset(total=len(loaded))
+        bar.set_description("save")
+        for k, tree in enumerate(trees.unstack()):
+            i = loaded[k]
+            if tree is None:
+                continue
+            row = rows[i]
+            try:
+                lo, hi = boxes[i]
+                jaxbvh.validate(tree, lo, hi)
+                tree = compact(tree)
+                jaxbvh.save(row["output"], tree, frame=meshes[i].frame)
+                row["sah_built"] = float(sah_built[k])
+                row["sah"] = float(figures.sah[k]) if figures is not None else float(sah_built[k])
+                row["seconds"] = float(seconds[k])
+            except Exception as exc:  # noqa: BLE001 (a tree that fails its checks is that mesh's row)
+                row["error"] = f"validate: {_one_line(exc)}"
+            bar.update(1)
+    bar.close()
+    for row in rows:
+        if "error" in row:
+            row["output"] = None
+    failed = sum("error" in r for r in rows)
+    result = {"command": "batch", "action": args.action, "builder": builder.method,
+              "method": args.method if optimizer is not None else None, "meshes": len(rows),
+              "written": len(rows) - failed, "failed": failed,
+              "triangles": int(sum(r.get("triangles", 0) for r in rows)),
+              "seconds": time.perf_counter() - started, "output_dir": str(out_dir),
+              "valid": failed == 0, "rows": rows}
+    if not getattr(args, "json", False):
+        # people get the rows as a table here, and the totals below it
+        print(table(rows, optimizer is not None), file=sys.stdout)
+        del result["rows"]
+    return result
+
+
+def table(rows, optimized: bool) -> str:
+    """The per-mesh summary: name, triangles, SAH built (and optimized), seconds, or the error."""
+    head = ["mesh", "triangles", "sah_built"] + (["sah_optimized"] if optimized else []) + ["seconds"]
+    lines = []
+    for r in rows:
+        name = os.path.basename(r["mesh"])
+        if "error" in r:
+            lines.append([name, str(r.get("triangles", "-")), "error: " + r["error"]])
+            continue
+        cells = [name, f"{r['triangles']:,}", f"{r['sah_built']:.4f}"]
+        cells += [f"{r['sah']:.4f}"] if optimized else []
+        lines.append(cells + [f"{r['seconds']:.3f}"])
+    widths = [max([len(h)] + [len(line[j]) for line in lines if j < len(line) and (j < 2 or len(line) == len(head))])
+              for j, h in enumerate(head)]
+    out = ["  ".join(h.ljust(w) for h, w in zip(head, widths)).rstrip()]
+    for line in lines:
+        if len(line) == len(head):
+            out.append("  ".join(c.ljust(w) for c, w in zip(line, widths)).rstrip())
+        else:  # name, triangles, then the error
+            out.append("  ".join(c.ljust(w) for c, w in zip(line[:2], widths)) + "  " + line[2])
+    return "\n".join(out)

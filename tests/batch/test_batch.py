@@ -1,0 +1,240 @@
+"""Batches of meshes: every per-tree result equals the single-tree call, node for node;
+the plan keeps its bounds; bad meshes fail alone; two devices give what one gives."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import numpy as np
+import pytest
+from helpers import REPO, local_boxes
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from strategies import triangle_soups
+
+import jaxbvh
+from jaxbvh import batch
+from jaxbvh.batch import plan
+from jaxbvh.batch.layout import own_capacity
+from jaxbvh.tree.layout import capacity_bucket
+
+FIELDS = ("left", "right", "parent", "lo", "hi", "prim_start", "prim_count", "axis", "prim_index", "root")
+# one group for every test batch (capacity of the largest): one compiled program per list shape
+ONE_GROUP = batch.BatchConfig(max_padding=0.9)
+OPTIMIZERS = ("hc", "sa", "reinsert", "treelet", "pipeline")
+
+# soups of 1-4, 9-12 and 9-12 triangles: every batch is one group of capacity 12 in 4 rows
+# (one compiled program), the first tree cut back to its own capacity (4); the single
+# builds compile twice (capacities 4 and 12)
+soup_lists = st.tuples(*(triangle_soups(min_size=k - 3, max_size=k, extreme=False) for k in (4, 12, 12)))
+# three soups of 9-12 triangles: the single runs compile once (capacity 12), the batch once
+same_bucket_lists = st.lists(triangle_soups(min_size=9, max_size=12, extreme=False), min_size=3, max_size=3)
+
+
+def assert_same_arrays(got, want, what=""):
+    got, want = jaxbvh.to_numpy(got), jaxbvh.to_numpy(want)
+    for field in FIELDS:
+        a, b = np.asarray(getattr(got, field)), np.asarray(getattr(want, field))
+        assert a.shape == b.shape, f"{what} {field}: shape {a.shape} != {b.shape}"
+        np.testing.assert_array_equal(a, b, err_msg=f"{what} {field}")
+
+
+# ----------------------------------------------------------------------------------
+# Building and optimizing: the single-tree calls, node for node
+# ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("method", list(jaxbvh.BUILDERS))
+@settings(max_examples=3)
+@given(soups=soup_lists, max_leaf=st.sampled_from([1, 3]))
+def test_batched_build_equals_single_builds(method, soups, max_leaf):
+    meshes = [local_boxes(tri) for tri in soups]
+    result = batch.build(meshes, method=method, max_leaf=max_leaf, bins=8, batch=ONE_GROUP)
+    assert result.errors == {} and len(result.trees.groups) == 1
+    for i, ((lo, hi), tree) in enumerate(zip(meshes, result.trees.unstack())):
+        assert_same_arrays(tree, jaxbvh.build(lo, hi, method=method, max_leaf=max_leaf, bins=8), f"mesh {i}")
+
+
+@pytest.mark.parametrize("method", OPTIMIZERS)
+@settings(max_examples=2)
+@given(soups=same_bucket_lists)
+def test_batched_optimize_equals_single_runs(method, soups):
+    meshes = [local_boxes(tri) for tri in soups]
+    built = batch.build(meshes, method="lbvh", batch=ONE_GROUP).trees
+    keys = [jax.random.key(i) for i in range(len(meshes))]
+    options = dict(steps=6, period=2) if method == "sa" else {}
+    out = batch.optimize(built, method, keys=keys if method == "sa" else None, **options)
+    for i, ((lo, hi), tree) in enumerate(zip(meshes, out.trees.unstack())):
+        single = jaxbvh.optimize.optimize(jaxbvh.build(lo, hi, method="lbvh"), method,
+                                          key=keys[i] if method == "sa" else None, **options)
+        assert_same_arrays(tree, single.tree, f"mesh {i}")
+        assert out.sah[i] == float(single.sah) and out.steps[i] == int(single.steps)
+        assert out.moves[i] == int(single.moves) and out.converged[i] == bool(single.converged)
+
+
+def test_a_converged_tree_stops_while_others_go_on():
+    # a 1-triangle mesh converges at once, a 40-triangle one takes passes: each keeps its own count
+    rng = np.random.default_rng(3)
+    small = (np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32))
+    lo = rng.uniform(-1, 1, (40, 3)).astype(np.float32)
+    big = (lo, lo + np.float32(0.2))
+    built = batch.build([small, big], method="lbvh", batch=ONE_GROUP).trees
+    out = batch.optimize(built, "hc")
+    assert out.steps[0] < out.steps[1]
+    assert out.steps[1] == int(jaxbvh.optimize.optimize(jaxbvh.build(*big, method="lbvh"), "hc").steps)
+
+
+# ----------------------------------------------------------------------------------
+# Costs and traversal over a batch
+# ----------------------------------------------------------------------------------
+
+
+@settings(max_examples=3)
+@given(soups=soup_lists)
+def test_batched_costs_and_trace_equal_single_calls(soups):
+    meshes = [local_boxes(tri) for tri in soups]
+    trees = batch.build(meshes, batch=ONE_GROUP).trees
+    costs = batch.costs(trees)
+    triangles = [np.stack([lo, (lo + hi) / 2, hi], axis=1) for lo, hi in meshes]  # in the boxes
+    rays = [jaxbvh.rays.random_rays(jax.random.key(i), lo.min(0), hi.max(0), 20) for i, (lo, hi) in
+            enumerate(meshes)]
+    hits = batch.trace(trees, triangles, [np.asarray(o) for o, _ in rays], [np.asarray(d) for _, d in rays],
+                       rays_per_call=16)
+    for i, tree in enumerate(trees.unstack()):
+        single = jaxbvh.all_costs(tree)
+        for name, value in single.items():
+            assert costs[name][i] == pytest.approx(value, rel=1e-6), name
+        want = jaxbvh.rays.trace(tree, triangles[i], np.asarray(rays[i][0]), np.asarray(rays[i][1]))
+        for field in ("t", "prim", "box_tests", "prim_tests", "nodes_visited"):
+            np.testing.assert_array_equal(getattr(hits[i], field), getattr(want, field), err_msg=field)
+
+
+def test_batched_collapse_equals_single_collapse():
+    rng = np.random.default_rng(5)
+    meshes = [(lo, lo + np.float32(0.1)) for lo in (rng.uniform(-1, 1, (n, 3)).astype(np.float32)
+                                                    for n in (5, 9))]
+    trees = batch.build(meshes, batch=ONE_GROUP).trees
+    for got, tree in zip(batch.collapse(trees, "dp"), trees.unstack()):
+        want = jaxbvh.collapse.collapse(tree, "dp")
+        np.testing.assert_array_equal(np.asarray(got.tree.child), np.asarray(want.tree.child))
+        assert float(got.rcost) == float(want.rcost)
+
+
+# ----------------------------------------------------------------------------------
+# The plan: groups, chunks, the memory bound
+# ----------------------------------------------------------------------------------
+
+
+# sizes spread over octaves, so that groups of many capacities and bounds that bind both occur
+mesh_sizes = st.builds(lambda octave, frac: max(1, int(2 ** octave * frac)), st.integers(0, 17), st.floats(0.5, 1.0))
+
+
+@settings(max_examples=200)  # host arithmetic only: cheap
+@given(sizes=st.lists(mesh_sizes, min_size=1, max_size=60),
+       max_padding=st.sampled_from([0.0, 0.25, 0.5, 0.9]), memory_mb=st.sampled_from([0.01, 0.1, 1.0, 64.0]),
+       devices=st.sampled_from([1, 2, 3]))
+def test_plan_places_every_mesh_once_within_its_bounds(sizes, max_padding, memory_mb, devices):
+    config = batch.BatchConfig(memory_mb=memory_mb, max_padding=max_padding)
+    per_slot = plan.BYTES_PER_SLOT["build"]
+    chunks = plan.chunks(sizes, config, per_slot, devices)
+    placed = np.concatenate([c.index for c in chunks])
+    assert sorted(placed.tolist()) == list(range(len(sizes)))
+    for c in chunks:
+        own = np.array([capacity_bucket(sizes[i]) for i in c.index])
+        assert (own <= c.capacity).all() and (own >= c.capacity * (1 - max_padding)).all()
+        assert c.rows >= c.index.size and c.rows % devices == 0
+        # over the bound only when a single row per device is already too much
+        assert plan.estimate_mb(c, per_slot) <= memory_mb or c.rows == devices
+    # a group compiles at most two programs: full chunks and the last
+    for cap in {c.capacity for c in chunks}:
+        assert len({c.rows for c in chunks if c.capacity == cap}) <= 2
+
+
+def test_max_padding_zero_gives_a_group_per_capacity_bucket():
+    sizes = [3, 4, 5, 6, 7, 100, 1000]
+    got = plan.groups(sizes, 0.0)
+    assert [cap for cap, _ in got] == sorted({capacity_bucket(n) for n in sizes})
+
+
+def test_batch_config_refuses_bad_knobs_by_name():
+    with pytest.raises(ValueError, match="memory_mb"):
+        batch.BatchConfig(memory_mb=0)
+    with pytest.raises(ValueError, match="max_padding"):
+        batch.BatchConfig(max_padding=1.0)
+
+
+def test_own_capacity_never_cuts_a_real_node():
+    lo = np.random.default_rng(0).uniform(-1, 1, (20, 3)).astype(np.float32)
+    tree = jaxbvh.to_numpy(jaxbvh.build(lo, lo + np.float32(0.1)))
+    with pytest.raises(ValueError, match="past the capacity"):
+        own_capacity(tree, 3)
+
+
+# ----------------------------------------------------------------------------------
+# Bad input: the entry fails alone, with its own message
+# ----------------------------------------------------------------------------------
+
+
+def test_bad_meshes_fail_alone():
+    rng = np.random.default_rng(1)
+    good = (rng.uniform(-1, 1, (6, 3)).astype(np.float32),) * 2
+    nan = (np.array([[np.nan, 0, 0], [0, 0, 0]], np.float32), np.ones((2, 3), np.float32))
+    empty = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
+    meshes = [good, nan, empty, "not a mesh", good]
+    result = batch.build(meshes, errors="keep", batch=ONE_GROUP)
+    assert set(result.errors) == {1, 2, 3}
+    assert "NaN" in result.errors[1] and "no primitives" in result.errors[2] and "pair" in result.errors[3]
+    assert all("\n" not in m for m in result.errors.values())
+    trees = result.trees.unstack()
+    assert trees[1] is None and trees[2] is None and trees[3] is None
+    assert_same_arrays(trees[4], jaxbvh.build(*good))
+    with pytest.raises(ValueError, match="mesh 1"):
+        batch.build(meshes)
+
+
+# ----------------------------------------------------------------------------------
+# Devices: two fake CPU devices give exactly what one gives (subprocess: XLA flags)
+# ----------------------------------------------------------------------------------
+
+_SUBPROCESS = textwrap.dedent("""
+    import json, sys
+    import jax, numpy as np
+    sys.path.insert(0, {repo!r})
+    from jaxbvh import batch
+    rng = np.random.default_rng(0)
+    meshes = []
+    for n in (5, 9, 14, 3, 11):
+        lo = rng.uniform(-1, 1, (n, 3)).astype(np.float32)
+        meshes.append((lo, lo + rng.uniform(0, 0.3, (n, 3)).astype(np.float32)))
+    config = batch.BatchConfig(max_padding=0.9)
+    out = {{"devices": jax.device_count()}}
+    for method in ("sweep", "lbvh"):
+        trees = batch.build(meshes, method=method, batch=config).trees
+        out[method] = [t.left.tolist() + t.lo.ravel().tolist() for t in trees.unstack()]
+    opt = batch.optimize(trees, "hc")
+    out["hc"] = [t.left.tolist() + t.hi.ravel().tolist() for t in opt.trees.unstack()]
+    out["sah"] = batch.costs(opt.trees)["sah"].tolist()
+    print("RESULT" + json.dumps(out))
+""")
+
+
+def _run_subprocess(flags: str) -> dict:
+    code = _SUBPROCESS.format(repo=str(REPO))
+    env = {**os.environ, "XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu"}
+    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    line = [line for line in proc.stdout.splitlines() if line.startswith("RESULT")][-1]
+    return json.loads(line[len("RESULT"):])
+
+
+def test_two_devices_give_what_one_gives():
+    two = _run_subprocess("--xla_force_host_platform_device_count=2")
+    one = _run_subprocess("")
+    assert two["devices"] == 2 and one["devices"] == 1
+    for key in ("sweep", "lbvh", "hc", "sah"):
+        assert two[key] == one[key], key
