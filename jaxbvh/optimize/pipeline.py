@@ -7,7 +7,7 @@ A round is a *treelet stage*, passes of treelet restructuring (Karras & Aila 201
 restructures nothing), then a *reinsertion stage*, parallel reinsertion (Meister &
 Bittner 2018, :mod:`jaxbvh.optimize.reinsert`) until an iteration over all nodes takes
 no move (or its ``max_iterations``). The first round's reinsertion starts from the nodes
-of largest parent area (``first_fraction`` of the reinsertion config, 1/32) and widens
+of largest parent area (``first_fraction`` of the reinsertion config, 1/8) and widens
 octave by octave; later rounds search every node from the start, since the gains left
 are spread thin. Rounds repeat until one lowers the SAH by less than ``round_gain``
 (relative, default 1e-3; the run has then *converged*) or after ``max_rounds`` (8).

@@ -55,9 +55,14 @@ One iteration
    gain, and on our inputs the top few percent of nodes by parent area hold nearly all
    of the first iterations' gain). ``k`` starts where about ``first_fraction`` of the
    nodes are candidates and grows by one octave after an iteration that lowers the SAH
-   by at most ``escalate`` (relative), by four after one that takes no move, until all
-   nodes are candidates (coarse to fine; ``first_fraction = 1``: Meister & Bittner's
-   every node, every iteration).
+   by at most ``escalate`` (relative), and every node is a candidate after one that
+   takes no move (the big parents have no move left: what gain remains is spread over
+   the small nodes; widening by a few octaves at a time spent a dozen empty
+   iterations of growing cost on legocar before reaching them) (coarse to fine; ``first_fraction = 1``: Meister & Bittner's
+   every node, every iteration). The default, 1/8
+   (:data:`~jaxbvh.optimize.reinsert_rules.DEFAULT_FIRST_FRACTION`), reached tinybvh's
+   optimizer SAH soonest: fewer candidates find moves that mostly lock each other near
+   the root, more spend the first iterations on small gains.
 2. Search: the candidates' walks run vectorised in
    :func:`~jaxbvh.optimize.reinsert_search.search_width` lanes of one ``while_loop`` (a
    work queue: every :data:`~jaxbvh.optimize.reinsert_search.REFILL_STEPS` steps, lanes
@@ -134,7 +139,13 @@ from jaxbvh.optimize.protocol import (
     record,
 )
 from jaxbvh.optimize.reinsert_moves import RANK_MANTISSA, iteration, rank_key  # noqa: F401 (public here)
-from jaxbvh.optimize.reinsert_rules import ALL_OCTAVES, FIRST_OCTAVES_TRIED, candidates_needed, octaves_holding
+from jaxbvh.optimize.reinsert_rules import (  # noqa: F401 (DEFAULT_FIRST_FRACTION public here)
+    ALL_OCTAVES,
+    DEFAULT_FIRST_FRACTION,
+    FIRST_OCTAVES_TRIED,
+    candidates_needed,
+    octaves_holding,
+)
 from jaxbvh.optimize.reinsert_search import prepare, to_tree
 from jaxbvh.tree.cost import sah as sah_of
 from jaxbvh.tree.layout import to_jax
@@ -142,7 +153,6 @@ from jaxbvh.tree.split_axes import apply_split_axes
 
 DEFAULT_MAX_STEPS = 1024       # search steps per node and iteration (legocar needs < 200)
 DEFAULT_MAX_ITERATIONS = 1000
-DEFAULT_FIRST_FRACTION = 1 / 32
 DEFAULT_ESCALATE = 1e-4
 
 
@@ -155,14 +165,14 @@ def widen(octaves, taken, count, nodes, before, after, escalate):
     """The octaves of the next iteration (module docstring, step 1; traceable).
 
     One more after an iteration that took moves but lowered the SAH (``before`` ->
-    ``after``) by at most ``escalate`` (relative), four more after one that took none,
-    every node from 64 octaves on; unchanged once every node (``count == nodes``) is
+    ``after``) by at most ``escalate`` (relative), every node after one that took none
+    and from 64 octaves on; unchanged once every node (``count == nodes``) is
     searched or while the gains stay large. The comparison runs in the tree's float type
     (the host loop it replaces, and the twin, compare the same two SAH values in
     float64: they can differ only when the drop lies within rounding of the threshold).
     """
     small = (taken == 0) | (before - after <= escalate * before)
-    grown = jnp.where(octaves < FIRST_OCTAVES_TRIED, octaves + jnp.where(taken > 0, 1, 4), ALL_OCTAVES)
+    grown = jnp.where((taken > 0) & (octaves < FIRST_OCTAVES_TRIED), octaves + 1, ALL_OCTAVES)
     return jnp.where((count < nodes) & small, grown, octaves).astype(jnp.int32)
 
 

@@ -152,41 +152,57 @@ def select(st: State, m: Moves):
     extra = jnp.stack([m.a, m.s, m.g, m.up], axis=1)  # [W, 4], -1: none
     none = jnp.int32(width)
 
-    def claim(lanes):
-        """Scatter-min of lane ranks over the nodes each lane in ``lanes`` locks."""
-        lock = jnp.full(cap, none, jnp.int32)
-        lock = lock.at[jnp.where(lanes[:, None], none_to_oob(extra, cap), cap)].min(
+    def claim(lock, held, lanes, winners):
+        """Scatter-min of lane ranks over the nodes each lane locks: into ``lock`` for
+        ``lanes``, into ``held`` for ``winners`` (one walk up both paths for both)."""
+        def at(chosen, nodes):
+            return jnp.where(chosen, nodes, cap)
+
+        lock = lock.at[at(lanes[:, None], none_to_oob(extra, cap))].min(
+            jnp.broadcast_to(rank[:, None], extra.shape), mode="drop")
+        held = held.at[at(winners[:, None], none_to_oob(extra, cap))].min(
             jnp.broadcast_to(rank[:, None], extra.shape), mode="drop")
 
-        def mark(lock, nodes, live):
-            return lock.at[jnp.where(live, nodes, cap)].min(rank, mode="drop")
+        def mark(arrays, nodes, live):
+            lock, held = arrays
+            return (lock.at[at(live & lanes, nodes)].min(rank, mode="drop"),
+                    held.at[at(live & winners, nodes)].min(rank, mode="drop"))
 
-        lock = _walk(parent, m.p, m.lca, lanes, mark, lock, cap)
-        return _walk(parent, m.out, m.lca, lanes, mark, lock, cap)
+        arrays = _walk(parent, m.p, m.lca, lanes | winners, mark, (lock, held), cap)
+        return _walk(parent, m.out, m.lca, lanes | winners, mark, arrays, cap)
 
-    def every(lanes, test):
-        """Whether ``test(nodes, ranks)`` holds on every node each lane locks."""
-        ok = lanes & jnp.all((extra < 0) | test(extra, rank[:, None]), axis=1)
+    def check(lanes, lock, held):
+        """Per lane of ``lanes``: no node it locks is ``held`` (``free``), and it ranks
+        first on every one in ``lock`` (``first``); one walk up both paths for both."""
+        def tests(nodes, ranks):
+            return take_clipped(held, nodes) == none, take_clipped(lock, nodes) == ranks
 
-        def check(ok, nodes, live):
-            return ok & (~live | test(nodes, rank))
+        no_held, ranks_first = tests(extra, rank[:, None])
+        free = lanes & jnp.all((extra < 0) | no_held, axis=1)
+        first = lanes & jnp.all((extra < 0) | ranks_first, axis=1)
 
-        ok = _walk(parent, m.p, m.lca, lanes, check, ok, cap)
-        return _walk(parent, m.out, m.lca, lanes, check, ok, cap)
+        def test(flags, nodes, live):
+            no_held, ranks_first = tests(nodes, rank)
+            return flags[0] & (~live | no_held), flags[1] & (~live | ranks_first)
+
+        flags = _walk(parent, m.p, m.lca, lanes, test, (free, first), cap)
+        return _walk(parent, m.out, m.lca, lanes, test, flags, cap)
 
     def cond(c):
-        return jnp.any(c[0]) & (c[3] <= width)
+        return jnp.any(c[0]) & (c[4] <= width)
 
     def body(c):
-        alive, taken, held, i = c
-        lock = claim(alive)
-        free = every(alive, lambda n, r: take_clipped(held, n) == none)
-        win = every(alive & free, lambda n, r: take_clipped(lock, n) == r)
-        held = jnp.minimum(held, claim(win))
-        return alive & free & ~win, taken | win, held, i + 1
+        alive, taken, held, won, i = c
+        # the last round's winners are held before this round's tests (its claims of
+        # them ride on this round's walk)
+        lock, held = claim(jnp.full(cap, none, jnp.int32), held, alive, won)
+        free, first = check(alive, lock, held)
+        win = free & first
+        return alive & free & ~win, taken | win, held, win, i + 1
 
-    _, taken, _, _ = jax.lax.while_loop(
-        cond, body, (has, jnp.zeros(width, bool), jnp.full(cap, none, jnp.int32), jnp.int32(0)))
+    _, taken, _, _, _ = jax.lax.while_loop(
+        cond, body, (has, jnp.zeros(width, bool), jnp.full(cap, none, jnp.int32), jnp.zeros(width, bool),
+                     jnp.int32(0)))
     return taken
 
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from jaxbvh.numerics import box_scale
 from jaxbvh.numerics import min_gain as default_min_gain
-from jaxbvh.optimize.reinsert_rules import ALL_OCTAVES, first_octaves, move_width
+from jaxbvh.optimize.reinsert_rules import ALL_OCTAVES, DEFAULT_FIRST_FRACTION, first_octaves, move_width
 from jaxbvh.tree.layout import to_numpy
 from jaxbvh.tree.walks import post_order
 
@@ -287,12 +287,12 @@ def iteration(t: Tree, octaves: int, max_steps: int, min_gain: float, width: int
 
 
 def reinsert(tree, *, ct=1.0, ci=1.0, max_iterations=1000, max_steps=1024,
-             first_fraction=1 / 32, escalate=1e-4, min_gain=None):
+             first_fraction=DEFAULT_FIRST_FRACTION, escalate=1e-4, min_gain=None):
     """Parallel reinsertion, one move at a time; returns ``(tree, info)``.
 
     The schedule and defaults of :func:`jaxbvh.optimize.reinsert.reinsert`: candidates from the octaves
     :func:`jaxbvh.optimize.reinsert.first_octaves` gives, one more octave after an iteration that
-    lowers the SAH by at most ``escalate`` (relative), four more after one that takes no
+    lowers the SAH by at most ``escalate`` (relative), every node after one that takes no
     move, until an iteration over all nodes takes none (or ``max_iterations``).
     ``info``: ``iterations``, ``moves`` (total), ``history`` (SAH after each iteration),
     ``taken`` (the moves of each iteration, best first), ``sah``.
@@ -313,7 +313,7 @@ def reinsert(tree, *, ct=1.0, ci=1.0, max_iterations=1000, max_steps=1024,
         if not taken and count == nodes:
             break
         if count < nodes and (not taken or before - history[-1] <= escalate * before):
-            octaves = octaves + (1 if taken else 4) if octaves < 64 else ALL_OCTAVES
+            octaves = octaves + 1 if taken and octaves < 64 else ALL_OCTAVES
     return t.to_bvh(), {"iterations": len(taken_all), "moves": sum(map(len, taken_all)),
                         "history": history, "taken": taken_all, "sah": t.sah(ct, ci)}
 

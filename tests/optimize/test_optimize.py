@@ -39,7 +39,7 @@ def chained_by_hand(tree, rounds=8, round_gain=1e-3, treelet_options=None, reins
     t, sah, stages = tree, float(jaxbvh.sah(jaxbvh.to_jax(tree))), []
     for round_ in range(rounds):
         before = sah
-        first = dict(first_fraction=1 / 32 if round_ == 0 else 1.0)
+        first = dict(first_fraction=reinsert.DEFAULT_FIRST_FRACTION if round_ == 0 else 1.0)
         r = treelet.restructure(t, max_passes=pipeline.DEFAULT_TREELET_PASSES, split_axes=False,
                                 **(treelet_options or {}))
         t, stages = r.tree, stages + ["treelet"] * int(r.steps)

@@ -66,6 +66,29 @@ def test_first_octaves_traced_equal_the_host_rule(rows, root, first_fraction):
     assert int(OCTAVES(area, parent, jnp.int32(root), jnp.int32(need))) == expected
 
 
+WIDEN = jax.jit(reinsert.widen)
+
+
+@settings(max_examples=40)
+@given(st.integers(0, 70), st.integers(0, 5), st.integers(1, 100), st.integers(0, 100),
+       st.floats(1.0, 100.0), st.sampled_from([0.0, 1e-5, 1e-3]))
+def test_widening_after_an_iteration(octaves, taken, count, nodes, before, drop):
+    """The octaves after an iteration: one more after a small gain with moves, every node
+    after one without a move (or from 64 octaves on), none more while gains are large or
+    every node is searched already. (Drops well away from ``escalate``: the rule compares
+    in the tree's float type.)"""
+    escalate = 1e-4
+    after = before * (1 - drop)
+    got = int(WIDEN(jnp.int32(octaves), jnp.int32(taken), jnp.int32(count), jnp.int32(nodes),
+                    jnp.float32(before), jnp.float32(after), jnp.float32(escalate)))
+    small = taken == 0 or before - after <= escalate * before
+    if count >= nodes or not small:
+        assert got == octaves
+    elif taken == 0 or octaves >= reinsert_rules.FIRST_OCTAVES_TRIED:
+        assert got == reinsert.ALL_OCTAVES
+    else:
+        assert got == octaves + 1
+
 # ----------------------------------------------------------------------------------
 # The search
 # ----------------------------------------------------------------------------------
