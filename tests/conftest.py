@@ -14,7 +14,7 @@ pytest_plugins = ["jaxbvh.testing.plugin"]
 
 # One hypothesis profile for the whole suite, chosen by HYPOTHESIS_PROFILE (default "ci"):
 # "ci" is what `python -m pytest` runs (.ci/run too), a fixed seed per test; "dev" random
-# draws and five times the examples, to hunt locally (profiles: jaxbvh.testing.plugin):
+# draws and ten times the examples, to hunt locally (profiles: jaxbvh.testing.plugin):
 # HYPOTHESIS_PROFILE=dev python -m pytest tests/builders/test_build.py
 
 

@@ -9,10 +9,10 @@ Hypothesis profiles (registered when hypothesis is installed; loaded by
 ``--hypothesis-profile NAME`` or ``HYPOTHESIS_PROFILE=NAME``, never behind your back):
 
 * ``ci``: a fixed seed per test (``derandomize``), so a run is repeatable and its time
-  known; 20 examples; no deadline (a first example compiles for seconds, the next reuse
+  known; 10 examples; no deadline (a first example compiles for seconds, the next reuse
   the program); the health checks for slow and large draws off (drawing hundreds of
   coordinates per example is slow by design).
-* ``dev``: random draws and five times the examples, to hunt for bugs locally.
+* ``dev``: random draws and ten times the examples (100), to hunt for bugs locally.
 
 Fixtures:
 
@@ -42,7 +42,9 @@ except ImportError:  # hypothesis is optional: the fixtures work without it
 PROFILES = ("ci", "dev")
 
 if settings is not None:
-    settings.register_profile("ci", max_examples=20, deadline=None, derandomize=True, print_blob=True,
+    # ci: 10 examples a test, derandomized (repeatable, and the suite's time known: most of a
+    # test's time here is compiling, spent once); dev: 100, random, to hunt locally
+    settings.register_profile("ci", max_examples=10, deadline=None, derandomize=True, print_blob=True,
                               suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
     settings.register_profile("dev", settings.get_profile("ci"), max_examples=100, derandomize=False)
 
