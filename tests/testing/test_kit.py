@@ -254,7 +254,7 @@ def test_plugin_fixtures(bundled_mesh, shared_data, shared_mesh):
 
 def test_plugin_profiles_are_registered():
     ci, dev = settings.get_profile("ci"), settings.get_profile("dev")
-    assert ci.derandomize and not dev.derandomize and dev.max_examples == 5 * ci.max_examples
+    assert ci.derandomize and not dev.derandomize and dev.max_examples == 10 * ci.max_examples
     assert plugin.PROFILES == ("ci", "dev")
 
 
