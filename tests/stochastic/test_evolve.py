@@ -18,12 +18,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import REPO
+from helpers import REPO, run_cli
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import jaxbvh
-from jaxbvh import cli
 from jaxbvh.builders import insertion
 from jaxbvh.builders import insertion_reference as ref_insertion
 from jaxbvh.stochastic import evolve
@@ -246,15 +245,6 @@ def test_ray_costs_use_the_same_rays_for_every_tree():
 # ----------------------------------------------------------------------------------
 
 
-@pytest.fixture(autouse=True, scope="module")
-def cache_dir(tmp_path_factory):
-    """Keep the compilation cache of the tests out of the user's home."""
-    path = tmp_path_factory.mktemp("jax-cache")
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setenv("JAXBVH_CACHE_DIR", str(path))
-        yield path
-
-
 def grid_obj(path: Path, n: int = 3) -> Path:
     """A bumpy n x n grid of 2 n^2 triangles."""
     rng = np.random.default_rng(0)
@@ -265,12 +255,6 @@ def grid_obj(path: Path, n: int = 3) -> Path:
             lines += [f"f {a + 1} {b + 1} {c + 1}", f"f {a + 1} {c + 1} {d + 1}"]
     path.write_text("\n".join(lines) + "\n")
     return path
-
-
-def run_cli(capsys, *argv):
-    status = cli.main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return status, out, err
 
 
 def test_cli_evolve_json_and_saved_tree(capsys, tmp_path):

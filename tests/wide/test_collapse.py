@@ -9,17 +9,15 @@ flags makes the wide tree's box tests ray by ray.
 from __future__ import annotations
 
 import itertools
-import json
 
 import jax
 import numpy as np
 import pytest
-from helpers import random_tree
+from helpers import assert_one_line_error, random_tree, run_cli, run_json
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 import jaxbvh
-from jaxbvh import cli
 from jaxbvh.rays import traversal as traverse
 from jaxbvh.rays import traversal_reference as ref_rays
 from jaxbvh.tree import pad_to
@@ -488,37 +486,6 @@ def test_no_retrace_for_same_capacity():
 # ----------------------------------------------------------------------------------
 # Command line
 # ----------------------------------------------------------------------------------
-
-
-@pytest.fixture(autouse=True, scope="module")
-def cache_dir(tmp_path_factory):
-    """Keep the compilation cache of the CLI tests out of the user's home."""
-    path = tmp_path_factory.mktemp("jax-cache")
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setenv("JAXBVH_CACHE_DIR", str(path))
-        yield path
-
-
-def run_cli(capsys, *argv):
-    status = cli.main([str(a) for a in argv])
-    out, err = capsys.readouterr()
-    return status, out, err
-
-
-def run_json(capsys, *argv) -> dict:
-    status, out, err = run_cli(capsys, *argv, "--json")
-    assert status == 0, err
-    lines = out.strip().splitlines()
-    assert len(lines) == 1, out
-    return json.loads(lines[0])
-
-
-def assert_one_line_error(status, out, err, *fragments):
-    assert status == 2 and out == "" and "Traceback" not in err
-    lines = err.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("jaxbvh: error: "), err
-    for fragment in fragments:
-        assert fragment in lines[0], lines[0]
 
 
 KEYS = {"method", "rcost_before", "rcost", "nodes_before", "nodes", "max_children", "simd_width", "seconds"}
