@@ -26,7 +26,9 @@ import numpy as np
 
 from jaxbvh.batch import devices as batch_devices
 from jaxbvh.batch.layout import Group, TreeBatch
+from jaxbvh.batch import rows as batch_rows
 from jaxbvh.batch.plan import BYTES_PER_SLOT, BatchConfig, chunks
+from jaxbvh.batch.rows import each_row
 from jaxbvh.builders import lbvh, morton, ploc, topdown
 from jaxbvh.builders.configs import DEFAULT_BUILDER, BuilderConfig, make_config
 from jaxbvh.builders.dispatch import BUILDERS
@@ -92,23 +94,27 @@ def builder_config(config: BuilderConfig | str | None = None, method: str | None
 @dataclasses.dataclass(frozen=True)
 class Stacked:
     """Prepared inputs of one chunk, stacked: ``lo``, ``hi`` [R, C, 3], ``n`` int32 [R],
-    ``scale`` [R] (each mesh's area scale, in the working dtype)."""
+    ``scale`` [R] (each mesh's area scale, in the working dtype), ``real`` bool [R]
+    (False: a filler row, :mod:`jaxbvh.batch.rows`)."""
 
     lo: Any
     hi: Any
     n: Any
     scale: Any
+    real: Any
 
 
-def stack_inputs(boxes: dict, rows, capacity: int, dtype) -> Stacked:
+def stack_inputs(boxes: dict, rows, capacity: int, dtype, real: int | None = None) -> Stacked:
     """The prepared inputs of the meshes ``rows`` [R] (positions in ``boxes``) at ``capacity``;
-    ``dtype``: the Config's (None: what :func:`jaxbvh.build` picks for the boxes)."""
+    ``dtype``: the Config's (None: what :func:`jaxbvh.build` picks for the boxes); the
+    first ``real`` rows are real meshes, the rest filler (None: all real)."""
     made = {}
     for i in dict.fromkeys(int(r) for r in rows):
         lo, hi, n, scale = prepare(*boxes[i], capacity=capacity, dtype=dtype)
         made[i] = (np.asarray(lo), np.asarray(hi), np.int32(n), np.asarray(scale))
     parts = [made[int(r)] for r in rows]
-    return Stacked(*(np.stack([p[k] for p in parts]) for k in range(4)))
+    real = len(parts) if real is None else real
+    return Stacked(*(np.stack([p[k] for p in parts]) for k in range(4)), np.arange(len(parts)) < real)
 
 
 # ----------------------------------------------------------------------------------
@@ -116,39 +122,40 @@ def stack_inputs(boxes: dict, rows, capacity: int, dtype) -> Stacked:
 # ----------------------------------------------------------------------------------
 
 
-def _topdown_rows(lo, hi, n, scale, max_leaf, ct, ci, *, method, bins):
-    return jax.vmap(lambda a, b, c, d, e, f, g: topdown.engine(a, b, c, e, f, g, d, method=method, bins=bins))(
-        lo, hi, n, scale, max_leaf, ct, ci)
+def _topdown_rows(real, lo, hi, n, scale, max_leaf, ct, ci, *, mode, method, bins):
+    return each_row(lambda a, b, c, d, e, f, g: topdown.engine(a, b, c, e, f, g, d, method=method, bins=bins),
+                    mode)(real, lo, hi, n, scale, max_leaf, ct, ci)
 
 
-def _centre_bounds_rows(lo, hi, n):
-    return jax.vmap(morton.centre_bounds)(lo, hi, n)
+def _centre_bounds_rows(real, lo, hi, n, *, mode):
+    return each_row(morton.centre_bounds, mode)(real, lo, hi, n)
 
 
-def _lbvh_topology_rows(lo, hi, n, origin, grid, *, bits):
-    return jax.vmap(lambda *a: lbvh.topology(*a, bits=bits))(lo, hi, n, origin, grid)
+def _lbvh_topology_rows(real, lo, hi, n, origin, grid, *, mode, bits):
+    return each_row(lambda *a: lbvh.topology(*a, bits=bits), mode)(real, lo, hi, n, origin, grid)
 
 
-def _lbvh_assemble_rows(lo, hi, n, order, left, right, first, count, axis, max_leaf, ct, ci, scale, *,
-                        window, collapse):
-    return jax.vmap(lambda *a: lbvh.assemble(*a, window=window, collapse=collapse))(
-        lo, hi, n, order, left, right, first, count, axis, max_leaf, ct, ci, scale)
+def _lbvh_assemble_rows(real, lo, hi, n, order, left, right, first, count, axis, max_leaf, ct, ci, scale, *,
+                        mode, window, collapse):
+    return each_row(lambda *a: lbvh.assemble(*a, window=window, collapse=collapse), mode)(
+        real, lo, hi, n, order, left, right, first, count, axis, max_leaf, ct, ci, scale)
 
 
-def _morton_order_rows(lo, hi, n, origin, grid, *, bits):
-    return jax.vmap(lambda *a: morton.morton_order(*a, bits=bits))(lo, hi, n, origin, grid)
+def _morton_order_rows(real, lo, hi, n, origin, grid, *, mode, bits):
+    return each_row(lambda *a: morton.morton_order(*a, bits=bits), mode)(real, lo, hi, n, origin, grid)
 
 
-def _ploc_rows(lo, hi, n, order, max_leaf, ct, ci, scale, *, radius, stages, collapse):
-    return jax.vmap(lambda *a: ploc.cluster(*a, radius=radius, stages=stages, collapse=collapse))(
-        lo, hi, n, order, max_leaf, ct, ci, scale)
+def _ploc_rows(real, lo, hi, n, order, max_leaf, ct, ci, scale, *, mode, radius, stages, collapse):
+    return each_row(lambda *a: ploc.cluster(*a, radius=radius, stages=stages, collapse=collapse), mode)(
+        real, lo, hi, n, order, max_leaf, ct, ci, scale)
 
 
-def quantization_rows(lo, hi, n, bits: int, devices) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`jaxbvh.builders.morton.quantization` of every row: ``origin`` [R, 3] and
-    ``grid`` [R], the same host arithmetic per row."""
-    dtype = np.dtype(lo.dtype)
-    low, high = (np.asarray(a) for a in batch_devices.on_devices(_centre_bounds_rows, (lo, hi, n), devices))
+def quantization_rows(s: Stacked, bits: int, devices, mode: str) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`jaxbvh.builders.morton.quantization` of every row of ``s``: ``origin`` [R, 3]
+    and ``grid`` [R], the same host arithmetic per row (filler rows: any values)."""
+    dtype = np.dtype(s.lo.dtype)
+    low, high = (np.asarray(a) for a in batch_devices.on_devices(_centre_bounds_rows, (s.real, s.lo, s.hi, s.n),
+                                                                  devices, mode=mode))
     extent = (high - low).max(axis=1).astype(np.float64)  # in the boxes' dtype, then float, as the single
     cells = float(2 ** (int(bits) // 3))
     with np.errstate(divide="ignore"):
@@ -156,8 +163,9 @@ def quantization_rows(lo, hi, n, bits: int, devices) -> tuple[np.ndarray, np.nda
     return low.astype(dtype), grid.astype(dtype)
 
 
-def build_rows(config: BuilderConfig, s: Stacked, devices) -> Any:
-    """Trees (a BVH with a leading axis R) of the stacked inputs ``s``, one per row."""
+def build_rows(config: BuilderConfig, s: Stacked, devices, mode: str) -> Any:
+    """Trees (a BVH with a leading axis R) of the stacked inputs ``s``, one per row;
+    ``mode``: ``"map"`` or ``"vmap"`` (:mod:`jaxbvh.batch.rows`)."""
     rows, cap = s.lo.shape[0], s.lo.shape[1]
     dt = s.lo.dtype
     max_leaf = np.full(rows, config.max_leaf, np.int32)
@@ -166,22 +174,24 @@ def build_rows(config: BuilderConfig, s: Stacked, devices) -> Any:
         bins = config.bins if config.method == "binned" else 0
         if bins and cap * bins >= 2**31:
             raise ValueError(f"binned build of capacity {cap} with {bins} bins needs keys past int32; use fewer bins")
-        return batch_devices.on_devices(_topdown_rows, (s.lo, s.hi, s.n, s.scale, max_leaf, ct, ci), devices,
-                                        method=config.method, bins=bins)
+        return batch_devices.on_devices(_topdown_rows, (s.real, s.lo, s.hi, s.n, s.scale, max_leaf, ct, ci),
+                                        devices, mode=mode, method=config.method, bins=bins)
     bits = config.morton_bits
-    origin, grid = quantization_rows(s.lo, s.hi, s.n, bits, devices)
+    origin, grid = quantization_rows(s, bits, devices, mode)
     collapse = config.max_leaf > 1
     if config.method == "lbvh":
         with morton.x64():
-            topo = batch_devices.on_devices(_lbvh_topology_rows, (s.lo, s.hi, s.n, origin, grid), devices,
-                                            bits=bits)
-        return batch_devices.on_devices(_lbvh_assemble_rows, (s.lo, s.hi, s.n) + tuple(topo)
+            topo = batch_devices.on_devices(_lbvh_topology_rows, (s.real, s.lo, s.hi, s.n, origin, grid), devices,
+                                            mode=mode, bits=bits)
+        return batch_devices.on_devices(_lbvh_assemble_rows, (s.real, s.lo, s.hi, s.n) + tuple(topo)
                                         + (max_leaf, ct, ci, s.scale), devices,
-                                        window=lbvh.window_size(cap), collapse=collapse)
+                                        mode=mode, window=lbvh.window_size(cap), collapse=collapse)
     with morton.x64():
-        order = batch_devices.on_devices(_morton_order_rows, (s.lo, s.hi, s.n, origin, grid), devices, bits=bits)
-    return batch_devices.on_devices(_ploc_rows, (s.lo, s.hi, s.n, order, max_leaf, ct, ci, s.scale), devices,
-                                    radius=config.radius, stages=ploc.stage_sizes(cap), collapse=collapse)
+        order = batch_devices.on_devices(_morton_order_rows, (s.real, s.lo, s.hi, s.n, origin, grid), devices,
+                                         mode=mode, bits=bits)
+    return batch_devices.on_devices(_ploc_rows, (s.real, s.lo, s.hi, s.n, order, max_leaf, ct, ci, s.scale),
+                                    devices, mode=mode, radius=config.radius, stages=ploc.stage_sizes(cap),
+                                    collapse=collapse)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -229,11 +239,12 @@ def build_checked(inputs: Inputs, config: BuilderConfig, batch: BatchConfig, dev
     if positions.size == 0:
         return TreeBatch((), total)
     sizes = [inputs.boxes[int(i)][0].shape[0] for i in positions]
+    mode = batch_rows.resolve(batch.rows, devs)
     groups = {}
     for chunk in chunks(sizes, batch, BYTES_PER_SLOT["build"], len(devs)):
         rows = positions[chunk.filled]
-        stacked = stack_inputs(inputs.boxes, rows, chunk.capacity, dtype)
-        trees = jax.device_get(build_rows(config, stacked, devs))
+        stacked = stack_inputs(inputs.boxes, rows, chunk.capacity, dtype, chunk.index.size)
+        trees = jax.device_get(build_rows(config, stacked, devs, mode))
         real = chunk.index.size
         trees = jax.tree_util.tree_map(lambda a: np.asarray(a)[:real], trees)
         groups.setdefault(chunk.capacity, []).append((trees, positions[chunk.index],

@@ -1,12 +1,14 @@
-"""Optimize every tree of a batch with any optimizer, ``step`` vmapped: :func:`optimize`.
+"""Optimize every tree of a batch with any optimizer in one compiled call per chunk: :func:`optimize`.
 
 Every optimizer of :data:`jaxbvh.optimize.OPTIMIZERS` (``hc``, ``sa``, ``reinsert``,
 ``treelet``, ``pipeline``) follows one protocol (:mod:`jaxbvh.optimize.protocol`): each
 tree's state is made by ``init`` on the host (:func:`jaxbvh.optimize.driver.init_batch`),
-the states of a chunk are stacked, and one compiled ``while_loop`` runs ``step`` vmapped
-until every state is done, then ``result`` vmapped. A done state is a fixed point of
-``step`` (``keep_if_done``), so a tree that has converged stops changing while the
-others go on, and each tree's result is exactly its single-tree run
+and the states of a chunk are stacked. How the compiled call runs them follows
+:mod:`jaxbvh.batch.rows`: ``"vmap"`` runs one ``while_loop`` of ``step`` vmapped until
+every state is done, then ``result`` vmapped (a done state is a fixed point of ``step``,
+``keep_if_done``, so a tree that has converged stops changing while the others go on);
+``"map"`` runs each row's own ``while_loop`` and ``result``, one row after another, the
+single-tree program exactly. Either way each tree's result is exactly its single-tree run
 (:func:`jaxbvh.optimize.optimize` of the tree alone; tested node for node for every
 optimizer). The trees run at their group's capacity (:mod:`jaxbvh.batch.layout`);
 padding is inert, and the results are cut back to each tree's own capacity by
@@ -27,7 +29,10 @@ import numpy as np
 
 from jaxbvh.batch import devices as batch_devices
 from jaxbvh.batch.layout import Group, TreeBatch
-from jaxbvh.batch.plan import BYTES_PER_SLOT, BatchConfig, batch_rows, max_rows
+from jaxbvh.batch import rows as batch_rows
+from jaxbvh.batch.plan import BYTES_PER_SLOT, BatchConfig, max_rows
+from jaxbvh.batch.plan import batch_rows as rows_for
+from jaxbvh.batch.rows import each_row
 from jaxbvh.optimize import DEFAULT_METHOD, OPTIMIZERS, make_config
 from jaxbvh.optimize.driver import stack_states
 from jaxbvh.tree.layout import BVH
@@ -48,10 +53,17 @@ class BatchOptimizeResult:
     converged: np.ndarray
 
 
-def _run_rows(states, *, step, result):
-    """Every row's ``step`` until all rows are done, then ``result`` of each (batched)."""
-    states = jax.lax.while_loop(lambda s: ~jnp.all(s.progress.done), jax.vmap(step), states)
-    return jax.vmap(result)(states)
+def _run_rows(real, states, *, mode, step, result):
+    """Every row's ``step`` until it is done, then its ``result`` (batched; ``mode``:
+    :mod:`jaxbvh.batch.rows`)."""
+    if mode == "vmap":  # one loop for all rows, until the last is done (done rows are fixed points)
+        states = jax.lax.while_loop(lambda s: ~jnp.all(s.progress.done), jax.vmap(step), states)
+        return jax.vmap(result)(states)
+
+    def run_one(state):  # the single-tree run: its own loop, only the branches it takes
+        return result(jax.lax.while_loop(lambda s: ~s.progress.done, step, state))
+
+    return each_row(run_one, mode)(real, states)
 
 
 def _row(trees: BVH, i: int) -> BVH:
@@ -68,8 +80,8 @@ def optimize(trees: TreeBatch, method: str = DEFAULT_METHOD, config=None, *, key
         ``OPTIMIZERS``, its Config, fields of it to set).
       keys: [M] ``jax.random`` keys, one per mesh, for ``"sa"`` (None: every tree gets
         ``init``'s default key, as the single run does).
-      batch: :class:`~jaxbvh.batch.plan.BatchConfig` (only its memory bound applies: the
-        groups are the input's). devices: as :func:`jaxbvh.batch.build`.
+      batch: :class:`~jaxbvh.batch.plan.BatchConfig` (its memory bound and ``rows``
+        apply: the groups are the input's). devices: as :func:`jaxbvh.batch.build`.
       on_chunk: called as ``on_chunk(index)`` after every compiled call, ``index`` the
         input positions of the meshes it optimized.
 
@@ -80,6 +92,7 @@ def optimize(trees: TreeBatch, method: str = DEFAULT_METHOD, config=None, *, key
     optimizer = OPTIMIZERS[method]
     batch = BatchConfig() if batch is None else batch
     devs = batch_devices.resolve(devices)
+    mode = batch_rows.resolve(batch.rows, devs)
     if not isinstance(trees, TreeBatch):
         raise ValueError(f"trees must be a jaxbvh.batch.TreeBatch, got {type(trees).__name__}")
     if keys is not None and len(keys) != trees.size:
@@ -93,13 +106,14 @@ def optimize(trees: TreeBatch, method: str = DEFAULT_METHOD, config=None, *, key
         parts = []
         for start in range(0, len(group), most):
             rows = np.arange(start, min(start + most, len(group)))
-            filled = np.full(min(batch_rows(rows.size, len(devs)), most), rows[0])
+            filled = np.full(min(rows_for(rows.size, len(devs)), most), rows[0])
             filled[: rows.size] = rows
             states = stack_states(optimizer.init(_row(group.trees, int(r)), config,
                                                  None if keys is None else keys[int(group.index[r])])
                                   for r in filled)
-            res = jax.device_get(batch_devices.on_devices(_run_rows, (states,), devs, step=optimizer.step,
-                                                          result=optimizer.result))
+            real = np.arange(filled.size) < rows.size
+            res = jax.device_get(batch_devices.on_devices(_run_rows, (real, states), devs, mode=mode,
+                                                          step=optimizer.step, result=optimizer.result))
             res = jax.tree_util.tree_map(lambda a: np.asarray(a)[: rows.size], res)
             at = group.index[rows]
             for field in out:

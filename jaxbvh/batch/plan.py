@@ -27,7 +27,8 @@ import dataclasses
 
 import numpy as np
 
-from jaxbvh.configs import Checked, knob, real
+from jaxbvh.batch.rows import MODES
+from jaxbvh.configs import Checked, knob, one_of, real
 from jaxbvh.tree.layout import capacity_bucket
 
 #: estimated peak bytes per primitive slot of one tree, by operation (float32; float64
@@ -42,12 +43,17 @@ class BatchConfig(Checked):
     ``memory_mb``: bound on one call's estimated peak memory, in MiB (MiB = 2^20 bytes).
     ``max_padding``: fraction of a group's capacity a member's own capacity bucket may
     leave unused (0: a group per capacity bucket).
+    ``rows``: how a compiled call runs its rows (:mod:`jaxbvh.batch.rows`): ``"map"``
+    one after another (a CPU), ``"vmap"`` side by side (a GPU), ``"auto"`` by the devices.
     """
 
     memory_mb: float = knob(1024.0, check=real(above=0.0), metavar="MB",
                             help="bound on one compiled call's estimated peak memory (MiB)")
     max_padding: float = knob(0.0, check=real(0.0, below=1.0), metavar="F",
                               help="fraction of a group's capacity a mesh may leave unused")
+    rows: str = knob("auto", check=one_of(MODES), choices=MODES,
+                     help="how a compiled call runs its rows: map (one after another; CPU), vmap (side "
+                          "by side; GPU), auto (map on CPU devices)")
 
 
 @dataclasses.dataclass(frozen=True)
