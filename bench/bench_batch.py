@@ -48,6 +48,7 @@ sys.path.insert(0, str(ROOT))
 import jaxbvh  # noqa: E402
 from jaxbvh import batch  # noqa: E402
 from jaxbvh.batch import plan  # noqa: E402
+from jaxbvh.builders import dispatch, inputs  # noqa: E402
 from jaxbvh.tree.frame import Frame  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
@@ -122,6 +123,19 @@ def loop_build(meshes, builder):
     return [jax.block_until_ready(jaxbvh.build(lo, hi, method=builder)) for lo, hi in meshes]
 
 
+def engine_only(meshes, builder):
+    """Seconds of the compiled builds alone (inputs prepared beforehand, no host work per
+    mesh): the floor of any batching that runs each mesh's build as the single call does."""
+    config = jaxbvh.builders.configs.make_config(builder)
+    run = dispatch._ON_PREPARED[builder]
+    prepared = [inputs.prepare(lo, hi) for lo, hi in meshes]
+    jax.block_until_ready([run(*p, config) for p in one_per_capacity(prepared, [lo.shape[0] for lo, _ in meshes])])
+    start = time.perf_counter()
+    for p in prepared:
+        jax.block_until_ready(run(*p, config))
+    return time.perf_counter() - start
+
+
 def loop_optimize(trees, method):
     return [jaxbvh.optimize.optimize(t, method) for t in trees]
 
@@ -173,11 +187,14 @@ def main(argv=None):
     parser.add_argument("--sizes", type=int, nargs="*", default=None,
                         help="batch sizes of the throughput curve (default 1 4 16 64 all)")
     parser.add_argument("--memory-mb", type=float, default=batch.BatchConfig().memory_mb)
+    parser.add_argument("--vmap-pipeline", action="store_true",
+                        help="time the optimizer's batch with rows vmapped too (slow on a CPU)")
     parser.add_argument("--no-peer", action="store_true")
     parser.add_argument("--tag", default="", help="suffix of the result files (batch_<tag>.*)")
     args = parser.parse_args(argv)
 
     config = batch.BatchConfig(memory_mb=args.memory_mb)
+    modes = {mode: config.replace(rows=mode) for mode in ("map", "vmap")}
     named = mesh_set(args.meshes, args.min_tris, args.max_tris)
     meshes = [local_boxes(tri) for _, tri in named]
     sizes = [lo.shape[0] for lo, _ in meshes]
@@ -193,15 +210,20 @@ def main(argv=None):
            "peak_mb": {"start": peak_mb()}}
     print(f"{len(meshes)} meshes, {tris:,} triangles ({min(sizes)}..{max(sizes)}), {out['machine']}", flush=True)
 
-    # build: compile both ways, then time both in one run
-    _, compile_batch = timed(lambda: batch.build(meshes, method=args.builder, batch=config))
+    # build: compile every way, then time them in one run (rows mapped, rows vmapped, the loop,
+    # the loop's compiled builds alone)
+    compile_batch = {m: timed(lambda c=c: batch.build(meshes, method=args.builder, batch=c))[1]
+                     for m, c in modes.items()}
     _, compile_loop = timed(lambda: loop_build(one_per_capacity(meshes, sizes), args.builder))
     built, t_batch = timed(lambda: batch.build(meshes, method=args.builder, batch=config))
     out["peak_mb"]["after_batched_build"] = peak_mb()
+    t_modes = {m: timed(lambda c=c: batch.build(meshes, method=args.builder, batch=c))[1] for m, c in modes.items()}
     singles, t_loop = timed(lambda: loop_build(meshes, args.builder))
+    t_engine = engine_only(meshes, args.builder)
     trees = built.trees.unstack()
     identical = all(same(a, b) for a, b in zip(trees, singles))
     out["build"] = dict(batched_s=t_batch, loop_s=t_loop, speedup=t_loop / t_batch, identical=identical,
+                        rows=config.rows, by_rows_s=t_modes, engine_only_s=t_engine,
                         compile_batched_s=compile_batch, compile_loop_s=compile_loop,
                         meshes_per_s=len(meshes) / t_batch, triangles_per_s=tris / t_batch,
                         sah_mean=float(np.mean(batch.costs(built.trees)["sah"])))
@@ -225,7 +247,13 @@ def main(argv=None):
         out["peak_mb"]["after_batched_optimize"] = peak_mb()
         single_opt, t_loop = timed(lambda: loop_optimize(singles, args.method))
         identical = all(same(a, r.tree) for a, r in zip(opt.trees.unstack(), single_opt))
+        by_rows = {}
+        if args.vmap_pipeline:
+            batch.optimize(built.trees, args.method, batch=modes["vmap"])  # compile
+            vmapped, by_rows["vmap"] = timed(lambda: batch.optimize(built.trees, args.method, batch=modes["vmap"]))
+            identical &= all(same(a, r.tree) for a, r in zip(vmapped.trees.unstack(), single_opt))
         out["optimize"] = dict(method=args.method, batched_s=t_batch, loop_s=t_loop, speedup=t_loop / t_batch,
+                               rows=config.rows, by_rows_s=by_rows,
                                identical=identical, compile_batched_s=compile_batch, compile_loop_s=compile_loop,
                                meshes_per_s=len(meshes) / t_batch, sah_mean=float(np.mean(opt.sah)),
                                sah_start_mean=float(np.mean(opt.sah_start)))
@@ -259,6 +287,14 @@ def write(out: dict, tag: str) -> None:
         o = out["optimize"]
         lines.append(f"| {o['method']} | {o['batched_s']:.2f} | {o['loop_s']:.2f} | {o['speedup']:.1f}x | "
                      f"{o['identical']} | {o['sah_mean']:.3f} (from {o['sah_start_mean']:.3f}) |")
+    lines += ["", "Build by rows mode (batched, same run): "
+              + ", ".join(f"{k} {v:.2f} s" for k, v in b.get("by_rows_s", {}).items())
+              + f"; the loop's compiled builds alone (inputs prepared, no host work): {b.get('engine_only_s', 0):.2f} s"
+              + f" (auto picked rows = {b.get('rows')})"]
+    if "optimize" in out and out["optimize"].get("by_rows_s"):
+        lines += [f"{out['optimize']['method']} by rows mode: "
+                  + ", ".join(f"{k} {v:.2f} s" for k, v in out["optimize"]["by_rows_s"].items())
+                  + f" (the table's row: rows = {out['optimize'].get('rows')})"]
     peer = out.get("tinybvh")
     if peer:
         lines += ["", f"tinybvh, one thread, same triangles: build {peer['build_ms'] / 1e3:.2f} s (mean SAH "

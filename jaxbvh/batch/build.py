@@ -25,8 +25,8 @@ import jax
 import numpy as np
 
 from jaxbvh.batch import devices as batch_devices
-from jaxbvh.batch.layout import Group, TreeBatch
 from jaxbvh.batch import rows as batch_rows
+from jaxbvh.batch.layout import Group, TreeBatch
 from jaxbvh.batch.plan import BYTES_PER_SLOT, BatchConfig, chunks
 from jaxbvh.batch.rows import each_row
 from jaxbvh.builders import lbvh, morton, ploc, topdown

@@ -28,8 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh.batch import devices as batch_devices
-from jaxbvh.batch.layout import Group, TreeBatch
 from jaxbvh.batch import rows as batch_rows
+from jaxbvh.batch.layout import Group, TreeBatch
 from jaxbvh.batch.plan import BYTES_PER_SLOT, BatchConfig, max_rows
 from jaxbvh.batch.plan import batch_rows as rows_for
 from jaxbvh.batch.rows import each_row

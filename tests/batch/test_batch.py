@@ -26,6 +26,8 @@ from jaxbvh.tree.layout import capacity_bucket
 FIELDS = ("left", "right", "parent", "lo", "hi", "prim_start", "prim_count", "axis", "prim_index", "root")
 # one group for every test batch (capacity of the largest): one compiled program per list shape
 ONE_GROUP = batch.BatchConfig(max_padding=0.9)
+# the same, rows vmapped (side by side, as on a GPU) rather than mapped (one after another)
+ONE_GROUP_VMAP = batch.BatchConfig(max_padding=0.9, rows="vmap")
 OPTIMIZERS = ("hc", "sa", "reinsert", "treelet", "pipeline")
 
 # soups of 1-4, 9-12 and 9-12 triangles: every batch is one group of capacity 12 in 4 rows
@@ -51,10 +53,10 @@ def assert_same_arrays(got, want, what=""):
 
 @pytest.mark.parametrize("method", list(jaxbvh.BUILDERS))
 @settings(max_examples=3)
-@given(soups=soup_lists, max_leaf=st.sampled_from([1, 3]))
-def test_batched_build_equals_single_builds(method, soups, max_leaf):
+@given(soups=soup_lists, max_leaf=st.sampled_from([1, 3]), config=st.sampled_from([ONE_GROUP, ONE_GROUP_VMAP]))
+def test_batched_build_equals_single_builds(method, soups, max_leaf, config):
     meshes = [local_boxes(tri) for tri in soups]
-    result = batch.build(meshes, method=method, max_leaf=max_leaf, bins=8, batch=ONE_GROUP)
+    result = batch.build(meshes, method=method, max_leaf=max_leaf, bins=8, batch=config)
     assert result.errors == {} and len(result.trees.groups) == 1
     for i, ((lo, hi), tree) in enumerate(zip(meshes, result.trees.unstack())):
         assert_same_arrays(tree, jaxbvh.build(lo, hi, method=method, max_leaf=max_leaf, bins=8), f"mesh {i}")
@@ -78,15 +80,17 @@ def test_batched_optimize_equals_single_runs(method, soups):
 
 
 def test_a_converged_tree_stops_while_others_go_on():
-    # a 1-triangle mesh converges at once, a 40-triangle one takes passes: each keeps its own count
+    # vmapped rows share one loop: a 1-triangle mesh converges at once, a 12-triangle one
+    # takes passes; each keeps its own count and its single run's tree
     rng = np.random.default_rng(3)
     small = (np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32))
-    lo = rng.uniform(-1, 1, (40, 3)).astype(np.float32)
+    lo = rng.uniform(-1, 1, (12, 3)).astype(np.float32)
     big = (lo, lo + np.float32(0.2))
     built = batch.build([small, big], method="lbvh", batch=ONE_GROUP).trees
-    out = batch.optimize(built, "hc")
-    assert out.steps[0] < out.steps[1]
-    assert out.steps[1] == int(jaxbvh.optimize.optimize(jaxbvh.build(*big, method="lbvh"), "hc").steps)
+    out = batch.optimize(built, "hc", batch=ONE_GROUP_VMAP)
+    single = jaxbvh.optimize.optimize(jaxbvh.build(*big, method="lbvh"), "hc")
+    assert out.steps[0] < out.steps[1] == int(single.steps)
+    assert_same_arrays(out.trees.unstack()[1], single.tree)
 
 
 # ----------------------------------------------------------------------------------
@@ -213,28 +217,25 @@ _SUBPROCESS = textwrap.dedent("""
         meshes.append((lo, lo + rng.uniform(0, 0.3, (n, 3)).astype(np.float32)))
     config = batch.BatchConfig(max_padding=0.9)
     out = {{"devices": jax.device_count()}}
-    for method in ("sweep", "lbvh"):
-        trees = batch.build(meshes, method=method, batch=config).trees
-        out[method] = [t.left.tolist() + t.lo.ravel().tolist() for t in trees.unstack()]
-    opt = batch.optimize(trees, "hc")
-    out["hc"] = [t.left.tolist() + t.hi.ravel().tolist() for t in opt.trees.unstack()]
-    out["sah"] = batch.costs(opt.trees)["sah"].tolist()
+    for devices in (1, 2):
+        got = out[devices] = {{}}
+        for method in ("sweep", "lbvh"):
+            trees = batch.build(meshes, method=method, batch=config, devices=devices).trees
+            got[method] = [t.left.tolist() + t.lo.ravel().tolist() for t in trees.unstack()]
+        opt = batch.optimize(trees, "hc", devices=devices)
+        got["hc"] = [t.left.tolist() + t.hi.ravel().tolist() for t in opt.trees.unstack()]
+        got["sah"] = batch.costs(opt.trees, devices=devices)["sah"].tolist()
     print("RESULT" + json.dumps(out))
 """)
 
 
-def _run_subprocess(flags: str) -> dict:
+def test_two_devices_give_what_one_gives():
+    # one process with two fake CPU devices (XLA flags: a subprocess), the batch over one and over both
     code = _SUBPROCESS.format(repo=str(REPO))
-    env = {**os.environ, "XLA_FLAGS": flags, "JAX_PLATFORMS": "cpu"}
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAX_PLATFORMS": "cpu"}
     proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    line = [line for line in proc.stdout.splitlines() if line.startswith("RESULT")][-1]
-    return json.loads(line[len("RESULT"):])
-
-
-def test_two_devices_give_what_one_gives():
-    two = _run_subprocess("--xla_force_host_platform_device_count=2")
-    one = _run_subprocess("")
-    assert two["devices"] == 2 and one["devices"] == 1
+    out = json.loads([line for line in proc.stdout.splitlines() if line.startswith("RESULT")][-1][len("RESULT"):])
+    assert out["devices"] == 2
     for key in ("sweep", "lbvh", "hc", "sah"):
-        assert two[key] == one[key], key
+        assert out["2"][key] == out["1"][key], key
