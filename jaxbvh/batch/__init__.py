@@ -5,9 +5,10 @@ module             what it holds
 =================  =====================================================================
 ``layout``         :class:`TreeBatch`: trees stacked in capacity groups, ``unstack()``
 ``plan``           capacity groups and chunks under a memory bound (:class:`BatchConfig`)
+``rows``           how a call runs its rows: one after another (CPU) or vmapped (GPU)
 ``devices``        the batch axis split over devices (``jax.shard_map``)
-``build``          every builder vmapped: :func:`build`
-``optimize``       every optimizer's ``step`` vmapped: :func:`optimize`
+``build``          every builder over a chunk of meshes: :func:`build`
+``optimize``       every optimizer over a chunk of trees: :func:`optimize`
 ``measure``        :func:`costs`, :func:`trace` and :func:`collapse` over a batch
 =================  =====================================================================
 

@@ -1,7 +1,8 @@
 """Build the trees of many meshes in a few compiled calls: :func:`build`.
 
-Every builder's compiled core runs vmapped over a chunk of meshes padded to one capacity
-(:mod:`jaxbvh.batch.plan`): the top-down engine (sweep, binned, median) in one call; LBVH
+Every builder's compiled core runs over a chunk of meshes padded to one capacity
+(:mod:`jaxbvh.batch.plan`), the rows one after another or vmapped
+(:mod:`jaxbvh.batch.rows`): the top-down engine (sweep, binned, median) in one call; LBVH
 and PLOC in two, the Morton sort in JAX's x64 scope and the tree after it, as
 :func:`jaxbvh.build` runs them. The inputs of each mesh are made by the same
 :func:`jaxbvh.builders.inputs.prepare` the single build uses (checks, working dtype,

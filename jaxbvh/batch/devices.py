@@ -1,9 +1,10 @@
 """The batch axis over devices: every compiled batch call runs under :func:`on_devices`.
 
-With one device a call is the vmapped function, jitted. With several, the function is
-wrapped in :func:`jax.shard_map` over a one-axis :class:`jax.sharding.Mesh` named
-``"batch"``: every argument and result is split along its leading (batch) axis, each
-device runs the vmapped function on its own rows, and no device waits for another's
+With one device a call is the batched function (its rows mapped or vmapped,
+:mod:`jaxbvh.batch.rows`), jitted. With several, the function is wrapped in
+:func:`jax.shard_map` over a one-axis :class:`jax.sharding.Mesh` named ``"batch"``:
+every argument and result is split along its leading (batch) axis, each device runs the
+batched function on its own rows, and no device waits for another's
 loops (a tree's ``while_loop`` stops when *its device's* trees are done). The rows of a
 call are a multiple of the device count (:func:`jaxbvh.batch.plan.batch_rows`). Each row
 is computed by the same program whichever device holds it, so one device and several
