@@ -170,6 +170,8 @@ def test_batch_config_refuses_bad_knobs_by_name():
         batch.BatchConfig(memory_mb=0)
     with pytest.raises(ValueError, match="max_padding"):
         batch.BatchConfig(max_padding=1.0)
+    with pytest.raises(ValueError, match="rows"):
+        batch.BatchConfig(rows="pmap")
 
 
 def test_own_capacity_never_cuts_a_real_node():
