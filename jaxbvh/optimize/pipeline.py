@@ -41,7 +41,7 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxbvh.configs import Checked, ci_knob, config_of, ct_knob, integer, knob, real, split_axes_knob
+from jaxbvh.configs import Checked, ci_knob, config_of, ct_knob, integer, knob, optional, real, split_axes_knob
 from jaxbvh.optimize import reinsert, treelet
 from jaxbvh.optimize.driver import run
 from jaxbvh.optimize.protocol import (
@@ -62,6 +62,7 @@ from jaxbvh.tree.layout import to_jax
 from jaxbvh.tree.split_axes import apply_split_axes
 
 DEFAULT_TREELET_PASSES = 2
+DEFAULT_FIRST_TREELET_PASSES = None
 DEFAULT_ROUND_GAIN = 1e-3
 DEFAULT_MAX_ROUNDS = 8
 
@@ -93,6 +94,9 @@ class Config(Checked):
                            help="most rounds of treelets and reinsertion")
     treelet_passes: int = knob(DEFAULT_TREELET_PASSES, check=integer(0), metavar="P",
                                help="most treelet passes per round")
+    first_treelet_passes: int | None = knob(DEFAULT_FIRST_TREELET_PASSES, check=optional(integer(0)), type=int,
+                                            metavar="P", help="most treelet passes of the first round (0: it "
+                                                              "starts with reinsertion; none: treelet_passes)")
     treelet: treelet.Config = knob(treelet.Config(), check=config_of(treelet.Config),
                                    help="the treelet stage's Config")
     reinsert: reinsert.Config = knob(reinsert.Config(), check=config_of(reinsert.Config),
@@ -215,6 +219,11 @@ def init(tree, config: Config | None = None, key=None) -> OptimizerState:
     tree = to_jax(tree)
     dtype = float_dtype(tree)
     treelets = treelet.init(tree, config.treelet)
+    if config.first_treelet_passes is not None:
+        # the first round's own pass limit (traced: the same program as later rounds')
+        first = min(config.first_treelet_passes, int(treelets.progress.limit))
+        treelets = treelets.replace(progress=treelets.progress._replace(
+            limit=jnp.int32(first), done=treelets.progress.done | (first <= 0)))
     reinsertion = reinsert.init(tree, config.reinsert)  # its params and settings; restarted later
     nodes = int(jnp.sum(tree.parent >= 0))
     params = Params(ct=jnp.asarray(config.ct, dtype), ci=jnp.asarray(config.ci, dtype),
