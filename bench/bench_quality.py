@@ -153,7 +153,7 @@ def plot(rows, path):
     for ax, name in zip(axes, names):
         mine = [r for r in rows if r["input"] == name]
         low = draw_curves(ax, mine, f"{name} ({mine[0]['triangles']:,} triangles)")
-        series = mine[0]["tinybvh_series"]
+        series = mine[-1]["tinybvh_series"]  # the latest run's (--merge puts it last)
         ax.plot([ms / 1e3 for _, ms, _ in series], [sah for _, _, sah in series], "kx--", zorder=5,
                 label=f"tinybvh Optimize(K) ({series[-1][2]:.3f})")
         low = min(low, min(sah for _, _, sah in series))
@@ -185,7 +185,7 @@ def write(rows, args, m=None):
                      f"{'-' if ratio is None else format(ratio, '.1f') + 'x'} |")
     lines += ["", "tinybvh's series (K: ms, SAH):", ""]
     for name in dict.fromkeys(r["input"] for r in rows):
-        r = next(r for r in rows if r["input"] == name)
+        r = [r for r in rows if r["input"] == name][-1]  # the latest run's (--merge puts it last)
         lines.append(f"- {name}: start {r['tinybvh_binned_sah']:.3f}; " + ", ".join(
             f"{k}: {ms:.1f} ms, {sah:.3f}" for k, ms, sah in r["tinybvh_series"]))
     (RESULTS / "quality.md").write_text("\n".join(lines) + "\n")
