@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from jaxbvh.optimize import optimize
+from jaxbvh.optimize import OPTIMIZERS, optimize
 
 #: the warm-up's time budget: large enough that compiling never runs it out
 WARM_UP_BUDGET = 3600.0
@@ -86,10 +86,12 @@ def panels(plt, count: int, cols: int, size: tuple[float, float]):
 def draw_curves(ax, rows, title: str, fontsize: float = 7) -> float:
     """One panel: a step curve per row (``method``, ``sah``, ``start_sah``, ``curve``) on a
     log time axis from 1 ms; returns the lowest SAH drawn (for the caller's y range)."""
-    for r in rows:
+    order = list(OPTIMIZERS)  # one colour per method in every panel, legends in one order
+    for r in sorted(rows, key=lambda r: order.index(r["method"]) if r["method"] in order else len(order)):
         t = [1e-3] + [max(x, 1e-3) for x, _, _ in r["curve"]]
         s = [r["start_sah"]] + [y for _, y, _ in r["curve"]]
-        ax.step(np.maximum(t, 1e-3), s, where="post", label=f"{r['method']} ({r['sah']:.3f})")
+        colour = f"C{order.index(r['method'])}" if r["method"] in order else None
+        ax.step(np.maximum(t, 1e-3), s, where="post", color=colour, label=f"{r['method']} ({r['sah']:.3f})")
     ax.set_xscale("log")
     ax.set_title(title, fontsize=9)
     ax.set_xlabel("seconds (warm)")
