@@ -4,8 +4,9 @@ Rounds
 ======
 A round is a *treelet stage*, passes of treelet restructuring (Karras & Aila 2013,
 :mod:`jaxbvh.optimize.treelet`; ``treelet_passes``, default 2, or fewer when a pass
-restructures nothing), then a *reinsertion stage*, parallel reinsertion (Meister &
-Bittner 2018, :mod:`jaxbvh.optimize.reinsert`) until an iteration over all nodes takes
+restructures nothing; the first round may have its own ``first_treelet_passes``), then
+a *reinsertion stage*, parallel reinsertion (Meister & Bittner 2018,
+:mod:`jaxbvh.optimize.reinsert`) until an iteration over all nodes takes
 no move (or its ``max_iterations``). The first round's reinsertion starts from the nodes
 of largest parent area (``first_fraction`` of the reinsertion config, 1/8) and widens
 octave by octave; later rounds search every node from the start, since the gains left
@@ -77,7 +78,8 @@ class Config(Checked):
 
     ``round_gain``: a round that lowers the SAH by less than this (relative) is the
     last. ``max_rounds``: most rounds. ``treelet_passes``: most treelet passes per
-    round. ``treelet``: the treelet stage's :class:`jaxbvh.optimize.treelet.Config`
+    round; ``first_treelet_passes``: those of the first round (None: ``treelet_passes``;
+    0: the run starts with reinsertion; measured in ``docs/time-to-quality.md``). ``treelet``: the treelet stage's :class:`jaxbvh.optimize.treelet.Config`
     (or a dict of its fields); ``reinsert``: the reinsertion stage's
     :class:`jaxbvh.optimize.reinsert.Config` (or a dict), whose ``first_fraction``
     applies to the first round (later rounds search every node) and whose
