@@ -37,7 +37,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import jaxbvh  # noqa: E402
-from jaxbvh.optimize import OPTIMIZERS, optimize  # noqa: E402
+from bench.curves import draw_curves, panels, pyplot, save, timed_curve, warm_up  # noqa: E402
+from jaxbvh.optimize import OPTIMIZERS  # noqa: E402
 
 METHODS = tuple(OPTIMIZERS)
 
@@ -58,18 +59,10 @@ def options_for(method, args):
 
 
 def run_curve(tree, method, args, time_budget=None):
-    """Compile (a run cut short), then a timed run: ``(result, seconds, curve)``."""
+    """Compile (:func:`bench.curves.warm_up`), then a timed run: ``(result, seconds, curve)``."""
     options = options_for(method, args)
-    optimize(tree, method, time_budget=1e-9, **options)  # compile (the pipeline has its own programs)
-    curve = []
-    start = time.perf_counter()
-
-    def on_step(info):
-        curve.append((time.perf_counter() - start, info.sah, info.stage))
-
-    result = optimize(tree, method, time_budget=time_budget, on_step=on_step, **options)
-    seconds = time.perf_counter() - start
-    return result, seconds, curve
+    warm_up(tree, method, **options)
+    return timed_curve(tree, method, time_budget, **options)
 
 
 def inputs(args):
@@ -121,40 +114,20 @@ def run(args):
 
 
 def plot(rows, path, title=""):
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError as exc:
-        print(f"no plot: {exc}", file=sys.stderr)
+    plt = pyplot()
+    if plt is None:
         return
     names = list(dict.fromkeys(r["input"] for r in rows))
-    cols = min(3, len(names))
-    rows_n = (len(names) + cols - 1) // cols
-    fig, axes = plt.subplots(rows_n, cols, figsize=(5.2 * cols, 4 * rows_n), squeeze=False)
-    for ax, name in zip(axes.ravel(), names):
+    fig, axes = panels(plt, len(names), 3, (5.2, 4))
+    for ax, name in zip(axes, names):
         mine = [r for r in rows if r["input"] == name]
-        for r in mine:
-            t = [0.0] + [max(x, 1e-3) for x, _, _ in r["curve"]]
-            s = [r["start_sah"]] + [y for _, y, _ in r["curve"]]
-            ax.step(np.maximum(t, 1e-3), s, where="post", label=f"{r['method']} ({r['sah']:.3f})")
+        low = draw_curves(ax, mine, name)
         if "tinybvh_sah" in mine[0]:
             ax.scatter([mine[0]["tinybvh_seconds"]], [mine[0]["tinybvh_sah"]], marker="x", c="k",
                        zorder=5, label=f"tinybvh reinsertion ({mine[0]['tinybvh_sah']:.3f})")
-        ax.set_xscale("log")
-        ax.set_title(name, fontsize=9)
-        ax.set_xlabel("seconds (warm)")
-        ax.set_ylabel("SAH")
-        low = min(min(y for _, y, _ in r["curve"]) if r["curve"] else r["sah"] for r in mine)
         ax.set_ylim(low - 0.02 * abs(low), mine[0]["start_sah"] * 1.005)
         ax.legend(fontsize=7)
-    for ax in axes.ravel()[len(names):]:
-        ax.axis("off")
-    if title:
-        fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    save(fig, path, 100, title)
 
 
 def meta(args):

@@ -11,8 +11,9 @@ thread) builds tinybvh's binned tree and times its reinsertion optimizer
 ``--repeats``); its binned tree is dumped and is the start tree of every jaxbvh method,
 so both libraries optimize the same tree. The peer runs before and after our methods on
 each input (the machine is shared: the two runs bracket the noise; ratios use the faster
-one). Each of our methods is run cold (first call in the process: compiling included)
-(compiling and one step), then warm with an ``on_step`` callback: the curve is the SAH after
+one). Each of our methods is run cold (first call in the process: compiling, init and one
+step, under a time budget as the warm run: :func:`bench.curves.warm_up`), then warm with
+an ``on_step`` callback: the curve is the SAH after
 every pass or iteration against wall seconds since the warm call began (the driver
 reports in chunks, so points can come in bursts). ``--budget`` bounds every warm run
 (annealing and hill climbing would run for minutes on the big inputs).
@@ -30,7 +31,6 @@ import os
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import jax
@@ -41,7 +41,8 @@ sys.path.insert(0, str(ROOT))
 
 import jaxbvh  # noqa: E402
 from bench.bench_optimize import dump, meta, thin_curve  # noqa: E402
-from jaxbvh.optimize import OPTIMIZERS, optimize  # noqa: E402
+from bench.curves import draw_curves, panels, pyplot, save, timed_curve, warm_up  # noqa: E402
+from jaxbvh.optimize import OPTIMIZERS  # noqa: E402
 
 METHODS = tuple(OPTIMIZERS)
 DATA = ROOT.parent / "shared" / "data"
@@ -97,31 +98,12 @@ def faster(a: list, b: list) -> list:
     return sorted(by_k.values())
 
 
-class _FirstStep(Exception):
-    """Raised by :func:`_stop` to end a cold call after its first step."""
-
-
-def _stop(info):
-    raise _FirstStep
-
-
 def run_method(tree, method: str, budget: float):
-    """A cold call cut after its first chunk (compiling and one step), then a warm curve
-    cut at ``budget`` seconds: ``(result, cold s, warm s, curve)``."""
-    started = time.perf_counter()
-    try:  # stopped from the host after the first step: works whether or not a time budget
-        optimize(tree, method, on_step=_stop)  # counts compiling (issue 23 makes it count)
-    except _FirstStep:
-        pass
-    cold = time.perf_counter() - started
-    curve = []
-    start = time.perf_counter()
-
-    def on_step(info):
-        curve.append((time.perf_counter() - start, info.sah, info.stage))
-
-    result = optimize(tree, method, time_budget=budget, on_step=on_step)
-    return result, cold, time.perf_counter() - start, curve
+    """A cold call (:func:`bench.curves.warm_up`: compiling, init and one step), then a
+    warm curve cut at ``budget`` seconds: ``(result, cold s, warm s, curve)``."""
+    cold = warm_up(tree, method)
+    result, warm, curve = timed_curve(tree, method, budget)
+    return result, cold, warm, curve
 
 
 def first_at_or_below(curve, target):
@@ -163,40 +145,22 @@ def run(args) -> list[dict]:
 
 
 def plot(rows, path):
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError as exc:
-        print(f"no plot: {exc}", file=sys.stderr)
+    plt = pyplot()
+    if plt is None:
         return
     names = list(dict.fromkeys(r["input"] for r in rows))
-    cols = min(4, len(names))
-    rows_n = (len(names) + cols - 1) // cols
-    fig, axes = plt.subplots(rows_n, cols, figsize=(4.6 * cols, 3.8 * rows_n), squeeze=False)
-    for ax, name in zip(axes.ravel(), names):
+    fig, axes = panels(plt, len(names), 4, (4.6, 3.8))
+    for ax, name in zip(axes, names):
         mine = [r for r in rows if r["input"] == name]
-        for r in mine:
-            t = [1e-3] + [max(x, 1e-3) for x, _, _ in r["curve"]]
-            s = [r["start_sah"]] + [y for _, y, _ in r["curve"]]
-            ax.step(t, s, where="post", label=f"{r['method']} ({r['sah']:.3f})")
-        series = mine[0]["tinybvh_series"]
+        low = draw_curves(ax, mine, f"{name} ({mine[0]['triangles']:,} triangles)")
+        series = mine[-1]["tinybvh_series"]  # the latest run's (--merge puts it last)
         ax.plot([ms / 1e3 for _, ms, _ in series], [sah for _, _, sah in series], "kx--", zorder=5,
                 label=f"tinybvh Optimize(K) ({series[-1][2]:.3f})")
-        ax.set_xscale("log")
-        ax.set_title(f"{name} ({mine[0]['triangles']:,} triangles)", fontsize=9)
-        ax.set_xlabel("seconds (warm)")
-        ax.set_ylabel("SAH")
-        low = min(min([y for _, y, _ in r["curve"]] + [r["sah"]]) for r in mine)
         low = min(low, min(sah for _, _, sah in series))
         high = max(mine[0]["start_sah"], max(sah for _, _, sah in series))
         ax.set_ylim(low - 0.01 * abs(low), high * 1.005)
         ax.legend(fontsize=6)
-    for ax in axes.ravel()[len(names):]:
-        ax.axis("off")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    save(fig, path, 90)
 
 
 def write(rows, args, m=None):
@@ -221,7 +185,7 @@ def write(rows, args, m=None):
                      f"{'-' if ratio is None else format(ratio, '.1f') + 'x'} |")
     lines += ["", "tinybvh's series (K: ms, SAH):", ""]
     for name in dict.fromkeys(r["input"] for r in rows):
-        r = next(r for r in rows if r["input"] == name)
+        r = [r for r in rows if r["input"] == name][-1]  # the latest run's (--merge puts it last)
         lines.append(f"- {name}: start {r['tinybvh_binned_sah']:.3f}; " + ", ".join(
             f"{k}: {ms:.1f} ms, {sah:.3f}" for k, ms, sah in r["tinybvh_series"]))
     (RESULTS / "quality.md").write_text("\n".join(lines) + "\n")

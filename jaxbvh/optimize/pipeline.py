@@ -4,8 +4,9 @@ Rounds
 ======
 A round is a *treelet stage*, passes of treelet restructuring (Karras & Aila 2013,
 :mod:`jaxbvh.optimize.treelet`; ``treelet_passes``, default 2, or fewer when a pass
-restructures nothing), then a *reinsertion stage*, parallel reinsertion (Meister &
-Bittner 2018, :mod:`jaxbvh.optimize.reinsert`) until an iteration over all nodes takes
+restructures nothing; the first round may have its own ``first_treelet_passes``), then
+a *reinsertion stage*, parallel reinsertion (Meister & Bittner 2018,
+:mod:`jaxbvh.optimize.reinsert`) until an iteration over all nodes takes
 no move (or its ``max_iterations``). The first round's reinsertion starts from the nodes
 of largest parent area (``first_fraction`` of the reinsertion config, 1/8) and widens
 octave by octave; later rounds search every node from the start, since the gains left
@@ -41,7 +42,7 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxbvh.configs import Checked, ci_knob, config_of, ct_knob, integer, knob, real, split_axes_knob
+from jaxbvh.configs import Checked, ci_knob, config_of, ct_knob, integer, knob, optional, real, split_axes_knob
 from jaxbvh.optimize import reinsert, treelet
 from jaxbvh.optimize.driver import run
 from jaxbvh.optimize.protocol import (
@@ -62,6 +63,7 @@ from jaxbvh.tree.layout import to_jax
 from jaxbvh.tree.split_axes import apply_split_axes
 
 DEFAULT_TREELET_PASSES = 2
+DEFAULT_FIRST_TREELET_PASSES = None
 DEFAULT_ROUND_GAIN = 1e-3
 DEFAULT_MAX_ROUNDS = 8
 
@@ -76,7 +78,8 @@ class Config(Checked):
 
     ``round_gain``: a round that lowers the SAH by less than this (relative) is the
     last. ``max_rounds``: most rounds. ``treelet_passes``: most treelet passes per
-    round. ``treelet``: the treelet stage's :class:`jaxbvh.optimize.treelet.Config`
+    round; ``first_treelet_passes``: those of the first round (None: ``treelet_passes``;
+    0: the run starts with reinsertion; measured in ``docs/time-to-quality.md``). ``treelet``: the treelet stage's :class:`jaxbvh.optimize.treelet.Config`
     (or a dict of its fields); ``reinsert``: the reinsertion stage's
     :class:`jaxbvh.optimize.reinsert.Config` (or a dict), whose ``first_fraction``
     applies to the first round (later rounds search every node) and whose
@@ -93,6 +96,9 @@ class Config(Checked):
                            help="most rounds of treelets and reinsertion")
     treelet_passes: int = knob(DEFAULT_TREELET_PASSES, check=integer(0), metavar="P",
                                help="most treelet passes per round")
+    first_treelet_passes: int | None = knob(DEFAULT_FIRST_TREELET_PASSES, check=optional(integer(0)), type=int,
+                                            metavar="P", help="most treelet passes of the first round (0: it "
+                                                              "starts with reinsertion; none: treelet_passes)")
     treelet: treelet.Config = knob(treelet.Config(), check=config_of(treelet.Config),
                                    help="the treelet stage's Config")
     reinsert: reinsert.Config = knob(reinsert.Config(), check=config_of(reinsert.Config),
@@ -215,6 +221,11 @@ def init(tree, config: Config | None = None, key=None) -> OptimizerState:
     tree = to_jax(tree)
     dtype = float_dtype(tree)
     treelets = treelet.init(tree, config.treelet)
+    if config.first_treelet_passes is not None:
+        # the first round's own pass limit (traced: the same program as later rounds')
+        first = min(config.first_treelet_passes, int(treelets.progress.limit))
+        treelets = treelets.replace(progress=treelets.progress._replace(
+            limit=jnp.int32(first), done=treelets.progress.done | (first <= 0)))
     reinsertion = reinsert.init(tree, config.reinsert)  # its params and settings; restarted later
     nodes = int(jnp.sum(tree.parent >= 0))
     params = Params(ct=jnp.asarray(config.ct, dtype), ci=jnp.asarray(config.ci, dtype),

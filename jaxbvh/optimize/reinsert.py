@@ -58,11 +58,18 @@ One iteration
    by at most ``escalate`` (relative), and every node is a candidate after one that
    takes no move (the big parents have no move left: what gain remains is spread over
    the small nodes; widening by a few octaves at a time spent a dozen empty
-   iterations of growing cost on legocar before reaching them) (coarse to fine; ``first_fraction = 1``: Meister & Bittner's
-   every node, every iteration). The default, 1/8
+   iterations of growing cost on legocar before reaching them) (coarse to fine;
+   ``first_fraction = 1``: Meister & Bittner's every node, every iteration). The default, 1/8
    (:data:`~jaxbvh.optimize.reinsert_rules.DEFAULT_FIRST_FRACTION`), reached tinybvh's
    optimizer SAH soonest: fewer candidates find moves that mostly lock each other near
-   the root, more spend the first iterations on small gains.
+   the root, more spend the first iterations on small gains. With ``settle`` (off by
+   default), a candidate is also skipped while *settled*: its last search found no
+   move and no taken move has touched it since (touched: the nodes a move locks, step
+   3, and their children after the move); after an iteration over every octave that
+   takes no move, every node is searched again, so a run still ends only when an
+   iteration over all nodes takes no move. On legocar the skipped nodes held moves
+   that the full search finds: fewer moves per iteration, tinybvh's optimizer SAH
+   reached later (``docs/time-to-quality.md``), so it is not the default.
 2. Search: the candidates' walks run vectorised in
    :func:`~jaxbvh.optimize.reinsert_search.search_width` lanes of one ``while_loop`` (a
    work queue: every :data:`~jaxbvh.optimize.reinsert_search.REFILL_STEPS` steps, lanes
@@ -154,6 +161,7 @@ from jaxbvh.tree.split_axes import apply_split_axes
 DEFAULT_MAX_STEPS = 1024       # search steps per node and iteration (legocar needs < 200)
 DEFAULT_MAX_ITERATIONS = 1000
 DEFAULT_ESCALATE = 1e-4
+DEFAULT_SETTLE = False  # measured: reached tinybvh's SAH later on legocar (module docstring)
 
 
 # ----------------------------------------------------------------------------------
@@ -189,8 +197,8 @@ class Config(Checked):
     node and iteration. ``first_fraction``: about the share of nodes searched at first,
     those of largest parent area (1: every node, Meister & Bittner's schedule).
     ``escalate``: relative SAH drop at or below which the next iteration searches one
-    more octave. ``ct``, ``ci``: SAH constants. ``min_gain``: relative margin a place
-    must beat (None: ``64 * eps`` of the tree's float type). ``split_axes``: Kensler's
+    more octave. ``settle``: skip the settled nodes (module docstring, step 1).
+    ``ct``, ``ci``: SAH constants. ``min_gain``: relative margin a place must beat (None: ``64 * eps`` of the tree's float type). ``split_axes``: Kensler's
     final pass (:func:`jaxbvh.tree.split_axes.assign_split_axes`) in ``result``.
     """
 
@@ -203,6 +211,8 @@ class Config(Checked):
     escalate: float = knob(DEFAULT_ESCALATE, check=real(0, finite=False), metavar="E",
                            help="relative SAH drop of an iteration at or below which one more octave of "
                                 "nodes is searched")
+    settle: bool = knob(DEFAULT_SETTLE, help="search again only the nodes whose last search found a move "
+                                             "or that a move touched since (every node before stopping)")
     ct: float = ct_knob()
     ci: float = ci_knob()
     min_gain: float | None = min_gain_knob()
@@ -219,6 +229,7 @@ class Params(NamedTuple):
     max_steps: Any  # [] int32: search steps per node and iteration
     need: Any       # [] int32: candidates of the first iteration (reinsert_rules.candidates_needed)
     split_axes: Any  # [] bool: Kensler's final pass in result() (traced: no program of its own)
+    settle: Any     # [] bool: skip settled nodes (module docstring, step 1; traced)
 
 
 class Inner(NamedTuple):
@@ -227,6 +238,7 @@ class Inner(NamedTuple):
     tree: Any     # reinsert_search.State: links, boxes (interior ones tight), root, scaled areas
     octaves: Any  # [] int32: candidates' parent areas reach 2^-octaves of the root's
     nodes: Any    # [] int32: real nodes but the root (every one a candidate at ALL_OCTAVES)
+    settled: Any  # [N] bool: last search found no move and no move touched the node since
 
 
 def init(tree, config: Config | None = None, key=None) -> OptimizerState:
@@ -247,7 +259,7 @@ def init(tree, config: Config | None = None, key=None) -> OptimizerState:
     params = Params(*(jnp.asarray(x, dtype) for x in (config.ct, config.ci, min_gain, config.escalate)),
                     max_steps=jnp.int32(config.max_steps),
                     need=jnp.int32(candidates_needed(config.first_fraction, nodes)),
-                    split_axes=jnp.bool_(config.split_axes))
+                    split_axes=jnp.bool_(config.split_axes), settle=jnp.bool_(config.settle))
     limit = config.max_iterations if config.ct > 0 else 0  # with Ct = 0 no move changes the SAH
     return restart(params, tree, limit)
 
@@ -256,7 +268,7 @@ def init(tree, config: Config | None = None, key=None) -> OptimizerState:
 def _start(tree, need) -> Inner:
     st = prepare(tree)
     octaves = octaves_holding(st.area, st.parent, st.root, need, xp=jnp)
-    return Inner(st, octaves, jnp.sum(st.parent >= 0, dtype=jnp.int32))
+    return Inner(st, octaves, jnp.sum(st.parent >= 0, dtype=jnp.int32), jnp.zeros(st.parent.shape, bool))
 
 
 def restart(params: Params, tree, limit: int) -> OptimizerState:
@@ -271,11 +283,14 @@ def step(state: OptimizerState) -> OptimizerState:
     """One iteration: search the candidates, take the independent best moves, apply
     them; widen the candidates when the gain gets small (module docstring)."""
     p, inner, progress = state.params, state.inner, state.progress
-    st, taken, _, sah, count = iteration(inner.tree, state.tree.prim_count, p.ct, p.ci, inner.octaves,
-                                          p.max_steps, p.min_gain)
+    st, taken, _, sah, count, settled = iteration(inner.tree, state.tree.prim_count, p.ct, p.ci, inner.octaves,
+                                                   p.max_steps, p.min_gain, inner.settled & p.settle)
     octaves = widen(inner.octaves, taken, count, inner.nodes, progress.sah, sah, p.escalate)
+    # no move among the unsettled nodes of every octave: search every node again
+    settled = settled & ~((taken == 0) & (inner.octaves >= ALL_OCTAVES))
     progress = record(progress, sah, taken, converged=(taken == 0) & (count == inner.nodes))
-    return keep_if_done(state, state.replace(inner=inner._replace(tree=st, octaves=octaves), progress=progress))
+    inner = inner._replace(tree=st, octaves=octaves, settled=settled)
+    return keep_if_done(state, state.replace(inner=inner, progress=progress))
 
 
 def result(state: OptimizerState) -> OptimizeResult:

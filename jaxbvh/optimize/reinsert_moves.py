@@ -261,37 +261,64 @@ def apply(st: State, m: Moves, taken, scale) -> State:
     return State(new_child, new_parent, lo, hi, root, half_area(lo, hi, scale))
 
 
+def touched(st: State, m: Moves, taken, new_parent):
+    """Nodes whose last search an iteration's moves may have changed, bool [N]: the
+    nodes the ``taken`` moves lock (in ``st``, before the moves) and their children
+    after the moves (``new_parent``: the links after; module docstring of
+    :mod:`jaxbvh.optimize.reinsert`, step 1)."""
+    cap = st.child.shape[0]
+    extra = jnp.stack([m.a, m.s, m.g, m.up], axis=1)
+    marks = jnp.zeros(cap, bool).at[jnp.where(taken[:, None], none_to_oob(extra, cap), cap)].set(
+        True, mode="drop")
+
+    def mark(marks, nodes, live):
+        return marks.at[jnp.where(live, nodes, cap)].set(True, mode="drop")
+
+    marks = _walk(st.parent, m.p, m.lca, taken, mark, marks, cap)
+    marks = _walk(st.parent, m.out, m.lca, taken, mark, marks, cap)
+    return marks | ((new_parent >= 0) & take_clipped(marks, new_parent))
+
+
 # ----------------------------------------------------------------------------------
 # One iteration
 # ----------------------------------------------------------------------------------
 
 
-def find(st: State, octaves, max_steps, min_gain):
-    """Search and selection of one iteration: ``(moves, taken, gains, count)``.
+def find(st: State, octaves, max_steps, min_gain, settled=None):
+    """Search and selection of one iteration: ``(moves, taken, gains, count, idle)``.
 
-    ``octaves`` [] int32: the candidates (:func:`~jaxbvh.optimize.reinsert_search.candidates`);
-    ``max_steps`` [] int32, ``min_gain`` []: as for :func:`~jaxbvh.optimize.reinsert_search.search`.
+    ``octaves`` [] int32 and ``settled`` [N] bool (None: none): the candidates
+    (:func:`~jaxbvh.optimize.reinsert_search.candidates`); ``max_steps`` [] int32,
+    ``min_gain`` []: as for :func:`~jaxbvh.optimize.reinsert_search.search`.
     Returns the :class:`Moves` found (best first, :func:`~jaxbvh.optimize.reinsert_rules.move_width`
-    lanes), which of them are taken (bool [W]), each lane's gain ([W], 0 for idle lanes)
-    and the number of candidates searched ([] int32). Traceable.
+    lanes), which of them are taken (bool [W]), each lane's gain ([W], 0 for idle lanes),
+    the number of candidates searched ([] int32) and which nodes were searched and
+    found no move (bool [N]). Traceable.
     """
     scale = scale_of(st)
-    ids, count = candidates(st, octaves)
+    ids, count = candidates(st, octaves, settled)
     gain, out, lca = search(st, ids, count, scale, max_steps, min_gain)
     a = best(gain, out, move_width(st.child.shape[0]))
     m = moves(st, a, out, lca)
-    return m, select(st, m), jnp.where(a >= 0, take_clipped(gain, a), 0), count
+    cap = st.child.shape[0]
+    searched = jnp.zeros(cap, bool).at[none_to_oob(ids, cap)].set(True, mode="drop")
+    return m, select(st, m), jnp.where(a >= 0, take_clipped(gain, a), 0), count, searched & (out < 0)
 
 
-def iteration(st: State, prim_count, ct, ci, octaves, max_steps, min_gain):
-    """One iteration: ``(state, moves taken, total gain, SAH after, candidates searched)``.
+def iteration(st: State, prim_count, ct, ci, octaves, max_steps, min_gain, settled=None):
+    """One iteration: ``(state, moves taken, total gain, SAH after, candidates searched,
+    settled after)``.
 
     :func:`find`, then :func:`apply`; ``prim_count`` [N] int32, ``ct``, ``ci``: the SAH
     of the new state (:func:`interior_sah`). The gain is in scaled half-areas (the SAH
-    drops by ``ct * gain / area(root)``). Traceable.
+    drops by ``ct * gain / area(root)``). ``settled`` [N] bool (None: none): nodes not
+    searched, whose last search stands; after: those and the nodes searched without a
+    move, less the nodes the moves touched (:func:`touched`). Traceable.
     """
-    m, taken, gain, count = find(st, octaves, max_steps, min_gain)
+    m, taken, gain, count, idle = find(st, octaves, max_steps, min_gain, settled)
     new = apply(st, m, taken, scale_of(st))
     made = jnp.sum(taken, dtype=jnp.int32)
-    return new, made, jnp.sum(jnp.where(taken, gain, 0)), interior_sah(new, prim_count, ct, ci), count
-
+    settled = idle if settled is None else settled | idle
+    settled = settled & ~touched(st, m, taken, new.parent)
+    return (new, made, jnp.sum(jnp.where(taken, gain, 0)), interior_sah(new, prim_count, ct, ci), count,
+            settled)

@@ -253,47 +253,58 @@ def apply_move(t: Tree, a: int, out: int):
 # ----------------------------------------------------------------------------------
 
 
-def candidates(t: Tree, octaves: int):
+def candidates(t: Tree, octaves: int, settled=frozenset()):
     """Real nodes but the root whose parent's area is at least ``2^-octaves`` of the
-    root's (every one from ``ALL_OCTAVES`` on), in id order."""
+    root's (every one from ``ALL_OCTAVES`` on), in id order, less those in ``settled``."""
     threshold = np.ldexp(t.area(t.root), -min(octaves, ALL_OCTAVES))
     return [a for a in range(t.child.shape[0])
-            if a != t.root and t.parent[a] >= 0
+            if a != t.root and t.parent[a] >= 0 and a not in settled
             and (octaves >= ALL_OCTAVES or t.area(int(t.parent[a])) >= threshold)]
 
 
 def found_moves(t: Tree, nodes, max_steps: int, min_gain: float, width: int):
     """Search ``nodes``; the moves found ``[(gain, a, out, lca), ...]``, the first
-    ``width`` in id order."""
-    found = []
+    ``width`` in id order, and the set of nodes that found none."""
+    found, idle = [], set()
     for a in nodes:
         gain, out, lca, _ = search(t, a, max_steps, min_gain)
         if out >= 0:
             found.append((gain, a, out, lca))
-    return sorted(found, key=lambda m: m[1])[:width]
+        else:
+            idle.add(a)
+    return sorted(found, key=lambda m: m[1])[:width], idle
 
 
-def iteration(t: Tree, octaves: int, max_steps: int, min_gain: float, width: int):
+def iteration(t: Tree, octaves: int, max_steps: int, min_gain: float, width: int, settled=frozenset()):
     """One parallel iteration done sequentially: search, select, apply in rank order.
 
-    Returns the applied moves ``[(gain, a, out, lca), ...]`` best first and the number
-    of candidates searched.
+    ``settled``: nodes not searched (their last search stands). Returns the applied
+    moves ``[(gain, a, out, lca), ...]`` best first, the number of candidates searched
+    and the settled nodes after: those and the nodes searched without a move, less the
+    nodes the taken moves lock (before the moves) and their children (after).
     """
-    nodes = candidates(t, octaves)
-    taken = select(t, found_moves(t, nodes, max_steps, min_gain, width))
+    nodes = candidates(t, octaves, settled)
+    found, idle = found_moves(t, nodes, max_steps, min_gain, width)
+    taken = select(t, found)
+    locked = set()
+    for _, a, out, lca in taken:
+        locked |= lock_set(t, a, out, lca)
     for _, a, out, _ in taken:
         apply_move(t, a, out)
-    return taken, len(nodes)
+    touched = locked | {n for n in range(t.child.shape[0]) if t.parent[n] in locked}
+    return taken, len(nodes), (set(settled) | idle) - touched
 
 
 def reinsert(tree, *, ct=1.0, ci=1.0, max_iterations=1000, max_steps=1024,
-             first_fraction=DEFAULT_FIRST_FRACTION, escalate=1e-4, min_gain=None):
+             first_fraction=DEFAULT_FIRST_FRACTION, escalate=1e-4, min_gain=None, settle=False):
     """Parallel reinsertion, one move at a time; returns ``(tree, info)``.
 
     The schedule and defaults of :func:`jaxbvh.optimize.reinsert.reinsert`: candidates from the octaves
     :func:`jaxbvh.optimize.reinsert.first_octaves` gives, one more octave after an iteration that
     lowers the SAH by at most ``escalate`` (relative), every node after one that takes no
-    move, until an iteration over all nodes takes none (or ``max_iterations``).
+    move, until an iteration over all nodes takes none (or ``max_iterations``); with
+    ``settle``, the settled nodes are skipped (:func:`iteration`) until an iteration over
+    every octave takes no move.
     ``info``: ``iterations``, ``moves`` (total), ``history`` (SAH after each iteration),
     ``taken`` (the moves of each iteration, best first), ``sah``.
     """
@@ -303,15 +314,17 @@ def reinsert(tree, *, ct=1.0, ci=1.0, max_iterations=1000, max_steps=1024,
     area = np.array([t.area(n) for n in range(t.child.shape[0])], t.lo.dtype)
     octaves = first_octaves(area, t.parent, t.root, first_fraction)
     nodes = sum(1 for a in range(t.child.shape[0]) if t.parent[a] >= 0)
-    history, taken_all = [], []
+    history, taken_all, settled = [], [], set()
     start = t.sah(ct, ci)
     for _ in range(max_iterations if ct > 0 else 0):
-        taken, count = iteration(t, octaves, max_steps, min_gain, width)
+        taken, count, settled = iteration(t, octaves, max_steps, min_gain, width, settled if settle else set())
         taken_all.append(taken)
         history.append(t.sah(ct, ci))
         before = history[-2] if len(history) > 1 else start
         if not taken and count == nodes:
             break
+        if not taken and octaves >= ALL_OCTAVES:
+            settled = set()  # no move left among the unsettled nodes: search every node again
         if count < nodes and (not taken or before - history[-1] <= escalate * before):
             octaves = octaves + 1 if taken and octaves < 64 else ALL_OCTAVES
     return t.to_bvh(), {"iterations": len(taken_all), "moves": sum(map(len, taken_all)),

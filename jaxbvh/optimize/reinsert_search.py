@@ -57,15 +57,19 @@ def to_tree(tree, st: State):
                         lo=st.lo, hi=st.hi, root=st.root)
 
 
-def candidates(st: State, octaves):
+def candidates(st: State, octaves, settled=None):
     """Real non-root nodes whose parent's area is at least ``2^-octaves`` of the root's,
     in id order: ``(ids [N] int32 (-1 past count), count [] int32)``; every real non-root
-    node from :data:`~jaxbvh.optimize.reinsert_rules.ALL_OCTAVES` on."""
+    node from :data:`~jaxbvh.optimize.reinsert_rules.ALL_OCTAVES` on. ``settled`` [N]
+    bool (None: none): nodes left out, whose last search still stands (module docstring
+    of :mod:`jaxbvh.optimize.reinsert`, step 1)."""
     cap = st.child.shape[0]
     valid = st.parent >= 0
     area_p = take_clipped(st.area, st.parent)
     threshold = jnp.ldexp(st.area[st.root], -jnp.minimum(octaves, ALL_OCTAVES))
     pick = valid & ((area_p >= threshold) | (octaves >= ALL_OCTAVES))
+    if settled is not None:
+        pick = pick & ~settled
     at = jnp.where(pick, jnp.cumsum(pick.astype(jnp.int32)) - 1, cap)
     ids = jnp.full(cap, -1, jnp.int32).at[at].set(jnp.arange(cap, dtype=jnp.int32), mode="drop")
     return ids, jnp.sum(pick, dtype=jnp.int32)

@@ -34,14 +34,17 @@ def test_every_method_gives_a_valid_tree_and_reports_every_step():
         assert {info.stage for info in steps} <= set(optimizer.stages)
 
 
-def chained_by_hand(tree, rounds=8, round_gain=1e-3, treelet_options=None, reinsert_options=None):
+def chained_by_hand(tree, rounds=8, round_gain=1e-3, treelet_options=None, reinsert_options=None,
+                    first_passes=pipeline.DEFAULT_FIRST_TREELET_PASSES):
     """The pipeline's rounds written out with the stages' own entry points: ``(tree, stages)``."""
     t, sah, stages = tree, float(jaxbvh.sah(jaxbvh.to_jax(tree))), []
     for round_ in range(rounds):
         before = sah
         first = dict(first_fraction=reinsert.DEFAULT_FIRST_FRACTION if round_ == 0 else 1.0)
-        r = treelet.restructure(t, max_passes=pipeline.DEFAULT_TREELET_PASSES, split_axes=False,
-                                **(treelet_options or {}))
+        passes = pipeline.DEFAULT_TREELET_PASSES
+        if round_ == 0 and first_passes is not None:
+            passes = min(passes, first_passes)
+        r = treelet.restructure(t, max_passes=passes, split_axes=False, **(treelet_options or {}))
         t, stages = r.tree, stages + ["treelet"] * int(r.steps)
         sah = float(r.history[r.steps - 1]) if r.steps else sah
         r = reinsert.reinsert(t, split_axes=False, **{**first, **(reinsert_options or {})})
@@ -90,6 +93,12 @@ def test_pipeline_rounds_stop_at_max_rounds_and_chunks_change_nothing():
     chunked = optimize(tree, "pipeline", split_axes=False, max_rounds=1, on_step=log.append)
     assert_same_tree(chunked.tree, one.tree)
     assert [info.stage for info in log] == stages
+    for passes in (0, 1):  # the first round's own treelet passes (traced: the same program)
+        short = optimize(tree, "pipeline", split_axes=False, max_rounds=2, first_treelet_passes=passes)
+        expected, stages = chained_by_hand(tree, rounds=2, first_passes=passes)
+        assert_same_tree(short.tree, expected)
+        assert [pipeline.STAGES[i] for i in short.history_stage[:short.steps]] == stages
+        assert stages[:passes + 1].count("treelet") == passes
 
 
 def test_pipeline_config():

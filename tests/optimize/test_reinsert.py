@@ -139,8 +139,8 @@ def test_each_gain_is_the_drop_in_interior_area_of_its_move(case):
 
 def _one_iteration(tree, octaves=reinsert.ALL_OCTAVES):
     s = PREPARE(jaxbvh.to_jax(tree))
-    m, taken, gains, count = FIND(s, jnp.int32(octaves), jnp.int32(1024), jnp.float32(MIN_GAIN))
-    new, moves, total, sah, _ = ITERATION(
+    m, taken, gains, count, _ = FIND(s, jnp.int32(octaves), jnp.int32(1024), jnp.float32(MIN_GAIN))
+    new, moves, total, sah, *_ = ITERATION(
         s, jnp.asarray(tree.prim_count), jnp.float32(1), jnp.float32(1), jnp.int32(octaves),
         jnp.int32(1024), jnp.float32(MIN_GAIN))
     return s, m, np.asarray(taken), np.asarray(gains), new, int(moves), float(total), float(sah)
@@ -196,11 +196,13 @@ def test_selection_is_the_greedy_choice_over_disjoint_lock_sets(case):
 
 
 @settings(max_examples=15)
-@given(tree_cases, st.sampled_from([1.0, 0.2]))
-def test_reinsert_equals_reference(case, first_fraction):
+@given(tree_cases, st.sampled_from([1.0, 0.2]), st.booleans())
+def test_reinsert_equals_reference(case, first_fraction, settle):
+    """Whole runs node for node as the twin, with and without skipping settled nodes
+    (a traced setting: one program)."""
     tree, plo, phi = random_tree(*case)
-    result = reinsert.reinsert(tree, first_fraction=first_fraction, split_axes=False)
-    expected, info = ref.reinsert(tree, first_fraction=first_fraction)
+    result = reinsert.reinsert(tree, first_fraction=first_fraction, settle=settle, split_axes=False)
+    expected, info = ref.reinsert(tree, first_fraction=first_fraction, settle=settle)
     assert result.steps == info["iterations"] and result.moves == info["moves"]
     assert_same_tree(result.tree, expected)
     history = result.history[:result.steps]
