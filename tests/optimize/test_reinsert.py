@@ -281,11 +281,11 @@ def test_bad_arguments_raise_value_error():
         reinsert.reinsert(wide)
 
 
-@pytest.mark.skipif(not (SHARED_DATA / "tree_cases").exists(), reason=f"shared data not found at {SHARED_DATA}")
+@pytest.mark.skipif(not (SHARED_DATA / "trees").exists(), reason=f"shared data not found at {SHARED_DATA}")
 def test_real_tree_iterations_equal_reference():
     """legocar (tinybvh, leaves of up to 32 triangles): three iterations from the largest
     parent areas, node for node as the twin; valid, leaves untouched, SAH lower."""
-    tree, _ = jaxbvh.load(SHARED_DATA / "tree_cases" / "legocar_binned_ref.npz")
+    tree, _ = jaxbvh.load(SHARED_DATA / "trees" / "legocar_binned_ref.npz")
     result = reinsert.reinsert(tree, max_iterations=3, first_fraction=0.02, split_axes=False)
     expected, info = ref.reinsert(tree, max_iterations=3, first_fraction=0.02)
     assert_same_tree(result.tree, expected)
