@@ -226,8 +226,8 @@ def _level(scene: _Scene, s: _State, *, bins: int, slots: int) -> _State:
     empty_bins = splits.Bins(jnp.zeros((refs, 3), jnp.int32), jnp.zeros((refs, 3), jnp.int32))
     spatial, ref_bins = jax.lax.cond(
         jnp.any(tried),
-        lambda: splits.spatial_split(tri_r, s.ref_lo, s.ref_hi, seg, node_lo, node_hi, tried, slots,
-                                     scene.scale, bins),
+        lambda: splits.spatial_split(scene.tri, s.ref_prim, s.ref_lo, s.ref_hi, seg, node_lo, node_hi, tried,
+                                     slots, scene.scale, bins),
         lambda: (_no_spatial(slots, dt), empty_bins))
     tol = jnp.asarray(1 + TIE_TOLERANCE, dt)
     use_spatial = tried & (spatial.cost * tol < obj.cost)

@@ -107,77 +107,87 @@ class Bins(NamedTuple):
     exit: Any
 
 
-def _axis_bins(tri_r, ref_lo, ref_hi, seg, node_lo, ext, tried, slots: int, axis: int, bins: int):
-    """Spatial bins of one axis: entry and exit counts [F, B], estimated bin boxes
-    [F, B, 3], and each reference's entry and exit bin [R]."""
-    live = (seg < slots) & take(tried, seg, False)
-    lo_r, ext_r = take(node_lo[:, axis], seg, 0), take(ext, seg, 0)
-    b0 = rules.bin_of(ref_lo[:, axis], lo_r, ext_r, bins)
-    b1 = rules.bin_of(ref_hi[:, axis], lo_r, ext_r, bins)
-    key0 = jnp.where(live, seg * bins + b0, slots * bins)
-    key1 = jnp.where(live, seg * bins + b1, slots * bins)
-    ones = jnp.ones(seg.shape, jnp.int32)
-    entries = segment(jax.ops.segment_sum, ones, key0, slots * bins).reshape(slots, bins)
-    exits = segment(jax.ops.segment_sum, ones, key1, slots * bins).reshape(slots, bins)
-    # the reference's corners, clamped to its box, in their bins
-    corner = jnp.clip(tri_r, ref_lo[:, None, :], ref_hi[:, None, :])  # [R, 3, 3]
-    vb = rules.bin_of(corner[:, :, axis], lo_r[:, None], ext_r[:, None], bins)
-    keys = [jnp.where(live[:, None], seg[:, None] * bins + vb, slots * bins).ravel()]
-    points_lo, points_hi = [corner.reshape(-1, 3)], [corner.reshape(-1, 3)]
-    # the crossings of the inner planes j = 1 .. B - 1 its box spans, in bins j - 1 and j
-    j = jnp.arange(1, bins, dtype=jnp.int32)
-    plane = rules.plane_at(lo_r[:, None], ext_r[:, None], j[None, :], bins)  # [R, B - 1]
-    mask = jnp.broadcast_to(jnp.arange(3) == axis, plane.shape + (3,))
-    x_lo, x_hi, crosses = rules.crossings(jnp.broadcast_to(tri_r[:, None], plane.shape + (3, 3)), mask, plane)
-    c_lo = jnp.where(crosses[..., None], x_lo, jnp.inf).min(-2)
-    c_hi = jnp.where(crosses[..., None], x_hi, -jnp.inf).max(-2)
-    c_lo = jnp.clip(c_lo, ref_lo[:, None, :], ref_hi[:, None, :])
-    c_hi = jnp.clip(c_hi, ref_lo[:, None, :], ref_hi[:, None, :])
-    spans = live[:, None] & crosses.any(-1) & (b0[:, None] < j[None, :]) & (j[None, :] <= b1[:, None])
-    for side in (j - 1, j):
-        keys.append(jnp.where(spans, seg[:, None] * bins + side[None, :], slots * bins).ravel())
-        points_lo.append(c_lo.reshape(-1, 3))
-        points_hi.append(c_hi.reshape(-1, 3))
-    key = jnp.concatenate(keys)
-    box_lo = segment(jax.ops.segment_min, jnp.concatenate(points_lo), key, slots * bins).reshape(slots, bins, 3)
-    box_hi = segment(jax.ops.segment_max, jnp.concatenate(points_hi), key, slots * bins).reshape(slots, bins, 3)
-    return entries, exits, box_lo, box_hi, b0, b1
+def pair_sizes(refs: int, bins: int) -> list[int]:
+    """Buffer sizes of the spatial search's (reference, axis, bin) pieces for ``refs``
+    reference slots: a live reference makes one piece per axis and bin it spans, so
+    ``3 refs`` when none straddles a bin border and at most ``3 refs bins``; sizes in
+    between cover the deep levels (few live references) and the usual straddling."""
+    full = 3 * refs * bins
+    return sorted({min(full, max(64, (3 * refs * m) // 64)) for m in (1, 8, 32, 96, 256)} | {full})
 
 
-def compact_sizes(refs: int) -> list[int]:
-    """Buffer sizes the spatial search gathers the references of tried nodes into: a
-    64th and an 8th of the slots (at least 64) and all of them."""
-    return sorted({min(refs, max(64, refs // 64)), min(refs, max(64, refs // 8)), refs})
+def _piece_boxes(tri_r, ref_lo, ref_hi, axis, node_lo_a, ext_a, b0, b1, b, valid, bins: int):
+    """Estimated box ([P, 3] lo, hi) of pieces: reference ``r``'s part in spatial bin ``b``
+    of axis ``axis`` (all [P], gathered per piece): its corners clamped to its box that
+    fall in ``b``, and the clamped crossings of the planes ``b`` and ``b + 1`` where its
+    box spans them (the twin's ``_bin_boxes`` for one reference and one bin)."""
+    dt = ref_lo.dtype
+    inf = jnp.asarray(jnp.inf, dt)
+    mask = axis[:, None] == jnp.arange(3)[None, :]  # [P, 3] one-hot axis
+    corner = jnp.clip(tri_r, ref_lo[:, None, :], ref_hi[:, None, :])  # [P, 3 corners, 3]
+    vb = rules.bin_of(rules.axis_coordinate(corner, mask), node_lo_a[:, None], ext_a[:, None], bins)
+    inside = valid[:, None] & (vb == b[:, None])
+    lo = jnp.where(inside[..., None], corner, inf).min(1)
+    hi = jnp.where(inside[..., None], corner, -inf).max(1)
+    # plane j = b (its crossing lies in bins b - 1 and b) and j = b + 1 (bins b and b + 1)
+    j = b[:, None] + jnp.arange(2, dtype=jnp.int32)[None, :]  # [P, 2]
+    spans = valid[:, None] & (b0[:, None] < j) & (j <= b1[:, None])
+    plane = rules.plane_at(node_lo_a[:, None], ext_a[:, None], j, bins)
+    x_lo, x_hi, crosses = rules.crossings(jnp.broadcast_to(tri_r[:, None], (tri_r.shape[0], 2, 3, 3)),
+                                          jnp.broadcast_to(mask[:, None], (mask.shape[0], 2, 3)), plane)
+    c_lo = jnp.clip(jnp.where(crosses[..., None], x_lo, inf).min(-2), ref_lo[:, None], ref_hi[:, None])
+    c_hi = jnp.clip(jnp.where(crosses[..., None], x_hi, -inf).max(-2), ref_lo[:, None], ref_hi[:, None])
+    used = spans & crosses.any(-1)  # [P, 2]
+    lo = jnp.minimum(lo, jnp.where(used[..., None], c_lo, inf).min(1))
+    hi = jnp.maximum(hi, jnp.where(used[..., None], c_hi, -inf).max(1))
+    return lo, hi
 
 
-def spatial_split(tri_r, ref_lo, ref_hi, seg, node_lo, node_hi, tried, slots: int, scale, bins: int):
+def spatial_split(tri, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, tried, slots: int, scale, bins: int):
     """Binned spatial split of the slots ``tried`` [F] bool: ``(split, bins)``.
 
-    Only the references of tried nodes are binned (deep nodes are rarely tried: their
-    overlap falls below the threshold): they are gathered first into the smallest
-    buffer of :func:`compact_sizes` that holds them (one compiled branch per size).
+    Every live reference (one of a tried node) spans bins ``b0 .. b1`` per axis; it is cut
+    into one *piece* per (axis, bin) it spans, listed in a flat buffer (the smallest size
+    of :func:`pair_sizes` that holds them, one compiled branch per size), and each piece's
+    estimated box enters its (node, axis, bin) in one segment reduction. A reference
+    inside one bin (most of them) is one piece per axis, so the work follows the live
+    references and their straddling, not ``bins`` times every slot.
     """
     refs = seg.shape[0]
     ext = node_hi - node_lo  # [F, 3]
     live = (seg < slots) & take(tried, seg, False)
-    order = jnp.argsort(~live, stable=True)  # the live references first
+    lo_r, ext_r = take(node_lo, seg, 0), take(ext, seg, 0)  # [R, 3]
+    b0 = rules.bin_of(ref_lo, lo_r, ext_r, bins)  # [R, 3] entry and exit bins per axis
+    b1 = rules.bin_of(ref_hi, lo_r, ext_r, bins)
+    width = jnp.where(live[:, None], b1 - b0 + 1, 0).ravel()  # [3 R] pieces per (reference, axis)
+    ends = jnp.cumsum(width)
+    total = ends[-1]
+    cells = slots * 3 * bins
 
     def search(size: int):
         def run():
-            idx = order[:size]
-            sub_seg = jnp.where(live[idx], seg[idx], slots)
-            per_axis = [_axis_bins(tri_r[idx], ref_lo[idx], ref_hi[idx], sub_seg, node_lo, ext[:, a], tried,
-                                   slots, a, bins) for a in range(3)]
-            entries, exits, box_lo, box_hi, b0, b1 = (jnp.stack(v, axis=1) for v in zip(*per_axis))
-            split = _sweep_bins((entries, exits), box_lo, box_hi, (ext > 0) & tried[:, None], scale, bins)
-            full = jnp.zeros((refs, 3), jnp.int32)
-            return split, Bins(full.at[idx].set(b0), full.at[idx].set(b1))
+            p = jnp.arange(size, dtype=jnp.int32)
+            owner = jnp.clip(jnp.searchsorted(ends, p, side="right"), 0, 3 * refs - 1).astype(jnp.int32)
+            valid = p < total
+            r, axis = owner // 3, owner % 3
+            b0_p, b1_p = b0.ravel()[owner], b1.ravel()[owner]
+            b = b0_p + p - (ends[owner] - width[owner])
+            seg_p = seg[r]
+            box_lo, box_hi = _piece_boxes(tri[jnp.clip(ref_prim[r], 0, tri.shape[0] - 1)], ref_lo[r], ref_hi[r],
+                                          axis, lo_r.ravel()[owner], ext_r.ravel()[owner], b0_p, b1_p, b, valid,
+                                          bins)
+            key = jnp.where(valid, (seg_p * 3 + axis) * bins + b, cells)
+            flags = jnp.stack([b == b0_p, b == b1_p], axis=1).astype(jnp.int32)
+            counts = segment(jax.ops.segment_sum, flags, key, cells).reshape(slots, 3, bins, 2)
+            box_lo = segment(jax.ops.segment_min, box_lo, key, cells).reshape(slots, 3, bins, 3)
+            box_hi = segment(jax.ops.segment_max, box_hi, key, cells).reshape(slots, 3, bins, 3)
+            return _sweep_bins((counts[..., 0], counts[..., 1]), box_lo, box_hi, (ext > 0) & tried[:, None],
+                               scale, bins)
         return run
 
-    sizes = compact_sizes(refs)
-    n_live = jnp.sum(live, dtype=jnp.int32)
-    branch = sum((n_live > size).astype(jnp.int32) for size in sizes[:-1])
-    return jax.lax.switch(branch, [search(size) for size in sizes])
+    sizes = pair_sizes(refs, bins)
+    branch = sum((total > size).astype(jnp.int32) for size in sizes[:-1])
+    return jax.lax.switch(branch, [search(size) for size in sizes]), Bins(b0, b1)
 
 
 class Sides(NamedTuple):
