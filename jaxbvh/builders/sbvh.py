@@ -147,6 +147,7 @@ class _Scene(NamedTuple):
     """What every level reads and no level changes."""
 
     tri: Any        # [R, 3, 3] triangles (rows past n unused)
+    columns: Any    # [9, R] the same, coordinate by coordinate (vertex k's coordinate c in row 3 k + c)
     scale: Any      # the scene's power-of-two area scale
     threshold: Any  # alpha times the root's half-area: overlap above which spatial splits are tried
     max_leaf: Any   # int32
@@ -226,7 +227,7 @@ def _level(scene: _Scene, s: _State, *, bins: int, slots: int) -> _State:
     empty_bins = splits.Bins(jnp.zeros((refs, 3), jnp.int32), jnp.zeros((refs, 3), jnp.int32))
     spatial, ref_bins = jax.lax.cond(
         jnp.any(tried),
-        lambda: splits.spatial_split(scene.tri, s.ref_prim, s.ref_lo, s.ref_hi, seg, node_lo, node_hi, tried,
+        lambda: splits.spatial_split(scene.columns, s.ref_prim, s.ref_lo, s.ref_hi, seg, node_lo, node_hi, tried,
                                      slots, scene.scale, bins),
         lambda: (_no_spatial(slots, dt), empty_bins))
     tol = jnp.asarray(1 + TIE_TOLERANCE, dt)
@@ -319,7 +320,7 @@ def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int) -> SBVHBuil
     ``max_leaf`` int32; ``ct``, ``ci``, ``scale``, ``threshold``: scalars in ``tri``'s
     dtype; ``bins`` static. Returns an :class:`SBVHBuild`.
     """
-    scene = _Scene(tri, scale, threshold, max_leaf, ct, ci)
+    scene = _Scene(tri, tri.reshape(tri.shape[0], 9).T, scale, threshold, max_leaf, ct, ci)
     state = _initial(scene, n)
     for slots in stage_slots(tri.shape[0]):  # levels with few open nodes run on small arrays
         state = jax.lax.while_loop(lambda s, f=slots: (s.next_free > s.level_start)

@@ -116,34 +116,52 @@ def pair_sizes(refs: int, bins: int) -> list[int]:
     return sorted({min(full, max(64, (3 * refs * m) // 64)) for m in (1, 8, 32, 96, 256)} | {full})
 
 
-def _piece_boxes(tri_r, ref_lo, ref_hi, axis, node_lo_a, ext_a, b0, b1, b, valid, bins: int):
-    """Estimated box ([P, 3] lo, hi) of pieces: reference ``r``'s part in spatial bin ``b``
-    of axis ``axis`` (all [P], gathered per piece): its corners clamped to its box that
-    fall in ``b``, and the clamped crossings of the planes ``b`` and ``b + 1`` where its
-    box spans them (the twin's ``_bin_boxes`` for one reference and one bin)."""
-    dt = ref_lo.dtype
+def _on_axis(axis, coords):
+    """The coordinate on ``axis`` [P] of a point given as three coordinate arrays [P]."""
+    return jnp.where(axis == 0, coords[0], jnp.where(axis == 1, coords[1], coords[2]))
+
+
+def _piece_boxes(v, ref_lo, ref_hi, axis, node_lo_a, ext_a, b1, b, valid, bins: int):
+    """What a piece adds to the bin boxes: a reference's part around spatial bin ``b`` of
+    ``axis`` (all [P], one entry per piece). Returns ``(lo, hi, cross_lo, cross_hi)``,
+    three coordinate arrays [P] each: the box of its corners clamped to its box that fall
+    in ``b`` joined with the clamped crossing of plane ``b + 1`` (bin ``b``), and that
+    crossing alone (bin ``b + 1``); the crossing counts where the box spans the plane
+    (``b < b1``) and an edge crosses it (the twin's ``_bin_boxes``, one plane at a time).
+    ``v[k][c]``: vertex ``k``'s coordinate ``c``; ``ref_lo[c]``, ``ref_hi[c]``.
+
+    Written coordinate by coordinate on flat arrays: XLA on CPU runs arrays with a
+    trailing axis of 3 (and reductions over it) many times slower.
+    """
+    dt = ref_lo[0].dtype
     inf = jnp.asarray(jnp.inf, dt)
-    mask = axis[:, None] == jnp.arange(3)[None, :]  # [P, 3] one-hot axis
-    corner = jnp.clip(tri_r, ref_lo[:, None, :], ref_hi[:, None, :])  # [P, 3 corners, 3]
-    vb = rules.bin_of(rules.axis_coordinate(corner, mask), node_lo_a[:, None], ext_a[:, None], bins)
-    inside = valid[:, None] & (vb == b[:, None])
-    lo = jnp.where(inside[..., None], corner, inf).min(1)
-    hi = jnp.where(inside[..., None], corner, -inf).max(1)
-    # plane j = b (its crossing lies in bins b - 1 and b) and j = b + 1 (bins b and b + 1)
-    j = b[:, None] + jnp.arange(2, dtype=jnp.int32)[None, :]  # [P, 2]
-    spans = valid[:, None] & (b0[:, None] < j) & (j <= b1[:, None])
-    plane = rules.plane_at(node_lo_a[:, None], ext_a[:, None], j, bins)
-    x_lo, x_hi, crosses = rules.crossings(jnp.broadcast_to(tri_r[:, None], (tri_r.shape[0], 2, 3, 3)),
-                                          jnp.broadcast_to(mask[:, None], (mask.shape[0], 2, 3)), plane)
-    c_lo = jnp.clip(jnp.where(crosses[..., None], x_lo, inf).min(-2), ref_lo[:, None], ref_hi[:, None])
-    c_hi = jnp.clip(jnp.where(crosses[..., None], x_hi, -inf).max(-2), ref_lo[:, None], ref_hi[:, None])
-    used = spans & crosses.any(-1)  # [P, 2]
-    lo = jnp.minimum(lo, jnp.where(used[..., None], c_lo, inf).min(1))
-    hi = jnp.maximum(hi, jnp.where(used[..., None], c_hi, -inf).max(1))
-    return lo, hi
+    corner = [[jnp.clip(v[k][c], ref_lo[c], ref_hi[c]) for c in range(3)] for k in range(3)]
+    lo, hi = [inf] * 3, [-inf] * 3
+    for k in range(3):
+        inside = valid & (rules.bin_of(_on_axis(axis, corner[k]), node_lo_a, ext_a, bins) == b)
+        lo = [jnp.minimum(lo[c], jnp.where(inside, corner[k][c], inf)) for c in range(3)]
+        hi = [jnp.maximum(hi[c], jnp.where(inside, corner[k][c], -inf)) for c in range(3)]
+    a = [_on_axis(axis, v[k]) for k in range(3)]  # the vertices on the split axis
+    p = rules.plane_at(node_lo_a, ext_a, b + 1, bins)
+    x_lo, x_hi, crossed = [inf] * 3, [-inf] * 3, jnp.zeros(p.shape, bool)
+    for i, k in rules.EDGES:
+        crosses = ((a[i] < p) & (a[k] > p)) | ((a[i] > p) & (a[k] < p))
+        denominator = jnp.where(crosses, a[k] - a[i], jnp.ones((), dt))
+        crossed = crossed | crosses
+        for c in range(3):
+            x = rules.crossing_coordinate(v[i][c], v[k][c], a[i], p, denominator)
+            margin = rules.clip_margin(v[i][c], v[k][c])
+            x_lo[c] = jnp.minimum(x_lo[c], jnp.where(crosses, jnp.where(axis == c, p, x - margin), inf))
+            x_hi[c] = jnp.maximum(x_hi[c], jnp.where(crosses, jnp.where(axis == c, p, x + margin), -inf))
+    used = valid & (b < b1) & crossed
+    cross_lo = [jnp.where(used, jnp.clip(x_lo[c], ref_lo[c], ref_hi[c]), inf) for c in range(3)]
+    cross_hi = [jnp.where(used, jnp.clip(x_hi[c], ref_lo[c], ref_hi[c]), -inf) for c in range(3)]
+    lo = [jnp.minimum(lo[c], cross_lo[c]) for c in range(3)]
+    hi = [jnp.maximum(hi[c], cross_hi[c]) for c in range(3)]
+    return lo, hi, cross_lo, cross_hi
 
 
-def spatial_split(tri, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, tried, slots: int, scale, bins: int):
+def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, tried, slots: int, scale, bins: int):
     """Binned spatial split of the slots ``tried`` [F] bool: ``(split, bins)``.
 
     Every live reference (one of a tried node) spans bins ``b0 .. b1`` per axis; it is cut
@@ -156,6 +174,7 @@ def spatial_split(tri, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, tried, s
     refs = seg.shape[0]
     ext = node_hi - node_lo  # [F, 3]
     live = (seg < slots) & take(tried, seg, False)
+    lo_columns, hi_columns = ref_lo.T, ref_hi.T  # [3, R]
     lo_r, ext_r = take(node_lo, seg, 0), take(ext, seg, 0)  # [R, 3]
     b0 = rules.bin_of(ref_lo, lo_r, ext_r, bins)  # [R, 3] entry and exit bins per axis
     b1 = rules.bin_of(ref_hi, lo_r, ext_r, bins)
@@ -173,14 +192,24 @@ def spatial_split(tri, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, tried, s
             b0_p, b1_p = b0.ravel()[owner], b1.ravel()[owner]
             b = b0_p + p - (ends[owner] - width[owner])
             seg_p = seg[r]
-            box_lo, box_hi = _piece_boxes(tri[jnp.clip(ref_prim[r], 0, tri.shape[0] - 1)], ref_lo[r], ref_hi[r],
-                                          axis, lo_r.ravel()[owner], ext_r.ravel()[owner], b0_p, b1_p, b, valid,
-                                          bins)
+            prim = jnp.clip(ref_prim[r], 0, tri_columns.shape[1] - 1)
+            # gathered column by column and kept apart from the arithmetic (fused, XLA
+            # would gather again inside every use, several times slower)
+            corners, box_lo, box_hi = jax.lax.optimization_barrier(
+                ([column[prim] for column in tri_columns], [column[r] for column in lo_columns],
+                 [column[r] for column in hi_columns]))
+            v = [corners[3 * k: 3 * k + 3] for k in range(3)]
+            box_lo, box_hi, cross_lo, cross_hi = _piece_boxes(
+                v, box_lo, box_hi, axis, lo_r.ravel()[owner], ext_r.ravel()[owner], b1_p, b, valid, bins)
             key = jnp.where(valid, (seg_p * 3 + axis) * bins + b, cells)
             flags = jnp.stack([b == b0_p, b == b1_p], axis=1).astype(jnp.int32)
             counts = segment(jax.ops.segment_sum, flags, key, cells).reshape(slots, 3, bins, 2)
-            box_lo = segment(jax.ops.segment_min, box_lo, key, cells).reshape(slots, 3, bins, 3)
-            box_hi = segment(jax.ops.segment_max, box_hi, key, cells).reshape(slots, 3, bins, 3)
+            # bin b takes the piece's box, bin b + 1 its crossing of plane b + 1 too
+            key2 = jnp.concatenate([key, jnp.where(valid & (b < b1_p), key + 1, cells)])
+            box_lo = segment(jax.ops.segment_min, jnp.concatenate([jnp.stack(box_lo, 1), jnp.stack(cross_lo, 1)]),
+                             key2, cells).reshape(slots, 3, bins, 3)
+            box_hi = segment(jax.ops.segment_max, jnp.concatenate([jnp.stack(box_hi, 1), jnp.stack(cross_hi, 1)]),
+                             key2, cells).reshape(slots, 3, bins, 3)
             return _sweep_bins((counts[..., 0], counts[..., 1]), box_lo, box_hi, (ext > 0) & tried[:, None],
                                scale, bins)
         return run
