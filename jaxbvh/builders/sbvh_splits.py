@@ -39,34 +39,48 @@ def segment(op, values, seg, slots):
 
 def _best_plane(cost, lo_l, hi_l, lo_r, hi_r, n_l, n_r, bins: int) -> Split:
     """Tie-rule winner of candidates [F, 3, B - 1] (least cost; within TIE_TOLERANCE the
-    lowest axis, then the lowest plane)."""
+    lowest axis, then the lowest plane); boxes as three coordinate arrays [F, 3, B - 1]."""
     slots = cost.shape[0]
     flat = cost.reshape(slots, -1)
     best = flat.min(axis=1)
     near = best * jnp.asarray(1 + TIE_TOLERANCE, cost.dtype)
     first = jnp.argmax((flat <= near[:, None]) & (flat < jnp.inf), axis=1).astype(jnp.int32)
     axis, plane = first // (bins - 1), first % (bins - 1)
-    row = jnp.arange(slots)
 
     def pick(v):
-        return v.reshape((slots, -1) + v.shape[3:])[row, first]
+        return jnp.take_along_axis(v.reshape(slots, -1), first[:, None], axis=1)[:, 0]
 
-    return Split(best, axis, plane, pick(lo_l), pick(hi_l), pick(lo_r), pick(hi_r), pick(n_l), pick(n_r))
+    def box(coords):
+        return jnp.stack([pick(c) for c in coords], axis=1)
+
+    return Split(best, axis, plane, box(lo_l), box(hi_l), box(lo_r), box(hi_r), pick(n_l), pick(n_r))
 
 
 def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int):
-    """Candidates of binned counts and boxes [F, 3, B(, 3)]: the plane after bin ``k``
-    has on its left the bins ``<= k`` and on its right the others."""
+    """Candidates of binned counts [F, 3, B] and boxes (three coordinate arrays [F, 3, B]
+    each): the plane after bin ``k`` has on its left the bins ``<= k`` and on its right
+    the others. Coordinates stay apart: XLA on CPU is many times slower on arrays with
+    a trailing axis of 3."""
     n_l = jnp.cumsum(count[0], axis=2)[:, :, : bins - 1]
     n_r = jnp.flip(jnp.cumsum(jnp.flip(count[1], 2), axis=2), 2)[:, :, 1:]
-    lo_l = jax.lax.cummin(box_lo, axis=2)[:, :, : bins - 1]
-    hi_l = jax.lax.cummax(box_hi, axis=2)[:, :, : bins - 1]
-    lo_r = jax.lax.cummin(box_lo, axis=2, reverse=True)[:, :, 1:]
-    hi_r = jax.lax.cummax(box_hi, axis=2, reverse=True)[:, :, 1:]
-    dt = box_lo.dtype
-    cost = half_area(lo_l, hi_l, scale) * n_l.astype(dt) + half_area(lo_r, hi_r, scale) * n_r.astype(dt)
+    lo_l = [jax.lax.cummin(c, axis=2)[:, :, : bins - 1] for c in box_lo]
+    hi_l = [jax.lax.cummax(c, axis=2)[:, :, : bins - 1] for c in box_hi]
+    lo_r = [jax.lax.cummin(c, axis=2, reverse=True)[:, :, 1:] for c in box_lo]
+    hi_r = [jax.lax.cummax(c, axis=2, reverse=True)[:, :, 1:] for c in box_hi]
+    dt = box_lo[0].dtype
+
+    def area(lo, hi):
+        return half_area(jnp.stack(lo, -1), jnp.stack(hi, -1), scale)
+
+    cost = area(lo_l, hi_l) * n_l.astype(dt) + area(lo_r, hi_r) * n_r.astype(dt)
     cost = jnp.where(usable[:, :, None] & (n_l > 0) & (n_r > 0), cost, jnp.inf)
     return _best_plane(cost, lo_l, hi_l, lo_r, hi_r, n_l, n_r, bins)
+
+
+def _cells(op, columns, key, cells: int, slots: int, bins: int):
+    """``op`` (segment min or max) of each coordinate column [M] over ``key`` into
+    ``cells`` (node, axis, bin) cells (``cells`` itself: dropped): three arrays [F, 3, B]."""
+    return [segment(op, column, key, cells).reshape(slots, 3, bins) for column in columns]
 
 
 def object_split(ref_lo, ref_hi, seg, slots: int, scale, bins: int):
@@ -81,15 +95,12 @@ def object_split(ref_lo, ref_hi, seg, slots: int, scale, bins: int):
     span = cmax - cmin
     low_r, span_r = take(cmin, seg, 0), take(span, seg, 0)
     bin3 = rules.bin_of(centre, low_r, span_r, bins)  # [R, 3]
+    cells = slots * 3 * bins
     key = seg[:, None] * (3 * bins) + jnp.arange(3, dtype=jnp.int32)[None, :] * bins + bin3
-    key = jnp.where(active[:, None], key, slots * 3 * bins).ravel()
-    total = slots * 3 * bins
-    ones = jnp.ones(key.shape, jnp.int32)
-    count = segment(jax.ops.segment_sum, ones, key, total).reshape(slots, 3, bins)
-    lo = jnp.broadcast_to(ref_lo[:, None, :], (ref_lo.shape[0], 3, 3)).reshape(-1, 3)
-    hi = jnp.broadcast_to(ref_hi[:, None, :], (ref_hi.shape[0], 3, 3)).reshape(-1, 3)
-    box_lo = segment(jax.ops.segment_min, lo, key, total).reshape(slots, 3, bins, 3)
-    box_hi = segment(jax.ops.segment_max, hi, key, total).reshape(slots, 3, bins, 3)
+    key = jnp.where(active[:, None], key, cells).T.ravel()  # axis-major: [3 R]
+    count = segment(jax.ops.segment_sum, jnp.ones(key.shape, jnp.int32), key, cells).reshape(slots, 3, bins)
+    box_lo = _cells(jax.ops.segment_min, [jnp.tile(column, 3) for column in ref_lo.T], key, cells, slots, bins)
+    box_hi = _cells(jax.ops.segment_max, [jnp.tile(column, 3) for column in ref_hi.T], key, cells, slots, bins)
     split = _sweep_bins((count, count), box_lo, box_hi, span > 0, scale, bins)
     return split, bin3
 
@@ -201,16 +212,17 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
             v = [corners[3 * k: 3 * k + 3] for k in range(3)]
             box_lo, box_hi, cross_lo, cross_hi = _piece_boxes(
                 v, box_lo, box_hi, axis, lo_r.ravel()[owner], ext_r.ravel()[owner], b1_p, b, valid, bins)
+            # plane b's crossing was found by the piece before (same reference and
+            # axis, bin b - 1): bin b takes it from there
+            after_first = b > b0_p
+            box_lo = [jnp.minimum(lo, jnp.where(after_first, jnp.roll(x, 1), jnp.inf)) for lo, x in zip(box_lo, cross_lo)]
+            box_hi = [jnp.maximum(hi, jnp.where(after_first, jnp.roll(x, 1), -jnp.inf)) for hi, x in zip(box_hi, cross_hi)]
             key = jnp.where(valid, (seg_p * 3 + axis) * bins + b, cells)
-            flags = jnp.stack([b == b0_p, b == b1_p], axis=1).astype(jnp.int32)
-            counts = segment(jax.ops.segment_sum, flags, key, cells).reshape(slots, 3, bins, 2)
-            # bin b takes the piece's box, bin b + 1 its crossing of plane b + 1 too
-            key2 = jnp.concatenate([key, jnp.where(valid & (b < b1_p), key + 1, cells)])
-            box_lo = segment(jax.ops.segment_min, jnp.concatenate([jnp.stack(box_lo, 1), jnp.stack(cross_lo, 1)]),
-                             key2, cells).reshape(slots, 3, bins, 3)
-            box_hi = segment(jax.ops.segment_max, jnp.concatenate([jnp.stack(box_hi, 1), jnp.stack(cross_hi, 1)]),
-                             key2, cells).reshape(slots, 3, bins, 3)
-            return _sweep_bins((counts[..., 0], counts[..., 1]), box_lo, box_hi, (ext > 0) & tried[:, None],
+            counts = [segment(jax.ops.segment_sum, (flag & valid).astype(jnp.int32), key, cells).reshape(slots, 3, bins)
+                      for flag in (b == b0_p, b == b1_p)]
+            box_lo = _cells(jax.ops.segment_min, box_lo, key, cells, slots, bins)
+            box_hi = _cells(jax.ops.segment_max, box_hi, key, cells, slots, bins)
+            return _sweep_bins(counts, box_lo, box_hi, (ext > 0) & tried[:, None],
                                scale, bins)
         return run
 
