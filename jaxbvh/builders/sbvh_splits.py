@@ -8,6 +8,7 @@ the last one thrown away. Rules: :mod:`jaxbvh.builders.sbvh`'s docstring.
 
 from __future__ import annotations
 
+import functools
 from typing import Any, NamedTuple
 
 import jax
@@ -37,50 +38,70 @@ def segment(op, values, seg, slots):
     return op(values, seg, num_segments=slots + 1)[:slots]
 
 
-def _best_plane(cost, lo_l, hi_l, lo_r, hi_r, n_l, n_r, bins: int) -> Split:
-    """Tie-rule winner of candidates [F, 3, B - 1] (least cost; within TIE_TOLERANCE the
-    lowest axis, then the lowest plane); boxes as three coordinate arrays [F, 3, B - 1]."""
-    slots = cost.shape[0]
-    flat = cost.reshape(slots, -1)
-    best = flat.min(axis=1)
-    near = best * jnp.asarray(1 + TIE_TOLERANCE, cost.dtype)
-    first = jnp.argmax((flat <= near[:, None]) & (flat < jnp.inf), axis=1).astype(jnp.int32)
-    axis, plane = first // (bins - 1), first % (bins - 1)
+def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int) -> Split:
+    """Best plane of binned counts and boxes per slot and axis.
 
-    def pick(v):
-        return jnp.take_along_axis(v.reshape(slots, -1), first[:, None], axis=1)[:, 0]
-
-    def box(coords):
-        return jnp.stack([pick(c) for c in coords], axis=1)
-
-    return Split(best, axis, plane, box(lo_l), box(hi_l), box(lo_r), box(hi_r), pick(n_l), pick(n_r))
-
-
-def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int):
-    """Candidates of binned counts [F, 3, B] and boxes (three coordinate arrays [F, 3, B]
-    each): the plane after bin ``k`` has on its left the bins ``<= k`` and on its right
-    the others. Coordinates stay apart: XLA on CPU is many times slower on arrays with
-    a trailing axis of 3."""
-    n_l = jnp.cumsum(count[0], axis=2)[:, :, : bins - 1]
-    n_r = jnp.flip(jnp.cumsum(jnp.flip(count[1], 2), axis=2), 2)[:, :, 1:]
-    lo_l = [jax.lax.cummin(c, axis=2)[:, :, : bins - 1] for c in box_lo]
-    hi_l = [jax.lax.cummax(c, axis=2)[:, :, : bins - 1] for c in box_hi]
-    lo_r = [jax.lax.cummin(c, axis=2, reverse=True)[:, :, 1:] for c in box_lo]
-    hi_r = [jax.lax.cummax(c, axis=2, reverse=True)[:, :, 1:] for c in box_hi]
+    ``count``: (entries, exits), ``box_lo``, ``box_hi``: three coordinate arrays each,
+    all [B, F, 3] (bin, slot, axis). The plane after bin ``k`` has on its left the bins
+    ``<= k`` (``N_L``: entries there) and on its right the others (``N_R``: exits
+    there). Tie-rule winner: least cost; within TIE_TOLERANCE the lowest axis, then the
+    lowest plane. The sweeps run bin by bin over [F, 3] arrays (XLA's cumulative ops
+    and arrays with a trailing axis of 3 are many times slower on CPU).
+    """
+    entries, exits = count
     dt = box_lo[0].dtype
+
+    def sweep(order, counts):
+        """Running count and box over the bins in ``order``: one [F, 3] entry per step."""
+        n, lo, hi = [], [], []
+        for k in order:
+            n.append(counts[k] if not n else n[-1] + counts[k])
+            lo.append([c[k] if not lo else jnp.minimum(lo[-1][i], c[k]) for i, c in enumerate(box_lo)])
+            hi.append([c[k] if not hi else jnp.maximum(hi[-1][i], c[k]) for i, c in enumerate(box_hi)])
+        return n, lo, hi
+
+    n_l, lo_l, hi_l = sweep(range(bins - 1), entries)  # plane k: bins 0 .. k
+    n_r, lo_r, hi_r = (v[::-1] for v in sweep(range(bins - 1, 0, -1), exits))  # plane k: bins k + 1 ..
 
     def area(lo, hi):
         return half_area(jnp.stack(lo, -1), jnp.stack(hi, -1), scale)
 
-    cost = area(lo_l, hi_l) * n_l.astype(dt) + area(lo_r, hi_r) * n_r.astype(dt)
-    cost = jnp.where(usable[:, :, None] & (n_l > 0) & (n_r > 0), cost, jnp.inf)
-    return _best_plane(cost, lo_l, hi_l, lo_r, hi_r, n_l, n_r, bins)
+    cost = [jnp.where(usable & (n_l[k] > 0) & (n_r[k] > 0),
+                      area(lo_l[k], hi_l[k]) * n_l[k].astype(dt) + area(lo_r[k], hi_r[k]) * n_r[k].astype(dt),
+                      jnp.inf) for k in range(bins - 1)]
+    best = functools.reduce(jnp.minimum, cost).min(axis=1)  # [F]
+    near = (best * jnp.asarray(1 + TIE_TOLERANCE, dt))[:, None]
+    # the first candidate (axis-major, then plane) within the tolerance of the best
+    none = 3 * (bins - 1)
+    first = jnp.full(best.shape, none, jnp.int32)
+    for axis in range(2, -1, -1):
+        for k in range(bins - 2, -1, -1):
+            hit = (cost[k][:, axis] <= near[:, 0]) & (cost[k][:, axis] < jnp.inf)
+            first = jnp.where(hit, axis * (bins - 1) + k, first)
+    first = jnp.where(first == none, 0, first)
+    axis, plane = first // (bins - 1), first % (bins - 1)
+
+    def pick(values):  # values: one [F, 3] array per plane: the winner's
+        at = values[0]
+        for k in range(1, bins - 1):
+            at = jnp.where((plane == k)[:, None], values[k], at)
+        return jnp.take_along_axis(at, axis[:, None], axis=1)[:, 0]
+
+    def box(boxes):
+        return jnp.stack([pick([b[i] for b in boxes]) for i in range(3)], axis=1)
+
+    return Split(best, axis, plane, box(lo_l), box(hi_l), box(lo_r), box(hi_r), pick(n_l), pick(n_r))
 
 
 def _cells(op, columns, key, cells: int, slots: int, bins: int):
     """``op`` (segment min or max) of each coordinate column [M] over ``key`` into
-    ``cells`` (node, axis, bin) cells (``cells`` itself: dropped): three arrays [F, 3, B]."""
-    return [segment(op, column, key, cells).reshape(slots, 3, bins) for column in columns]
+    ``cells`` (bin, slot, axis) cells (``cells`` itself: dropped): three arrays [B, F, 3]."""
+    return [segment(op, column, key, cells).reshape(bins, slots, 3) for column in columns]
+
+
+def cell_key(bin_, seg, axis, slots: int):
+    """Cell of (bin, slot, axis) in the [B, F, 3] layout of the binned sweeps."""
+    return (bin_ * slots + seg) * 3 + axis
 
 
 def object_split(ref_lo, ref_hi, seg, slots: int, scale, bins: int):
@@ -96,9 +117,9 @@ def object_split(ref_lo, ref_hi, seg, slots: int, scale, bins: int):
     low_r, span_r = take(cmin, seg, 0), take(span, seg, 0)
     bin3 = rules.bin_of(centre, low_r, span_r, bins)  # [R, 3]
     cells = slots * 3 * bins
-    key = seg[:, None] * (3 * bins) + jnp.arange(3, dtype=jnp.int32)[None, :] * bins + bin3
+    key = cell_key(bin3, seg[:, None], jnp.arange(3, dtype=jnp.int32)[None, :], slots)
     key = jnp.where(active[:, None], key, cells).T.ravel()  # axis-major: [3 R]
-    count = segment(jax.ops.segment_sum, jnp.ones(key.shape, jnp.int32), key, cells).reshape(slots, 3, bins)
+    count = segment(jax.ops.segment_sum, jnp.ones(key.shape, jnp.int32), key, cells).reshape(bins, slots, 3)
     box_lo = _cells(jax.ops.segment_min, [jnp.tile(column, 3) for column in ref_lo.T], key, cells, slots, bins)
     box_hi = _cells(jax.ops.segment_max, [jnp.tile(column, 3) for column in ref_hi.T], key, cells, slots, bins)
     split = _sweep_bins((count, count), box_lo, box_hi, span > 0, scale, bins)
@@ -132,17 +153,17 @@ def _on_axis(axis, coords):
     return jnp.where(axis == 0, coords[0], jnp.where(axis == 1, coords[1], coords[2]))
 
 
-def _piece_boxes(v, ref_lo, ref_hi, axis, node_lo_a, ext_a, b1, b, valid, bins: int):
-    """What a piece adds to the bin boxes: a reference's part around spatial bin ``b`` of
-    ``axis`` (all [P], one entry per piece). Returns ``(lo, hi, cross_lo, cross_hi)``,
-    three coordinate arrays [P] each: the box of its corners clamped to its box that fall
-    in ``b`` joined with the clamped crossing of plane ``b + 1`` (bin ``b``), and that
-    crossing alone (bin ``b + 1``); the crossing counts where the box spans the plane
-    (``b < b1``) and an edge crosses it (the twin's ``_bin_boxes``, one plane at a time).
-    ``v[k][c]``: vertex ``k``'s coordinate ``c``; ``ref_lo[c]``, ``ref_hi[c]``.
+def _piece_boxes(v, ref_lo, ref_hi, axis, node_lo_a, ext_a, b0, b1, b, valid, bins: int):
+    """Estimated box (lo, hi: three coordinate arrays [P] each) of pieces: a reference's
+    part in spatial bin ``b`` of ``axis`` (all [P], one entry per piece): its corners
+    clamped to its box that fall in ``b``, and the clamped crossings of the planes ``b``
+    and ``b + 1`` where its box spans them (the twin's ``_bin_boxes`` for one reference
+    and one bin). ``v[k][c]``: vertex ``k``'s coordinate ``c``; ``ref_lo[c]``, ``ref_hi[c]``.
 
-    Written coordinate by coordinate on flat arrays: XLA on CPU runs arrays with a
-    trailing axis of 3 (and reductions over it) many times slower.
+    Written coordinate by coordinate on flat arrays, with no concatenation or shift:
+    XLA on CPU runs arrays with a trailing axis of 3, and fusions that mix elements,
+    many times slower. (Each plane's crossing is found twice, once for each bin beside
+    it: cheaper here than sharing it between neighbouring pieces.)
     """
     dt = ref_lo[0].dtype
     inf = jnp.asarray(jnp.inf, dt)
@@ -153,23 +174,22 @@ def _piece_boxes(v, ref_lo, ref_hi, axis, node_lo_a, ext_a, b1, b, valid, bins: 
         lo = [jnp.minimum(lo[c], jnp.where(inside, corner[k][c], inf)) for c in range(3)]
         hi = [jnp.maximum(hi[c], jnp.where(inside, corner[k][c], -inf)) for c in range(3)]
     a = [_on_axis(axis, v[k]) for k in range(3)]  # the vertices on the split axis
-    p = rules.plane_at(node_lo_a, ext_a, b + 1, bins)
-    x_lo, x_hi, crossed = [inf] * 3, [-inf] * 3, jnp.zeros(p.shape, bool)
-    for i, k in rules.EDGES:
-        crosses = ((a[i] < p) & (a[k] > p)) | ((a[i] > p) & (a[k] < p))
-        denominator = jnp.where(crosses, a[k] - a[i], jnp.ones((), dt))
-        crossed = crossed | crosses
-        for c in range(3):
-            x = rules.crossing_coordinate(v[i][c], v[k][c], a[i], p, denominator)
-            margin = rules.clip_margin(v[i][c], v[k][c])
-            x_lo[c] = jnp.minimum(x_lo[c], jnp.where(crosses, jnp.where(axis == c, p, x - margin), inf))
-            x_hi[c] = jnp.maximum(x_hi[c], jnp.where(crosses, jnp.where(axis == c, p, x + margin), -inf))
-    used = valid & (b < b1) & crossed
-    cross_lo = [jnp.where(used, jnp.clip(x_lo[c], ref_lo[c], ref_hi[c]), inf) for c in range(3)]
-    cross_hi = [jnp.where(used, jnp.clip(x_hi[c], ref_lo[c], ref_hi[c]), -inf) for c in range(3)]
-    lo = [jnp.minimum(lo[c], cross_lo[c]) for c in range(3)]
-    hi = [jnp.maximum(hi[c], cross_hi[c]) for c in range(3)]
-    return lo, hi, cross_lo, cross_hi
+    for j in (b, b + 1):  # plane b's crossing lies in bins b - 1 and b, plane b + 1's in b and b + 1
+        p = rules.plane_at(node_lo_a, ext_a, j, bins)
+        x_lo, x_hi, crossed = [inf] * 3, [-inf] * 3, jnp.zeros(p.shape, bool)
+        for i, k in rules.EDGES:
+            crosses = ((a[i] < p) & (a[k] > p)) | ((a[i] > p) & (a[k] < p))
+            denominator = jnp.where(crosses, a[k] - a[i], jnp.ones((), dt))
+            crossed = crossed | crosses
+            for c in range(3):
+                x = rules.crossing_coordinate(v[i][c], v[k][c], a[i], p, denominator)
+                margin = rules.clip_margin(v[i][c], v[k][c])
+                x_lo[c] = jnp.minimum(x_lo[c], jnp.where(crosses, jnp.where(axis == c, p, x - margin), inf))
+                x_hi[c] = jnp.maximum(x_hi[c], jnp.where(crosses, jnp.where(axis == c, p, x + margin), -inf))
+        used = valid & (b0 < j) & (j <= b1) & crossed
+        lo = [jnp.minimum(lo[c], jnp.where(used, jnp.clip(x_lo[c], ref_lo[c], ref_hi[c]), inf)) for c in range(3)]
+        hi = [jnp.maximum(hi[c], jnp.where(used, jnp.clip(x_hi[c], ref_lo[c], ref_hi[c]), -inf)) for c in range(3)]
+    return lo, hi
 
 
 def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, tried, slots: int, scale, bins: int):
@@ -204,26 +224,17 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
             b = b0_p + p - (ends[owner] - width[owner])
             seg_p = seg[r]
             prim = jnp.clip(ref_prim[r], 0, tri_columns.shape[1] - 1)
-            # gathered column by column and kept apart from the arithmetic (fused, XLA
-            # would gather again inside every use, several times slower)
-            corners, box_lo, box_hi = jax.lax.optimization_barrier(
-                ([column[prim] for column in tri_columns], [column[r] for column in lo_columns],
-                 [column[r] for column in hi_columns]))
+            corners = [column[prim] for column in tri_columns]  # gathered column by column
+            box_lo, box_hi = [column[r] for column in lo_columns], [column[r] for column in hi_columns]
             v = [corners[3 * k: 3 * k + 3] for k in range(3)]
-            box_lo, box_hi, cross_lo, cross_hi = _piece_boxes(
-                v, box_lo, box_hi, axis, lo_r.ravel()[owner], ext_r.ravel()[owner], b1_p, b, valid, bins)
-            # plane b's crossing was found by the piece before (same reference and
-            # axis, bin b - 1): bin b takes it from there
-            after_first = b > b0_p
-            box_lo = [jnp.minimum(lo, jnp.where(after_first, jnp.roll(x, 1), jnp.inf)) for lo, x in zip(box_lo, cross_lo)]
-            box_hi = [jnp.maximum(hi, jnp.where(after_first, jnp.roll(x, 1), -jnp.inf)) for hi, x in zip(box_hi, cross_hi)]
-            key = jnp.where(valid, (seg_p * 3 + axis) * bins + b, cells)
-            counts = [segment(jax.ops.segment_sum, (flag & valid).astype(jnp.int32), key, cells).reshape(slots, 3, bins)
+            box_lo, box_hi = _piece_boxes(v, box_lo, box_hi, axis, lo_r.ravel()[owner], ext_r.ravel()[owner], b0_p,
+                                          b1_p, b, valid, bins)
+            key = jnp.where(valid, cell_key(b, seg_p, axis, slots), cells)
+            counts = [segment(jax.ops.segment_sum, (flag & valid).astype(jnp.int32), key, cells).reshape(bins, slots, 3)
                       for flag in (b == b0_p, b == b1_p)]
             box_lo = _cells(jax.ops.segment_min, box_lo, key, cells, slots, bins)
             box_hi = _cells(jax.ops.segment_max, box_hi, key, cells, slots, bins)
-            return _sweep_bins(counts, box_lo, box_hi, (ext > 0) & tried[:, None],
-                               scale, bins)
+            return _sweep_bins(counts, box_lo, box_hi, (ext > 0) & tried[:, None], scale, bins)
         return run
 
     sizes = pair_sizes(refs, bins)
