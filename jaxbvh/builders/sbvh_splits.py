@@ -3,7 +3,8 @@
 Every open node of a level has a *slot* ``0 .. F - 1`` (its id minus the level's first
 id); a reference's ``seg`` is its node's slot, ``F`` when its node is not open. Per-slot
 sums, minima and maxima over references are segment reductions with ``F + 1`` segments,
-the last one thrown away. Rules: :mod:`jaxbvh.builders.sbvh`'s docstring.
+the last one thrown away; binned counts and boxes live in cells [B, F, 3] (bin, slot,
+axis), one array per coordinate. Rules: :mod:`jaxbvh.builders.sbvh`'s docstring.
 """
 
 from __future__ import annotations
