@@ -338,14 +338,18 @@ def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int) -> SBVHBuil
 
 #: growth of the per-level slot arrays from one stage to the next (:func:`stage_slots`)
 STAGE_GROWTH = 8
+#: reference slots up to which the engine runs in one stage
+SMALL_STAGE = 512
 
 
 def stage_slots(refs: int) -> list[int]:
     """Slot counts F of the engine's stages for ``refs`` reference slots: 64, 512, ...
-    up to ``refs``. A level runs in the first stage whose F holds its open nodes; the
-    open nodes of a level are at most ``refs``, so the last stage takes any level. Each
+    up to ``refs`` (only ``refs`` up to ``SMALL_STAGE`` slots). A level runs in the
+    first stage whose F holds its open nodes; the open nodes of a level are at most ``refs``, so the last stage takes any level. Each
     stage compiles the level once more, and saves the work of per-node arrays sized
     for the widest level on every narrow one (the top of the tree)."""
+    if refs <= SMALL_STAGE:  # small inputs: one stage (one compiled level) is cheap enough
+        return [refs]
     out, f = [], 64
     while f < refs:
         out.append(f)

@@ -9,7 +9,6 @@ axis), one array per coordinate. Rules: :mod:`jaxbvh.builders.sbvh`'s docstring.
 
 from __future__ import annotations
 
-import functools
 from typing import Any, NamedTuple
 
 import jax
@@ -70,23 +69,19 @@ def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int) -> Split:
     cost = [jnp.where(usable & (n_l[k] > 0) & (n_r[k] > 0),
                       area(lo_l[k], hi_l[k]) * n_l[k].astype(dt) + area(lo_r[k], hi_r[k]) * n_r[k].astype(dt),
                       jnp.inf) for k in range(bins - 1)]
-    best = functools.reduce(jnp.minimum, cost).min(axis=1)  # [F]
-    near = (best * jnp.asarray(1 + TIE_TOLERANCE, dt))[:, None]
-    # the first candidate (axis-major, then plane) within the tolerance of the best
-    none = 3 * (bins - 1)
-    first = jnp.full(best.shape, none, jnp.int32)
-    for axis in range(2, -1, -1):
-        for k in range(bins - 2, -1, -1):
-            hit = (cost[k][:, axis] <= near[:, 0]) & (cost[k][:, axis] < jnp.inf)
-            first = jnp.where(hit, axis * (bins - 1) + k, first)
-    first = jnp.where(first == none, 0, first)
+    slots = cost[0].shape[0]
+
+    def flat(values):  # one [F, 3] array per plane -> [F, 3 (B - 1)], axis-major then plane
+        return jnp.stack(values, axis=-1).reshape(slots, -1)
+
+    costs = flat(cost)
+    best = costs.min(axis=1)
+    near = best * jnp.asarray(1 + TIE_TOLERANCE, dt)
+    first = jnp.argmax((costs <= near[:, None]) & (costs < jnp.inf), axis=1).astype(jnp.int32)
     axis, plane = first // (bins - 1), first % (bins - 1)
 
-    def pick(values):  # values: one [F, 3] array per plane: the winner's
-        at = values[0]
-        for k in range(1, bins - 1):
-            at = jnp.where((plane == k)[:, None], values[k], at)
-        return jnp.take_along_axis(at, axis[:, None], axis=1)[:, 0]
+    def pick(values):  # the winner's value
+        return jnp.take_along_axis(flat(values), first[:, None], axis=1)[:, 0]
 
     def box(boxes):
         return jnp.stack([pick([b[i] for b in boxes]) for i in range(3)], axis=1)
@@ -140,12 +135,18 @@ class Bins(NamedTuple):
     exit: Any
 
 
+#: piece buffers up to this size are not split into several sizes (:func:`pair_sizes`)
+SMALL_PIECES = 2**15
+
+
 def pair_sizes(refs: int, bins: int) -> list[int]:
     """Buffer sizes of the spatial search's (reference, axis, bin) pieces for ``refs``
     reference slots: a live reference makes one piece per axis and bin it spans, so
     ``3 refs`` when none straddles a bin border and at most ``3 refs bins``; sizes in
     between cover the deep levels (few live references) and the usual straddling."""
     full = 3 * refs * bins
+    if full <= SMALL_PIECES:  # small inputs: one buffer (one compiled branch) is cheap enough
+        return [full]
     return sorted({min(full, max(64, (3 * refs * m) // 64)) for m in (1, 8, 32, 96, 256)} | {full})
 
 
@@ -235,12 +236,13 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
                       for flag in (b == b0_p, b == b1_p)]
             box_lo = _cells(jax.ops.segment_min, box_lo, key, cells, slots, bins)
             box_hi = _cells(jax.ops.segment_max, box_hi, key, cells, slots, bins)
-            return _sweep_bins(counts, box_lo, box_hi, (ext > 0) & tried[:, None], scale, bins)
+            return counts, box_lo, box_hi
         return run
 
     sizes = pair_sizes(refs, bins)
     branch = sum((total > size).astype(jnp.int32) for size in sizes[:-1])
-    return jax.lax.switch(branch, [search(size) for size in sizes]), Bins(b0, b1)
+    counts, box_lo, box_hi = jax.lax.switch(branch, [search(size) for size in sizes])
+    return _sweep_bins(counts, box_lo, box_hi, (ext > 0) & tried[:, None], scale, bins), Bins(b0, b1)
 
 
 class Sides(NamedTuple):
