@@ -345,9 +345,10 @@ SMALL_STAGE = 512
 def stage_slots(refs: int) -> list[int]:
     """Slot counts F of the engine's stages for ``refs`` reference slots: 64, 512, ...
     up to ``refs`` (only ``refs`` up to ``SMALL_STAGE`` slots). A level runs in the
-    first stage whose F holds its open nodes; the open nodes of a level are at most ``refs``, so the last stage takes any level. Each
-    stage compiles the level once more, and saves the work of per-node arrays sized
-    for the widest level on every narrow one (the top of the tree)."""
+    first stage whose F holds its open nodes; the open nodes of a level are at most
+    ``refs``, so the last stage takes any level. Each stage compiles the level once
+    more, and saves the work of per-node arrays sized for the widest level on every
+    narrow one (the top of the tree)."""
     if refs <= SMALL_STAGE:  # small inputs: one stage (one compiled level) is cheap enough
         return [refs]
     out, f = [], 64
