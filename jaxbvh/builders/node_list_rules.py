@@ -37,11 +37,13 @@ class NodeList:
         return len(self.left) - 1
 
     def make_leaf(self, node: int, ids) -> None:
+        """Make ``node`` a leaf of primitives ``ids``, appended to ``prim_index``."""
         self.prim_start[node] = len(self.prim_index)
         self.prim_count[node] = len(ids)
         self.prim_index.extend(int(i) for i in ids)
 
     def to_bvh(self, dtype) -> BVH:
+        """The finished tree: an unpadded NumPy :class:`~jaxbvh.tree.layout.BVH`, boxes in ``dtype``."""
         i32 = lambda a: np.asarray(a, np.int32)  # noqa: E731
         return BVH(left=i32(self.left), right=i32(self.right), parent=i32(self.parent),
                    lo=np.stack(self.lo).astype(dtype), hi=np.stack(self.hi).astype(dtype),
