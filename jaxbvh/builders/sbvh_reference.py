@@ -20,7 +20,7 @@ from typing import NamedTuple
 import numpy as np
 
 from jaxbvh.builders import sbvh_rules as rules
-from jaxbvh.builders import topdown_reference
+from jaxbvh.builders.node_list_rules import NodeList
 from jaxbvh.numerics import TIE_TOLERANCE, half_area, scene_scale
 from jaxbvh.tree.layout import BVH
 
@@ -250,7 +250,7 @@ def build(triangles, config, capacity: int | None = None) -> ReferenceBuild:
     scale = dt.type(scene_scale(lo, hi))
     threshold = dt.type(config.alpha) * half_area(lo.min(0), hi.max(0), scale)
 
-    nodes = topdown_reference._Nodes()
+    nodes = NodeList()
     queue = deque([(nodes.new(-1), 0, _Refs(np.arange(n), lo, hi))])
     total, spatial_count, out_of_capacity = n, 0, False
     level, room, asked = -1, 0, 0  # reference slots free at the level's start, asked for on it

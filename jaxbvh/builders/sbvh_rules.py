@@ -29,7 +29,7 @@ import numpy as np
 #: widening of interpolated clip coordinates, in machine epsilons of ``|v_i| + |v_j|``
 CLIP_MARGIN_EPS = 8
 
-_EDGES = ((0, 1), (1, 2), (2, 0))  # a triangle's edges as vertex pairs
+EDGES = ((0, 1), (1, 2), (2, 0))  # a triangle's edges as vertex pairs
 
 
 def _xp(*arrays):
@@ -69,6 +69,22 @@ def axis_coordinate(points, axis_mask):
     return xp.where(axis_mask[..., None, :], points, 0).sum(-1)
 
 
+def crossing_coordinate(v_i, v_j, a_i, p, denominator):
+    """A coordinate of the point where edge ``v_i -> v_j`` meets plane ``p`` (``a_i``: the
+    edge's start on the split axis, ``denominator``: ``a_j - a_i``); elementwise, any
+    equal shapes (:func:`crossings` and the engine's per-coordinate arrays share it)."""
+    # a division last, never a product, before the add: XLA cannot fuse it into a
+    # multiply-add, so JAX rounds as NumPy does
+    return v_i + ((v_j - v_i) * (p - a_i)) / denominator
+
+
+def clip_margin(v_i, v_j):
+    """Widening of an interpolated crossing coordinate: ``CLIP_MARGIN_EPS`` eps of ``|v_i| + |v_j|``."""
+    xp = _xp(v_i, v_j)
+    # 8 eps is a power of two: the product is exact, fused or not
+    return xp.asarray(CLIP_MARGIN_EPS * np.finfo(v_i.dtype).eps, v_i.dtype) * (xp.abs(v_i) + xp.abs(v_j))
+
+
 def crossings(tri, axis_mask, plane):
     """Where the edges of ``tri`` [..., 3, 3] cross ``plane`` [...] on the one-hot axis
     ``axis_mask`` [..., 3]: ``(lo, hi, crosses)``, the widened crossing points [..., 3, 3]
@@ -76,18 +92,15 @@ def crossings(tri, axis_mask, plane):
     xp = _xp(tri, plane)
     dt = tri.dtype
     va = axis_coordinate(tri, axis_mask)  # [..., 3] vertex coordinates on the axis
-    i = np.array([e[0] for e in _EDGES])
-    j = np.array([e[1] for e in _EDGES])
+    i = np.array([e[0] for e in EDGES])
+    j = np.array([e[1] for e in EDGES])
     a_i, a_j = va[..., i], va[..., j]
     p = plane[..., None]
     crosses = ((a_i < p) & (a_j > p)) | ((a_i > p) & (a_j < p))
     v_i, v_j = tri[..., i, :], tri[..., j, :]
     denominator = _full(xp, xp.where(crosses, a_j - a_i, xp.ones((), dt))[..., None], v_i)
-    # a division last, never a product, before the add: XLA cannot fuse it into a
-    # multiply-add, so JAX rounds as NumPy does
-    x = v_i + ((v_j - v_i) * (p - a_i)[..., None]) / denominator
-    # 8 eps is a power of two: the product is exact, fused or not
-    margin = xp.asarray(CLIP_MARGIN_EPS * np.finfo(dt).eps, dt) * (xp.abs(v_i) + xp.abs(v_j))
+    x = crossing_coordinate(v_i, v_j, a_i[..., None], p[..., None], denominator)
+    margin = clip_margin(v_i, v_j)
     on_axis = axis_mask[..., None, :]
     x_lo = xp.where(on_axis, p[..., None], x - margin)
     x_hi = xp.where(on_axis, p[..., None], x + margin)

@@ -3,7 +3,8 @@
 Every open node of a level has a *slot* ``0 .. F - 1`` (its id minus the level's first
 id); a reference's ``seg`` is its node's slot, ``F`` when its node is not open. Per-slot
 sums, minima and maxima over references are segment reductions with ``F + 1`` segments,
-the last one thrown away. Rules: :mod:`jaxbvh.builders.sbvh`'s docstring.
+the last one thrown away; binned counts and boxes live in cells [B, F, 3] (bin, slot,
+axis), one array per coordinate. Rules: :mod:`jaxbvh.builders.sbvh`'s docstring.
 """
 
 from __future__ import annotations
@@ -37,36 +38,66 @@ def segment(op, values, seg, slots):
     return op(values, seg, num_segments=slots + 1)[:slots]
 
 
-def _best_plane(cost, lo_l, hi_l, lo_r, hi_r, n_l, n_r, bins: int) -> Split:
-    """Tie-rule winner of candidates [F, 3, B - 1] (least cost; within TIE_TOLERANCE the
-    lowest axis, then the lowest plane)."""
-    slots = cost.shape[0]
-    flat = cost.reshape(slots, -1)
-    best = flat.min(axis=1)
-    near = best * jnp.asarray(1 + TIE_TOLERANCE, cost.dtype)
-    first = jnp.argmax((flat <= near[:, None]) & (flat < jnp.inf), axis=1).astype(jnp.int32)
+def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int) -> Split:
+    """Best plane of binned counts and boxes per slot and axis.
+
+    ``count``: (entries, exits), ``box_lo``, ``box_hi``: three coordinate arrays each,
+    all [B, F, 3] (bin, slot, axis). The plane after bin ``k`` has on its left the bins
+    ``<= k`` (``N_L``: entries there) and on its right the others (``N_R``: exits
+    there). Tie-rule winner: least cost; within TIE_TOLERANCE the lowest axis, then the
+    lowest plane. The sweeps run bin by bin over [F, 3] arrays (XLA's cumulative ops
+    and arrays with a trailing axis of 3 are many times slower on CPU).
+    """
+    entries, exits = count
+    dt = box_lo[0].dtype
+
+    def sweep(order, counts):
+        """Running count and box over the bins in ``order``: one [F, 3] entry per step."""
+        n, lo, hi = [], [], []
+        for k in order:
+            n.append(counts[k] if not n else n[-1] + counts[k])
+            lo.append([c[k] if not lo else jnp.minimum(lo[-1][i], c[k]) for i, c in enumerate(box_lo)])
+            hi.append([c[k] if not hi else jnp.maximum(hi[-1][i], c[k]) for i, c in enumerate(box_hi)])
+        return n, lo, hi
+
+    n_l, lo_l, hi_l = sweep(range(bins - 1), entries)  # plane k: bins 0 .. k
+    n_r, lo_r, hi_r = (v[::-1] for v in sweep(range(bins - 1, 0, -1), exits))  # plane k: bins k + 1 ..
+
+    def area(lo, hi):
+        return half_area(jnp.stack(lo, -1), jnp.stack(hi, -1), scale)
+
+    cost = [jnp.where(usable & (n_l[k] > 0) & (n_r[k] > 0),
+                      area(lo_l[k], hi_l[k]) * n_l[k].astype(dt) + area(lo_r[k], hi_r[k]) * n_r[k].astype(dt),
+                      jnp.inf) for k in range(bins - 1)]
+    slots = cost[0].shape[0]
+
+    def flat(values):  # one [F, 3] array per plane -> [F, 3 (B - 1)], axis-major then plane
+        return jnp.stack(values, axis=-1).reshape(slots, -1)
+
+    costs = flat(cost)
+    best = costs.min(axis=1)
+    near = best * jnp.asarray(1 + TIE_TOLERANCE, dt)
+    first = jnp.argmax((costs <= near[:, None]) & (costs < jnp.inf), axis=1).astype(jnp.int32)
     axis, plane = first // (bins - 1), first % (bins - 1)
-    row = jnp.arange(slots)
 
-    def pick(v):
-        return v.reshape((slots, -1) + v.shape[3:])[row, first]
+    def pick(values):  # the winner's value
+        return jnp.take_along_axis(flat(values), first[:, None], axis=1)[:, 0]
 
-    return Split(best, axis, plane, pick(lo_l), pick(hi_l), pick(lo_r), pick(hi_r), pick(n_l), pick(n_r))
+    def box(boxes):
+        return jnp.stack([pick([b[i] for b in boxes]) for i in range(3)], axis=1)
+
+    return Split(best, axis, plane, box(lo_l), box(hi_l), box(lo_r), box(hi_r), pick(n_l), pick(n_r))
 
 
-def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int):
-    """Candidates of binned counts and boxes [F, 3, B(, 3)]: the plane after bin ``k``
-    has on its left the bins ``<= k`` and on its right the others."""
-    n_l = jnp.cumsum(count[0], axis=2)[:, :, : bins - 1]
-    n_r = jnp.flip(jnp.cumsum(jnp.flip(count[1], 2), axis=2), 2)[:, :, 1:]
-    lo_l = jax.lax.cummin(box_lo, axis=2)[:, :, : bins - 1]
-    hi_l = jax.lax.cummax(box_hi, axis=2)[:, :, : bins - 1]
-    lo_r = jax.lax.cummin(box_lo, axis=2, reverse=True)[:, :, 1:]
-    hi_r = jax.lax.cummax(box_hi, axis=2, reverse=True)[:, :, 1:]
-    dt = box_lo.dtype
-    cost = half_area(lo_l, hi_l, scale) * n_l.astype(dt) + half_area(lo_r, hi_r, scale) * n_r.astype(dt)
-    cost = jnp.where(usable[:, :, None] & (n_l > 0) & (n_r > 0), cost, jnp.inf)
-    return _best_plane(cost, lo_l, hi_l, lo_r, hi_r, n_l, n_r, bins)
+def _cells(op, columns, key, cells: int, slots: int, bins: int):
+    """``op`` (segment min or max) of each coordinate column [M] over ``key`` into
+    ``cells`` (bin, slot, axis) cells (``cells`` itself: dropped): three arrays [B, F, 3]."""
+    return [segment(op, column, key, cells).reshape(bins, slots, 3) for column in columns]
+
+
+def cell_key(bin_, seg, axis, slots: int):
+    """Cell of (bin, slot, axis) in the [B, F, 3] layout of the binned sweeps."""
+    return (bin_ * slots + seg) * 3 + axis
 
 
 def object_split(ref_lo, ref_hi, seg, slots: int, scale, bins: int):
@@ -81,15 +112,12 @@ def object_split(ref_lo, ref_hi, seg, slots: int, scale, bins: int):
     span = cmax - cmin
     low_r, span_r = take(cmin, seg, 0), take(span, seg, 0)
     bin3 = rules.bin_of(centre, low_r, span_r, bins)  # [R, 3]
-    key = seg[:, None] * (3 * bins) + jnp.arange(3, dtype=jnp.int32)[None, :] * bins + bin3
-    key = jnp.where(active[:, None], key, slots * 3 * bins).ravel()
-    total = slots * 3 * bins
-    ones = jnp.ones(key.shape, jnp.int32)
-    count = segment(jax.ops.segment_sum, ones, key, total).reshape(slots, 3, bins)
-    lo = jnp.broadcast_to(ref_lo[:, None, :], (ref_lo.shape[0], 3, 3)).reshape(-1, 3)
-    hi = jnp.broadcast_to(ref_hi[:, None, :], (ref_hi.shape[0], 3, 3)).reshape(-1, 3)
-    box_lo = segment(jax.ops.segment_min, lo, key, total).reshape(slots, 3, bins, 3)
-    box_hi = segment(jax.ops.segment_max, hi, key, total).reshape(slots, 3, bins, 3)
+    cells = slots * 3 * bins
+    key = cell_key(bin3, seg[:, None], jnp.arange(3, dtype=jnp.int32)[None, :], slots)
+    key = jnp.where(active[:, None], key, cells).T.ravel()  # axis-major: [3 R]
+    count = segment(jax.ops.segment_sum, jnp.ones(key.shape, jnp.int32), key, cells).reshape(bins, slots, 3)
+    box_lo = _cells(jax.ops.segment_min, [jnp.tile(column, 3) for column in ref_lo.T], key, cells, slots, bins)
+    box_hi = _cells(jax.ops.segment_max, [jnp.tile(column, 3) for column in ref_hi.T], key, cells, slots, bins)
     split = _sweep_bins((count, count), box_lo, box_hi, span > 0, scale, bins)
     return split, bin3
 
@@ -107,77 +135,114 @@ class Bins(NamedTuple):
     exit: Any
 
 
-def _axis_bins(tri_r, ref_lo, ref_hi, seg, node_lo, ext, tried, slots: int, axis: int, bins: int):
-    """Spatial bins of one axis: entry and exit counts [F, B], estimated bin boxes
-    [F, B, 3], and each reference's entry and exit bin [R]."""
-    live = (seg < slots) & take(tried, seg, False)
-    lo_r, ext_r = take(node_lo[:, axis], seg, 0), take(ext, seg, 0)
-    b0 = rules.bin_of(ref_lo[:, axis], lo_r, ext_r, bins)
-    b1 = rules.bin_of(ref_hi[:, axis], lo_r, ext_r, bins)
-    key0 = jnp.where(live, seg * bins + b0, slots * bins)
-    key1 = jnp.where(live, seg * bins + b1, slots * bins)
-    ones = jnp.ones(seg.shape, jnp.int32)
-    entries = segment(jax.ops.segment_sum, ones, key0, slots * bins).reshape(slots, bins)
-    exits = segment(jax.ops.segment_sum, ones, key1, slots * bins).reshape(slots, bins)
-    # the reference's corners, clamped to its box, in their bins
-    corner = jnp.clip(tri_r, ref_lo[:, None, :], ref_hi[:, None, :])  # [R, 3, 3]
-    vb = rules.bin_of(corner[:, :, axis], lo_r[:, None], ext_r[:, None], bins)
-    keys = [jnp.where(live[:, None], seg[:, None] * bins + vb, slots * bins).ravel()]
-    points_lo, points_hi = [corner.reshape(-1, 3)], [corner.reshape(-1, 3)]
-    # the crossings of the inner planes j = 1 .. B - 1 its box spans, in bins j - 1 and j
-    j = jnp.arange(1, bins, dtype=jnp.int32)
-    plane = rules.plane_at(lo_r[:, None], ext_r[:, None], j[None, :], bins)  # [R, B - 1]
-    mask = jnp.broadcast_to(jnp.arange(3) == axis, plane.shape + (3,))
-    x_lo, x_hi, crosses = rules.crossings(jnp.broadcast_to(tri_r[:, None], plane.shape + (3, 3)), mask, plane)
-    c_lo = jnp.where(crosses[..., None], x_lo, jnp.inf).min(-2)
-    c_hi = jnp.where(crosses[..., None], x_hi, -jnp.inf).max(-2)
-    c_lo = jnp.clip(c_lo, ref_lo[:, None, :], ref_hi[:, None, :])
-    c_hi = jnp.clip(c_hi, ref_lo[:, None, :], ref_hi[:, None, :])
-    spans = live[:, None] & crosses.any(-1) & (b0[:, None] < j[None, :]) & (j[None, :] <= b1[:, None])
-    for side in (j - 1, j):
-        keys.append(jnp.where(spans, seg[:, None] * bins + side[None, :], slots * bins).ravel())
-        points_lo.append(c_lo.reshape(-1, 3))
-        points_hi.append(c_hi.reshape(-1, 3))
-    key = jnp.concatenate(keys)
-    box_lo = segment(jax.ops.segment_min, jnp.concatenate(points_lo), key, slots * bins).reshape(slots, bins, 3)
-    box_hi = segment(jax.ops.segment_max, jnp.concatenate(points_hi), key, slots * bins).reshape(slots, bins, 3)
-    return entries, exits, box_lo, box_hi, b0, b1
+#: piece buffers up to this size are not split into several sizes (:func:`pair_sizes`)
+SMALL_PIECES = 2**15
 
 
-def compact_sizes(refs: int) -> list[int]:
-    """Buffer sizes the spatial search gathers the references of tried nodes into: a
-    64th and an 8th of the slots (at least 64) and all of them."""
-    return sorted({min(refs, max(64, refs // 64)), min(refs, max(64, refs // 8)), refs})
+def pair_sizes(refs: int, bins: int) -> list[int]:
+    """Buffer sizes of the spatial search's (reference, axis, bin) pieces for ``refs``
+    reference slots: a live reference makes one piece per axis and bin it spans, so
+    ``3 refs`` when none straddles a bin border and at most ``3 refs bins``; sizes in
+    between cover the deep levels (few live references) and the usual straddling."""
+    full = 3 * refs * bins
+    if full <= SMALL_PIECES:  # small inputs: one buffer (one compiled branch) is cheap enough
+        return [full]
+    return sorted({min(full, max(64, (3 * refs * m) // 64)) for m in (1, 8, 32, 96, 256)} | {full})
 
 
-def spatial_split(tri_r, ref_lo, ref_hi, seg, node_lo, node_hi, tried, slots: int, scale, bins: int):
+def _on_axis(axis, coords):
+    """The coordinate on ``axis`` [P] of a point given as three coordinate arrays [P]."""
+    return jnp.where(axis == 0, coords[0], jnp.where(axis == 1, coords[1], coords[2]))
+
+
+def _piece_boxes(v, ref_lo, ref_hi, axis, node_lo_a, ext_a, b0, b1, b, valid, bins: int):
+    """Estimated box (lo, hi: three coordinate arrays [P] each) of pieces: a reference's
+    part in spatial bin ``b`` of ``axis`` (all [P], one entry per piece): its corners
+    clamped to its box that fall in ``b``, and the clamped crossings of the planes ``b``
+    and ``b + 1`` where its box spans them (the twin's ``_bin_boxes`` for one reference
+    and one bin). ``v[k][c]``: vertex ``k``'s coordinate ``c``; ``ref_lo[c]``, ``ref_hi[c]``.
+
+    Written coordinate by coordinate on flat arrays, with no concatenation or shift:
+    XLA on CPU runs arrays with a trailing axis of 3, and fusions that mix elements,
+    many times slower. (Each plane's crossing is found twice, once for each bin beside
+    it: cheaper here than sharing it between neighbouring pieces.)
+    """
+    dt = ref_lo[0].dtype
+    inf = jnp.asarray(jnp.inf, dt)
+    corner = [[jnp.clip(v[k][c], ref_lo[c], ref_hi[c]) for c in range(3)] for k in range(3)]
+    lo, hi = [inf] * 3, [-inf] * 3
+    for k in range(3):
+        inside = valid & (rules.bin_of(_on_axis(axis, corner[k]), node_lo_a, ext_a, bins) == b)
+        lo = [jnp.minimum(lo[c], jnp.where(inside, corner[k][c], inf)) for c in range(3)]
+        hi = [jnp.maximum(hi[c], jnp.where(inside, corner[k][c], -inf)) for c in range(3)]
+    a = [_on_axis(axis, v[k]) for k in range(3)]  # the vertices on the split axis
+    for j in (b, b + 1):  # plane b's crossing lies in bins b - 1 and b, plane b + 1's in b and b + 1
+        p = rules.plane_at(node_lo_a, ext_a, j, bins)
+        x_lo, x_hi, crossed = [inf] * 3, [-inf] * 3, jnp.zeros(p.shape, bool)
+        for i, k in rules.EDGES:
+            crosses = ((a[i] < p) & (a[k] > p)) | ((a[i] > p) & (a[k] < p))
+            denominator = jnp.where(crosses, a[k] - a[i], jnp.ones((), dt))
+            crossed = crossed | crosses
+            for c in range(3):
+                x = rules.crossing_coordinate(v[i][c], v[k][c], a[i], p, denominator)
+                margin = rules.clip_margin(v[i][c], v[k][c])
+                x_lo[c] = jnp.minimum(x_lo[c], jnp.where(crosses, jnp.where(axis == c, p, x - margin), inf))
+                x_hi[c] = jnp.maximum(x_hi[c], jnp.where(crosses, jnp.where(axis == c, p, x + margin), -inf))
+        used = valid & (b0 < j) & (j <= b1) & crossed
+        lo = [jnp.minimum(lo[c], jnp.where(used, jnp.clip(x_lo[c], ref_lo[c], ref_hi[c]), inf)) for c in range(3)]
+        hi = [jnp.maximum(hi[c], jnp.where(used, jnp.clip(x_hi[c], ref_lo[c], ref_hi[c]), -inf)) for c in range(3)]
+    return lo, hi
+
+
+def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, tried, slots: int, scale, bins: int):
     """Binned spatial split of the slots ``tried`` [F] bool: ``(split, bins)``.
 
-    Only the references of tried nodes are binned (deep nodes are rarely tried: their
-    overlap falls below the threshold): they are gathered first into the smallest
-    buffer of :func:`compact_sizes` that holds them (one compiled branch per size).
+    Every live reference (one of a tried node) spans bins ``b0 .. b1`` per axis; it is cut
+    into one *piece* per (axis, bin) it spans, listed in a flat buffer (the smallest size
+    of :func:`pair_sizes` that holds them, one compiled branch per size), and each piece's
+    estimated box enters its (node, axis, bin) in one segment reduction. A reference
+    inside one bin (most of them) is one piece per axis, so the work follows the live
+    references and their straddling, not ``bins`` times every slot.
     """
     refs = seg.shape[0]
     ext = node_hi - node_lo  # [F, 3]
     live = (seg < slots) & take(tried, seg, False)
-    order = jnp.argsort(~live, stable=True)  # the live references first
+    lo_columns, hi_columns = ref_lo.T, ref_hi.T  # [3, R]
+    lo_r, ext_r = take(node_lo, seg, 0), take(ext, seg, 0)  # [R, 3]
+    b0 = rules.bin_of(ref_lo, lo_r, ext_r, bins)  # [R, 3] entry and exit bins per axis
+    b1 = rules.bin_of(ref_hi, lo_r, ext_r, bins)
+    width = jnp.where(live[:, None], b1 - b0 + 1, 0).ravel()  # [3 R] pieces per (reference, axis)
+    ends = jnp.cumsum(width)
+    total = ends[-1]
+    cells = slots * 3 * bins
 
     def search(size: int):
         def run():
-            idx = order[:size]
-            sub_seg = jnp.where(live[idx], seg[idx], slots)
-            per_axis = [_axis_bins(tri_r[idx], ref_lo[idx], ref_hi[idx], sub_seg, node_lo, ext[:, a], tried,
-                                   slots, a, bins) for a in range(3)]
-            entries, exits, box_lo, box_hi, b0, b1 = (jnp.stack(v, axis=1) for v in zip(*per_axis))
-            split = _sweep_bins((entries, exits), box_lo, box_hi, (ext > 0) & tried[:, None], scale, bins)
-            full = jnp.zeros((refs, 3), jnp.int32)
-            return split, Bins(full.at[idx].set(b0), full.at[idx].set(b1))
+            p = jnp.arange(size, dtype=jnp.int32)
+            owner = jnp.clip(jnp.searchsorted(ends, p, side="right"), 0, 3 * refs - 1).astype(jnp.int32)
+            valid = p < total
+            r, axis = owner // 3, owner % 3
+            b0_p, b1_p = b0.ravel()[owner], b1.ravel()[owner]
+            b = b0_p + p - (ends[owner] - width[owner])
+            seg_p = seg[r]
+            prim = jnp.clip(ref_prim[r], 0, tri_columns.shape[1] - 1)
+            corners = [column[prim] for column in tri_columns]  # gathered column by column
+            box_lo, box_hi = [column[r] for column in lo_columns], [column[r] for column in hi_columns]
+            v = [corners[3 * k: 3 * k + 3] for k in range(3)]
+            box_lo, box_hi = _piece_boxes(v, box_lo, box_hi, axis, lo_r.ravel()[owner], ext_r.ravel()[owner], b0_p,
+                                          b1_p, b, valid, bins)
+            key = jnp.where(valid, cell_key(b, seg_p, axis, slots), cells)
+            counts = [segment(jax.ops.segment_sum, (flag & valid).astype(jnp.int32), key, cells).reshape(bins, slots, 3)
+                      for flag in (b == b0_p, b == b1_p)]
+            box_lo = _cells(jax.ops.segment_min, box_lo, key, cells, slots, bins)
+            box_hi = _cells(jax.ops.segment_max, box_hi, key, cells, slots, bins)
+            return counts, box_lo, box_hi
         return run
 
-    sizes = compact_sizes(refs)
-    n_live = jnp.sum(live, dtype=jnp.int32)
-    branch = sum((n_live > size).astype(jnp.int32) for size in sizes[:-1])
-    return jax.lax.switch(branch, [search(size) for size in sizes])
+    sizes = pair_sizes(refs, bins)
+    branch = sum((total > size).astype(jnp.int32) for size in sizes[:-1])
+    counts, box_lo, box_hi = jax.lax.switch(branch, [search(size) for size in sizes])
+    return _sweep_bins(counts, box_lo, box_hi, (ext > 0) & tried[:, None], scale, bins), Bins(b0, b1)
 
 
 class Sides(NamedTuple):

@@ -10,12 +10,11 @@ order, root 0, unpadded.
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 
 from jaxbvh.builders import lbvh_reference as lbvh
 from jaxbvh.builders import ploc_reference as ploc
+from jaxbvh.builders.node_list_rules import NodeList
 from jaxbvh.numerics import TIE_TOLERANCE, half_area, scene_scale
 from jaxbvh.tree.layout import BVH
 
@@ -131,40 +130,6 @@ def _is_leaf(config, split, count, area, ct, ci, dtype) -> bool:
     return bool(ci * dtype.type(count) <= estimate * dtype.type(1 + TIE_TOLERANCE))
 
 
-@dataclasses.dataclass
-class _Nodes:
-    """The tree as it is built: one list per BVH field, a node per entry, depth-first."""
-
-    left: list = dataclasses.field(default_factory=list)        # child id, -1 for a leaf
-    right: list = dataclasses.field(default_factory=list)
-    parent: list = dataclasses.field(default_factory=list)      # -1 for the root
-    axis: list = dataclasses.field(default_factory=list)        # split axis, -1 for a leaf
-    lo: list = dataclasses.field(default_factory=list)          # [3] box (None until built)
-    hi: list = dataclasses.field(default_factory=list)
-    prim_start: list = dataclasses.field(default_factory=list)  # a leaf's first prim_index slot
-    prim_count: list = dataclasses.field(default_factory=list)  # a leaf's primitives, 0 interior
-    prim_index: list = dataclasses.field(default_factory=list)  # primitive ids, leaf by leaf
-
-    def new(self, parent: int) -> int:
-        """A fresh node under ``parent``: a leaf of no primitives until built. Its id."""
-        for column, value in ((self.left, -1), (self.right, -1), (self.parent, parent), (self.axis, -1),
-                              (self.prim_start, 0), (self.prim_count, 0), (self.lo, None), (self.hi, None)):
-            column.append(value)
-        return len(self.left) - 1
-
-    def make_leaf(self, node: int, ids) -> None:
-        self.prim_start[node] = len(self.prim_index)
-        self.prim_count[node] = len(ids)
-        self.prim_index.extend(int(i) for i in ids)
-
-    def to_bvh(self, dtype) -> BVH:
-        i32 = lambda a: np.asarray(a, np.int32)  # noqa: E731
-        return BVH(left=i32(self.left), right=i32(self.right), parent=i32(self.parent),
-                   lo=np.stack(self.lo).astype(dtype), hi=np.stack(self.hi).astype(dtype),
-                   prim_start=i32(self.prim_start), prim_count=i32(self.prim_count), axis=i32(self.axis),
-                   prim_index=i32(self.prim_index), root=np.int32(0))
-
-
 def build(prim_lo, prim_hi, config) -> BVH:
     """Reference build of ``config`` (a builder Config of :mod:`jaxbvh.builders.configs`, read
     for its ``method`` and knobs only), boxes used in their dtype.
@@ -184,7 +149,7 @@ def build(prim_lo, prim_hi, config) -> BVH:
     scale = dtype.type(scene_scale(lo, hi))
     centre = dtype.type(0.5) * lo + dtype.type(0.5) * hi
 
-    nodes = _Nodes()
+    nodes = NodeList()
     stack = [(nodes.new(-1), np.arange(lo.shape[0]))]
     while stack:
         node, ids = stack.pop()
