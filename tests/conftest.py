@@ -8,6 +8,15 @@ import os
 import pytest
 from hypothesis import settings
 
+# XLA compiles our programs with LLVM's optimizations off in the tests: the suite is
+# almost all compiling (small inputs, many shapes), which this makes about a third
+# cheaper. Results are the same bit for bit: XLA keeps IEEE semantics (no fast math, no
+# reassociation) at every optimization level, so each equality with a NumPy twin holds
+# as in an optimized build. JAXBVH_TEST_OPTIMIZED=1 runs the suite on optimized code.
+_UNOPTIMIZED = "--xla_backend_optimization_level=0"
+if os.environ.get("JAXBVH_TEST_OPTIMIZED") != "1" and _UNOPTIMIZED not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_UNOPTIMIZED}".strip()
+
 # The kit's plugin: its hypothesis profiles "ci" and "dev" and its mesh fixtures (also
 # its entry point, when the installed metadata is current; the same name, so loaded once).
 pytest_plugins = ["jaxbvh.testing.plugin"]
@@ -25,11 +34,33 @@ def pytest_configure(config):
 
 @pytest.fixture(autouse=True, scope="session")
 def _compilation_cache_out_of_home(tmp_path_factory):
-    """Point the CLI's compilation cache at a temporary folder: tests never write to ~."""
+    """One persistent compilation cache for this test process, in a temporary folder.
+
+    The CLI's cache (``JAXBVH_CACHE_DIR``) points here, so tests never write to ~, and so
+    does JAX's own cache for the library calls of the tests: a program compiled in one
+    module is loaded, not compiled again, in the next (:func:`_release_compiled_programs`
+    drops the in-memory programs between modules), and subprocesses (CLI runs, notebook
+    kernels, fake-device runs) read the same folder through the environment. Each xdist
+    worker has its own folder: JAX writes cache files without a lock.
+    """
+    import jax
+    from jax.experimental.compilation_cache import compilation_cache
+
     path = tmp_path_factory.mktemp("jax-cache")
+    settings = {"jax_compilation_cache_dir": str(path),
+                "jax_persistent_cache_min_compile_time_secs": 0.0,
+                "jax_persistent_cache_min_entry_size_bytes": 0}
+    before = {name: getattr(jax.config, name) for name in settings}
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("JAXBVH_CACHE_DIR", str(path))
+        for name, value in settings.items():
+            patch.setenv(name.upper(), str(value))
+            jax.config.update(name, value)
+        compilation_cache.reset_cache()
         yield path
+    for name, value in before.items():
+        jax.config.update(name, value)
+    compilation_cache.reset_cache()
 
 
 @pytest.fixture(autouse=True, scope="module")

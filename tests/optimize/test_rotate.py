@@ -147,10 +147,9 @@ def test_work_sizes_do_not_change_the_result(monkeypatch):
     check_result(c, plo, phi)
     # the short-queue walk (normally 4096 wide) next to the full-width one
     monkeypatch.setattr(rotate_passes, "SMALL_QUEUE", 3)
-    for frontier in (5, 7):
-        d = rotate.hill_climb(tree, windows=(2, 5), frontier=frontier)
-        assert_same_tree(d.tree, c.tree)
-        assert int(d.steps) == int(c.steps) and int(d.moves) == int(c.moves)
+    d = rotate.hill_climb(tree, windows=(2, 5), frontier=5)
+    assert_same_tree(d.tree, c.tree)
+    assert int(d.steps) == int(c.steps) and int(d.moves) == int(c.moves)
     key = jax.random.key(5)
     e = rotate.anneal(key, tree, steps=12, period=6, frontier=7)
     monkeypatch.setattr(rotate_passes, "SMALL_QUEUE", 4096)
@@ -471,7 +470,7 @@ def test_split_axes_match_reference_and_keep_cost(case):
 
 
 # ----------------------------------------------------------------------------------
-# Devices and threads (subprocesses: XLA flags must be set before jax starts)
+# Devices (a subprocess: XLA flags must be set before jax starts)
 # ----------------------------------------------------------------------------------
 
 _SUBPROCESS = textwrap.dedent("""
@@ -513,16 +512,14 @@ def _run_subprocess(flags: str) -> dict:
     return json.loads(line[len("RESULT"):])
 
 
-def test_sharded_batch_on_two_cpu_devices_and_one_thread_agree():
+def test_sharded_batch_on_two_cpu_devices_equals_one_device():
+    """The batch sharded over 2 fake CPU devices (a subprocess) gives this process's trees."""
     two = _run_subprocess("--xla_force_host_platform_device_count=2")
-    one = _run_subprocess("--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")
     assert two["devices"] == 2 and two["sharded_devices"] == 2
-    assert one["devices"] == 1
-    # the same trees on two devices and on one thread (convergence is not thread-dependent)
-    assert two["hc"] == one["hc"] and two["passes"] == one["passes"]
     cases = [random_tree(s, 40, 1, "grid" if s % 2 == 0 else "random") for s in range(4)]
     here = rotate.optimize_batch(jaxbvh.tree.stack_trees([t for t, _, _ in cases]))
     assert np.asarray(here.tree.left).tolist() == two["hc"]
+    assert np.asarray(here.steps).tolist() == two["passes"]
     keys = jax.random.split(jax.random.key(1), 4)
     sa = rotate.optimize_batch(jaxbvh.tree.stack_trees([t for t, _, _ in cases]), keys, method="sa",
                                steps=8, period=4)
