@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
-from hypothesis import given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from jaxbvh.optimize.schedules import EXPONENTIAL_FINAL, SCHEDULES, constant_schedule, kensler_schedule
@@ -33,7 +33,6 @@ def test_kensler_schedule_values():
         kensler_schedule(0)
 
 
-@settings(max_examples=25)
 @given(steps=st.integers(1, 3000), period=st.integers(1, 100), hottest=st.floats(0, 3),
        boundary=st.integers(0, 3000), data=st.data())
 def test_kensler_schedule_composes_under_optax_join(steps, period, hottest, boundary, data):

@@ -223,8 +223,7 @@ def test_tinybvh_trees_load_validate_and_cost_what_tinybvh_says(name):
     assert float(jaxbvh.sah(jaxbvh.to_jax(tree))) == pytest.approx(tinybvh_sah, abs=1e-3)
 
 
-@settings(max_examples=25)
-@given(data=box_sets(max_size=30), extra=st.integers(0, 20))
+@given(data=box_sets(max_size=30), extra=st.integers(0, 20))  # a compile per size: the profile's examples
 def test_padding_is_inert(data, extra):
     lo, hi = data
     tree = jaxbvh.build(lo, hi, pad=False)
