@@ -221,22 +221,55 @@ def _may_open(refs: Refs, segs: Segments, view: _View, overlap, *, cap):
 
 def _open(forest, instances, refs: Refs, segs: Segments, view: _View, may_open, threshold, *, cap,
           estimate):
-    """Step 3, opening: all candidates of a segment or none. Returns the BRefs, each
-    segment's new end and its room's end (dropped room: the new end)."""
+    """Step 3, opening, round after round (a ``while_loop`` bounded by ``C`` rounds, each
+    opening one BRef at least) until no segment has a candidate left or room for one.
+    Returns the BRefs, each segment's new end and its room's end (dropped room: the new
+    end)."""
     C = cap
-    NF = forest.left.shape[0]
-    seg = view.seg
-    ext = view.hi - view.lo
+    ext = view.hi - view.lo  # the segment's box before opening: the yardstick of every round
     dim = jnp.argmax(ext, axis=1).astype(jnp.int32)
     ext_dim = jnp.take_along_axis(ext, dim[:, None], axis=1)[:, 0]
-    dim_p = take(dim, seg, 0)
+    limit = threshold * take(ext_dim, view.seg, 0)
+    dim_p = take(dim, view.seg, 0)
+
+    def more(carry):
+        _, _, opened, rounds = carry
+        return opened & (rounds < C)
+
+    def one_round(carry):
+        refs, seg_end, _, rounds = carry
+        refs, n_open = _open_once(forest, instances, refs, view, may_open, seg_end, segs.extra, dim_p, limit,
+                                  cap=cap, estimate=estimate)
+        return refs, seg_end + n_open, jnp.any(n_open > 0), rounds + 1
+
+    refs, seg_end, _, _ = jax.lax.while_loop(more, one_round, (refs, segs.end, jnp.any(may_open), jnp.int32(0)))
+    extra = jnp.where(may_open, segs.extra, seg_end)  # dropped room stays unused
+    return refs, seg_end, extra
+
+
+def _open_once(forest, instances, refs: Refs, view: _View, may_open, seg_end, extra, dim_p, limit, *, cap,
+               estimate):
+    """One round of opening in every segment that may open: its widest candidates that
+    fit into the room (all if they fit; ties to the lower slot). Returns the BRefs and
+    the BRefs each segment gained (int32 [C] per segment)."""
+    C = cap
+    NF = forest.left.shape[0]
+    i32 = jnp.int32
+    pos = jnp.arange(C, dtype=i32)
+    seg = view.seg
+    end_p = take(seg_end, seg, 0)
     width = (jnp.take_along_axis(refs.hi, dim_p[:, None], axis=1)
              - jnp.take_along_axis(refs.lo, dim_p[:, None], axis=1))[:, 0]
-    candidate = view.is_ref & _interior(forest, refs.node) & (width > threshold * take(ext_dim, seg, 0))
-    n_cand = segment(jax.ops.segment_sum, candidate.astype(jnp.int32), view.sid, C)
-    do_open = may_open & (n_cand > 0) & (n_cand <= segs.extra - segs.end)
-    opens = candidate & take(do_open, seg, False)
-    slot = jnp.where(opens, view.end + exclusive_rank(opens, jnp.minimum(seg, C - 1)), C)
+    candidate = (view.in_live & (pos < end_p) & take(may_open, seg, False) & _interior(forest, refs.node)
+                 & (width > limit))
+    # widest first: rank every candidate within its segment by (width descending, slot)
+    key = jnp.where(candidate, seg, C)
+    order = jnp.lexsort((pos, -width, key)).astype(i32)
+    first = segment(jax.ops.segment_min, pos, key[order], C)
+    rank = jnp.zeros(C, i32).at[order].set(pos - take(first, key[order], 0))
+    room = take(jnp.maximum(extra - seg_end, 0), seg, 0)
+    opens = candidate & (rank < room)
+    slot = jnp.where(opens, end_p + exclusive_rank(opens, jnp.minimum(seg, C - 1)), C)
     safe = jnp.where(opens, refs.node, NF)
     kid_l = take(forest.left, safe, -1)
     kid_r = take(forest.right, safe, -1)
@@ -253,9 +286,8 @@ def _open(forest, instances, refs: Refs, segs: Segments, view: _View, may_open, 
                    lo=jnp.where(opens[:, None], l_lo, refs.lo).at[slot].set(r_lo, mode="drop"),
                    hi=jnp.where(opens[:, None], l_hi, refs.hi).at[slot].set(r_hi, mode="drop"),
                    prims=jnp.where(opens, l_prims, refs.prims).at[slot].set(r_prims, mode="drop"))
-    seg_end = segs.end + jnp.where(do_open, n_cand, 0)
-    extra = jnp.where(may_open, segs.extra, seg_end)  # dropped room stays unused
-    return opened, seg_end, extra
+    n_open = segment(jax.ops.segment_sum, opens.astype(i32), jnp.where(opens, seg, C), C)
+    return opened, n_open
 
 
 def _bin(refs: Refs, view: _View, seg_end, *, cap, bins) -> _Binned:
