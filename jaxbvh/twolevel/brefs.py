@@ -97,14 +97,12 @@ from jaxbvh.numerics import take
 from jaxbvh.tree.layout import BVH, capacity_bucket
 from jaxbvh.twolevel import brefs_level
 from jaxbvh.twolevel.brefs_level import SMALL_SEGMENT, Build  # noqa: F401 (SMALL_SEGMENT: public here)
+from jaxbvh.twolevel.config import DEFAULT_BINS, DEFAULT_OVERLAP, DEFAULT_THRESHOLD, RebraidConfig
 
-DEFAULT_THRESHOLD = 0.1  # paper §4.2 / Figure 4
 DEFAULT_BUDGET = 4.0     # paper §5.2: 4 x #instances (the top-level engine's default)
 PRIMS_PER_SLOT = 1000    # paper §5.2: #primitives / 1000 for trees over objects
 ONCE_BUDGET = 16         # ours: slots per object placed once in a small scene (see scene_slots)
 LEAST_PRIMS_PER_SLOT = 64  # ours: ... but never more slots than #primitives / 64
-DEFAULT_OVERLAP = 0.1    # ours: "barely overlapping" (the paper gives no number)
-DEFAULT_BINS = 16
 
 
 @jax.tree_util.register_dataclass
@@ -134,15 +132,9 @@ class TopLevel:
 
 
 def check_options(threshold, budget, bins, overlap) -> None:
-    """Raise ``ValueError`` naming a bad option (shared by the twin and the CLI)."""
-    if not threshold > 0:  # also catches NaN
-        raise ValueError(f"threshold must be > 0 (inf: never open), got {threshold}")
-    if budget is not None and (not budget >= 1 or math.isinf(budget) or budget > 2**24):
-        raise ValueError(f"budget must be >= 1 and <= 2^24 (BRef slots per instance), got {budget}")
-    if int(bins) < 2:
-        raise ValueError(f"bins must be >= 2, got {bins}")
-    if not overlap >= 0:
-        raise ValueError(f"overlap must be >= 0, got {overlap}")
+    """Raise ``ValueError`` naming a bad option (:class:`jaxbvh.twolevel.config.RebraidConfig`'s
+    checks, which the command line runs too)."""
+    RebraidConfig(threshold=threshold, budget=budget, top_bins=bins, overlap=overlap)
 
 
 def brefs_capacity(n_instances: int, threshold: float, budget: float,
