@@ -165,15 +165,16 @@ def initial(forest, instances, n_inst, slots, *, cap) -> Build:
                   next_free=i32(1), level=i32(0))
 
 
-def level(forest, instances, s: Build, threshold, overlap, *, cap, bins, estimate) -> Build:
+def level(forest, instances, s: Build, threshold, overlap, rounds, *, cap, bins, estimate) -> Build:
     """One level: every live segment becomes a leaf or opens (steps 2-3 of
     :mod:`jaxbvh.twolevel.brefs`), bins (4) and splits in two (5); its halves are the
     next level's segments. ``threshold``, ``overlap`` []: the opening and overlap
-    tolerances; ``cap``, ``bins``, ``estimate``: static, as for :func:`initial` and
+    tolerances; ``rounds`` [] int32: most rounds of opening per segment; ``cap``,
+    ``bins``, ``estimate``: static, as for :func:`initial` and
     :func:`jaxbvh.twolevel.brefs.build_top_level`."""
     view = _view(s.refs, s.segs, cap=cap)
     may_open = _may_open(s.refs, s.segs, view, overlap, cap=cap)
-    refs, seg_end, extra = _open(forest, instances, s.refs, s.segs, view, may_open, threshold,
+    refs, seg_end, extra = _open(forest, instances, s.refs, s.segs, view, may_open, threshold, rounds,
                                  cap=cap, estimate=estimate)
     binned = _bin(refs, view, seg_end, cap=cap, bins=bins)
     halves = _partition(forest, refs, view, binned, seg_end, extra, threshold, cap=cap)
@@ -219,10 +220,11 @@ def _may_open(refs: Refs, segs: Segments, view: _View, overlap, *, cap):
     return view.split & (segs.extra > segs.end) & ~same & ~barely
 
 
-def _open(forest, instances, refs: Refs, segs: Segments, view: _View, may_open, threshold, *, cap,
+def _open(forest, instances, refs: Refs, segs: Segments, view: _View, may_open, threshold, rounds, *, cap,
           estimate):
-    """Step 3, opening, round after round (a ``while_loop`` bounded by ``C`` rounds, each
-    opening one BRef at least) until no segment has a candidate left or room for one.
+    """Step 3, opening, round after round (a ``while_loop`` bounded by ``rounds`` and by
+    ``C``: each round opens one BRef at least) until no segment has a candidate left or
+    room for one.
     Returns the BRefs, each segment's new end and its room's end (dropped room: the new
     end)."""
     C = cap
@@ -233,14 +235,14 @@ def _open(forest, instances, refs: Refs, segs: Segments, view: _View, may_open, 
     dim_p = take(dim, view.seg, 0)
 
     def more(carry):
-        _, _, opened, rounds = carry
-        return opened & (rounds < C)
+        _, _, opened, done = carry
+        return opened & (done < jnp.minimum(rounds, C))
 
     def one_round(carry):
-        refs, seg_end, _, rounds = carry
+        refs, seg_end, _, done = carry
         refs, n_open = _open_once(forest, instances, refs, view, may_open, seg_end, segs.extra, dim_p, limit,
                                   cap=cap, estimate=estimate)
-        return refs, seg_end + n_open, jnp.any(n_open > 0), rounds + 1
+        return refs, seg_end + n_open, jnp.any(n_open > 0), done + 1
 
     refs, seg_end, _, _ = jax.lax.while_loop(more, one_round, (refs, segs.end, jnp.any(may_open), jnp.int32(0)))
     extra = jnp.where(may_open, segs.extra, seg_end)  # dropped room stays unused

@@ -80,7 +80,7 @@ class _TopNodes:
 
 
 def build_top_level(forest, instances, n_instances, *, threshold=0.1, slots=None, bins=16,
-                    overlap=0.1, estimate=False):
+                    overlap=0.1, estimate=False, rounds=64):
     """Reference top-level build over the first ``n_instances`` instances.
 
     ``forest``, ``instances``: :func:`jaxbvh.twolevel.objects.pack` output (NumPy); ``slots``: size
@@ -108,7 +108,7 @@ def build_top_level(forest, instances, n_instances, *, threshold=0.1, slots=None
         if extra > end and _stops_opening(refs, ids, overlap):
             extra = end
         if extra > end:
-            end = _open(refs, f, instances, start, end, extra, box_lo, box_hi, threshold, estimate)
+            end = _open(refs, f, instances, start, end, extra, box_lo, box_hi, threshold, estimate, rounds)
             ids = np.arange(start, end)
         axis, goes_left = _best_split(refs, ids, bins, dtype)
         if axis is not None:
@@ -178,11 +178,10 @@ def _stops_opening(refs, ids, overlap) -> bool:
     return True
 
 
-def _open(refs, f, instances, start, end, extra, box_lo, box_hi, threshold, estimate) -> int:
-    """Opening, round after round until no candidate is left or the room is full (at
-    most ``extra - start`` rounds: each opens one BRef at least). Returns the segment's
-    new end."""
-    for _ in range(extra - start):
+def _open(refs, f, instances, start, end, extra, box_lo, box_hi, threshold, estimate, rounds) -> int:
+    """Opening, round after round until no candidate is left, the room is full or
+    ``rounds`` rounds are done. Returns the segment's new end."""
+    for _ in range(min(rounds, extra - start)):
         new_end = _open_once(refs, f, instances, np.arange(start, end), end, extra, box_lo, box_hi, threshold,
                              estimate)
         if new_end == end:

@@ -19,6 +19,7 @@ from jaxbvh.configs import Checked, integer, knob, optional, real
 DEFAULT_THRESHOLD = 0.1  # paper §4.2 / Figure 4
 DEFAULT_OVERLAP = 0.1    # ours: "barely overlapping" (the paper gives no number)
 DEFAULT_BINS = 16
+DEFAULT_ROUNDS = 64      # ours: rounds of opening per top-level node (1: one level of opening per split)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -30,7 +31,9 @@ class RebraidConfig(Checked):
     (None: the scene's default, :func:`jaxbvh.twolevel.brefs.scene_slots`).
     ``top_bins``: SAH bins per axis of the top-level build. ``overlap``: <= 4 BRefs whose
     boxes overlap by at most this fraction of the shorter extent on some axis stop
-    opening. ``estimate``: the paper's estimated BRef primitive counts instead of exact ones.
+    opening. ``rounds``: rounds of opening per top-level node (each round opens the
+    candidates that are still wide; 1: the paper's one level per split). ``estimate``:
+    the paper's estimated BRef primitive counts instead of exact ones.
     """
 
     threshold: float = knob(DEFAULT_THRESHOLD, check=real(above=0.0, finite=False), metavar="T",
@@ -40,6 +43,8 @@ class RebraidConfig(Checked):
     top_bins: int = knob(DEFAULT_BINS, check=integer(2), metavar="B", help="bins per axis of the top-level build")
     overlap: float = knob(DEFAULT_OVERLAP, check=real(0.0), metavar="F",
                           help="<= 4 BRefs overlapping by at most F of the shorter extent on some axis stop opening")
+    rounds: int = knob(DEFAULT_ROUNDS, check=integer(1), metavar="R",
+                       help="most rounds of opening per top-level node (each opens a level of BRefs)")
     estimate: bool = knob(False, help="the paper's estimated BRef primitive counts (off: exact)")
 
     def options(self) -> dict:

@@ -116,7 +116,7 @@ def _single_instance(forest: Forest, instances: Instances) -> TwoLevelBVH:
 def build_from(mesh, trees: dict[int, ObjectTree], *, threshold: float = _brefs.DEFAULT_THRESHOLD,
                budget: float | None = None, capacity: int | None = None,
                top_bins: int = _brefs.DEFAULT_BINS, overlap: float = _brefs.DEFAULT_OVERLAP,
-               estimate: bool = False, timings: dict | None = None,
+               estimate: bool = False, rounds: int = _brefs.DEFAULT_ROUNDS, timings: dict | None = None,
                shapes: dict | None = None, info: dict | None = None) -> TwoLevelBVH:
     """Pack already built object trees and build the top level (see :func:`build`).
 
@@ -127,7 +127,7 @@ def build_from(mesh, trees: dict[int, ObjectTree], *, threshold: float = _brefs.
     receives ``slots`` (the BRef array's size) and ``kept`` (``"rebraided"``,
     ``"two-level"`` when opening did not lower the SAH, or ``"single object"``).
     """
-    _brefs.check_options(threshold, budget, top_bins, overlap)
+    _brefs.check_options(threshold, budget, top_bins, overlap, rounds)
     start = time.perf_counter()
     shapes = shapes or {}
     forest, instances = pack(mesh, trees, capacity=shapes)
@@ -137,7 +137,7 @@ def build_from(mesh, trees: dict[int, ObjectTree], *, threshold: float = _brefs.
     if n == 1:
         tl, kept = _single_instance(forest, instances), "single object"
     else:
-        top = dict(bins=top_bins, overlap=overlap, estimate=estimate, array_size=shapes.get("brefs"))
+        top = dict(bins=top_bins, overlap=overlap, estimate=estimate, rounds=rounds, array_size=shapes.get("brefs"))
         plain = jax.block_until_ready(_brefs.build_top_level(forest, instances, n, threshold=math.inf, **top))
         result, kept = plain, "two-level"
         if not math.isinf(threshold):
@@ -302,7 +302,8 @@ def _keep_rebraided(braided, plain, forest, instances) -> bool:
 def build(mesh, builder: BuilderConfig | None = None, *, threshold: float = _brefs.DEFAULT_THRESHOLD,
           budget: float | None = None, capacity: int | None = None,
           top_bins: int = _brefs.DEFAULT_BINS, overlap: float = _brefs.DEFAULT_OVERLAP, estimate: bool = False,
-          dtype=None, world_space: bool = True, timings: dict | None = None, info: dict | None = None,
+          rounds: int = _brefs.DEFAULT_ROUNDS, dtype=None, world_space: bool = True, timings: dict | None = None,
+          info: dict | None = None,
           **builder_options) -> TwoLevelBVH:
     """Two-level BVH of ``mesh`` with re-braiding (module docstring).
 
@@ -314,20 +315,21 @@ def build(mesh, builder: BuilderConfig | None = None, *, threshold: float = _bre
     placed by a single instance in world space (:mod:`jaxbvh.twolevel.objects`). Top
     level: ``threshold`` (opening threshold; inf: plain two-level), ``budget`` BRef slots
     per instance (or ``capacity`` in all; neither: the scene's default,
-    :func:`jaxbvh.twolevel.brefs.scene_slots`), ``top_bins``, ``overlap``, ``estimate`` as
+    :func:`jaxbvh.twolevel.brefs.scene_slots`), ``top_bins``, ``overlap``, ``estimate``, ``rounds`` as
     :func:`jaxbvh.twolevel.brefs.build_top_level`. ``timings``, if given, receives
     ``objects``, ``pack`` and ``top`` seconds; ``info`` as :func:`build_from`. The
     re-braided top level is kept only where it lowers the SAH below the plain two-level
     one (else the plain one is returned, ``info["kept"] == "two-level"``).
     """
-    _brefs.check_options(threshold, budget, top_bins, overlap)
+    _brefs.check_options(threshold, budget, top_bins, overlap, rounds)
     builder = object_builder(builder, **builder_options)  # refused before any work
     start = time.perf_counter()
     trees = build_objects(mesh, builder, dtype=dtype, world_space=world_space)
     if timings is not None:
         timings["objects"] = time.perf_counter() - start
     return build_from(mesh, trees, threshold=threshold, budget=budget, capacity=capacity,
-                      top_bins=top_bins, overlap=overlap, estimate=estimate, timings=timings, info=info)
+                      top_bins=top_bins, overlap=overlap, estimate=estimate, rounds=rounds, timings=timings,
+                      info=info)
 
 
 # ----------------------------------------------------------------------------------
