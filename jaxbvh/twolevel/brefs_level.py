@@ -165,15 +165,16 @@ def initial(forest, instances, n_inst, slots, *, cap) -> Build:
                   next_free=i32(1), level=i32(0))
 
 
-def level(forest, instances, s: Build, threshold, overlap, *, cap, bins, estimate) -> Build:
+def level(forest, instances, s: Build, threshold, overlap, rounds, *, cap, bins, estimate) -> Build:
     """One level: every live segment becomes a leaf or opens (steps 2-3 of
     :mod:`jaxbvh.twolevel.brefs`), bins (4) and splits in two (5); its halves are the
     next level's segments. ``threshold``, ``overlap`` []: the opening and overlap
-    tolerances; ``cap``, ``bins``, ``estimate``: static, as for :func:`initial` and
+    tolerances; ``rounds`` [] int32: most rounds of opening per segment; ``cap``,
+    ``bins``, ``estimate``: static, as for :func:`initial` and
     :func:`jaxbvh.twolevel.brefs.build_top_level`."""
     view = _view(s.refs, s.segs, cap=cap)
     may_open = _may_open(s.refs, s.segs, view, overlap, cap=cap)
-    refs, seg_end, extra = _open(forest, instances, s.refs, s.segs, view, may_open, threshold,
+    refs, seg_end, extra = _open(forest, instances, s.refs, s.segs, view, may_open, threshold, rounds,
                                  cap=cap, estimate=estimate)
     binned = _bin(refs, view, seg_end, cap=cap, bins=bins)
     halves = _partition(forest, refs, view, binned, seg_end, extra, threshold, cap=cap)
@@ -219,24 +220,58 @@ def _may_open(refs: Refs, segs: Segments, view: _View, overlap, *, cap):
     return view.split & (segs.extra > segs.end) & ~same & ~barely
 
 
-def _open(forest, instances, refs: Refs, segs: Segments, view: _View, may_open, threshold, *, cap,
+def _open(forest, instances, refs: Refs, segs: Segments, view: _View, may_open, threshold, rounds, *, cap,
           estimate):
-    """Step 3, opening: all candidates of a segment or none. Returns the BRefs, each
-    segment's new end and its room's end (dropped room: the new end)."""
+    """Step 3, opening, round after round (a ``while_loop`` bounded by ``rounds`` and by
+    ``C``: each round opens one BRef at least) until no segment has a candidate left or
+    room for one.
+    Returns the BRefs, each segment's new end and its room's end (dropped room: the new
+    end)."""
     C = cap
-    NF = forest.left.shape[0]
-    seg = view.seg
-    ext = view.hi - view.lo
+    ext = view.hi - view.lo  # the segment's box before opening: the yardstick of every round
     dim = jnp.argmax(ext, axis=1).astype(jnp.int32)
     ext_dim = jnp.take_along_axis(ext, dim[:, None], axis=1)[:, 0]
-    dim_p = take(dim, seg, 0)
+    limit = threshold * take(ext_dim, view.seg, 0)
+    dim_p = take(dim, view.seg, 0)
+
+    def more(carry):
+        _, _, opened, done = carry
+        return opened & (done < jnp.minimum(rounds, C))
+
+    def one_round(carry):
+        refs, seg_end, _, done = carry
+        refs, n_open = _open_once(forest, instances, refs, view, may_open, seg_end, segs.extra, dim_p, limit,
+                                  cap=cap, estimate=estimate)
+        return refs, seg_end + n_open, jnp.any(n_open > 0), done + 1
+
+    refs, seg_end, _, _ = jax.lax.while_loop(more, one_round, (refs, segs.end, jnp.any(may_open), jnp.int32(0)))
+    extra = jnp.where(may_open, segs.extra, seg_end)  # dropped room stays unused
+    return refs, seg_end, extra
+
+
+def _open_once(forest, instances, refs: Refs, view: _View, may_open, seg_end, extra, dim_p, limit, *, cap,
+               estimate):
+    """One round of opening in every segment that may open: its widest candidates that
+    fit into the room (all if they fit; ties to the lower slot). Returns the BRefs and
+    the BRefs each segment gained (int32 [C] per segment)."""
+    C = cap
+    NF = forest.left.shape[0]
+    i32 = jnp.int32
+    pos = jnp.arange(C, dtype=i32)
+    seg = view.seg
+    end_p = take(seg_end, seg, 0)
     width = (jnp.take_along_axis(refs.hi, dim_p[:, None], axis=1)
              - jnp.take_along_axis(refs.lo, dim_p[:, None], axis=1))[:, 0]
-    candidate = view.is_ref & _interior(forest, refs.node) & (width > threshold * take(ext_dim, seg, 0))
-    n_cand = segment(jax.ops.segment_sum, candidate.astype(jnp.int32), view.sid, C)
-    do_open = may_open & (n_cand > 0) & (n_cand <= segs.extra - segs.end)
-    opens = candidate & take(do_open, seg, False)
-    slot = jnp.where(opens, view.end + exclusive_rank(opens, jnp.minimum(seg, C - 1)), C)
+    candidate = (view.in_live & (pos < end_p) & take(may_open, seg, False) & _interior(forest, refs.node)
+                 & (width > limit))
+    # widest first: rank every candidate within its segment by (width descending, slot)
+    key = jnp.where(candidate, seg, C)
+    order = jnp.lexsort((pos, -width, key)).astype(i32)
+    first = segment(jax.ops.segment_min, pos, key[order], C)
+    rank = jnp.zeros(C, i32).at[order].set(pos - take(first, key[order], 0))
+    room = take(jnp.maximum(extra - seg_end, 0), seg, 0)
+    opens = candidate & (rank < room)
+    slot = jnp.where(opens, end_p + exclusive_rank(opens, jnp.minimum(seg, C - 1)), C)
     safe = jnp.where(opens, refs.node, NF)
     kid_l = take(forest.left, safe, -1)
     kid_r = take(forest.right, safe, -1)
@@ -253,9 +288,8 @@ def _open(forest, instances, refs: Refs, segs: Segments, view: _View, may_open, 
                    lo=jnp.where(opens[:, None], l_lo, refs.lo).at[slot].set(r_lo, mode="drop"),
                    hi=jnp.where(opens[:, None], l_hi, refs.hi).at[slot].set(r_hi, mode="drop"),
                    prims=jnp.where(opens, l_prims, refs.prims).at[slot].set(r_prims, mode="drop"))
-    seg_end = segs.end + jnp.where(do_open, n_cand, 0)
-    extra = jnp.where(may_open, segs.extra, seg_end)  # dropped room stays unused
-    return opened, seg_end, extra
+    n_open = segment(jax.ops.segment_sum, opens.astype(i32), jnp.where(opens, seg, C), C)
+    return opened, n_open
 
 
 def _bin(refs: Refs, view: _View, seg_end, *, cap, bins) -> _Binned:

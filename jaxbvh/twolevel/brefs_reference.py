@@ -80,7 +80,7 @@ class _TopNodes:
 
 
 def build_top_level(forest, instances, n_instances, *, threshold=0.1, slots=None, bins=16,
-                    overlap=0.1, estimate=False):
+                    overlap=0.1, estimate=False, rounds=64):
     """Reference top-level build over the first ``n_instances`` instances.
 
     ``forest``, ``instances``: :func:`jaxbvh.twolevel.objects.pack` output (NumPy); ``slots``: size
@@ -108,7 +108,7 @@ def build_top_level(forest, instances, n_instances, *, threshold=0.1, slots=None
         if extra > end and _stops_opening(refs, ids, overlap):
             extra = end
         if extra > end:
-            end = _open(refs, f, instances, ids, end, extra, box_lo, box_hi, threshold, estimate)
+            end = _open(refs, f, instances, start, end, extra, box_lo, box_hi, threshold, estimate, rounds)
             ids = np.arange(start, end)
         axis, goes_left = _best_split(refs, ids, bins, dtype)
         if axis is not None:
@@ -178,12 +178,29 @@ def _stops_opening(refs, ids, overlap) -> bool:
     return True
 
 
-def _open(refs, f, instances, ids, end, extra, box_lo, box_hi, threshold, estimate) -> int:
-    """Opening: all candidates or none; a candidate's slot takes its left child, its
-    right child goes to ``end, end + 1, ...``. Returns the segment's new end."""
+def _open(refs, f, instances, start, end, extra, box_lo, box_hi, threshold, estimate, rounds) -> int:
+    """Opening, round after round until no candidate is left, the room is full or
+    ``rounds`` rounds are done. Returns the segment's new end."""
+    for _ in range(min(rounds, extra - start)):
+        new_end = _open_once(refs, f, instances, np.arange(start, end), end, extra, box_lo, box_hi, threshold,
+                             estimate)
+        if new_end == end:
+            return end
+        end = new_end
+    return end
+
+
+def _open_once(refs, f, instances, ids, end, extra, box_lo, box_hi, threshold, estimate) -> int:
+    """One round of opening: the widest candidates that fit into the room (all of them if
+    they fit; widths along the segment box's largest axis, ties to the lower slot); a
+    candidate's slot takes its left child, its right child goes to ``end, end + 1, ...``
+    in slot order. Returns the segment's new end."""
     candidates = [p for p in ids if _is_interior(f, refs.node[p]) and _wide(refs, p, box_lo, box_hi, threshold)]
-    if not 0 < len(candidates) <= extra - end:
-        return end
+    room = extra - end
+    if room < len(candidates):
+        dim = int(np.argmax(box_hi - box_lo))
+        width = {p: refs.hi[p, dim] - refs.lo[p, dim] for p in candidates}
+        candidates = sorted(sorted(candidates, key=lambda p: (-width[p], p))[:room])
     for k, p in enumerate(candidates):
         n, i, slot = refs.node[p], refs.inst[p], end + k
         kid_l, kid_r = int(f.left[n]), int(f.right[n])

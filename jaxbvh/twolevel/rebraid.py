@@ -116,7 +116,7 @@ def _single_instance(forest: Forest, instances: Instances) -> TwoLevelBVH:
 def build_from(mesh, trees: dict[int, ObjectTree], *, threshold: float = _brefs.DEFAULT_THRESHOLD,
                budget: float | None = None, capacity: int | None = None,
                top_bins: int = _brefs.DEFAULT_BINS, overlap: float = _brefs.DEFAULT_OVERLAP,
-               estimate: bool = False, timings: dict | None = None,
+               estimate: bool = False, rounds: int = _brefs.DEFAULT_ROUNDS, timings: dict | None = None,
                shapes: dict | None = None, info: dict | None = None) -> TwoLevelBVH:
     """Pack already built object trees and build the top level (see :func:`build`).
 
@@ -127,7 +127,7 @@ def build_from(mesh, trees: dict[int, ObjectTree], *, threshold: float = _brefs.
     receives ``slots`` (the BRef array's size) and ``kept`` (``"rebraided"``,
     ``"two-level"`` when opening did not lower the SAH, or ``"single object"``).
     """
-    _brefs.check_options(threshold, budget, top_bins, overlap)
+    _brefs.check_options(threshold, budget, top_bins, overlap, rounds)
     start = time.perf_counter()
     shapes = shapes or {}
     forest, instances = pack(mesh, trees, capacity=shapes)
@@ -137,11 +137,13 @@ def build_from(mesh, trees: dict[int, ObjectTree], *, threshold: float = _brefs.
     if n == 1:
         tl, kept = _single_instance(forest, instances), "single object"
     else:
-        top = dict(bins=top_bins, overlap=overlap, estimate=estimate, array_size=shapes.get("brefs"))
-        plain = jax.block_until_ready(_brefs.build_top_level(forest, instances, n, threshold=math.inf, **top))
+        top = dict(bins=top_bins, overlap=overlap, estimate=estimate, rounds=rounds, array_size=shapes.get("brefs"))
+        # NumPy from here: the comparison and the root box are a few small steps, each
+        # cheaper on the host than as a dispatched device op (measured: 1-2 ms each)
+        plain = jax.device_get(_brefs.build_top_level(forest, instances, n, threshold=math.inf, **top))
         result, kept = plain, "two-level"
         if not math.isinf(threshold):
-            braided = jax.block_until_ready(_brefs.build_top_level(
+            braided = jax.device_get(_brefs.build_top_level(
                 forest, instances, n, threshold=threshold, capacity=slots, **top))
             braided = _same_root_box(braided, plain)
             if _keep_rebraided(braided, plain, forest, instances):
@@ -203,8 +205,8 @@ def _same_root_box(braided, plain):
     one normaliser, and the re-braided SAH cannot rise because the root shrank."""
     top = braided.top
     root = int(plain.top.root)
-    lo = top.lo.at[int(top.root)].set(plain.top.lo[root])
-    hi = top.hi.at[int(top.root)].set(plain.top.hi[root])
+    lo, hi = np.array(top.lo), np.array(top.hi)
+    lo[int(top.root)], hi[int(top.root)] = plain.top.lo[root], plain.top.hi[root]
     return dataclasses.replace(braided, top=dataclasses.replace(top, lo=lo, hi=hi))
 
 
@@ -302,7 +304,8 @@ def _keep_rebraided(braided, plain, forest, instances) -> bool:
 def build(mesh, builder: BuilderConfig | None = None, *, threshold: float = _brefs.DEFAULT_THRESHOLD,
           budget: float | None = None, capacity: int | None = None,
           top_bins: int = _brefs.DEFAULT_BINS, overlap: float = _brefs.DEFAULT_OVERLAP, estimate: bool = False,
-          dtype=None, world_space: bool = True, timings: dict | None = None, info: dict | None = None,
+          rounds: int = _brefs.DEFAULT_ROUNDS, dtype=None, world_space: bool = True, timings: dict | None = None,
+          info: dict | None = None,
           **builder_options) -> TwoLevelBVH:
     """Two-level BVH of ``mesh`` with re-braiding (module docstring).
 
@@ -314,20 +317,21 @@ def build(mesh, builder: BuilderConfig | None = None, *, threshold: float = _bre
     placed by a single instance in world space (:mod:`jaxbvh.twolevel.objects`). Top
     level: ``threshold`` (opening threshold; inf: plain two-level), ``budget`` BRef slots
     per instance (or ``capacity`` in all; neither: the scene's default,
-    :func:`jaxbvh.twolevel.brefs.scene_slots`), ``top_bins``, ``overlap``, ``estimate`` as
+    :func:`jaxbvh.twolevel.brefs.scene_slots`), ``top_bins``, ``overlap``, ``estimate``, ``rounds`` as
     :func:`jaxbvh.twolevel.brefs.build_top_level`. ``timings``, if given, receives
     ``objects``, ``pack`` and ``top`` seconds; ``info`` as :func:`build_from`. The
     re-braided top level is kept only where it lowers the SAH below the plain two-level
     one (else the plain one is returned, ``info["kept"] == "two-level"``).
     """
-    _brefs.check_options(threshold, budget, top_bins, overlap)
+    _brefs.check_options(threshold, budget, top_bins, overlap, rounds)
     builder = object_builder(builder, **builder_options)  # refused before any work
     start = time.perf_counter()
     trees = build_objects(mesh, builder, dtype=dtype, world_space=world_space)
     if timings is not None:
         timings["objects"] = time.perf_counter() - start
     return build_from(mesh, trees, threshold=threshold, budget=budget, capacity=capacity,
-                      top_bins=top_bins, overlap=overlap, estimate=estimate, timings=timings, info=info)
+                      top_bins=top_bins, overlap=overlap, estimate=estimate, rounds=rounds, timings=timings,
+                      info=info)
 
 
 # ----------------------------------------------------------------------------------

@@ -87,12 +87,14 @@ def test_plain_mesh_has_no_top_level(capsys, tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize("argv, fragment", [
-    (["--threshold", "0"], "threshold must be > 0"),
-    (["--threshold", "-0.1"], "threshold must be > 0"),
-    (["--threshold", "nan"], "threshold must be > 0"),
-    (["--budget", "0.5"], "budget must be >= 1"),
-    (["--budget", "1e9"], "budget must be >= 1"),
-    (["--overlap", "-1"], "overlap must be >= 0"),
+    (["--threshold", "0"], "threshold must be a number > 0"),
+    (["--threshold", "-0.1"], "threshold must be a number > 0"),
+    (["--threshold", "nan"], "threshold must be a number > 0"),
+    (["--budget", "0.5"], "budget must be a finite number in [1"),
+    (["--budget", "1e9"], "budget must be a finite number in [1"),
+    (["--overlap", "-1"], "overlap must be a finite number >= 0"),
+    (["--rounds", "0"], "--rounds must be an integer >= 1"),
+    (["--top-bins", "1"], "--top-bins must be an integer >= 2"),
 ])
 def test_bad_options_are_one_line_errors(capsys, scene, argv, fragment):
     assert_one_line_error(*run_cli(capsys, "rebraid", scene, *argv), fragment)

@@ -29,13 +29,16 @@ import numpy as np
 import jaxbvh
 from jaxbvh import rays, twolevel
 from jaxbvh.cli import command_kit
+from jaxbvh.cli import options as config_options
 from jaxbvh.io import load_mesh
 from jaxbvh.rays import traversal as traverse
-from jaxbvh.twolevel import brefs
 from jaxbvh.twolevel import objects as fm
-from jaxbvh.twolevel.brefs import DEFAULT_BINS, DEFAULT_OVERLAP, DEFAULT_THRESHOLD
+from jaxbvh.twolevel.config import RebraidConfig
 
 HELP = "compare two-level, re-braided and single BVHs of a multi-object scene (Benthin et al. 2017)"
+
+#: the top level's knobs (--threshold, --budget, --top-bins, --overlap, --estimate): RebraidConfig's
+OPTIONS = config_options.ConfigOptions({"rebraid": RebraidConfig})
 
 
 def add_parser(subparsers):
@@ -43,22 +46,10 @@ def add_parser(subparsers):
     parser = subparsers.add_parser("rebraid", help=HELP, description=HELP + ".")
     parser.add_argument("scene", metavar="SCENE", help="a scene or mesh file (glTF, OBJ, ...); its "
                         "objects and instances are kept")
-    parser.add_argument("--threshold", type=float, default=DEFAULT_THRESHOLD,
-                        metavar="T", help="open a BRef wider than T of its segment's largest extent "
-                        f"(> 0; inf: never; default: {DEFAULT_THRESHOLD})")
-    parser.add_argument("--budget", type=float, default=None, metavar="B",
-                        help="BRef slots per instance, >= 1 (default: the scene's, the largest of 4 x "
-                        "instances, triangles / 1000 and min(16 x objects placed once, triangles / 64))")
+    OPTIONS.add_to(parser)
     # the builder of the object BVHs and of the single BVH: the two-level builder's
     # (binned SAH, one primitive per leaf), not jaxbvh.build's sweep
     command_kit.add_builder_args(parser, default=fm.DEFAULT_BUILDER)
-    parser.add_argument("--top-bins", type=command_kit._int_at_least(2), default=DEFAULT_BINS, metavar="B",
-                        help=f"bins per axis of the top-level build (default: {DEFAULT_BINS})")
-    parser.add_argument("--overlap", type=float, default=DEFAULT_OVERLAP, metavar="F",
-                        help="<= 4 BRefs whose boxes overlap by at most F of the shorter extent on "
-                        f"some axis stop opening (default: {DEFAULT_OVERLAP})")
-    parser.add_argument("--estimate", action="store_true",
-                        help="estimate BRef primitive counts as the paper does (default: exact)")
     parser.add_argument("--object-space", action="store_true",
                         help="build every object in its own frame, also those placed by one instance "
                         "(default: those are built in world space)")
@@ -84,7 +75,7 @@ def run(args) -> dict:
     """Run ``jaxbvh rebraid`` on parsed ``args``; returns the result the command prints."""
     import jax
 
-    brefs.check_options(args.threshold, args.budget, args.top_bins, args.overlap)
+    config = OPTIONS.config(None, args)  # refused before any work
     builder = command_kit.builder_config(args)
     names = ["load", "objects", "two-level", "rebraid", "single", "check"] + (["rays"] if args.rays else []) \
         + (["save"] if args.output else [])  # a plain mesh skips objects, two-level and rebraid
@@ -92,18 +83,17 @@ def run(args) -> dict:
         with stages("load"):
             mesh = load_mesh(args.scene)
         if len(mesh.instances) == 1:
-            return _one_object(args, mesh, builder, stages)
+            return _one_object(args, config, mesh, builder, stages)
         with stages("objects"):
             trees, t_objects = _timed(lambda: fm.build_objects(mesh, builder, world_space=not args.object_space))
-        top = dict(top_bins=args.top_bins, overlap=args.overlap, estimate=args.estimate)
         results = {}
         kept = {}
-        for name, threshold in (("two_level", math.inf), ("rebraid", args.threshold)):
+        for name, threshold in (("two_level", math.inf), ("rebraid", config.threshold)):
+            top = dict(config.options(), threshold=threshold)
             with stages(name.replace("_", "-")):
                 timings = {}
-                twolevel.build_from(mesh, trees, threshold=threshold, budget=args.budget, **top)  # compile
-                tl = twolevel.build_from(mesh, trees, threshold=threshold, budget=args.budget,
-                                         timings=timings, info=kept, **top)
+                twolevel.build_from(mesh, trees, **top)  # compile
+                tl = twolevel.build_from(mesh, trees, timings=timings, info=kept, **top)
             results[name] = (tl, timings)
         lo, hi = mesh.local_boxes()
         with stages("single"):
@@ -143,7 +133,7 @@ def run(args) -> dict:
                 jaxbvh.save(args.output, flats["rebraid"], frame=mesh.frame)
 
     result = {"command": "rebraid", **command_kit.mesh_info(mesh), "builder": builder.method,
-              "threshold": args.threshold, "budget": args.budget, "path": "two-level",
+              "threshold": config.threshold, "budget": config.budget, "path": "two-level",
               "slots": kept["slots"], "kept": kept["kept"],
               "two_level": out["two_level"], "rebraid": out["rebraid"], "single": out["single"],
               "rebraid_vs_two_level": out["rebraid"]["sah"] / out["two_level"]["sah"],
@@ -161,7 +151,7 @@ def _report(args, result: dict) -> dict:
     return result
 
 
-def _one_object(args, mesh, builder, stages) -> dict:
+def _one_object(args, config, mesh, builder, stages) -> dict:
     """A plain mesh (one object, one identity instance): the two-level BVH *is* the object's
     BVH, which is the single BVH, so the command builds that once, as ``jaxbvh build`` does,
     and reports it in all three rows (no top level, no flattening, one validation)."""
@@ -191,7 +181,7 @@ def _one_object(args, mesh, builder, stages) -> dict:
     leveled = dict(row, sah_object=row["sah"], nodes=nodes + 1, top_nodes=1, flat_nodes=nodes, brefs=1,
                    top_seconds=0.0)
     result = {"command": "rebraid", **command_kit.mesh_info(mesh), "builder": builder.method,
-              "threshold": args.threshold, "budget": args.budget, "path": "single object", "slots": 1,
+              "threshold": config.threshold, "budget": config.budget, "path": "single object", "slots": 1,
               "kept": "single object", "two_level": leveled, "rebraid": dict(leveled), "single": row,
               "rebraid_vs_two_level": 1.0, "rebraid_vs_single": 1.0, "top_time_ratio": None,
               "valid": True, "output": args.output}
