@@ -234,7 +234,8 @@ _SUBPROCESS = textwrap.dedent("""
 def test_two_devices_give_what_one_gives():
     # one process with two fake CPU devices (XLA flags: a subprocess), the batch over one and over both
     code = _SUBPROCESS.format(repo=str(REPO))
-    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAX_PLATFORMS": "cpu"}
+    env = {**os.environ, "XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2",
+           "JAX_PLATFORMS": "cpu"}
     proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = json.loads([line for line in proc.stdout.splitlines() if line.startswith("RESULT")][-1][len("RESULT"):])
