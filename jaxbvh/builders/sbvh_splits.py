@@ -135,19 +135,23 @@ class Bins(NamedTuple):
     exit: Any
 
 
-#: piece buffers up to this size are not split into several sizes (:func:`pair_sizes`)
-SMALL_PIECES = 2**15
+#: the spatial search's piece chunk is 3 R / PIECE_CHUNK_DIVISOR pieces (:func:`piece_chunk`)
+PIECE_CHUNK_DIVISOR = 16
+#: ... and at least this many pieces
+MIN_PIECE_CHUNK = 64
 
 
-def pair_sizes(refs: int, bins: int) -> list[int]:
-    """Buffer sizes of the spatial search's (reference, axis, bin) pieces for ``refs``
-    reference slots: a live reference makes one piece per axis and bin it spans, so
-    ``3 refs`` when none straddles a bin border and at most ``3 refs bins``; sizes in
-    between cover the deep levels (few live references) and the usual straddling."""
-    full = 3 * refs * bins
-    if full <= SMALL_PIECES:  # small inputs: one buffer (one compiled branch) is cheap enough
-        return [full]
-    return sorted({min(full, max(64, (3 * refs * m) // 64)) for m in (1, 8, 32, 96, 256)} | {full})
+def piece_chunk(refs: int, bins: int) -> int:
+    """Pieces per step of the spatial search's loop for ``refs`` reference slots.
+
+    A live reference makes one piece per axis and bin it spans: ``3 refs`` pieces when
+    none straddles a bin border and at most ``3 refs bins``. The search walks them in
+    chunks of one size, so one program serves every level (a buffer of several sizes
+    chosen by ``lax.switch`` compiled every size: 6 sizes times 4 stages made the first
+    legocar build compile 3-4x longer); a small chunk wastes little on the deep levels
+    (few live references), a large one takes fewer steps near the top.
+    """
+    return min(3 * refs * bins, max(MIN_PIECE_CHUNK, (3 * refs) // PIECE_CHUNK_DIVISOR))
 
 
 def _on_axis(axis, coords):
@@ -198,9 +202,9 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
     """Binned spatial split of the slots ``tried`` [F] bool: ``(split, bins)``.
 
     Every live reference (one of a tried node) spans bins ``b0 .. b1`` per axis; it is cut
-    into one *piece* per (axis, bin) it spans, listed in a flat buffer (the smallest size
-    of :func:`pair_sizes` that holds them, one compiled branch per size), and each piece's
-    estimated box enters its (node, axis, bin) in one segment reduction. A reference
+    into one *piece* per (axis, bin) it spans, the pieces are walked in chunks of
+    :func:`piece_chunk` (a loop of as many steps as the level needs, one compiled body),
+    and each piece's estimated box enters its (node, axis, bin) cell by scatter. A reference
     inside one bin (most of them) is one piece per axis, so the work follows the live
     references and their straddling, not ``bins`` times every slot.
     """
@@ -216,32 +220,37 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
     total = ends[-1]
     cells = slots * 3 * bins
 
-    def search(size: int):
-        def run():
-            p = jnp.arange(size, dtype=jnp.int32)
-            owner = jnp.clip(jnp.searchsorted(ends, p, side="right"), 0, 3 * refs - 1).astype(jnp.int32)
-            valid = p < total
-            r, axis = owner // 3, owner % 3
-            b0_p, b1_p = b0.ravel()[owner], b1.ravel()[owner]
-            b = b0_p + p - (ends[owner] - width[owner])
-            seg_p = seg[r]
-            prim = jnp.clip(ref_prim[r], 0, tri_columns.shape[1] - 1)
-            corners = [column[prim] for column in tri_columns]  # gathered column by column
-            box_lo, box_hi = [column[r] for column in lo_columns], [column[r] for column in hi_columns]
-            v = [corners[3 * k: 3 * k + 3] for k in range(3)]
-            box_lo, box_hi = _piece_boxes(v, box_lo, box_hi, axis, lo_r.ravel()[owner], ext_r.ravel()[owner], b0_p,
-                                          b1_p, b, valid, bins)
-            key = jnp.where(valid, cell_key(b, seg_p, axis, slots), cells)
-            counts = [segment(jax.ops.segment_sum, (flag & valid).astype(jnp.int32), key, cells).reshape(bins, slots, 3)
-                      for flag in (b == b0_p, b == b1_p)]
-            box_lo = _cells(jax.ops.segment_min, box_lo, key, cells, slots, bins)
-            box_hi = _cells(jax.ops.segment_max, box_hi, key, cells, slots, bins)
-            return counts, box_lo, box_hi
-        return run
+    chunk = piece_chunk(refs, bins)
+    dt = ref_lo.dtype
 
-    sizes = pair_sizes(refs, bins)
-    branch = sum((total > size).astype(jnp.int32) for size in sizes[:-1])
-    counts, box_lo, box_hi = jax.lax.switch(branch, [search(size) for size in sizes])
+    def step(i, cell):
+        """Pieces ``i chunk .. (i + 1) chunk - 1`` into the cells (scatter min, max and add:
+        the same values as one segment reduction over all pieces)."""
+        counts, box_lo, box_hi = cell
+        p = i * chunk + jnp.arange(chunk, dtype=jnp.int32)
+        owner = jnp.clip(jnp.searchsorted(ends, p, side="right"), 0, 3 * refs - 1).astype(jnp.int32)
+        valid = p < total
+        r, axis = owner // 3, owner % 3
+        b0_p, b1_p = b0.ravel()[owner], b1.ravel()[owner]
+        b = b0_p + p - (ends[owner] - width[owner])
+        seg_p = seg[r]
+        prim = jnp.clip(ref_prim[r], 0, tri_columns.shape[1] - 1)
+        corners = [column[prim] for column in tri_columns]  # gathered column by column
+        piece_lo, piece_hi = [column[r] for column in lo_columns], [column[r] for column in hi_columns]
+        v = [corners[3 * k: 3 * k + 3] for k in range(3)]
+        piece_lo, piece_hi = _piece_boxes(v, piece_lo, piece_hi, axis, lo_r.ravel()[owner], ext_r.ravel()[owner],
+                                          b0_p, b1_p, b, valid, bins)
+        key = jnp.where(valid, cell_key(b, seg_p, axis, slots), cells)  # cells: dropped
+        counts = [c.at[key].add((flag & valid).astype(jnp.int32), mode="drop")
+                  for c, flag in zip(counts, (b == b0_p, b == b1_p))]
+        box_lo = [c.at[key].min(x, mode="drop") for c, x in zip(box_lo, piece_lo)]
+        box_hi = [c.at[key].max(x, mode="drop") for c, x in zip(box_hi, piece_hi)]
+        return counts, box_lo, box_hi
+
+    empty = ([jnp.zeros(cells, jnp.int32)] * 2, [jnp.full(cells, jnp.inf, dt)] * 3, [jnp.full(cells, -jnp.inf, dt)] * 3)
+    # at most ceil(3 R B / chunk) steps: the pieces are at most 3 R B
+    counts, box_lo, box_hi = jax.lax.fori_loop(0, (total + chunk - 1) // chunk, step, empty)
+    counts, box_lo, box_hi = ([c.reshape(bins, slots, 3) for c in cs] for cs in (counts, box_lo, box_hi))
     return _sweep_bins(counts, box_lo, box_hi, (ext > 0) & tried[:, None], scale, bins), Bins(b0, b1)
 
 
