@@ -45,34 +45,43 @@ def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int) -> Split:
     all [B, F, 3] (bin, slot, axis). The plane after bin ``k`` has on its left the bins
     ``<= k`` (``N_L``: entries there) and on its right the others (``N_R``: exits
     there). Tie-rule winner: least cost; within TIE_TOLERANCE the lowest axis, then the
-    lowest plane. The sweeps run bin by bin over [F, 3] arrays (XLA's cumulative ops
-    and arrays with a trailing axis of 3 are many times slower on CPU).
+    lowest plane. The sweeps are two ``lax.scan`` over the bins on flat [F * 3] rows
+    (XLA's cumulative ops and arrays with a trailing axis of 3 are many times slower on
+    CPU; the same sweeps unrolled bin by bin ran as fast but took ~6 s of compile each,
+    two per stage). Sums of counts and minima of boxes are exact: any order gives the
+    same values.
     """
     entries, exits = count
     dt = box_lo[0].dtype
+    slots = entries.shape[1]
 
-    def sweep(order, counts):
-        """Running count and box over the bins in ``order``: one [F, 3] entry per step."""
-        n, lo, hi = [], [], []
-        for k in order:
-            n.append(counts[k] if not n else n[-1] + counts[k])
-            lo.append([c[k] if not lo else jnp.minimum(lo[-1][i], c[k]) for i, c in enumerate(box_lo)])
-            hi.append([c[k] if not hi else jnp.maximum(hi[-1][i], c[k]) for i, c in enumerate(box_hi)])
-        return n, lo, hi
+    def rows(values):  # [B, F, 3] -> [B, F * 3]
+        return values.reshape(bins, slots * 3)
 
-    n_l, lo_l, hi_l = sweep(range(bins - 1), entries)  # plane k: bins 0 .. k
-    n_r, lo_r, hi_r = (v[::-1] for v in sweep(range(bins - 1, 0, -1), exits))  # plane k: bins k + 1 ..
+    def sweep(n, lo, hi, reverse: bool):
+        """Running count and box over the bins (rows of [B - 1, F * 3] arrays), one
+        output row per bin: that bin and those before it (after it when ``reverse``)."""
+        def step(carry, row):
+            carry = (carry[0] + row[0], tuple(jnp.minimum(c, r) for c, r in zip(carry[1], row[1])),
+                     tuple(jnp.maximum(c, r) for c, r in zip(carry[2], row[2])))
+            return carry, carry
+        width = n.shape[1]
+        start = (jnp.zeros(width, jnp.int32), (jnp.full(width, jnp.inf, dt),) * 3, (jnp.full(width, -jnp.inf, dt),) * 3)
+        return jax.lax.scan(step, start, (n, tuple(lo), tuple(hi)), reverse=reverse)[1]
+
+    n_l, lo_l, hi_l = sweep(rows(entries)[:-1], [rows(c)[:-1] for c in box_lo], [rows(c)[:-1] for c in box_hi],
+                            False)  # row k, plane k: bins 0 .. k
+    n_r, lo_r, hi_r = sweep(rows(exits)[1:], [rows(c)[1:] for c in box_lo], [rows(c)[1:] for c in box_hi],
+                            True)  # row k, plane k: bins k + 1 ..
 
     def area(lo, hi):
         return half_area(jnp.stack(lo, -1), jnp.stack(hi, -1), scale)
 
-    cost = [jnp.where(usable & (n_l[k] > 0) & (n_r[k] > 0),
-                      area(lo_l[k], hi_l[k]) * n_l[k].astype(dt) + area(lo_r[k], hi_r[k]) * n_r[k].astype(dt),
-                      jnp.inf) for k in range(bins - 1)]
-    slots = cost[0].shape[0]
+    cost = jnp.where(usable.reshape(1, -1) & (n_l > 0) & (n_r > 0),
+                     area(lo_l, hi_l) * n_l.astype(dt) + area(lo_r, hi_r) * n_r.astype(dt), jnp.inf)
 
-    def flat(values):  # one [F, 3] array per plane -> [F, 3 (B - 1)], axis-major then plane
-        return jnp.stack(values, axis=-1).reshape(slots, -1)
+    def flat(values):  # [B - 1, F * 3] (plane, slot and axis) -> [F, 3 (B - 1)], axis-major then plane
+        return values.reshape(bins - 1, slots, 3).transpose(1, 2, 0).reshape(slots, -1)
 
     costs = flat(cost)
     best = costs.min(axis=1)
@@ -83,8 +92,8 @@ def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int) -> Split:
     def pick(values):  # the winner's value
         return jnp.take_along_axis(flat(values), first[:, None], axis=1)[:, 0]
 
-    def box(boxes):
-        return jnp.stack([pick([b[i] for b in boxes]) for i in range(3)], axis=1)
+    def box(coords):
+        return jnp.stack([pick(c) for c in coords], axis=1)
 
     return Split(best, axis, plane, box(lo_l), box(hi_l), box(lo_r), box(hi_r), pick(n_l), pick(n_r))
 
