@@ -155,10 +155,9 @@ def piece_chunk(refs: int, bins: int) -> int:
 
     A live reference makes one piece per axis and bin it spans: ``3 refs`` pieces when
     none straddles a bin border and at most ``3 refs bins``. The search walks them in
-    chunks of one size, so one program serves every level (a buffer of several sizes
-    chosen by ``lax.switch`` compiled every size: 6 sizes times 4 stages made the first
-    legocar build compile 3-4x longer); a small chunk wastes little on the deep levels
-    (few live references), a large one takes fewer steps near the top.
+    chunks of one size, so one loop body serves every level (a buffer of several sizes
+    chosen by ``lax.switch`` compiles every size); a small chunk wastes little on the
+    deep levels (few live references), a large one takes fewer steps near the top.
     """
     return min(3 * refs * bins, max(MIN_PIECE_CHUNK, (3 * refs) // PIECE_CHUNK_DIVISOR))
 
