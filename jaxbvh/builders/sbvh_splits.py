@@ -45,34 +45,43 @@ def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int) -> Split:
     all [B, F, 3] (bin, slot, axis). The plane after bin ``k`` has on its left the bins
     ``<= k`` (``N_L``: entries there) and on its right the others (``N_R``: exits
     there). Tie-rule winner: least cost; within TIE_TOLERANCE the lowest axis, then the
-    lowest plane. The sweeps run bin by bin over [F, 3] arrays (XLA's cumulative ops
-    and arrays with a trailing axis of 3 are many times slower on CPU).
+    lowest plane. The sweeps are two ``lax.scan`` over the bins on flat [F * 3] rows
+    (XLA's cumulative ops and arrays with a trailing axis of 3 are many times slower on
+    CPU; the same sweeps unrolled bin by bin ran as fast but took ~6 s of compile each,
+    two per stage). Sums of counts and minima of boxes are exact: any order gives the
+    same values.
     """
     entries, exits = count
     dt = box_lo[0].dtype
+    slots = entries.shape[1]
 
-    def sweep(order, counts):
-        """Running count and box over the bins in ``order``: one [F, 3] entry per step."""
-        n, lo, hi = [], [], []
-        for k in order:
-            n.append(counts[k] if not n else n[-1] + counts[k])
-            lo.append([c[k] if not lo else jnp.minimum(lo[-1][i], c[k]) for i, c in enumerate(box_lo)])
-            hi.append([c[k] if not hi else jnp.maximum(hi[-1][i], c[k]) for i, c in enumerate(box_hi)])
-        return n, lo, hi
+    def rows(values):  # [B, F, 3] -> [B, F * 3]
+        return values.reshape(bins, slots * 3)
 
-    n_l, lo_l, hi_l = sweep(range(bins - 1), entries)  # plane k: bins 0 .. k
-    n_r, lo_r, hi_r = (v[::-1] for v in sweep(range(bins - 1, 0, -1), exits))  # plane k: bins k + 1 ..
+    def sweep(n, lo, hi, reverse: bool):
+        """Running count and box over the bins (rows of [B - 1, F * 3] arrays), one
+        output row per bin: that bin and those before it (after it when ``reverse``)."""
+        def step(carry, row):
+            carry = (carry[0] + row[0], tuple(jnp.minimum(c, r) for c, r in zip(carry[1], row[1])),
+                     tuple(jnp.maximum(c, r) for c, r in zip(carry[2], row[2])))
+            return carry, carry
+        width = n.shape[1]
+        start = (jnp.zeros(width, jnp.int32), (jnp.full(width, jnp.inf, dt),) * 3, (jnp.full(width, -jnp.inf, dt),) * 3)
+        return jax.lax.scan(step, start, (n, tuple(lo), tuple(hi)), reverse=reverse)[1]
+
+    n_l, lo_l, hi_l = sweep(rows(entries)[:-1], [rows(c)[:-1] for c in box_lo], [rows(c)[:-1] for c in box_hi],
+                            False)  # row k, plane k: bins 0 .. k
+    n_r, lo_r, hi_r = sweep(rows(exits)[1:], [rows(c)[1:] for c in box_lo], [rows(c)[1:] for c in box_hi],
+                            True)  # row k, plane k: bins k + 1 ..
 
     def area(lo, hi):
         return half_area(jnp.stack(lo, -1), jnp.stack(hi, -1), scale)
 
-    cost = [jnp.where(usable & (n_l[k] > 0) & (n_r[k] > 0),
-                      area(lo_l[k], hi_l[k]) * n_l[k].astype(dt) + area(lo_r[k], hi_r[k]) * n_r[k].astype(dt),
-                      jnp.inf) for k in range(bins - 1)]
-    slots = cost[0].shape[0]
+    cost = jnp.where(usable.reshape(1, -1) & (n_l > 0) & (n_r > 0),
+                     area(lo_l, hi_l) * n_l.astype(dt) + area(lo_r, hi_r) * n_r.astype(dt), jnp.inf)
 
-    def flat(values):  # one [F, 3] array per plane -> [F, 3 (B - 1)], axis-major then plane
-        return jnp.stack(values, axis=-1).reshape(slots, -1)
+    def flat(values):  # [B - 1, F * 3] (plane, slot and axis) -> [F, 3 (B - 1)], axis-major then plane
+        return values.reshape(bins - 1, slots, 3).transpose(1, 2, 0).reshape(slots, -1)
 
     costs = flat(cost)
     best = costs.min(axis=1)
@@ -83,8 +92,8 @@ def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int) -> Split:
     def pick(values):  # the winner's value
         return jnp.take_along_axis(flat(values), first[:, None], axis=1)[:, 0]
 
-    def box(boxes):
-        return jnp.stack([pick([b[i] for b in boxes]) for i in range(3)], axis=1)
+    def box(coords):
+        return jnp.stack([pick(c) for c in coords], axis=1)
 
     return Split(best, axis, plane, box(lo_l), box(hi_l), box(lo_r), box(hi_r), pick(n_l), pick(n_r))
 
@@ -135,19 +144,22 @@ class Bins(NamedTuple):
     exit: Any
 
 
-#: piece buffers up to this size are not split into several sizes (:func:`pair_sizes`)
-SMALL_PIECES = 2**15
+#: the spatial search's piece chunk is 3 R / PIECE_CHUNK_DIVISOR pieces (:func:`piece_chunk`)
+PIECE_CHUNK_DIVISOR = 16
+#: ... and at least this many pieces
+MIN_PIECE_CHUNK = 64
 
 
-def pair_sizes(refs: int, bins: int) -> list[int]:
-    """Buffer sizes of the spatial search's (reference, axis, bin) pieces for ``refs``
-    reference slots: a live reference makes one piece per axis and bin it spans, so
-    ``3 refs`` when none straddles a bin border and at most ``3 refs bins``; sizes in
-    between cover the deep levels (few live references) and the usual straddling."""
-    full = 3 * refs * bins
-    if full <= SMALL_PIECES:  # small inputs: one buffer (one compiled branch) is cheap enough
-        return [full]
-    return sorted({min(full, max(64, (3 * refs * m) // 64)) for m in (1, 8, 32, 96, 256)} | {full})
+def piece_chunk(refs: int, bins: int) -> int:
+    """Pieces per step of the spatial search's loop for ``refs`` reference slots.
+
+    A live reference makes one piece per axis and bin it spans: ``3 refs`` pieces when
+    none straddles a bin border and at most ``3 refs bins``. The search walks them in
+    chunks of one size, so one loop body serves every level (a buffer of several sizes
+    chosen by ``lax.switch`` compiles every size); a small chunk wastes little on the
+    deep levels (few live references), a large one takes fewer steps near the top.
+    """
+    return min(3 * refs * bins, max(MIN_PIECE_CHUNK, (3 * refs) // PIECE_CHUNK_DIVISOR))
 
 
 def _on_axis(axis, coords):
@@ -198,9 +210,9 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
     """Binned spatial split of the slots ``tried`` [F] bool: ``(split, bins)``.
 
     Every live reference (one of a tried node) spans bins ``b0 .. b1`` per axis; it is cut
-    into one *piece* per (axis, bin) it spans, listed in a flat buffer (the smallest size
-    of :func:`pair_sizes` that holds them, one compiled branch per size), and each piece's
-    estimated box enters its (node, axis, bin) in one segment reduction. A reference
+    into one *piece* per (axis, bin) it spans, the pieces are walked in chunks of
+    :func:`piece_chunk` (a loop of as many steps as the level needs, one compiled body),
+    and each piece's estimated box enters its (node, axis, bin) cell by scatter. A reference
     inside one bin (most of them) is one piece per axis, so the work follows the live
     references and their straddling, not ``bins`` times every slot.
     """
@@ -216,32 +228,37 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
     total = ends[-1]
     cells = slots * 3 * bins
 
-    def search(size: int):
-        def run():
-            p = jnp.arange(size, dtype=jnp.int32)
-            owner = jnp.clip(jnp.searchsorted(ends, p, side="right"), 0, 3 * refs - 1).astype(jnp.int32)
-            valid = p < total
-            r, axis = owner // 3, owner % 3
-            b0_p, b1_p = b0.ravel()[owner], b1.ravel()[owner]
-            b = b0_p + p - (ends[owner] - width[owner])
-            seg_p = seg[r]
-            prim = jnp.clip(ref_prim[r], 0, tri_columns.shape[1] - 1)
-            corners = [column[prim] for column in tri_columns]  # gathered column by column
-            box_lo, box_hi = [column[r] for column in lo_columns], [column[r] for column in hi_columns]
-            v = [corners[3 * k: 3 * k + 3] for k in range(3)]
-            box_lo, box_hi = _piece_boxes(v, box_lo, box_hi, axis, lo_r.ravel()[owner], ext_r.ravel()[owner], b0_p,
-                                          b1_p, b, valid, bins)
-            key = jnp.where(valid, cell_key(b, seg_p, axis, slots), cells)
-            counts = [segment(jax.ops.segment_sum, (flag & valid).astype(jnp.int32), key, cells).reshape(bins, slots, 3)
-                      for flag in (b == b0_p, b == b1_p)]
-            box_lo = _cells(jax.ops.segment_min, box_lo, key, cells, slots, bins)
-            box_hi = _cells(jax.ops.segment_max, box_hi, key, cells, slots, bins)
-            return counts, box_lo, box_hi
-        return run
+    chunk = piece_chunk(refs, bins)
+    dt = ref_lo.dtype
 
-    sizes = pair_sizes(refs, bins)
-    branch = sum((total > size).astype(jnp.int32) for size in sizes[:-1])
-    counts, box_lo, box_hi = jax.lax.switch(branch, [search(size) for size in sizes])
+    def step(i, cell):
+        """Pieces ``i chunk .. (i + 1) chunk - 1`` into the cells (scatter min, max and add:
+        the same values as one segment reduction over all pieces)."""
+        counts, box_lo, box_hi = cell
+        p = i * chunk + jnp.arange(chunk, dtype=jnp.int32)
+        owner = jnp.clip(jnp.searchsorted(ends, p, side="right"), 0, 3 * refs - 1).astype(jnp.int32)
+        valid = p < total
+        r, axis = owner // 3, owner % 3
+        b0_p, b1_p = b0.ravel()[owner], b1.ravel()[owner]
+        b = b0_p + p - (ends[owner] - width[owner])
+        seg_p = seg[r]
+        prim = jnp.clip(ref_prim[r], 0, tri_columns.shape[1] - 1)
+        corners = [column[prim] for column in tri_columns]  # gathered column by column
+        piece_lo, piece_hi = [column[r] for column in lo_columns], [column[r] for column in hi_columns]
+        v = [corners[3 * k: 3 * k + 3] for k in range(3)]
+        piece_lo, piece_hi = _piece_boxes(v, piece_lo, piece_hi, axis, lo_r.ravel()[owner], ext_r.ravel()[owner],
+                                          b0_p, b1_p, b, valid, bins)
+        key = jnp.where(valid, cell_key(b, seg_p, axis, slots), cells)  # cells: dropped
+        counts = [c.at[key].add((flag & valid).astype(jnp.int32), mode="drop")
+                  for c, flag in zip(counts, (b == b0_p, b == b1_p))]
+        box_lo = [c.at[key].min(x, mode="drop") for c, x in zip(box_lo, piece_lo)]
+        box_hi = [c.at[key].max(x, mode="drop") for c, x in zip(box_hi, piece_hi)]
+        return counts, box_lo, box_hi
+
+    empty = ([jnp.zeros(cells, jnp.int32)] * 2, [jnp.full(cells, jnp.inf, dt)] * 3, [jnp.full(cells, -jnp.inf, dt)] * 3)
+    # at most ceil(3 R B / chunk) steps: the pieces are at most 3 R B
+    counts, box_lo, box_hi = jax.lax.fori_loop(0, (total + chunk - 1) // chunk, step, empty)
+    counts, box_lo, box_hi = ([c.reshape(bins, slots, 3) for c in cs] for cs in (counts, box_lo, box_hi))
     return _sweep_bins(counts, box_lo, box_hi, (ext > 0) & tried[:, None], scale, bins), Bins(b0, b1)
 
 
