@@ -26,7 +26,7 @@ def local_boxes(tri, dtype=np.float32):
     return frame.to_local(lo).astype(dtype), frame.to_local(hi).astype(dtype)
 
 
-@settings(max_examples=40)
+@settings(max_examples=15)
 @given(tri=triangle_soups(), method=st.sampled_from(jaxbvh.BUILDERS), max_leaf=st.sampled_from([1, 2, 8]))
 def test_every_build_is_valid(tri, method, max_leaf):
     lo, hi = local_boxes(tri)
@@ -38,7 +38,7 @@ def test_every_build_is_valid(tri, method, max_leaf):
     assert int(t.root) == 0
 
 
-@settings(max_examples=40)
+@settings(max_examples=15)
 @given(data=box_sets(max_size=48), method=st.sampled_from(jaxbvh.BUILDERS), max_leaf=st.sampled_from([1, 3]),
        bins=st.sampled_from([4, 16]))
 def test_jax_builder_equals_reference(data, method, max_leaf, bins):
@@ -150,7 +150,7 @@ def test_builders_map_methods_to_their_configs():
     assert configs.DEFAULT_BUILDER in jaxbvh.BUILDERS
 
 
-@settings(max_examples=60)
+@settings(max_examples=15)
 @given(method=st.sampled_from(jaxbvh.BUILDERS),
        knob=st.sampled_from(["max_leaf", "ct", "ci", "bins", "radius", "morton_bits"]),
        value=st.one_of(st.integers(-2, 70), st.floats(-1, 40, allow_nan=False), st.just(True)))

@@ -49,7 +49,7 @@ def order_of(seed, n):
     return np.random.default_rng(seed).permutation(n)
 
 
-@settings(max_examples=40)
+@settings(max_examples=15)
 @given(data=box_sets(max_size=CAP), seed=st.integers(0, 2**31), max_children=st.sampled_from([2, 3, 8]))
 def test_jax_build_equals_reference_node_by_node(data, seed, max_children):
     lo, hi = data
@@ -64,7 +64,7 @@ def test_jax_build_equals_reference_node_by_node(data, seed, max_children):
     assert float(jaxbvh.goldsmith_salmon_cost(got)) == pytest.approx(ref_cost.goldsmith_salmon_cost(want), rel=1e-5)
 
 
-@settings(max_examples=25)
+@settings(max_examples=15)
 @given(tri=triangle_soups(max_size=CAP), seed=st.integers(0, 2**31))
 def test_extreme_and_degenerate_soups(tri, seed):
     """Scales 1e-30 .. 1e30, flat and one-point scenes, many exact ties."""

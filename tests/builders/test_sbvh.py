@@ -34,7 +34,7 @@ def long_thin_scene():
     return np.asarray(tri, np.float32)
 
 
-@settings(max_examples=25)  # the twin costs ~1 s a soup
+@settings(max_examples=15)  # the twin costs ~1 s a soup
 @given(tri=triangle_soups(max_size=24), alpha=st.sampled_from([0.0, 1e-5]), max_leaf=st.sampled_from([1, 3]),
        bins=st.sampled_from([4, 8]))
 def test_jax_sbvh_equals_reference(tri, alpha, max_leaf, bins):
@@ -63,7 +63,7 @@ def test_jax_sbvh_equals_reference_where_spatial_splits_and_unsplitting_happen(s
     assert (int(got.references), int(got.spatial_splits)) == (want.references, want.spatial_splits)
 
 
-@settings(max_examples=30)
+@settings(max_examples=15)
 @given(tri=triangle_soups(max_size=40), alpha=st.sampled_from([0.0, 1e-5]), max_leaf=st.sampled_from([1, 4]))
 def test_every_sbvh_tree_is_valid_with_references_and_covers_every_triangle(tri, alpha, max_leaf):
     """Degenerate (zero-area, one-point) and thin triangles, scales 1e-30 .. 1e30 included."""

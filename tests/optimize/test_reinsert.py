@@ -40,7 +40,7 @@ def _search_all(tree, max_steps):
 OCTAVES = jax.jit(lambda area, parent, root, need: reinsert_rules.octaves_holding(area, parent, root, need, xp=jnp))
 
 
-@settings(max_examples=60)
+@settings(max_examples=15)
 @given(st.lists(st.tuples(st.integers(-1, NODES - 1), st.integers(-40, 2), st.sampled_from([0.0, 1.0, 1.7])),
                 min_size=1, max_size=NODES),
        st.integers(0, NODES - 1), st.sampled_from([1 / 32, 0.2, 0.5, 1.0, 1e-9]))
@@ -69,7 +69,7 @@ def test_first_octaves_traced_equal_the_host_rule(rows, root, first_fraction):
 WIDEN = jax.jit(reinsert.widen)
 
 
-@settings(max_examples=40)
+@settings(max_examples=15)
 @given(st.integers(0, 70), st.integers(0, 5), st.integers(1, 100), st.integers(0, 100),
        st.floats(1.0, 100.0), st.sampled_from([0.0, 1e-5, 1e-3]))
 def test_widening_after_an_iteration(octaves, taken, count, nodes, before, drop):

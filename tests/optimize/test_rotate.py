@@ -105,7 +105,7 @@ def test_score_moves_matches_cost_of_moved_tree(case):
 # ----------------------------------------------------------------------------------
 
 
-@settings(max_examples=25)
+@settings(max_examples=15)
 @given(trees)
 def test_hill_climb_equals_reference_pass_by_pass(case):
     seed, n, leaf, grid = case

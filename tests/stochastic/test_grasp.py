@@ -44,7 +44,7 @@ def random_boxes(seed: int, n: int):
 # ----------------------------------------------------------------------------------
 
 
-@settings(max_examples=30)
+@settings(max_examples=15)
 @given(data=box_sets(min_size=17, max_size=24), rcl=RCLS, noise=st.sampled_from([0.2, 0.5, 1.0]),
        seed=st.integers(0, 2**31 - 1), trial=st.integers(0, 10**6))
 @example(data=random_boxes(3, 24), rcl=20, noise=1.0, seed=0, trial=0)  # deep ranks of big lists

@@ -200,7 +200,7 @@ def test_flattened_tree_is_valid_and_traversal_finds_the_closest_hits(mesh, opti
 # ----------------------------------------------------------------------------------
 
 
-@settings(max_examples=30)
+@settings(max_examples=15)
 @given(seed=st.integers(0, 2**32 - 1), exponent=st.sampled_from([0, -20, 20]))
 def test_world_boxes_are_conservative_and_monotone(seed, exponent):
     rng = np.random.default_rng(seed)

@@ -145,7 +145,7 @@ COSTS = {"k": None, "ceil(k/4)": collapse.node_test_cost(4), "ceil(k/8)": collap
          "user": even_widths_cheap}
 
 
-@settings(max_examples=30)
+@settings(max_examples=15)
 @given(trees, st.sampled_from([2, 3, 8]), st.sampled_from(list(COSTS)))
 @example((1, 1, 1, "random"), 8, "k")        # one leaf: nothing to collapse
 @example((2, 2, 1, "random"), 8, "k")        # root and two leaves
@@ -201,7 +201,7 @@ def brute_force(tree, k, cost):
     return best
 
 
-@settings(max_examples=25)
+@settings(max_examples=15)
 @given(st.integers(0, 2**31), st.integers(2, 9), st.sampled_from([2, 3, 8]), st.sampled_from(list(COSTS)),
        st.sampled_from(["random", "grid"]))
 def test_dp_is_the_least_of_all_collapses(seed, n, k, cost_name, kind):
@@ -232,7 +232,7 @@ def test_dp_not_worse_than_greedy_qbvh_binary(spec, k):
 # ----------------------------------------------------------------------------------
 
 
-@settings(max_examples=30)
+@settings(max_examples=15)
 @given(trees, st.sampled_from([None, 2, 3, 5]))
 @example((3, 30, 1, "point"), None)
 @example((3, 30, 1, "point"), 3)
