@@ -14,6 +14,9 @@ Hypothesis profiles (registered when hypothesis is installed; loaded by
   coordinates per example is slow by design).
 * ``dev``: random draws and ten times the examples (100), to hunt for bugs locally.
 
+A test that needs its own example count states it for ``ci`` with :func:`examples`
+(``@settings(max_examples=examples(15))``), so ``dev`` scales it too.
+
 Fixtures:
 
 * ``bundled_mesh`` -- the mesh shipped inside the package (Keenan Crane's "Spot", 5,856
@@ -47,6 +50,20 @@ if settings is not None:
     settings.register_profile("ci", max_examples=10, deadline=None, derandomize=True, print_blob=True,
                               suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
     settings.register_profile("dev", settings.get_profile("ci"), max_examples=100, derandomize=False)
+
+
+def examples(n: int) -> int:
+    """A test's own example count, stated for the ``ci`` profile and scaled with the loaded one.
+
+    ``@settings(max_examples=examples(15))`` runs 15 examples under ``ci`` and 150 under
+    ``dev`` (ten times ``ci``), where a bare ``max_examples=15`` would pin 15 under both.
+    Call it at decoration time, after the profile is loaded (pytest loads it before it
+    collects test modules).
+    """
+    if settings is None:
+        raise ImportError("examples() needs hypothesis: pip install jaxbvh[testing]")
+    scale = settings.default.max_examples / settings.get_profile("ci").max_examples
+    return max(1, round(n * scale))
 
 
 def pytest_configure(config):

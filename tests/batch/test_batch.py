@@ -21,6 +21,7 @@ import jaxbvh
 from jaxbvh import batch
 from jaxbvh.batch import plan
 from jaxbvh.batch.layout import own_capacity
+from jaxbvh.testing.plugin import examples
 from jaxbvh.tree.layout import capacity_bucket
 
 FIELDS = ("left", "right", "parent", "lo", "hi", "prim_start", "prim_count", "axis", "prim_index", "root")
@@ -52,7 +53,7 @@ def assert_same_arrays(got, want, what=""):
 
 
 @pytest.mark.parametrize("method", list(jaxbvh.BUILDERS))
-@settings(max_examples=3)
+@settings(max_examples=examples(3))
 @given(soups=soup_lists, max_leaf=st.sampled_from([1, 3]), config=st.sampled_from([ONE_GROUP, ONE_GROUP_VMAP]))
 def test_batched_build_equals_single_builds(method, soups, max_leaf, config):
     meshes = [local_boxes(tri) for tri in soups]
@@ -63,7 +64,7 @@ def test_batched_build_equals_single_builds(method, soups, max_leaf, config):
 
 
 @pytest.mark.parametrize("method", OPTIMIZERS)
-@settings(max_examples=2)
+@settings(max_examples=examples(2))
 @given(soups=same_bucket_lists)
 def test_batched_optimize_equals_single_runs(method, soups):
     meshes = [local_boxes(tri) for tri in soups]
@@ -98,7 +99,7 @@ def test_a_converged_tree_stops_while_others_go_on():
 # ----------------------------------------------------------------------------------
 
 
-@settings(max_examples=3)
+@settings(max_examples=examples(3))
 @given(soups=soup_lists)
 def test_batched_costs_and_trace_equal_single_calls(soups):
     meshes = [local_boxes(tri) for tri in soups]
@@ -138,7 +139,7 @@ def test_batched_collapse_equals_single_collapse():
 mesh_sizes = st.builds(lambda octave, frac: max(1, int(2 ** octave * frac)), st.integers(0, 17), st.floats(0.5, 1.0))
 
 
-@settings(max_examples=200)  # host arithmetic only: cheap
+@settings(max_examples=examples(200))  # host arithmetic only: cheap
 @given(sizes=st.lists(mesh_sizes, min_size=1, max_size=60),
        max_padding=st.sampled_from([0.0, 0.25, 0.5, 0.9]), memory_mb=st.sampled_from([0.01, 0.1, 1.0, 64.0]),
        devices=st.sampled_from([1, 2, 3]))

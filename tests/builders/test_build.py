@@ -17,6 +17,7 @@ import jaxbvh
 from jaxbvh.builders import configs, topdown
 from jaxbvh.builders import topdown_reference as reference
 from jaxbvh.numerics import scene_scale
+from jaxbvh.testing.plugin import examples
 from jaxbvh.tree.frame import Frame
 
 
@@ -26,7 +27,7 @@ def local_boxes(tri, dtype=np.float32):
     return frame.to_local(lo).astype(dtype), frame.to_local(hi).astype(dtype)
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(tri=triangle_soups(), method=st.sampled_from(jaxbvh.BUILDERS), max_leaf=st.sampled_from([1, 2, 8]))
 def test_every_build_is_valid(tri, method, max_leaf):
     lo, hi = local_boxes(tri)
@@ -38,7 +39,7 @@ def test_every_build_is_valid(tri, method, max_leaf):
     assert int(t.root) == 0
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(data=box_sets(max_size=48), method=st.sampled_from(jaxbvh.BUILDERS), max_leaf=st.sampled_from([1, 3]),
        bins=st.sampled_from([4, 16]))
 def test_jax_builder_equals_reference(data, method, max_leaf, bins):
@@ -49,7 +50,7 @@ def test_jax_builder_equals_reference(data, method, max_leaf, bins):
     assert canonical(got) == canonical(want)
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(tri=triangle_soups(max_size=30), method=st.sampled_from(jaxbvh.BUILDERS))
 def test_jax_builder_equals_reference_on_extreme_soups(tri, method):
     lo, hi = local_boxes(tri)
@@ -58,7 +59,7 @@ def test_jax_builder_equals_reference_on_extreme_soups(tri, method):
     assert canonical(got) == canonical(want)
 
 
-@settings(max_examples=8)
+@settings(max_examples=examples(8))
 @given(data=box_sets(min_size=9, max_size=16), method=st.sampled_from(jaxbvh.BUILDERS))
 def test_float64_builder_equals_reference(data, method):
     with jax.enable_x64(True):
@@ -150,7 +151,7 @@ def test_builders_map_methods_to_their_configs():
     assert configs.DEFAULT_BUILDER in jaxbvh.BUILDERS
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(method=st.sampled_from(jaxbvh.BUILDERS),
        knob=st.sampled_from(["max_leaf", "ct", "ci", "bins", "radius", "morton_bits"]),
        value=st.one_of(st.integers(-2, 70), st.floats(-1, 40, allow_nan=False), st.just(True)))

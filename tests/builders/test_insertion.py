@@ -17,6 +17,7 @@ import jaxbvh
 from jaxbvh import numerics
 from jaxbvh.builders import insertion
 from jaxbvh.builders import insertion_reference as ref
+from jaxbvh.testing.plugin import examples
 from jaxbvh.tree import cost_reference as ref_cost
 from jaxbvh.tree.frame import Frame
 
@@ -49,7 +50,7 @@ def order_of(seed, n):
     return np.random.default_rng(seed).permutation(n)
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(data=box_sets(max_size=CAP), seed=st.integers(0, 2**31), max_children=st.sampled_from([2, 3, 8]))
 def test_jax_build_equals_reference_node_by_node(data, seed, max_children):
     lo, hi = data
@@ -64,7 +65,7 @@ def test_jax_build_equals_reference_node_by_node(data, seed, max_children):
     assert float(jaxbvh.goldsmith_salmon_cost(got)) == pytest.approx(ref_cost.goldsmith_salmon_cost(want), rel=1e-5)
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(tri=triangle_soups(max_size=CAP), seed=st.integers(0, 2**31))
 def test_extreme_and_degenerate_soups(tri, seed):
     """Scales 1e-30 .. 1e30, flat and one-point scenes, many exact ties."""
@@ -153,7 +154,7 @@ def test_batch_equals_single_builds_and_costs():
         assert float(costs[i]) == float(jaxbvh.goldsmith_salmon_cost(tree))
 
 
-@settings(max_examples=6)
+@settings(max_examples=examples(6))
 @given(data=box_sets(min_size=9, max_size=24), seed=st.integers(0, 2**31))
 def test_float64_build_equals_reference(data, seed):
     with jax.enable_x64(True):

@@ -19,6 +19,7 @@ from jaxbvh.builders import lbvh_reference as reference
 from jaxbvh.builders import morton_reference as reference_morton
 from jaxbvh.builders.configs import LBVHConfig, make_config
 from jaxbvh.numerics import scene_scale
+from jaxbvh.testing.plugin import examples
 
 
 def build(lo, hi, max_leaf=1, morton_bits=30):
@@ -27,7 +28,7 @@ def build(lo, hi, max_leaf=1, morton_bits=30):
                       LBVHConfig(max_leaf=max_leaf, morton_bits=morton_bits))
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(data=box_sets(max_size=48), bits=st.sampled_from(morton.CODE_BITS), max_leaf=st.sampled_from([1, 3]))
 def test_lbvh_equals_reference(data, bits, max_leaf):
     lo, hi = data
@@ -39,7 +40,7 @@ def test_lbvh_equals_reference(data, bits, max_leaf):
     assert np.asarray(got.prim_count).max() <= max_leaf
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(tri=triangle_soups(max_size=40), bits=st.sampled_from(morton.CODE_BITS), max_leaf=st.sampled_from([1, 4]))
 def test_lbvh_equals_reference_on_extreme_soups(tri, bits, max_leaf):
     """Degenerate, flat, one-point and grid scenes, scales 1e-30 .. 1e30, duplicate centres."""
@@ -49,7 +50,7 @@ def test_lbvh_equals_reference_on_extreme_soups(tri, bits, max_leaf):
     assert canonical(got) == canonical(reference.build(lo, hi, LBVHConfig(max_leaf=max_leaf, morton_bits=bits)))
 
 
-@settings(max_examples=8)
+@settings(max_examples=examples(8))
 @given(data=box_sets(min_size=2, max_size=40), bits=st.sampled_from(morton.CODE_BITS))
 def test_float64_lbvh_equals_reference(data, bits):
     with jax.enable_x64(True):

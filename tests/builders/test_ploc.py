@@ -19,6 +19,7 @@ from jaxbvh.builders import ploc
 from jaxbvh.builders import ploc_reference as reference
 from jaxbvh.builders.configs import PLOCConfig
 from jaxbvh.numerics import scene_scale
+from jaxbvh.testing.plugin import examples
 
 
 def build(lo, hi, radius, max_leaf=1, morton_bits=30):
@@ -27,7 +28,7 @@ def build(lo, hi, radius, max_leaf=1, morton_bits=30):
                       PLOCConfig(radius=radius, max_leaf=max_leaf, morton_bits=morton_bits))
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(data=box_sets(max_size=48), radius=st.sampled_from([1, 3, 16]), max_leaf=st.sampled_from([1, 3]))
 def test_ploc_equals_reference(data, radius, max_leaf):
     lo, hi = data
@@ -39,7 +40,7 @@ def test_ploc_equals_reference(data, radius, max_leaf):
     assert np.asarray(got.prim_count).max() <= max_leaf
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(tri=triangle_soups(max_size=40), bits=st.sampled_from([30, 63]), max_leaf=st.sampled_from([1, 4]))
 def test_ploc_equals_reference_on_extreme_soups(tri, bits, max_leaf):
     """Degenerate, flat, one-point and grid scenes (many exactly equal areas), extreme scales."""
@@ -50,7 +51,7 @@ def test_ploc_equals_reference_on_extreme_soups(tri, bits, max_leaf):
     assert canonical(got) == canonical(want)
 
 
-@settings(max_examples=8)
+@settings(max_examples=examples(8))
 @given(data=box_sets(min_size=2, max_size=40))
 def test_float64_ploc_equals_reference(data):
     with jax.enable_x64(True):

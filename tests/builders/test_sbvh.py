@@ -13,6 +13,7 @@ from strategies import boxes, triangle_soups
 import jaxbvh
 from jaxbvh.builders import SBVHConfig, build_sbvh
 from jaxbvh.builders import sbvh_reference as reference
+from jaxbvh.testing.plugin import examples
 from jaxbvh.tree.frame import Frame
 
 SLOTS = 96  # one reference capacity for every soup (one compiled program per bins value)
@@ -34,7 +35,7 @@ def long_thin_scene():
     return np.asarray(tri, np.float32)
 
 
-@settings(max_examples=15)  # the twin costs ~1 s a soup
+@settings(max_examples=examples(15))  # the twin costs ~1 s a soup
 @given(tri=triangle_soups(max_size=24), alpha=st.sampled_from([0.0, 1e-5]), max_leaf=st.sampled_from([1, 3]),
        bins=st.sampled_from([4, 8]))
 def test_jax_sbvh_equals_reference(tri, alpha, max_leaf, bins):
@@ -63,7 +64,7 @@ def test_jax_sbvh_equals_reference_where_spatial_splits_and_unsplitting_happen(s
     assert (int(got.references), int(got.spatial_splits)) == (want.references, want.spatial_splits)
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(tri=triangle_soups(max_size=40), alpha=st.sampled_from([0.0, 1e-5]), max_leaf=st.sampled_from([1, 4]))
 def test_every_sbvh_tree_is_valid_with_references_and_covers_every_triangle(tri, alpha, max_leaf):
     """Degenerate (zero-area, one-point) and thin triangles, scales 1e-30 .. 1e30 included."""
@@ -86,7 +87,7 @@ def test_spatial_splits_pay_on_long_thin_triangles():
     assert float(jaxbvh.sah(got.tree)) < float(jaxbvh.sah(binned))
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(tri=triangle_soups(max_size=30), max_leaf=st.sampled_from([1, 3]))
 def test_without_spatial_splits_sbvh_is_the_binned_builder(tri, max_leaf):
     """``alpha`` past any overlap: only object splits, by the binned builder's rule."""

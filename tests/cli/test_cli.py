@@ -25,6 +25,7 @@ from hypothesis import strategies as st
 import jaxbvh
 from jaxbvh import cli
 from jaxbvh.cli import command_kit
+from jaxbvh.testing.plugin import examples
 
 # ----------------------------------------------------------------------------------
 # Global behaviour
@@ -271,7 +272,7 @@ def test_stats_of_a_mesh(capsys, tmp_path):
     assert result["kind"] == "mesh" and result["valid"] is True and result["triangles"] == 8
 
 
-@settings(max_examples=8, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=examples(8), suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(n=st.integers(1, 3), seed=st.integers(0, 2**16), max_leaf=st.sampled_from([1, 3]))
 def test_build_then_stats_agree(capsys, tmp_path, n, seed, max_leaf):
     mesh = grid_obj(tmp_path / f"grid{n}_{seed}.obj", n, seed)

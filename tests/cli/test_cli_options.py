@@ -28,6 +28,7 @@ from jaxbvh.cli.commands import optimize as optimize_command
 from jaxbvh.cli.options import ConfigOptions, add_config_options, field_docs, shown, with_flags
 from jaxbvh.cli.synopsis import synopsis
 from jaxbvh.optimize import DEFAULT_METHOD, OPTIMIZERS, optimize, pipeline, reinsert, treelet
+from jaxbvh.testing.plugin import examples
 from jaxbvh.twolevel import objects as two_level_objects
 
 README = REPO / "README.md"
@@ -219,7 +220,7 @@ def values(kind: type, choices) -> st.SearchStrategy:
     return st.one_of(st.sampled_from(known), st.text(min_size=1, max_size=4))
 
 
-@settings(max_examples=300)
+@settings(max_examples=examples(300))
 @given(case=st.sampled_from(CASES), data=st.data())
 def test_an_option_refuses_exactly_what_its_config_refuses(case, data):
     command, flag, method = case

@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 import jaxbvh
 from jaxbvh.io import Mesh, MeshError, TreeFile, boxes_in_frame, bundled_mesh_path, load_any, load_mesh
+from jaxbvh.testing.plugin import examples
 
 needs_shared = pytest.mark.skipif(
     not SHARED_DATA.is_dir(), reason=f"shared test data not found at {SHARED_DATA} (clone without ../shared)")
@@ -221,7 +222,7 @@ def meshes(draw):
     return vertices, faces
 
 
-@settings(max_examples=25, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=examples(25), suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(data=meshes())
 def test_random_obj_round_trip(tmp_path, data):
     vertices, faces = data

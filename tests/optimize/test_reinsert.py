@@ -17,6 +17,7 @@ import jaxbvh
 from jaxbvh import numerics
 from jaxbvh.optimize import driver, reinsert, reinsert_moves, reinsert_rules, reinsert_search
 from jaxbvh.optimize import reinsert_reference as ref
+from jaxbvh.testing.plugin import examples
 
 MIN_GAIN = numerics.min_gain(np.float32)
 ITERATION = jax.jit(reinsert_moves.iteration)
@@ -40,7 +41,7 @@ def _search_all(tree, max_steps):
 OCTAVES = jax.jit(lambda area, parent, root, need: reinsert_rules.octaves_holding(area, parent, root, need, xp=jnp))
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(st.lists(st.tuples(st.integers(-1, NODES - 1), st.integers(-40, 2), st.sampled_from([0.0, 1.0, 1.7])),
                 min_size=1, max_size=NODES),
        st.integers(0, NODES - 1), st.sampled_from([1 / 32, 0.2, 0.5, 1.0, 1e-9]))
@@ -69,7 +70,7 @@ def test_first_octaves_traced_equal_the_host_rule(rows, root, first_fraction):
 WIDEN = jax.jit(reinsert.widen)
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(st.integers(0, 70), st.integers(0, 5), st.integers(1, 100), st.integers(0, 100),
        st.floats(1.0, 100.0), st.sampled_from([0.0, 1e-5, 1e-3]))
 def test_widening_after_an_iteration(octaves, taken, count, nodes, before, drop):
@@ -195,7 +196,7 @@ def test_selection_is_the_greedy_choice_over_disjoint_lock_sets(case):
 # ----------------------------------------------------------------------------------
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(tree_cases, st.sampled_from([1.0, 0.2]), st.booleans())
 def test_reinsert_equals_reference(case, first_fraction, settle):
     """Whole runs node for node as the twin, with and without skipping settled nodes

@@ -29,6 +29,7 @@ from jaxbvh.optimize import driver, rotate, rotate_passes
 from jaxbvh.optimize import rotate_reference as ref
 from jaxbvh.optimize.rotate import ANNEAL, HILL_CLIMB, AnnealConfig, HillClimbConfig
 from jaxbvh.optimize.schedules import EXPONENTIAL_FINAL, constant_schedule, kensler_schedule
+from jaxbvh.testing.plugin import examples
 
 NODES, PRIMS = 128, 64  # one capacity for all random trees
 
@@ -77,7 +78,7 @@ def _apply_move(tree, n, move):
     return t.replace(left=child[:, 0].copy(), right=child[:, 1].copy(), parent=parent, lo=lo, hi=hi)
 
 
-@settings(max_examples=10)
+@settings(max_examples=examples(10))
 @given(trees)
 def test_score_moves_matches_cost_of_moved_tree(case):
     seed, n, leaf, grid = case
@@ -105,7 +106,7 @@ def test_score_moves_matches_cost_of_moved_tree(case):
 # ----------------------------------------------------------------------------------
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(trees)
 def test_hill_climb_equals_reference_pass_by_pass(case):
     seed, n, leaf, grid = case
@@ -267,7 +268,7 @@ def test_configs_keep_the_documented_defaults():
 # ----------------------------------------------------------------------------------
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(trees, st.integers(0, 2**31), st.booleans())
 @example((117371, 9, 1, "grid"), 0, False)  # exact ties at T = 1e-7 once split JAX from NumPy
 def test_anneal_equals_reference_fed_the_same_draws(case, key_seed, keep_best):
@@ -303,7 +304,7 @@ OPTAX_SCHEDULES = {
 
 
 @pytest.mark.parametrize("name", list(OPTAX_SCHEDULES))
-@settings(max_examples=5)
+@settings(max_examples=examples(5))
 @given(case=trees, key_seed=st.integers(0, 2**31))
 def test_anneal_with_optax_schedules_equals_reference(name, case, key_seed):
     seed, n, leaf, grid = case
@@ -449,7 +450,7 @@ def test_vmapped_step_gives_each_tree_its_own_result(optimizer, config):
 # ----------------------------------------------------------------------------------
 
 
-@settings(max_examples=10)
+@settings(max_examples=examples(10))
 @given(trees)
 def test_split_axes_match_reference_and_keep_cost(case):
     seed, n, leaf, grid = case

@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 import jaxbvh
 from jaxbvh.optimize import driver, treelet
 from jaxbvh.optimize import treelet_reference as ref
+from jaxbvh.testing.plugin import examples
 
 MIN_GAIN = float(64 * np.finfo(np.float32).eps)
 
@@ -74,7 +75,7 @@ def test_treelets_grow_by_their_largest_leaf(case, n):
             assert smallest >= max(t.area[x] for x in expandable) * (1 - 2 * MIN_GAIN)
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(tree_cases)
 def test_restructure_equals_reference(case):
     tree, plo, phi = random_tree(*case)

@@ -27,6 +27,7 @@ from jaxbvh.builders import insertion
 from jaxbvh.builders import insertion_reference as ref_insertion
 from jaxbvh.stochastic import evolve
 from jaxbvh.stochastic import evolve_reference as ref
+from jaxbvh.testing.plugin import examples
 
 P = 8
 
@@ -51,7 +52,7 @@ def draws_of(key, n, generations, crossover, mutation, population=P):
 # ----------------------------------------------------------------------------------
 
 
-@settings(max_examples=6)
+@settings(max_examples=examples(6))
 @given(seed=st.integers(0, 2**31), n=st.integers(17, 24), crossover=st.sampled_from([0.7, 1.0]),
        mutation=st.sampled_from([0.002, 0.1]))
 def test_run_equals_reference_generation_by_generation(seed, n, crossover, mutation):
@@ -75,7 +76,7 @@ def test_run_equals_reference_generation_by_generation(seed, n, crossover, mutat
 # ----------------------------------------------------------------------------------
 
 
-@settings(max_examples=30)
+@settings(max_examples=examples(30))
 @given(seed=st.integers(0, 2**31), n=st.integers(2, 24), cut=st.integers(1, 23))
 def test_order_crossover_is_the_papers(seed, n, cut):
     cut = min(cut, n - 1)
@@ -91,7 +92,7 @@ def test_order_crossover_is_the_papers(seed, n, cut):
     assert (child[n:] == np.arange(n, capacity)).all()  # padding untouched
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(seed=st.integers(0, 2**31), n=st.integers(17, 24))
 def test_next_population_keeps_the_elite_and_makes_permutations(seed, n):
     key = jax.random.key(seed)

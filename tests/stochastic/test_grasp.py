@@ -20,6 +20,7 @@ import jaxbvh
 from jaxbvh import numerics
 from jaxbvh.stochastic import grasp
 from jaxbvh.stochastic import grasp_reference as ref
+from jaxbvh.testing.plugin import examples
 from jaxbvh.tree.frame import Frame
 
 RCLS = st.sampled_from(["axes", 1, 2, 3, 5, 20])
@@ -44,7 +45,7 @@ def random_boxes(seed: int, n: int):
 # ----------------------------------------------------------------------------------
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(data=box_sets(min_size=17, max_size=24), rcl=RCLS, noise=st.sampled_from([0.2, 0.5, 1.0]),
        seed=st.integers(0, 2**31 - 1), trial=st.integers(0, 10**6))
 @example(data=random_boxes(3, 24), rcl=20, noise=1.0, seed=0, trial=0)  # deep ranks of big lists
@@ -60,7 +61,7 @@ def test_trial_equals_reference_fed_the_same_draws(data, rcl, noise, seed, trial
     assert canonical(got) == canonical(want)
 
 
-@settings(max_examples=12)
+@settings(max_examples=examples(12))
 @given(tri=triangle_soups(min_size=17, max_size=24), rcl=RCLS, noise=st.sampled_from([0.3, 1.0]), seed=st.integers(0, 99))
 def test_trial_equals_reference_on_extreme_soups(tri, rcl, noise, seed):
     lo, hi = local_boxes(tri)
@@ -70,7 +71,7 @@ def test_trial_equals_reference_on_extreme_soups(tri, rcl, noise, seed):
     assert canonical(got) == canonical(ref.randomized_build(key, lo, hi, noise=noise, rcl=rcl))
 
 
-@settings(max_examples=6)
+@settings(max_examples=examples(6))
 @given(data=box_sets(min_size=9, max_size=16), rcl=st.sampled_from(["axes", 4]), seed=st.integers(0, 99))
 def test_float64_trial_equals_reference(data, rcl, seed):
     with jax.enable_x64(True):
@@ -88,7 +89,7 @@ def test_float64_trial_equals_reference(data, rcl, seed):
         np.testing.assert_allclose(result.objectives, whole, rtol=1e-12)
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(tri=triangle_soups(min_size=17, max_size=24), rcl=RCLS, seed=st.integers(0, 99))
 def test_noise_zero_is_the_sweep_builder(tri, rcl, seed):
     lo, hi = local_boxes(tri)

@@ -258,6 +258,16 @@ def test_plugin_profiles_are_registered():
     assert plugin.PROFILES == ("ci", "dev")
 
 
+def test_examples_are_stated_for_ci_and_scale_with_the_loaded_profile():
+    current = settings.get_current_profile_name()
+    try:
+        for name, scale in (("ci", 1), ("dev", 10)):
+            settings.load_profile(name)
+            assert [plugin.examples(n) for n in (1, 15, 300)] == [scale, 15 * scale, 300 * scale], name
+    finally:
+        settings.load_profile(current)
+
+
 def test_plugin_is_the_packages_pytest_entry_point():
     project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
     assert project["entry-points"]["pytest11"] == {"jaxbvh.testing.plugin": "jaxbvh.testing.plugin"}

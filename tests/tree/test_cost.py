@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 from strategies import boxes, triangle_soups
 
 import jaxbvh
+from jaxbvh.testing.plugin import examples
 from jaxbvh.tree import cost_reference as reference
 from jaxbvh.tree.frame import Frame
 
@@ -24,7 +25,7 @@ def built(tri, method="sweep", max_leaf=1, dtype=np.float32):
     return jaxbvh.build(llo, lhi, method=method, max_leaf=max_leaf, dtype=dtype)
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(tri=triangle_soups(), method=st.sampled_from(jaxbvh.BUILDERS), max_leaf=st.sampled_from([1, 4]),
        ct=st.sampled_from([1.0, 0.3]), ci=st.sampled_from([1.0, 2.5]))
 def test_costs_equal_reference(tri, method, max_leaf, ct, ci):
@@ -40,7 +41,7 @@ def test_costs_equal_reference(tri, method, max_leaf, ct, ci):
         np.testing.assert_allclose(per_node[node], want, rtol=FLOAT32_RTOL)
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(tri=triangle_soups(extreme=False, min_size=2), exponent=st.sampled_from([-30, -12, 0, 12, 30]),
        offset=st.sampled_from([0.0, 1e7]))
 def test_float32_costs_hold_at_extreme_scales_without_a_frame(tri, exponent, offset):
@@ -51,7 +52,7 @@ def test_float32_costs_hold_at_extreme_scales_without_a_frame(tri, exponent, off
     np.testing.assert_allclose(float(jaxbvh.sah(tree)), reference.sah(tree), rtol=FLOAT32_RTOL)
 
 
-@settings(max_examples=12)
+@settings(max_examples=examples(12))
 @given(tri=triangle_soups(min_size=2, max_size=24))
 def test_float32_agrees_with_float64(tri):
     """The scene frame keeps float32 within FLOAT32_RTOL of float64 at 1e7 offsets and 1e+-30."""

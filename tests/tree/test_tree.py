@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from strategies import box_sets
 
 import jaxbvh
+from jaxbvh.testing.plugin import examples
 from jaxbvh.tree import cost_reference as reference
 from jaxbvh.tree.frame import Frame
 
@@ -54,7 +55,7 @@ def shuffled(arrays, rng):
                 hi=arrays["hi"][inv], root=np.int32(perm[int(arrays["root"])]))
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(data=box_sets(max_size=40), max_leaf=st.sampled_from([1, 3]), seed=st.integers(0, 2**31))
 def test_any_node_order_and_root_loads_to_the_same_tree(data, max_leaf, seed, tmp_path_factory):
     lo, hi = data
@@ -177,7 +178,7 @@ DAMAGE_NAMED = {
 }
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(data=box_sets(min_size=4, max_size=30), seed=st.integers(0, 2**31),
        kind=st.sampled_from(sorted(DAMAGE_NAMED)))
 def test_validate_catches_damage(data, seed, kind):

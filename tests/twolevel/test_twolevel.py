@@ -19,6 +19,7 @@ from hypothesis import strategies as st
 import jaxbvh
 from jaxbvh import scenes, twolevel
 from jaxbvh.rays.traversal import moller_trumbore
+from jaxbvh.testing.plugin import examples
 from jaxbvh.twolevel import brefs
 from jaxbvh.twolevel import brefs_reference as ref
 from jaxbvh.twolevel import objects as fm
@@ -118,7 +119,7 @@ OPTIONS = st.fixed_dictionaries({
 # ----------------------------------------------------------------------------------
 
 
-@settings(max_examples=10)
+@settings(max_examples=examples(10))
 @given(mesh=st.one_of(random_scenes(), forest_scenes()), options=OPTIONS, world_space=st.booleans())
 def test_top_level_equals_reference_bref_by_bref(mesh, options, world_space):
     trees = fm.build_objects(mesh, world_space=world_space)
@@ -162,7 +163,7 @@ def test_top_level_equals_reference_on_forests(seed, spread, threshold, budget):
         np.testing.assert_array_equal(getattr(res, key)[:count], br[key][res.position[:count]], err_msg=key)
 
 
-@settings(max_examples=10)
+@settings(max_examples=examples(10))
 @given(mesh=st.one_of(random_scenes(), forest_scenes()), options=OPTIONS)
 def test_flattened_tree_is_valid_and_traversal_finds_the_closest_hits(mesh, options):
     trees = fm.build_objects(mesh)
@@ -200,7 +201,7 @@ def test_flattened_tree_is_valid_and_traversal_finds_the_closest_hits(mesh, opti
 # ----------------------------------------------------------------------------------
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(seed=st.integers(0, 2**32 - 1), exponent=st.sampled_from([0, -20, 20]))
 def test_world_boxes_are_conservative_and_monotone(seed, exponent):
     rng = np.random.default_rng(seed)
@@ -470,7 +471,7 @@ def material_scenes(draw):
     return scenes.by_material(*small_tree(draw(st.integers(0, 1000))), groups=draw(st.sampled_from([2, 4, 8])))
 
 
-@settings(max_examples=12)
+@settings(max_examples=examples(12))
 @given(mesh=st.one_of(random_scenes(), forest_scenes(), material_scenes()), options=OPTIONS)
 def test_rebraided_sah_never_exceeds_two_level(mesh, options):
     trees = fm.build_objects(mesh)

@@ -20,6 +20,7 @@ from hypothesis import strategies as st
 import jaxbvh
 from jaxbvh.rays import traversal as traverse
 from jaxbvh.rays import traversal_reference as ref_rays
+from jaxbvh.testing.plugin import examples
 from jaxbvh.tree import pad_to
 from jaxbvh.wide import collapse, collapse_dp, levels
 from jaxbvh.wide import collapse_reference as ref
@@ -96,7 +97,7 @@ def _schedule_and_sweeps(tree):
     return lv.order, lv.starts, lv.levels, lv.position, levels.depth_of(lv), size[:n], depth[:n], lv.pad
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(trees)
 @example((1, 1, 1, "random"))  # no interior node: no level
 def test_level_order_is_breadth_first(spec):
@@ -145,7 +146,7 @@ COSTS = {"k": None, "ceil(k/4)": collapse.node_test_cost(4), "ceil(k/8)": collap
          "user": even_widths_cheap}
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(trees, st.sampled_from([2, 3, 8]), st.sampled_from(list(COSTS)))
 @example((1, 1, 1, "random"), 8, "k")        # one leaf: nothing to collapse
 @example((2, 2, 1, "random"), 8, "k")        # root and two leaves
@@ -201,7 +202,7 @@ def brute_force(tree, k, cost):
     return best
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(st.integers(0, 2**31), st.integers(2, 9), st.sampled_from([2, 3, 8]), st.sampled_from(list(COSTS)),
        st.sampled_from(["random", "grid"]))
 def test_dp_is_the_least_of_all_collapses(seed, n, k, cost_name, kind):
@@ -232,7 +233,7 @@ def test_dp_not_worse_than_greedy_qbvh_binary(spec, k):
 # ----------------------------------------------------------------------------------
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(trees, st.sampled_from([None, 2, 3, 5]))
 @example((3, 30, 1, "point"), None)
 @example((3, 30, 1, "point"), 3)
@@ -355,7 +356,7 @@ def test_save_and_load_the_wide_tree(tmp_path):
     assert float(collapse.rcost(loaded)) == pytest.approx(float(result.rcost), rel=1e-6)
 
 
-@settings(max_examples=15)
+@settings(max_examples=examples(15))
 @given(trees, st.sampled_from([2, 4]))
 @example((3, 30, 1, "point"), 4)
 def test_merging_leaves_equals_reference_and_lowers_the_total(spec, max_leaf):
