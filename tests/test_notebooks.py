@@ -3,7 +3,8 @@
 The notebooks read ``JAXBVH_QUICK=1`` and shrink their inputs (fewer meshes, rays,
 passes); the committed copies keep their full-size outputs, and this test never writes
 to them: it executes a copy in memory. The kernels share the suite's persistent
-compilation cache, so programs one notebook compiled load in the next.
+compilation cache (``cache_dir``: the kernel inherits the environment, from which JAX
+reads its cache settings), so programs one notebook compiled load in the next.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ def test_there_are_notebooks():
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
-def test_notebook_runs(path, monkeypatch, _compilation_cache_out_of_home):
+def test_notebook_runs(path, monkeypatch, cache_dir):
     nbformat = pytest.importorskip("nbformat")
     nbclient = pytest.importorskip("nbclient", reason="the test extra installs nbclient")
     pytest.importorskip("ipykernel", reason="the test extra installs ipykernel")
@@ -29,9 +30,6 @@ def test_notebook_runs(path, monkeypatch, _compilation_cache_out_of_home):
     # optimized code: a notebook runs its methods for seconds on the bundled mesh (the
     # suite's unoptimized compiles made the optimize notebook 2.5x slower)
     monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", "").replace(UNOPTIMIZED_XLA, "").strip())
-    # the kernel inherits the environment: JAX reads its cache settings from it
-    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(_compilation_cache_out_of_home))
-    monkeypatch.setenv("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
     monkeypatch.setenv("MPLBACKEND", "Agg")
     notebook = nbformat.read(path, as_version=4)
     first = next(c for c in notebook.cells if c.cell_type == "code")

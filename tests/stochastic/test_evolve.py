@@ -201,7 +201,8 @@ _SUBPROCESS = textwrap.dedent("""
 
 def test_population_split_over_two_devices_gives_the_same_run():
     code = _SUBPROCESS.format(repo=str(REPO), tests=str(REPO / "tests"), here=str(Path(__file__).resolve().parent))
-    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2", "JAX_PLATFORMS": "cpu"}
+    env = {**os.environ, "XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2",
+           "JAX_PLATFORMS": "cpu"}
     proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = json.loads([line for line in proc.stdout.splitlines() if line.startswith("RESULT")][-1][6:])
