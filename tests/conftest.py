@@ -14,8 +14,9 @@ from hypothesis import settings
 # cheaper. XLA keeps IEEE semantics at every level (no fast math), but it may order a
 # float reduction differently (a sum can differ in its last bit): the trees and every
 # comparison with a NumPy twin hold under both, and JAXBVH_TEST_OPTIMIZED=1 runs the
-# suite on optimized code. The notebooks run long on real meshes: their kernels get
-# optimized code (tests/test_notebooks.py drops the flag).
+# suite on optimized code (notebook kernels inherit the flag: with optimized code the
+# optimize notebook ran faster but the builders and collapse notebooks compiled slower,
+# and the whole suite took 15.6 min instead of 13.0).
 if os.environ.get("JAXBVH_TEST_OPTIMIZED") != "1" and UNOPTIMIZED_XLA not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {UNOPTIMIZED_XLA}".strip()
 

@@ -22,8 +22,7 @@ from jaxbvh.tree.frame import Frame
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"  # meshes, scenes, reference trees (../shared beside the clone)
-# XLA's flag for compiles without LLVM's optimizations: conftest sets it for the suite,
-# test_notebooks drops it for the kernels
+# XLA's flag for compiles without LLVM's optimizations (conftest sets it for the suite)
 UNOPTIMIZED_XLA = "--xla_backend_optimization_level=0"
 NODES, PRIMS = 128, 64  # random_tree's one capacity: one compiled program for all its trees
 CAPACITY = 64  # padded()'s primitive capacity

@@ -9,10 +9,8 @@ reads its cache settings), so programs one notebook compiled load in the next.
 
 from __future__ import annotations
 
-import os
-
 import pytest
-from helpers import REPO, UNOPTIMIZED_XLA
+from helpers import REPO
 
 NOTEBOOKS = sorted((REPO / "notebooks").glob("*.ipynb"))
 
@@ -27,9 +25,6 @@ def test_notebook_runs(path, monkeypatch, cache_dir):
     nbclient = pytest.importorskip("nbclient", reason="the test extra installs nbclient")
     pytest.importorskip("ipykernel", reason="the test extra installs ipykernel")
     monkeypatch.setenv("JAXBVH_QUICK", "1")
-    # optimized code: a notebook runs its methods for seconds on the bundled mesh (the
-    # suite's unoptimized compiles made the optimize notebook 2.5x slower)
-    monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", "").replace(UNOPTIMIZED_XLA, "").strip())
     monkeypatch.setenv("MPLBACKEND", "Agg")
     notebook = nbformat.read(path, as_version=4)
     first = next(c for c in notebook.cells if c.cell_type == "code")
