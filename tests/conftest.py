@@ -35,6 +35,35 @@ def pytest_configure(config):
     settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 
+# Tests that xdist hands out one by one, and first, not with the rest of their module: the
+# notebooks (about four minutes in all). As one module they went to one worker late in the
+# run, and the other worker waited for it at the end.
+UNITS_OF_THEIR_OWN = ("tests/test_notebooks.py::test_notebook_runs[",)
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """xdist's ``loadfile`` scheduling (pyproject.toml), but for :data:`UNITS_OF_THEIR_OWN`.
+
+    A test module goes to one worker as a whole, so its tests share its compiled programs;
+    xdist queues the modules with the most tests first. Each of :data:`UNITS_OF_THEIR_OWN`
+    is a unit of its own, queued before the modules, so the long units are shared out while
+    there is plenty of work left to balance them. (xdist's ``xdist_group`` marks are meant
+    for this, but pytest 9 ignores the node ids xdist 3.8 rewrites for them.)
+    """
+    from xdist.scheduler import LoadFileScheduling
+
+    class ModulesAndOwnUnits(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return nodeid if nodeid.startswith(UNITS_OF_THEIR_OWN) else super()._split_scope(nodeid)
+
+        def _assign_work_unit(self, node) -> None:
+            for scope in reversed([s for s in self.workqueue if s.startswith(UNITS_OF_THEIR_OWN)]):
+                self.workqueue.move_to_end(scope, last=False)
+            super()._assign_work_unit(node)
+
+    return ModulesAndOwnUnits(config, log)
+
+
 @pytest.fixture(autouse=True, scope="session")
 def _compilation_cache_out_of_home(tmp_path_factory):
     """One persistent compilation cache for this test process, in a temporary folder.
