@@ -8,23 +8,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import canonical
+from helpers import canonical, local_boxes
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from strategies import box_sets, boxes, triangle_soups
+from strategies import box_sets, triangle_soups
 
 import jaxbvh
 from jaxbvh.builders import configs, topdown
 from jaxbvh.builders import topdown_reference as reference
 from jaxbvh.numerics import scene_scale
 from jaxbvh.testing.plugin import examples
-from jaxbvh.tree.frame import Frame
-
-
-def local_boxes(tri, dtype=np.float32):
-    lo, hi = boxes(tri)
-    frame = Frame.fit(lo, hi)
-    return frame.to_local(lo).astype(dtype), frame.to_local(hi).astype(dtype)
 
 
 @settings(max_examples=examples(15))

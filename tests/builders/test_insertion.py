@@ -9,9 +9,10 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
+from helpers import local_boxes
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from strategies import box_sets, boxes, triangle_soups
+from strategies import box_sets, triangle_soups
 
 import jaxbvh
 from jaxbvh import numerics
@@ -19,18 +20,11 @@ from jaxbvh.builders import insertion
 from jaxbvh.builders import insertion_reference as ref
 from jaxbvh.testing.plugin import examples
 from jaxbvh.tree import cost_reference as ref_cost
-from jaxbvh.tree.frame import Frame
 
 CAP = 48  # one capacity for every random case
 
 
-def local_boxes(tri, dtype=np.float32):
-    lo, hi = boxes(tri)
-    frame = Frame.fit(lo, hi)
-    return frame.to_local(lo).astype(dtype), frame.to_local(hi).astype(dtype)
-
-
-def assert_same_tree(got, want, n):
+def assert_equals_unpadded_reference(got, want, n):
     """The JAX tree equals the unpadded reference node by node; the rest is padding."""
     g = jaxbvh.to_numpy(got)
     real = 2 * n - 1
@@ -59,7 +53,7 @@ def test_jax_build_equals_reference_node_by_node(data, seed, max_children):
     want = ref.build(lo, hi, order, max_children=max_children)
     jaxbvh.validate(got, lo, hi)
     jaxbvh.validate(want, lo, hi)
-    assert_same_tree(got, want, lo.shape[0])
+    assert_equals_unpadded_reference(got, want, lo.shape[0])
     arity = (np.asarray(got.child) >= 0).sum(axis=1)
     assert arity.max() <= max_children
     assert float(jaxbvh.goldsmith_salmon_cost(got)) == pytest.approx(ref_cost.goldsmith_salmon_cost(want), rel=1e-5)
@@ -73,7 +67,7 @@ def test_extreme_and_degenerate_soups(tri, seed):
     order = order_of(seed, lo.shape[0])
     got = insertion.build(lo, hi, order, capacity=CAP)
     jaxbvh.validate(got, lo, hi)
-    assert_same_tree(got, ref.build(lo, hi, order, max_children=insertion.DEFAULT_MAX_CHILDREN), lo.shape[0])
+    assert_equals_unpadded_reference(got, ref.build(lo, hi, order, max_children=insertion.DEFAULT_MAX_CHILDREN), lo.shape[0])
     cost = float(jaxbvh.goldsmith_salmon_cost(got))
     assert np.isfinite(cost) and cost >= 0
 
@@ -150,7 +144,7 @@ def test_batch_equals_single_builds_and_costs():
     for i, order in enumerate(orders):
         tree = insertion.tree_at(trees, i)
         jaxbvh.validate(tree, lo, hi)
-        assert_same_tree(tree, ref.build(lo, hi, order, max_children=insertion.DEFAULT_MAX_CHILDREN), 40)
+        assert_equals_unpadded_reference(tree, ref.build(lo, hi, order, max_children=insertion.DEFAULT_MAX_CHILDREN), 40)
         assert float(costs[i]) == float(jaxbvh.goldsmith_salmon_cost(tree))
 
 
@@ -163,7 +157,7 @@ def test_float64_build_equals_reference(data, seed):
         got = insertion.build(lo, hi, order, dtype=np.float64, capacity=CAP)
         assert got.lo.dtype == np.float64
         jaxbvh.validate(got, lo, hi)
-        assert_same_tree(got, ref.build(lo, hi, order, max_children=insertion.DEFAULT_MAX_CHILDREN), lo.shape[0])
+        assert_equals_unpadded_reference(got, ref.build(lo, hi, order, max_children=insertion.DEFAULT_MAX_CHILDREN), lo.shape[0])
 
 
 def test_one_compile_per_capacity_bucket():

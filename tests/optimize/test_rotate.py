@@ -7,12 +7,14 @@ the shared driver; the tests use the public step.
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import subprocess
 import sys
 import textwrap
 
+import helpers
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -35,11 +37,9 @@ NODES, PRIMS = 128, 64  # one capacity for all random trees
 
 
 
-def assert_same_tree(a, b):
-    a, b = jaxbvh.to_numpy(a), jaxbvh.to_numpy(b)
-    for field in ("left", "right", "parent", "lo", "hi", "prim_start", "prim_count", "prim_index", "axis"):
-        np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=field)
-    assert int(a.root) == int(b.root)
+# rotations move subtrees, never primitives: every array is compared, the leaves' too
+assert_same_tree = functools.partial(helpers.assert_same_tree, fields=(
+    "left", "right", "parent", "lo", "hi", "prim_start", "prim_count", "prim_index", "axis", "root"))
 
 
 def check_result(result, prim_lo, prim_hi):

@@ -11,26 +11,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import assert_one_line_error, canonical, grid_obj, run_cli, run_json
+from helpers import assert_one_line_error, canonical, grid_obj, local_boxes, run_cli, run_json
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
-from strategies import box_sets, boxes, triangle_soups
+from strategies import box_sets, triangle_soups
 
 import jaxbvh
 from jaxbvh import numerics
 from jaxbvh.stochastic import grasp
 from jaxbvh.stochastic import grasp_reference as ref
 from jaxbvh.testing.plugin import examples
-from jaxbvh.tree.frame import Frame
 
 RCLS = st.sampled_from(["axes", 1, 2, 3, 5, 20])
 CHUNK = 96  # forests of at most 96 primitives: capacities 24, 48, 96 only (few compiles)
-
-
-def local_boxes(tri, dtype=np.float32):
-    lo, hi = boxes(tri)
-    frame = Frame.fit(lo, hi)
-    return frame.to_local(lo).astype(dtype), frame.to_local(hi).astype(dtype)
 
 
 def random_boxes(seed: int, n: int):
