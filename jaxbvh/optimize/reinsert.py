@@ -55,7 +55,9 @@ One iteration
    gain, and on our inputs the top few percent of nodes by parent area hold nearly all
    of the first iterations' gain). ``k`` starts where about ``first_fraction`` of the
    nodes are candidates and grows by one octave after an iteration that lowers the SAH
-   by at most ``escalate`` (relative), and every node is a candidate after one that
+   by at most ``escalate`` (relative; default 1e-3,
+   :data:`~jaxbvh.optimize.reinsert_rules.DEFAULT_ESCALATE`: an octave's last
+   iterations gain little beside the next octave's first), and every node is a candidate after one that
    takes no move (the big parents have no move left: what gain remains is spread over
    the small nodes; widening by a few octaves at a time spent a dozen empty
    iterations of growing cost on legocar before reaching them) (coarse to fine;
@@ -148,6 +150,7 @@ from jaxbvh.optimize.protocol import (
 from jaxbvh.optimize.reinsert_moves import RANK_MANTISSA, iteration, rank_key  # noqa: F401 (public here)
 from jaxbvh.optimize.reinsert_rules import (  # noqa: F401 (DEFAULT_FIRST_FRACTION public here)
     ALL_OCTAVES,
+    DEFAULT_ESCALATE,
     DEFAULT_FIRST_FRACTION,
     FIRST_OCTAVES_TRIED,
     candidates_needed,
@@ -160,7 +163,6 @@ from jaxbvh.tree.split_axes import apply_split_axes
 
 DEFAULT_MAX_STEPS = 1024       # search steps per node and iteration (legocar needs < 200)
 DEFAULT_MAX_ITERATIONS = 1000
-DEFAULT_ESCALATE = 1e-4
 DEFAULT_SETTLE = False  # measured: reached tinybvh's SAH later on legocar (module docstring)
 
 

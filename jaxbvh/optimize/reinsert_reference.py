@@ -17,7 +17,13 @@ import numpy as np
 
 from jaxbvh.numerics import box_scale
 from jaxbvh.numerics import min_gain as default_min_gain
-from jaxbvh.optimize.reinsert_rules import ALL_OCTAVES, DEFAULT_FIRST_FRACTION, first_octaves, move_width
+from jaxbvh.optimize.reinsert_rules import (
+    ALL_OCTAVES,
+    DEFAULT_ESCALATE,
+    DEFAULT_FIRST_FRACTION,
+    first_octaves,
+    move_width,
+)
 from jaxbvh.tree.layout import to_numpy
 from jaxbvh.tree.walks import post_order
 
@@ -296,7 +302,7 @@ def iteration(t: Tree, octaves: int, max_steps: int, min_gain: float, width: int
 
 
 def reinsert(tree, *, ct=1.0, ci=1.0, max_iterations=1000, max_steps=1024,
-             first_fraction=DEFAULT_FIRST_FRACTION, escalate=1e-4, min_gain=None, settle=False):
+             first_fraction=DEFAULT_FIRST_FRACTION, escalate=DEFAULT_ESCALATE, min_gain=None, settle=False):
     """Parallel reinsertion, one move at a time; returns ``(tree, info)``.
 
     The schedule and defaults of :func:`jaxbvh.optimize.reinsert.reinsert`: candidates from the octaves

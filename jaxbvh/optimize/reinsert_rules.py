@@ -37,6 +37,15 @@ FIRST_OCTAVES_TRIED = 64
 #: first iterations find a few moves that lock each other (4 of 21 taken on legocar).
 DEFAULT_FIRST_FRACTION = 1 / 8
 
+#: relative SAH drop of an iteration at or below which the next one searches one more
+#: octave. Measured on legocar (pipeline from tinybvh's binned tree, CPU seconds of the
+#: steps to tinybvh's ``Optimize(200)`` SAH, each step timed alone): 1e-3 reaches it in 27
+#: steps against 43 for 1e-4 (the last iterations of an octave gained 0.1 - 0.5 per mille
+#: each at 8 - 15 ms; one more octave's first iteration gains 3 - 5 per mille); 2e-3 and
+#: 3e-3 widen so fast that iterations over most nodes come early and the first round
+#: ends higher (docs/time-to-quality.md).
+DEFAULT_ESCALATE = 1e-3
+
 
 def move_width(capacity: int) -> int:
     """Moves considered per iteration: a static size from the capacity."""
