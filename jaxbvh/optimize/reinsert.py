@@ -55,7 +55,9 @@ One iteration
    gain, and on our inputs the top few percent of nodes by parent area hold nearly all
    of the first iterations' gain). ``k`` starts where about ``first_fraction`` of the
    nodes are candidates and grows by one octave after an iteration that lowers the SAH
-   by at most ``escalate`` (relative), and every node is a candidate after one that
+   by at most ``escalate`` (relative; by default 8 over the node count,
+   :func:`~jaxbvh.optimize.reinsert_rules.escalate_for`: an iteration's relative drop
+   shrinks with the tree's size), and every node is a candidate after one that
    takes no move (the big parents have no move left: what gain remains is spread over
    the small nodes; widening by a few octaves at a time spent a dozen empty
    iterations of growing cost on legocar before reaching them) (coarse to fine;
@@ -130,7 +132,7 @@ from typing import Any, Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxbvh.configs import Checked, ci_knob, ct_knob, integer, knob, min_gain_knob, real, split_axes_knob
+from jaxbvh.configs import Checked, ci_knob, ct_knob, integer, knob, min_gain_knob, optional, real, split_axes_knob
 from jaxbvh.numerics import min_gain as default_min_gain
 from jaxbvh.optimize.driver import run
 from jaxbvh.optimize.protocol import (
@@ -148,9 +150,11 @@ from jaxbvh.optimize.protocol import (
 from jaxbvh.optimize.reinsert_moves import RANK_MANTISSA, iteration, rank_key  # noqa: F401 (public here)
 from jaxbvh.optimize.reinsert_rules import (  # noqa: F401 (DEFAULT_FIRST_FRACTION public here)
     ALL_OCTAVES,
+    DEFAULT_ESCALATE,
     DEFAULT_FIRST_FRACTION,
     FIRST_OCTAVES_TRIED,
     candidates_needed,
+    escalate_for,
     octaves_holding,
 )
 from jaxbvh.optimize.reinsert_search import prepare, to_tree
@@ -160,7 +164,6 @@ from jaxbvh.tree.split_axes import apply_split_axes
 
 DEFAULT_MAX_STEPS = 1024       # search steps per node and iteration (legocar needs < 200)
 DEFAULT_MAX_ITERATIONS = 1000
-DEFAULT_ESCALATE = 1e-4
 DEFAULT_SETTLE = False  # measured: reached tinybvh's SAH later on legocar (module docstring)
 
 
@@ -197,7 +200,8 @@ class Config(Checked):
     node and iteration. ``first_fraction``: about the share of nodes searched at first,
     those of largest parent area (1: every node, Meister & Bittner's schedule).
     ``escalate``: relative SAH drop at or below which the next iteration searches one
-    more octave. ``settle``: skip the settled nodes (module docstring, step 1).
+    more octave (None: :data:`~jaxbvh.optimize.reinsert_rules.ESCALATE_NODES` over the
+    node count, :func:`~jaxbvh.optimize.reinsert_rules.escalate_for`). ``settle``: skip the settled nodes (module docstring, step 1).
     ``ct``, ``ci``: SAH constants. ``min_gain``: relative margin a place must beat (None: ``64 * eps`` of the tree's float type). ``split_axes``: Kensler's
     final pass (:func:`jaxbvh.tree.split_axes.assign_split_axes`) in ``result``.
     """
@@ -208,9 +212,9 @@ class Config(Checked):
     first_fraction: float = knob(DEFAULT_FIRST_FRACTION, check=real(above=0, maximum=1), metavar="F",
                                  help="about the share of nodes (largest parent area first) searched at "
                                       "first, growing to all; in (0, 1]")
-    escalate: float = knob(DEFAULT_ESCALATE, check=real(0, finite=False), metavar="E",
-                           help="relative SAH drop of an iteration at or below which one more octave of "
-                                "nodes is searched")
+    escalate: float | None = knob(DEFAULT_ESCALATE, check=optional(real(0, finite=False)), type=float,
+                                  metavar="E", help="relative SAH drop of an iteration at or below which one "
+                                                    "more octave of nodes is searched (none: 8 / nodes)")
     settle: bool = knob(DEFAULT_SETTLE, help="search again only the nodes whose last search found a move "
                                              "or that a move touched since (every node before stopping)")
     ct: float = ct_knob()
@@ -256,7 +260,8 @@ def init(tree, config: Config | None = None, key=None) -> OptimizerState:
     # the node count never changes while optimizing: the first candidates' count is
     # taken here, on the host (reinsert_rules)
     nodes = int(jnp.sum(tree.parent >= 0))
-    params = Params(*(jnp.asarray(x, dtype) for x in (config.ct, config.ci, min_gain, config.escalate)),
+    escalate = escalate_for(nodes, config.escalate)
+    params = Params(*(jnp.asarray(x, dtype) for x in (config.ct, config.ci, min_gain, escalate)),
                     max_steps=jnp.int32(config.max_steps),
                     need=jnp.int32(candidates_needed(config.first_fraction, nodes)),
                     split_axes=jnp.bool_(config.split_axes), settle=jnp.bool_(config.settle))

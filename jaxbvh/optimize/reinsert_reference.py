@@ -17,7 +17,14 @@ import numpy as np
 
 from jaxbvh.numerics import box_scale
 from jaxbvh.numerics import min_gain as default_min_gain
-from jaxbvh.optimize.reinsert_rules import ALL_OCTAVES, DEFAULT_FIRST_FRACTION, first_octaves, move_width
+from jaxbvh.optimize.reinsert_rules import (
+    ALL_OCTAVES,
+    DEFAULT_ESCALATE,
+    DEFAULT_FIRST_FRACTION,
+    escalate_for,
+    first_octaves,
+    move_width,
+)
 from jaxbvh.tree.layout import to_numpy
 from jaxbvh.tree.walks import post_order
 
@@ -296,12 +303,13 @@ def iteration(t: Tree, octaves: int, max_steps: int, min_gain: float, width: int
 
 
 def reinsert(tree, *, ct=1.0, ci=1.0, max_iterations=1000, max_steps=1024,
-             first_fraction=DEFAULT_FIRST_FRACTION, escalate=1e-4, min_gain=None, settle=False):
+             first_fraction=DEFAULT_FIRST_FRACTION, escalate=DEFAULT_ESCALATE, min_gain=None, settle=False):
     """Parallel reinsertion, one move at a time; returns ``(tree, info)``.
 
     The schedule and defaults of :func:`jaxbvh.optimize.reinsert.reinsert`: candidates from the octaves
     :func:`jaxbvh.optimize.reinsert.first_octaves` gives, one more octave after an iteration that
-    lowers the SAH by at most ``escalate`` (relative), every node after one that takes no
+    lowers the SAH by at most ``escalate`` (relative; None: by the node count,
+    :func:`jaxbvh.optimize.reinsert_rules.escalate_for`), every node after one that takes no
     move, until an iteration over all nodes takes none (or ``max_iterations``); with
     ``settle``, the settled nodes are skipped (:func:`iteration`) until an iteration over
     every octave takes no move.
@@ -314,6 +322,7 @@ def reinsert(tree, *, ct=1.0, ci=1.0, max_iterations=1000, max_steps=1024,
     area = np.array([t.area(n) for n in range(t.child.shape[0])], t.lo.dtype)
     octaves = first_octaves(area, t.parent, t.root, first_fraction)
     nodes = sum(1 for a in range(t.child.shape[0]) if t.parent[a] >= 0)
+    escalate = escalate_for(nodes, escalate)
     history, taken_all, settled = [], [], set()
     start = t.sah(ct, ci)
     for _ in range(max_iterations if ct > 0 else 0):

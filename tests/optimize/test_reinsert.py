@@ -217,6 +217,25 @@ def test_reinsert_equals_reference(case, first_fraction, settle):
     assert _one_iteration(result.tree)[5] == 0
 
 
+def test_default_escalate_is_by_node_count():
+    """Unless given, both sides widen the octaves after an iteration that lowers the SAH
+    by at most ESCALATE_NODES / nodes (reinsert_rules.escalate_for): the default run
+    equals the twin's and the run given that value, node for node; a fixed 1e-3 (the
+    rule on neither side) takes another schedule on this tree."""
+    assert reinsert_rules.escalate_for(118) == reinsert_rules.ESCALATE_NODES / 118
+    assert reinsert_rules.escalate_for(118, 0.25) == 0.25 and reinsert_rules.escalate_for(0) > 0
+    tree = random_tree(0, 60, 1)[0]
+    nodes = int(np.sum(np.asarray(tree.parent) >= 0))
+    default = reinsert.reinsert(tree, first_fraction=0.2, split_axes=False)
+    given = reinsert.reinsert(tree, first_fraction=0.2, split_axes=False,
+                              escalate=reinsert_rules.escalate_for(nodes))
+    expected, info = ref.reinsert(tree, first_fraction=0.2)
+    _, fixed = ref.reinsert(tree, first_fraction=0.2, escalate=1e-3)
+    assert default.steps == given.steps == info["iterations"] != fixed["iterations"]
+    assert_same_tree(default.tree, expected)
+    assert_same_tree(given.tree, expected)
+
+
 def test_reinsert_with_split_axes_and_float64():
     tree, plo, phi = random_tree(3, 30, 2)
     result = reinsert.reinsert(tree)

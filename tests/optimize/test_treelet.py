@@ -102,6 +102,18 @@ def test_smaller_treelets_and_windows():
     assert float(b.sah) <= float(a.sah) * (1 + 1e-6)  # 7 leaves see more than 4
 
 
+def test_window_sizes_by_capacity():
+    """Speed only: one window size below SMALL_WINDOWS_FROM nodes, a small one beside it
+    from there on (legocar's real-tree test below runs that one against the twin); given
+    windows are kept."""
+    assert treelet.window_sizes(treelet.SMALL_WINDOWS_FROM - 1) == treelet.WINDOWS_SMALL_TREE == (256,)
+    assert treelet.window_sizes(treelet.SMALL_WINDOWS_FROM) == treelet.WINDOWS_LARGE_TREE == (256, 16)
+    assert treelet.window_sizes(1 << 20, (3,)) == (3,)
+    tree = random_tree(9, 40, 2)[0]
+    assert treelet.init(tree).static.windows == treelet.WINDOWS_SMALL_TREE
+    assert treelet.init(tree, treelet.Config(windows=(5, 2))).static.windows == (5, 2)
+
+
 def test_split_axes_is_a_traced_setting():
     """Runs with and without Kensler's split-axis pass share one compiled loop and one
     compiled result (``split_axes`` is a traced Param, as reinsertion's)."""
