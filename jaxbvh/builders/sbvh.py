@@ -70,7 +70,10 @@ last first compacts the level's references (a cumsum of the live slots and a sca
 no sort) into M < R per-reference slots (:func:`live_slots`; the last stage, which
 takes any level, works on all R): the references of finished leaves and the free slots
 (R is a capacity bucket of twice the triangles, the builds use 1.1-1.3 times) then
-cost nothing in the object split, the spatial search and the bookkeeping. Compile time grows
+cost nothing in the object split, the spatial search and the bookkeeping. The deep
+levels, whose open nodes and references dwindle again, leave the widest stage for a
+*tail* stage of small F and M (``TAIL_SLOTS``; legocar: 512 nodes, 1,024 references),
+which took their cost from ~25 ms to 3-6 ms a level on legocar. Compile time grows
 with the stages (each compiles the level once); the level is kept cheap to compile (one
 loop body for the pieces, scans for the sweeps: legocar compiles in ~22 s, not ~70-100 s
 with unrolled sweeps and a switch over six piece-buffer sizes).
@@ -378,11 +381,19 @@ def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int) -> SBVHBuil
     refs = tri.shape[0]
     live = live_slots(refs)
     # levels with few open nodes run on small per-node arrays, and levels whose references
-    # fit on compacted per-reference arrays (all but the last stage)
-    stages = [(slots, live) for slots in stage_slots(refs)[:-1]] + [(refs, refs)]
-    for slots, m in stages:
-        state = jax.lax.while_loop(lambda s, f=slots, m=m: (s.next_free > s.level_start)
-                                   & (s.next_free - s.level_start <= f) & (jnp.sum(_in_level(s)) <= m),
+    # fit on compacted per-reference arrays (all but the last stage); the deep levels,
+    # where the open nodes and their references dwindle, on small ones again (the tail)
+    tail = (TAIL_SLOTS, max(TAIL_SLOTS, live // TAIL_LIVE_DIVISOR))
+    small = len(stage_slots(refs)) == 1  # one stage: all slots, no compaction
+    grow = [slots for slots in stage_slots(refs)[:-1] if not (slots <= tail[0] and live <= tail[1])]
+    stages = [((slots, live), True) for slots in grow] + [(tail, False)] * (not small) + [((refs, refs), False)]
+
+    def fits(s: _State, slots: int, m: int):
+        return (s.next_free - s.level_start <= slots) & (jnp.sum(_in_level(s)) <= m)
+
+    for (slots, m), before_tail in stages:
+        state = jax.lax.while_loop(lambda s, f=slots, m=m, b=before_tail: (s.next_free > s.level_start) & fits(s, f, m)
+                                   & ~(b & fits(s, *tail)),
                                    partial(_level, scene, bins=bins, slots=slots, live=m), state)
     return SBVHBuild(_tree(state), state.n_refs, state.spatial, state.short)
 
@@ -391,6 +402,12 @@ def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int) -> SBVHBuil
 STAGE_GROWTH = 8
 #: reference slots up to which the engine runs in one stage
 SMALL_STAGE = 512
+
+
+#: the deep levels' stage: at most TAIL_SLOTS open nodes ...
+TAIL_SLOTS = 512
+#: ... and at most live_slots / TAIL_LIVE_DIVISOR references
+TAIL_LIVE_DIVISOR = 16
 
 
 def live_slots(refs: int) -> int:
