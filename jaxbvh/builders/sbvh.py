@@ -75,8 +75,9 @@ levels, whose open nodes and references dwindle again, leave the widest stage fo
 *tail* stage of small F and M (``TAIL_SLOTS``; legocar: 512 nodes, 1,024 references),
 which took their cost from ~25 ms to 3-6 ms a level on legocar. Compile time grows
 with the stages (each compiles the level once); the level is kept cheap to compile (one
-loop body for the pieces, scans for the sweeps: legocar compiles in ~22 s, not ~70-100 s
-with unrolled sweeps and a switch over six piece-buffer sizes).
+loop body for the pieces, scans for the sweeps: legocar's four stages compiled in ~22 s,
+not ~70-100 s with unrolled sweeps and a switch over six piece-buffer sizes; the
+compaction and the tail stage cost some of that back, docs/spatial-splits.md).
 """
 
 from __future__ import annotations
