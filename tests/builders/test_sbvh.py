@@ -72,7 +72,7 @@ def test_every_sbvh_tree_is_valid_with_references_and_covers_every_triangle(tri,
     """Degenerate (zero-area, one-point) and thin triangles, scales 1e-30 .. 1e30 included."""
     tri = local_triangles(tri)
     lo, hi = boxes(tri)
-    got = build_sbvh(tri, SBVHConfig(alpha=alpha, max_leaf=max_leaf, bins=8), capacity=2 * SLOTS)
+    got = build_sbvh(tri, SBVHConfig(alpha=alpha, max_leaf=max_leaf, bins=8), capacity=BIG_SLOTS)
     jaxbvh.validate(got.tree, lo, hi, references=True, triangles=tri)
     t = jaxbvh.to_numpy(got.tree)
     assert int(t.prim_count.sum()) == int(got.references) >= tri.shape[0]
