@@ -20,8 +20,9 @@ over its references (box, triangle):
    planes between them priced ``A_L N_L + A_R N_R``; least cost, ties (within
    ``TIE_TOLERANCE``) to the lowest axis, then the lowest plane.
 2. **Spatial split**, tried only when the object split's two boxes overlap by more than
-   ``alpha`` times the root's half-area (areas on the scene's scale): ``B`` equal bins
-   of the node's box per axis; a reference enters the bin of its box's low corner and
+   ``alpha`` times the root's half-area (areas on the scene's scale): ``b`` equal bins
+   of the node's box per axis, ``b`` = ``B`` for a node of at least ``B`` references,
+   fewer for fewer (:func:`jaxbvh.builders.sbvh_rules.spatial_bins`); a reference enters the bin of its box's low corner and
    leaves by the bin of its high corner; each bin's box is estimated from the reference's
    triangle corners and the crossings of the inner planes its box spans, clamped to the
    reference's box. Plane ``k`` (after bin ``k``) has ``N_L`` = entries at or before
@@ -64,10 +65,19 @@ version 20-40x slower than the binned build). Nodes are numbered level by level,
 0; the loop ends when a level opens no node (at most ``2 R`` levels: every level adds
 nodes, and there are fewer than ``2 R``). The per-node arrays of a level have F slots,
 F at least its open nodes; the loop runs in stages of growing F (:func:`stage_slots`),
-so the narrow top levels do not pay for the widest level's arrays. Compile time grows
+so the narrow top levels do not pay for the widest level's arrays. Every stage but the
+last first compacts the level's references (a cumsum of the live slots and a scatter,
+no sort) into M < R per-reference slots (:func:`live_slots`; the last stage, which
+takes any level, works on all R): the references of finished leaves and the free slots
+(R is a capacity bucket of twice the triangles, the builds use 1.1-1.3 times) then
+cost nothing in the object split, the spatial search and the bookkeeping. The deep
+levels, whose open nodes and references dwindle again, leave the widest stage for a
+*tail* stage of small F and M (``TAIL_SLOTS``; legocar: 512 nodes, 1,024 references),
+which took their cost from ~25 ms to 3-6 ms a level on legocar. Compile time grows
 with the stages (each compiles the level once); the level is kept cheap to compile (one
-loop body for the pieces, scans for the sweeps: legocar compiles in ~22 s, not ~70-100 s
-with unrolled sweeps and a switch over six piece-buffer sizes).
+loop body for the pieces, scans for the sweeps: legocar's four stages compiled in ~22 s,
+not ~70-100 s with unrolled sweeps and a switch over six piece-buffer sizes; the
+compaction and the tail stage cost some of that back, docs/spatial-splits.md).
 """
 
 from __future__ import annotations
@@ -79,6 +89,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxbvh.builders import sbvh_rules as rules
 from jaxbvh.builders import sbvh_splits as splits
 from jaxbvh.builders.configs import SBVHConfig
 from jaxbvh.numerics import TIE_TOLERANCE, half_area, scene_scale, take, working_dtype
@@ -212,33 +223,65 @@ def _no_spatial(slots, dt):
     return splits.Split(inf, zi, zi, box, box, box, box, zi, zi)
 
 
-def _level(scene: _Scene, s: _State, *, bins: int, slots: int) -> _State:
+class _View(NamedTuple):
+    """The references a level works on: all R slots, or the level's own compacted into
+    ``live`` slots (in slot order; padding: triangle -1, the empty box, node 2 R)."""
+
+    prim: Any  # [M] int32 triangle
+    lo: Any    # [M, 3] box
+    hi: Any
+    node: Any  # [M] int32 node holding it
+    slot: Any  # [M] int32 its slot in the state (R for padding); None when M = R (the identity)
+
+
+def _in_level(s: _State):
+    """[R] bool: the references of the level's open nodes."""
+    return (s.ref_node >= s.level_start) & (s.ref_node < s.next_free)
+
+
+def _view(s: _State, live: int) -> _View:
+    """The level's references in ``live`` slots (a cumsum compaction, no sort), or all R."""
+    refs = s.ref_prim.shape[0]
+    if live >= refs:
+        return _View(s.ref_prim, s.ref_lo, s.ref_hi, s.ref_node, None)
+    in_level = _in_level(s)
+    rank = jnp.cumsum(in_level, dtype=jnp.int32) - 1
+    slot = jnp.full(live, refs, jnp.int32).at[jnp.where(in_level, rank, live)].set(
+        jnp.arange(refs, dtype=jnp.int32), mode="drop")
+    return _View(take(s.ref_prim, slot, -1), take(s.ref_lo, slot, jnp.inf), take(s.ref_hi, slot, -jnp.inf),
+                 take(s.ref_node, slot, 2 * refs), slot)
+
+
+def _level(scene: _Scene, s: _State, *, bins: int, slots: int, live: int) -> _State:
     """Build one level: every open node becomes a leaf or is split, its children open.
 
     ``slots``: F, at least the number of open nodes (static: the size of the per-node
-    arrays of the split searches).
+    arrays of the split searches); ``live``: M, at least the level's references (static:
+    the size of the per-reference arrays; M < R compacts them first).
     """
     refs = s.ref_prim.shape[0]
     nodes = 2 * refs
     dt = scene.tri.dtype
+    view = _view(s, live)
+    m = view.prim.shape[0]
     open_nodes = s.next_free - s.level_start
-    in_level = (s.ref_node >= s.level_start) & (s.ref_node < s.next_free)
-    seg = jnp.where(in_level, s.ref_node - s.level_start, slots).astype(jnp.int32)
+    in_level = (view.node >= s.level_start) & (view.node < s.next_free)
+    seg = jnp.where(in_level, view.node - s.level_start, slots).astype(jnp.int32)
     slot_ids = jnp.arange(slots, dtype=jnp.int32)
     is_open = slot_ids < open_nodes
     count = splits.segment(jax.ops.segment_sum, in_level.astype(jnp.int32), seg, slots)
-    node_lo = splits.segment(jax.ops.segment_min, s.ref_lo, seg, slots)
-    node_hi = splits.segment(jax.ops.segment_max, s.ref_hi, seg, slots)
-    tri_r = scene.tri[jnp.clip(s.ref_prim, 0, refs - 1)]
+    node_lo = splits.segment(jax.ops.segment_min, view.lo, seg, slots)
+    node_hi = splits.segment(jax.ops.segment_max, view.hi, seg, slots)
 
-    obj, bin3 = splits.object_split(s.ref_lo, s.ref_hi, seg, slots, scene.scale, bins)
+    obj, bin3 = splits.object_split(view.lo, view.hi, seg, slots, scene.scale, bins)
     found = obj.cost < jnp.inf
     tried = is_open & found & (count > 1) & (splits.overlap_area(obj, scene.scale) > scene.threshold)
-    empty_bins = splits.Bins(jnp.zeros((refs, 3), jnp.int32), jnp.zeros((refs, 3), jnp.int32))
+    node_bins = rules.spatial_bins(count, bins)  # [F] fewer spatial bins for few references
+    empty_bins = splits.Bins(jnp.zeros((m, 3), jnp.int32), jnp.zeros((m, 3), jnp.int32))
     spatial, ref_bins = jax.lax.cond(
         jnp.any(tried),
-        lambda: splits.spatial_split(scene.columns, s.ref_prim, s.ref_lo, s.ref_hi, seg, node_lo, node_hi, tried,
-                                     slots, scene.scale, bins),
+        lambda: splits.spatial_split(scene.columns, view.prim, view.lo, view.hi, seg, node_lo, node_hi, tried,
+                                     node_bins, slots, scene.scale, bins),
         lambda: (_no_spatial(slots, dt), empty_bins))
     tol = jnp.asarray(1 + TIE_TOLERANCE, dt)
     use_spatial = tried & (spatial.cost * tol < obj.cost)
@@ -254,12 +297,12 @@ def _level(scene: _Scene, s: _State, *, bins: int, slots: int) -> _State:
     wants = split & use_spatial
 
     def sides():
-        return splits.spatial_sides(tri_r, s.ref_lo, s.ref_hi, seg, node_lo, node_hi, spatial, ref_bins, slots,
-                                    scene.scale, bins)
+        return splits.spatial_sides(scene.columns, view.prim, view.lo, view.hi, seg, node_lo, node_hi, spatial,
+                                    ref_bins, node_bins, slots, scene.scale, bins)
 
     def no_sides():
-        none = jnp.zeros(refs, bool)
-        return (splits.Sides(none, none, s.ref_lo, s.ref_hi, s.ref_lo, s.ref_hi), jnp.zeros(slots, bool),
+        none = jnp.zeros(m, bool)
+        return (splits.Sides(none, none, view.lo, view.hi, view.lo, view.hi), jnp.zeros(slots, bool),
                 jnp.zeros(slots, jnp.int32))
 
     side, ok, extra = jax.lax.cond(jnp.any(wants), sides, no_sides)
@@ -274,8 +317,8 @@ def _level(scene: _Scene, s: _State, *, bins: int, slots: int) -> _State:
     right_id = left_id + 1
     # halves by triangle id where no object plane was found (rare: computed only then)
     halves = split & ~found
-    by_id = jax.lax.cond(jnp.any(halves), lambda: splits.rank_by_prim(s.ref_prim, seg, slots),
-                         lambda: jnp.zeros(refs, jnp.int32))
+    by_id = jax.lax.cond(jnp.any(halves), lambda: splits.rank_by_prim(view.prim, seg, slots),
+                         lambda: jnp.zeros(m, jnp.int32))
     obj_axis_r = take(obj.axis, seg, 0)
     obj_left = jnp.take_along_axis(bin3, obj_axis_r[:, None], axis=1)[:, 0] <= take(obj.plane, seg, 0)
     obj_left = jnp.where(take(found, seg, False), obj_left, by_id < take(count // 2, seg, 0))
@@ -288,10 +331,14 @@ def _level(scene: _Scene, s: _State, *, bins: int, slots: int) -> _State:
     fresh = s.n_refs + jnp.cumsum(both.astype(jnp.int32)) - both
     fresh = jnp.where(both, fresh, refs)
     l_node, r_node = take(left_id, seg, nodes), take(right_id, seg, nodes)
-    ref_node = jnp.where(moving, jnp.where(goes_left, l_node, r_node), s.ref_node)
-    ref_lo = jnp.where(both[:, None], side.left_lo, s.ref_lo)
-    ref_hi = jnp.where(both[:, None], side.left_hi, s.ref_hi)
-    ref_prim = s.ref_prim.at[fresh].set(s.ref_prim, mode="drop")
+    ref_node = jnp.where(moving, jnp.where(goes_left, l_node, r_node), view.node)
+    ref_lo = jnp.where(both[:, None], side.left_lo, view.lo)
+    ref_hi = jnp.where(both[:, None], side.left_hi, view.hi)
+    if view.slot is not None:  # back into the state's slots (padding: slot R, dropped)
+        ref_node = s.ref_node.at[view.slot].set(ref_node, mode="drop")
+        ref_lo = s.ref_lo.at[view.slot].set(ref_lo, mode="drop")
+        ref_hi = s.ref_hi.at[view.slot].set(ref_hi, mode="drop")
+    ref_prim = s.ref_prim.at[fresh].set(view.prim, mode="drop")
     ref_node = ref_node.at[fresh].set(r_node, mode="drop")
     ref_lo = ref_lo.at[fresh].set(side.right_lo, mode="drop")
     ref_hi = ref_hi.at[fresh].set(side.right_hi, mode="drop")
@@ -332,10 +379,23 @@ def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int) -> SBVHBuil
     """
     scene = _Scene(tri, tri.reshape(tri.shape[0], 9).T, scale, threshold, max_leaf, ct, ci)
     state = _initial(scene, n)
-    for slots in stage_slots(tri.shape[0]):  # levels with few open nodes run on small arrays
-        state = jax.lax.while_loop(lambda s, f=slots: (s.next_free > s.level_start)
-                                   & (s.next_free - s.level_start <= f),
-                                   partial(_level, scene, bins=bins, slots=slots), state)
+    refs = tri.shape[0]
+    live = live_slots(refs)
+    # levels with few open nodes run on small per-node arrays, and levels whose references
+    # fit on compacted per-reference arrays (all but the last stage); the deep levels,
+    # where the open nodes and their references dwindle, on small ones again (the tail)
+    tail = (TAIL_SLOTS, max(TAIL_SLOTS, live // TAIL_LIVE_DIVISOR))
+    small = len(stage_slots(refs)) == 1  # one stage: all slots, no compaction
+    grow = [slots for slots in stage_slots(refs)[:-1] if not (slots <= tail[0] and live <= tail[1])]
+    stages = [((slots, live), True) for slots in grow] + [(tail, False)] * (not small) + [((refs, refs), False)]
+
+    def fits(s: _State, slots: int, m: int):
+        return (s.next_free - s.level_start <= slots) & (jnp.sum(_in_level(s)) <= m)
+
+    for (slots, m), before_tail in stages:
+        state = jax.lax.while_loop(lambda s, f=slots, m=m, b=before_tail: (s.next_free > s.level_start) & fits(s, f, m)
+                                   & ~(b & fits(s, *tail)),
+                                   partial(_level, scene, bins=bins, slots=slots, live=m), state)
     return SBVHBuild(_tree(state), state.n_refs, state.spatial, state.short)
 
 
@@ -343,6 +403,21 @@ def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int) -> SBVHBuil
 STAGE_GROWTH = 8
 #: reference slots up to which the engine runs in one stage
 SMALL_STAGE = 512
+
+
+#: the deep levels' stage: at most TAIL_SLOTS open nodes ...
+TAIL_SLOTS = 512
+#: ... and at most live_slots / TAIL_LIVE_DIVISOR references
+TAIL_LIVE_DIVISOR = 16
+
+
+def live_slots(refs: int) -> int:
+    """Per-reference slots M of the stages before the last for ``refs`` reference slots:
+    a capacity bucket of at least two thirds of them (a level whose references do not
+    fit goes on to the last stage, which has all R). With the default
+    ``reference_capacity`` (2, rounded up to a bucket) that is 1.3 to 2 references per
+    triangle; the builds measured used 1.06 to 1.27."""
+    return refs if refs <= SMALL_STAGE else min(refs, capacity_bucket(-(-2 * refs // 3)))
 
 
 def stage_slots(refs: int) -> list[int]:

@@ -263,12 +263,13 @@ def build(triangles, config, capacity: int | None = None) -> ReferenceBuild:
         count = len(refs.prim)
         obj = _object_split(refs, scale, bins) if count > 1 else None
         spatial = None
+        spatial_bins = int(rules.spatial_bins(count, bins))  # fewer for a node of few references
         if obj is not None:
             left = obj[3]
             overlap = _overlap_area(*_union(refs.lo[left], refs.hi[left]),
                                     *_union(refs.lo[~left], refs.hi[~left]), scale)
             if overlap > threshold:
-                spatial = _spatial_split(tri, refs, box_lo, box_hi, scale, bins)
+                spatial = _spatial_split(tri, refs, box_lo, box_hi, scale, spatial_bins)
         if spatial is not None and not spatial.cost * dt.type(1 + TIE_TOLERANCE) < obj[0]:
             spatial = None
         best = spatial.cost if spatial is not None else (obj[0] if obj is not None else None)
@@ -276,7 +277,8 @@ def build(triangles, config, capacity: int | None = None) -> ReferenceBuild:
             nodes.make_leaf(node, refs.prim)
             continue
         children = None
-        sides = _spatial_sides(tri, refs, spatial, box_lo, box_hi, scale, bins) if spatial is not None else None
+        sides = (_spatial_sides(tri, refs, spatial, box_lo, box_hi, scale, spatial_bins) if spatial is not None
+                 else None)
         if sides is not None:
             extra, left_refs, right_refs = sides
             asked += extra

@@ -167,7 +167,7 @@ def _on_axis(axis, coords):
     return jnp.where(axis == 0, coords[0], jnp.where(axis == 1, coords[1], coords[2]))
 
 
-def _piece_boxes(v, ref_lo, ref_hi, axis, node_lo_a, ext_a, b0, b1, b, valid, bins: int):
+def _piece_boxes(v, ref_lo, ref_hi, axis, node_lo_a, ext_a, b0, b1, b, valid, bins):
     """Estimated box (lo, hi: three coordinate arrays [P] each) of pieces: a reference's
     part in spatial bin ``b`` of ``axis`` (all [P], one entry per piece): its corners
     clamped to its box that fall in ``b``, and the clamped crossings of the planes ``b``
@@ -206,7 +206,8 @@ def _piece_boxes(v, ref_lo, ref_hi, axis, node_lo_a, ext_a, b0, b1, b, valid, bi
     return lo, hi
 
 
-def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, tried, slots: int, scale, bins: int):
+def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, tried, node_bins, slots: int, scale,
+                  bins: int):
     """Binned spatial split of the slots ``tried`` [F] bool: ``(split, bins)``.
 
     Every live reference (one of a tried node) spans bins ``b0 .. b1`` per axis; it is cut
@@ -221,8 +222,9 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
     live = (seg < slots) & take(tried, seg, False)
     lo_columns, hi_columns = ref_lo.T, ref_hi.T  # [3, R]
     lo_r, ext_r = take(node_lo, seg, 0), take(ext, seg, 0)  # [R, 3]
-    b0 = rules.bin_of(ref_lo, lo_r, ext_r, bins)  # [R, 3] entry and exit bins per axis
-    b1 = rules.bin_of(ref_hi, lo_r, ext_r, bins)
+    bins_r = take(node_bins, seg, bins)  # [R] the node's spatial bins
+    b0 = rules.bin_of(ref_lo, lo_r, ext_r, bins_r[:, None])  # [R, 3] entry and exit bins per axis
+    b1 = rules.bin_of(ref_hi, lo_r, ext_r, bins_r[:, None])
     width = jnp.where(live[:, None], b1 - b0 + 1, 0).ravel()  # [3 R] pieces per (reference, axis)
     ends = jnp.cumsum(width)
     total = ends[-1]
@@ -247,7 +249,7 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
         piece_lo, piece_hi = [column[r] for column in lo_columns], [column[r] for column in hi_columns]
         v = [corners[3 * k: 3 * k + 3] for k in range(3)]
         piece_lo, piece_hi = _piece_boxes(v, piece_lo, piece_hi, axis, lo_r.ravel()[owner], ext_r.ravel()[owner],
-                                          b0_p, b1_p, b, valid, bins)
+                                          b0_p, b1_p, b, valid, bins_r[r])
         key = jnp.where(valid, cell_key(b, seg_p, axis, slots), cells)  # cells: dropped
         counts = [c.at[key].add((flag & valid).astype(jnp.int32), mode="drop")
                   for c, flag in zip(counts, (b == b0_p, b == b1_p))]
@@ -273,11 +275,49 @@ class Sides(NamedTuple):
     right_hi: Any
 
 
-def spatial_sides(tri_r, ref_lo, ref_hi, seg, node_lo, node_hi, split: Split, ref_bins: Bins, slots: int,
-                  scale, bins: int):
+def _halfspace_boxes(v, ref_lo, ref_hi, axis, plane):
+    """Boxes of the parts of triangles below and above ``plane`` [M] on ``axis`` [M]
+    (the plane included in both), intersected with the reference boxes: ``(lo_l, hi_l,
+    lo_r, hi_r)``, each three coordinate arrays [M]; ``lo > hi`` somewhere when empty.
+    ``v[k][c]``: vertex ``k``'s coordinate ``c`` [M]; ``ref_lo[c]``, ``ref_hi[c]`` [M].
+
+    :func:`jaxbvh.builders.sbvh_rules.halfspace_box` for both sides at once, coordinate
+    by coordinate on flat arrays (the crossings are found once for both sides; arrays
+    with a trailing axis of 3 ran several times slower on XLA's CPU backend).
+    """
+    dt = plane.dtype
+    inf = jnp.asarray(jnp.inf, dt)
+    a = [_on_axis(axis, v[k]) for k in range(3)]
+    lo_l, hi_l, lo_r, hi_r = [inf] * 3, [-inf] * 3, [inf] * 3, [-inf] * 3
+    for k in range(3):  # the corners on each side (the plane included)
+        below, above = a[k] <= plane, a[k] >= plane
+        lo_l = [jnp.minimum(lo_l[c], jnp.where(below, v[k][c], inf)) for c in range(3)]
+        hi_l = [jnp.maximum(hi_l[c], jnp.where(below, v[k][c], -inf)) for c in range(3)]
+        lo_r = [jnp.minimum(lo_r[c], jnp.where(above, v[k][c], inf)) for c in range(3)]
+        hi_r = [jnp.maximum(hi_r[c], jnp.where(above, v[k][c], -inf)) for c in range(3)]
+    for i, k in rules.EDGES:  # the widened crossings, on both sides
+        crosses = ((a[i] < plane) & (a[k] > plane)) | ((a[i] > plane) & (a[k] < plane))
+        denominator = jnp.where(crosses, a[k] - a[i], jnp.ones((), dt))
+        for c in range(3):
+            x = rules.crossing_coordinate(v[i][c], v[k][c], a[i], plane, denominator)
+            margin = rules.clip_margin(v[i][c], v[k][c])
+            x_lo = jnp.where(crosses, jnp.where(axis == c, plane, x - margin), inf)
+            x_hi = jnp.where(crosses, jnp.where(axis == c, plane, x + margin), -inf)
+            lo_l[c], lo_r[c] = jnp.minimum(lo_l[c], x_lo), jnp.minimum(lo_r[c], x_lo)
+            hi_l[c], hi_r[c] = jnp.maximum(hi_l[c], x_hi), jnp.maximum(hi_r[c], x_hi)
+
+    def clamp(lo, hi):
+        return [jnp.maximum(lo[c], ref_lo[c]) for c in range(3)], [jnp.minimum(hi[c], ref_hi[c]) for c in range(3)]
+
+    return (*clamp(lo_l, hi_l), *clamp(lo_r, hi_r))
+
+
+def spatial_sides(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, split: Split, ref_bins: Bins,
+                  node_bins, slots: int, scale, bins: int):
     """Sides of every reference under each slot's spatial split (the twin's
     ``_spatial_sides``: forced unsplits, priced unsplits, then drop the priced ones if a
-    side would be empty): ``(sides, ok [F], extra [F])``; ``ok`` False where a side stays empty."""
+    side would be empty): ``(sides, ok [F], extra [F])``; ``ok`` False where a side stays
+    empty. ``tri_columns`` [9, T]: the triangles coordinate by coordinate."""
     dt = ref_lo.dtype
     active = seg < slots
     axis_r, k_r = take(split.axis, seg, 0), take(split.plane, seg, 0)
@@ -286,13 +326,14 @@ def spatial_sides(tri_r, ref_lo, ref_hi, seg, node_lo, node_hi, split: Split, re
     straddle = active & (b0 <= k_r) & (b1 > k_r)
     to_left = active & (b1 <= k_r)
     to_right = active & (b0 > k_r)
-    mask = axis_r[:, None] == jnp.arange(3)[None, :]
     node_lo_a = jnp.take_along_axis(take(node_lo, seg, 0), axis_r[:, None], axis=1)[:, 0]
     ext_a = jnp.take_along_axis(take(node_hi - node_lo, seg, 0), axis_r[:, None], axis=1)[:, 0]
-    plane = rules.plane_at(node_lo_a, ext_a, k_r + 1, bins)
-    true = jnp.ones(seg.shape, bool)
-    lo_l, hi_l = rules.halfspace_box(tri_r, mask, plane, true, ref_lo, ref_hi)
-    lo_r, hi_r = rules.halfspace_box(tri_r, mask, plane, ~true, ref_lo, ref_hi)
+    plane = rules.plane_at(node_lo_a, ext_a, k_r + 1, take(node_bins, seg, bins))
+    prim = jnp.clip(ref_prim, 0, tri_columns.shape[1] - 1)
+    corners = [column[prim] for column in tri_columns]
+    v = [corners[3 * k: 3 * k + 3] for k in range(3)]
+    boxes = _halfspace_boxes(v, list(ref_lo.T), list(ref_hi.T), axis_r, plane)
+    lo_l, hi_l, lo_r, hi_r = (jnp.stack(coords, axis=1) for coords in boxes)  # [R, 3] each
     forced_right = straddle & jnp.any(lo_l > hi_l, axis=1)
     forced_left = straddle & jnp.any(lo_r > hi_r, axis=1) & ~forced_right
     # the paper's unsplitting: each straddler priced against the split's totals
