@@ -4,7 +4,7 @@
 module             what it holds
 =================  =====================================================================
 ``rebraid``        :class:`TwoLevelBVH`, :func:`build`, :func:`flatten`, :func:`sah`,
-                   :func:`slots_of` (the BRef budget of a scene), :func:`instance_boxes`
+                   :func:`slots_of` (the BRef budget of a scene)
 ``objects``        one BVH per object, packed into a forest; instances and world boxes
 ``brefs``          the top level over build references that opens overlapping objects
                    (twin: ``brefs_reference``); one level of it in ``brefs_level``,
@@ -13,8 +13,8 @@ module             what it holds
 =================  =====================================================================
 """
 
-from jaxbvh.twolevel.rebraid import TwoLevelBVH, build, build_from, flatten, instance_boxes, sah, slots_of, stored_nodes
+from jaxbvh.twolevel.rebraid import TwoLevelBVH, build, build_from, flatten, sah, slots_of, stored_nodes
 from jaxbvh.twolevel.traversal import brute_force, closest_hit, stack_capacity, step_bound, trace_batch
 
-__all__ = ["TwoLevelBVH", "build", "build_from", "flatten", "instance_boxes", "sah", "slots_of", "stored_nodes",
-           "brute_force", "closest_hit", "stack_capacity", "step_bound", "trace_batch"]
+__all__ = ["TwoLevelBVH", "build", "build_from", "flatten", "sah", "slots_of", "stored_nodes", "brute_force",
+           "closest_hit", "stack_capacity", "step_bound", "trace_batch"]

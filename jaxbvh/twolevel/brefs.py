@@ -158,7 +158,7 @@ def brefs_capacity(n_instances: int, threshold: float, budget: float,
     return max(n_instances, int(math.ceil(budget * n_instances)))
 
 
-def scene_slots(n_instances: int, n_prims: int, n_once: int, shares=None, once=None) -> int:
+def scene_slots(n_instances: int, n_prims: int, n_once: int) -> int:
     """The default size of the BRef array for a scene (the paper's §5.2 rule, scaled down).
 
     ``n_instances`` instances, ``n_prims`` world triangles, ``n_once`` of the instances
@@ -173,41 +173,12 @@ def scene_slots(n_instances: int, n_prims: int, n_once: int, shares=None, once=N
     never so many that a BRef stands for fewer than 64 triangles on average, which keeps
     the top level small beside the object trees (and a room of hundreds of small
     objects from opening them all). Instances of shared objects keep the paper's 4.
-
-    Opening is for overlap: ``shares`` [n_instances] in [0, 1] (None: all 1), each
-    instance's overlap with the others (:func:`overlap_shares`), scales its slots beyond
-    its own one, ``1 + 3 share`` and ``1 + 15 share`` for those placed once (``once``
-    [n_instances] bool, which they are; None: the first ``n_once``): a room of objects
-    that barely touch gets few slots, so its top level costs little more than the plain one.
+    (Tried: scaling each instance's slots by how much its world box overlaps the others'
+    boxes; every bench scene but the rails has an average overlap of 0.84-1.0 -- the
+    room's shell and the drone's body contain the rest -- so it changed almost nothing.)
     """
-    if shares is None:
-        inst_term, once_term = 4 * n_instances, ONCE_BUDGET * n_once
-    else:
-        shares = np.clip(np.asarray(shares, np.float64), 0.0, 1.0)
-        once = np.arange(n_instances) < n_once if once is None else np.asarray(once, bool)
-        inst_term = int(np.ceil(np.sum(1 + (DEFAULT_BUDGET - 1) * shares)))
-        once_term = int(np.ceil(np.sum(1 + (ONCE_BUDGET - 1) * shares[once])))
-    paper = max(inst_term, math.ceil(n_prims / PRIMS_PER_SLOT))
-    return int(max(n_instances, paper, min(once_term, n_prims // LEAST_PRIMS_PER_SLOT)))
-
-
-def overlap_shares(lo, hi) -> np.ndarray:
-    """How much each box overlaps the others: ``sum_j vol(box_i & box_j) / vol(box_i)``
-    over the other boxes, capped at 1 (float64 [n]). ``lo``, ``hi`` [n, 3]: the
-    instances' world boxes. Boxes are first widened by 1e-3 of the scene's extent on
-    every axis, so a flat box has a volume. O(n^2), in blocks of rows."""
-    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
-    pad = 1e-3 * np.max(hi.max(0) - lo.min(0)) + np.finfo(np.float64).tiny
-    lo, hi = lo - pad, hi + pad
-    vol = np.prod(hi - lo, axis=1)
-    out = np.zeros(lo.shape[0])
-    for at in range(0, lo.shape[0], 256):  # rows in blocks: [256, n, 3] at a time
-        rows = slice(at, at + 256)
-        side = np.minimum(hi[rows, None], hi[None]) - np.maximum(lo[rows, None], lo[None])
-        shared = np.prod(np.maximum(side, 0), axis=2)
-        shared[np.arange(shared.shape[0]), np.arange(at, at + shared.shape[0])] = 0  # not itself
-        out[rows] = shared.sum(1) / vol[rows]
-    return np.minimum(out, 1.0)
+    paper = max(4 * n_instances, math.ceil(n_prims / PRIMS_PER_SLOT))
+    return int(max(n_instances, paper, min(ONCE_BUDGET * n_once, n_prims // LEAST_PRIMS_PER_SLOT)))
 
 
 def build_top_level(forest, instances, n_instances: int, *, threshold: float = DEFAULT_THRESHOLD,

@@ -188,24 +188,9 @@ def slots_of(mesh, threshold: float = _brefs.DEFAULT_THRESHOLD, budget: float | 
         users: dict[int, int] = {}
         for obj, _ in mesh.instances:
             users[obj] = users.get(obj, 0) + 1
-        once = np.array([users[obj] == 1 for obj, _ in mesh.instances])
-        lo, hi = instance_boxes(mesh)
-        capacity = _brefs.scene_slots(n, mesh.n_triangles, int(once.sum()), _brefs.overlap_shares(lo, hi), once)
+        once = sum(1 for obj, _ in mesh.instances if users[obj] == 1)
+        capacity = _brefs.scene_slots(n, mesh.n_triangles, once)
     return _brefs.brefs_capacity(n, threshold, _brefs.DEFAULT_BUDGET if budget is None else budget, capacity)
-
-
-def instance_boxes(mesh) -> tuple[np.ndarray, np.ndarray]:
-    """World boxes of the instances of ``mesh`` (float64 [I, 3] each): the boxes of their
-    objects' vertex boxes' 8 transformed corners (conservative, cheap)."""
-    corners = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], np.float64)
-    lo, hi = [], []
-    for obj, transform in mesh.instances:
-        v = np.asarray(mesh.objects[obj][0], np.float64)
-        v_lo, v_hi = v.min(0), v.max(0)
-        box = v_lo + corners * (v_hi - v_lo)
-        world = box @ np.asarray(transform, np.float64)[:3, :3].T + np.asarray(transform, np.float64)[:3, 3]
-        lo.append(world.min(0)), hi.append(world.max(0))
-    return np.array(lo), np.array(hi)
 
 
 # ----------------------------------------------------------------------------------

@@ -201,6 +201,37 @@ def test_flattened_tree_is_valid_and_traversal_finds_the_closest_hits(mesh, opti
 # ----------------------------------------------------------------------------------
 
 
+@settings(max_examples=examples(10))
+@given(seed=st.integers(0, 1000))
+def test_bref_boxes_tighten_with_depth_and_hold_every_triangle(seed):
+    """A BRef box one level deeper lies inside the shallower one (and depth 0 is the
+    node's world box); every box holds its node's triangles as the instance places them."""
+    mesh = scenes.instanced_scene(jax.random.key(seed), [small_tree(seed % 7)], 3, spread=0.5)
+    forest, inst = fm.pack(mesh, fm.build_objects(mesh), pad=False)
+    real = np.flatnonzero((forest.left >= 0) | (forest.prim_count > 0))
+    nodes, k = np.tile(real, 3), np.repeat(np.arange(3), real.size)
+    to_scene, margin = inst.to_scene[k], inst.margin[k]
+    boxes = [fm.bref_boxes(forest, to_scene, margin, nodes, d) for d in range(4)]
+    w_lo, w_hi = fm.world_boxes(forest.lo[nodes], forest.hi[nodes], to_scene, margin)
+    assert np.array_equal(boxes[0][0], w_lo) and np.array_equal(boxes[0][1], w_hi)
+    for (a_lo, a_hi), (b_lo, b_hi) in zip(boxes, boxes[1:]):
+        assert np.all(a_lo <= b_lo) and np.all(b_hi <= a_hi)
+    world = mesh.local_triangles()  # [T, 3, 3], world triangle ids
+    lo, hi = boxes[-1]
+    for row, (n, i) in enumerate(zip(nodes, k)):
+        below = [n]  # the triangles under node n: walk its subtree
+        tris = []
+        while below:
+            m = below.pop()
+            if forest.left[m] >= 0:
+                below += [forest.left[m], forest.right[m]]
+            else:
+                s0 = forest.prim_start[m]
+                tris += list(forest.prim_index[s0:s0 + forest.prim_count[m]] + inst.prim_shift[i])
+        v = world[np.asarray(tris)].reshape(-1, 3)
+        assert np.all(lo[row] <= v.min(0)) and np.all(v.max(0) <= hi[row])
+
+
 @settings(max_examples=examples(15))
 @given(seed=st.integers(0, 2**32 - 1), exponent=st.sampled_from([0, -20, 20]))
 def test_world_boxes_are_conservative_and_monotone(seed, exponent):
@@ -520,16 +551,7 @@ def test_scene_slots_scale_with_the_scene():
     assert brefs.scene_slots(254, 32_396, 254) == 1016
     assert brefs.scene_slots(8, 640, 8) == 32
     mesh = scenes.by_material(*small_tree(1), groups=4)
-    lo, hi = twolevel.instance_boxes(mesh)
-    shares = brefs.overlap_shares(lo, hi)
-    n = len(mesh.instances)
-    assert twolevel.slots_of(mesh) == brefs.scene_slots(n, mesh.n_triangles, n, shares, np.ones(n, bool))
-    # opening is for overlap: slots beyond one per instance scale with each one's overlap
-    assert brefs.scene_slots(8, 12_946, 8, np.ones(8)) == 128
-    assert brefs.scene_slots(8, 12_946, 8, np.zeros(8)) == 13  # the paper's #primitives / 1000
-    assert brefs.scene_slots(4, 12_946, 4, [0.0, 0.0, 0.5, 1.0]) == 27  # ceil(1 + 1 + 8.5 + 16)
-    assert list(brefs.overlap_shares([[0, 0, 0], [0.5, 0, 0], [3, 0, 0]], [[1, 1, 1], [1.5, 1, 1], [4, 1, 1]])
-                .round(2)) == [0.5, 0.5, 0.0]
+    assert twolevel.slots_of(mesh) == brefs.scene_slots(len(mesh.instances), mesh.n_triangles, len(mesh.instances))
     assert twolevel.slots_of(mesh, budget=2.0) == 2 * len(mesh.instances)
     assert twolevel.slots_of(mesh, threshold=math.inf) == len(mesh.instances)
 
