@@ -18,9 +18,9 @@ import numpy as np
 
 from jaxbvh.numerics import TIE_TOLERANCE, half_area
 from jaxbvh.tree.layout import BVH
-from jaxbvh.twolevel.config import BOX_DEPTH
 
 SMALL_SEGMENT = 4
+BOX_DEPTH = 3  # as jaxbvh.twolevel.config.BOX_DEPTH (a twin imports no module of the engine's)
 
 
 def world_box(lo, hi, to_scene, margin):
