@@ -43,12 +43,12 @@ order); equal ``t`` goes to the lower id.
 Flattening and costs
 ====================
 :func:`flatten` copies every BRef's subtree under its instance into one world-space
-:class:`~jaxbvh.tree.layout.BVH` (conservative world boxes, :func:`jaxbvh.twolevel.objects.world_boxes`;
+:class:`~jaxbvh.tree.layout.BVH` (every object node with its BRef box, :func:`jaxbvh.twolevel.objects.bref_boxes`;
 primitive ids in world order) that validates against ``Mesh.local_boxes()`` and saves in
 the interchange form. :func:`sah` is the SAH of that tree: interior nodes and leaves of
 two-level, re-braided and single BVHs costed on the same footing (the paper's Table 1).
-For instanced nodes the world box is the conservative box of the transformed object box,
-as the top level sees it.
+For instanced nodes the world box is the BRef box (the union of the conservative boxes
+of the transformed object boxes three levels down), as the top level sees it.
 """
 
 from __future__ import annotations
@@ -439,11 +439,12 @@ def sah(tl: TwoLevelBVH, ct: float = 1.0, ci: float = 1.0, *, boxes: str = "worl
 
     ``boxes="world"`` (the default, the paper's Table 1 footing): the SAH of the
     flattened tree (:func:`flatten`), every node with its world box, instanced nodes
-    with their conservative boxes. ``boxes="object"``: the cost of the traversal this
+    with their BRef boxes. ``boxes="object"``: the cost of the traversal this
     module runs, which tests the nodes below a top-level leaf in their object frame:
     such a node is hit by a random line with the probability of its box *as
     transformed* (a parallelepiped, whose surface area replaces the conservative box's;
-    Cauchy's formula), so this SAH is never above the world one and equals it when every
+    Cauchy's formula), so this SAH is usually below the world one (a BRef box, a union
+    of boxes three levels down, can be smaller than the parallelepiped) and equals it when every
     object is built in world space. Zero-area nodes follow :mod:`jaxbvh.tree.cost`.
     """
 
