@@ -19,7 +19,8 @@ import jax.numpy as jnp
 
 from jaxbvh.numerics import take
 from jaxbvh.twolevel.brefs_segments import best_planes, exclusive_rank, segment
-from jaxbvh.twolevel.objects import world_boxes
+from jaxbvh.twolevel.config import BOX_DEPTH
+from jaxbvh.twolevel.objects import bref_boxes
 
 SMALL_SEGMENT = 4        # paper §4.4: the overlap test applies to <= 4 BRefs
 
@@ -112,24 +113,14 @@ class _Halves(NamedTuple):
 
 
 def _child_box(forest, instances, node, inst):
-    """BRef boxes of forest nodes under instances (padding: the empty box): the world box
-    of a leaf, and of an interior node the union of its two children's world boxes --
-    under a rotation much tighter than the node's own transformed box, and still
-    containing every triangle below it (:mod:`jaxbvh.twolevel.brefs`, "BRef boxes")."""
-    inf = jnp.asarray(jnp.inf, forest.lo.dtype)
+    """BRef boxes of forest nodes under instances (padding: the empty box): the union of
+    the world boxes of the node's frontier ``BOX_DEPTH`` levels down -- under a rotation
+    much tighter than the node's own transformed box, and still containing every
+    triangle below it (:mod:`jaxbvh.twolevel.brefs`, "BRef boxes";
+    :func:`jaxbvh.twolevel.objects.bref_boxes`)."""
     ok = (node >= 0) & (inst >= 0)
-    n = jnp.where(ok, node, 0)
     k = jnp.where(ok, inst, 0)
-    to_scene, margin = instances.to_scene[k], instances.margin[k]
-    lo, hi = world_boxes(forest.lo[n], forest.hi[n], to_scene, margin)
-    inner = forest.left[n] >= 0
-    l_lo, l_hi = world_boxes(forest.lo[jnp.maximum(forest.left[n], 0)], forest.hi[jnp.maximum(forest.left[n], 0)],
-                             to_scene, margin)
-    r_lo, r_hi = world_boxes(forest.lo[jnp.maximum(forest.right[n], 0)], forest.hi[jnp.maximum(forest.right[n], 0)],
-                             to_scene, margin)
-    lo = jnp.where(inner[:, None], jnp.minimum(l_lo, r_lo), lo)
-    hi = jnp.where(inner[:, None], jnp.maximum(l_hi, r_hi), hi)
-    return jnp.where(ok[:, None], lo, inf), jnp.where(ok[:, None], hi, -inf)
+    return bref_boxes(forest, instances.to_scene[k], instances.margin[k], jnp.where(ok, node, -1), BOX_DEPTH)
 
 
 def _interior(forest, node):
@@ -264,13 +255,18 @@ def _open_once(forest, instances, refs: Refs, view: _View, may_open, seg_end, ex
              - jnp.take_along_axis(refs.lo, dim_p[:, None], axis=1))[:, 0]
     candidate = (view.in_live & (pos < end_p) & take(may_open, seg, False) & _interior(forest, refs.node)
                  & (width > limit))
-    # widest first: rank every candidate within its segment by (width descending, slot)
     key = jnp.where(candidate, seg, C)
-    order = jnp.lexsort((pos, -width, key)).astype(i32)
-    first = segment(jax.ops.segment_min, pos, key[order], C)
-    rank = jnp.zeros(C, i32).at[order].set(pos - take(first, key[order], 0))
-    room = take(jnp.maximum(extra - seg_end, 0), seg, 0)
-    opens = candidate & (rank < room)
+    room_s = jnp.maximum(extra - seg_end, 0)
+
+    def widest_first():  # rank every candidate within its segment by (width descending, slot)
+        order = jnp.lexsort((pos, -width, key)).astype(i32)
+        first = segment(jax.ops.segment_min, pos, key[order], C)
+        return jnp.zeros(C, i32).at[order].set(pos - take(first, key[order], 0))
+
+    # the sort only where some segment has more candidates than room (else all open)
+    short = jnp.any(segment(jax.ops.segment_sum, candidate.astype(i32), key, C) > room_s)
+    rank = jax.lax.cond(short, widest_first, lambda: jnp.zeros(C, i32))
+    opens = candidate & (rank < take(room_s, seg, 0))
     slot = jnp.where(opens, end_p + exclusive_rank(opens, jnp.minimum(seg, C - 1)), C)
     safe = jnp.where(opens, refs.node, NF)
     kid_l = take(forest.left, safe, -1)

@@ -20,6 +20,7 @@ from jaxbvh.numerics import TIE_TOLERANCE, half_area
 from jaxbvh.tree.layout import BVH
 
 SMALL_SEGMENT = 4
+BOX_DEPTH = 3  # as jaxbvh.twolevel.config.BOX_DEPTH (a twin imports no module of the engine's)
 
 
 def world_box(lo, hi, to_scene, margin):
@@ -126,13 +127,13 @@ def build_top_level(forest, instances, n_instances, *, threshold=0.1, slots=None
     return _to_bvh(top, dtype), brefs
 
 
-def _bref_box(f, instances, n, i):
-    """BRef box of forest node ``n`` under instance ``i``: its world box if a leaf, else
-    the union of its two children's world boxes."""
-    if f.left[n] < 0:
+def _bref_box(f, instances, n, i, depth=BOX_DEPTH):
+    """BRef box of forest node ``n`` under instance ``i``: the union of the world boxes
+    of the nodes ``depth`` levels below it (a leaf above that level: its own)."""
+    if depth == 0 or f.left[n] < 0:
         return world_box(f.lo[n], f.hi[n], instances.to_scene[i], instances.margin[i])
-    l_lo, l_hi = world_box(f.lo[f.left[n]], f.hi[f.left[n]], instances.to_scene[i], instances.margin[i])
-    r_lo, r_hi = world_box(f.lo[f.right[n]], f.hi[f.right[n]], instances.to_scene[i], instances.margin[i])
+    l_lo, l_hi = _bref_box(f, instances, f.left[n], i, depth - 1)
+    r_lo, r_hi = _bref_box(f, instances, f.right[n], i, depth - 1)
     return np.minimum(l_lo, r_lo), np.maximum(l_hi, r_hi)
 
 

@@ -145,6 +145,52 @@ def world_boxes(lo, hi, to_scene, margin):
     return out_lo - widen, out_hi + widen
 
 
+def frontier(left, right, node, depth: int):
+    """The nodes ``depth`` levels below ``node`` (leaves above that level stand for
+    themselves), for JAX or NumPy arrays.
+
+    ``left``, ``right`` [N] int: a forest's children (-1: a leaf); ``node`` [...] int
+    (-1: none). Returns int [..., 2^depth], -1 where no node: the *frontier* whose world
+    boxes bound a node's under a rotation more tightly than its own (``bref_boxes``).
+    """
+    xp = jnp if isinstance(node, jax.Array) or isinstance(left, jax.Array) else np
+    nodes = node[..., None]
+    n = left.shape[0]
+    for _ in range(depth):
+        safe = xp.clip(nodes, 0, n - 1)
+        kid_l = xp.where(nodes >= 0, left[safe], -1)
+        kid_r = xp.where(nodes >= 0, right[safe], -1)
+        inner = kid_l >= 0
+        pair = xp.stack([xp.where(inner, kid_l, nodes), xp.where(inner, kid_r, -1)], axis=-1)
+        nodes = pair.reshape(pair.shape[:-2] + (2 * pair.shape[-2],))
+    return nodes
+
+
+def bref_boxes(forest, to_scene, margin, node, depth: int):
+    """Scene-frame boxes of forest nodes under their instances' maps, tighter than their
+    own world boxes under a rotation (:mod:`jaxbvh.twolevel.brefs`, "BRef boxes"), for
+    JAX or NumPy arrays.
+
+    The union of the world boxes (:func:`world_boxes`) of the node's :func:`frontier`
+    ``depth`` levels down. ``forest``: :class:`Forest`; ``to_scene`` [..., 3, 4],
+    ``margin`` [...]: each node's instance map; ``node`` [...] int (-1: none, the empty
+    box). It contains every triangle below the node, and the box of a child is inside
+    its parent's (each frontier node of the child lies below one of the parent's, and
+    world boxes are monotone), so a flattened tree with these boxes is valid. Under the
+    identity it is the node's own box. Returns ``(lo, hi)`` [..., 3]; min/max only, so
+    exact and equal in XLA and NumPy.
+    """
+    xp = jnp if isinstance(node, jax.Array) or isinstance(forest.lo, jax.Array) else np
+    front = frontier(forest.left, forest.right, node, depth)  # [..., K]
+    ok = front >= 0
+    safe = xp.clip(front, 0, forest.lo.shape[0] - 1)
+    lo, hi = world_boxes(forest.lo[safe], forest.hi[safe], to_scene[..., None, :, :], margin[..., None])
+    inf = xp.asarray(np.inf, forest.lo.dtype)
+    lo = xp.where(ok[..., None], lo, inf).min(axis=-2)
+    hi = xp.where(ok[..., None], hi, -inf).max(axis=-2)
+    return lo, hi
+
+
 def margin_for(dtype) -> float:
     """The relative widening of world boxes under a non-identity map: ``8 eps``."""
     return float(8 * np.finfo(dtype).eps)

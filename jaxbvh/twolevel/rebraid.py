@@ -43,12 +43,12 @@ order); equal ``t`` goes to the lower id.
 Flattening and costs
 ====================
 :func:`flatten` copies every BRef's subtree under its instance into one world-space
-:class:`~jaxbvh.tree.layout.BVH` (conservative world boxes, :func:`jaxbvh.twolevel.objects.world_boxes`;
+:class:`~jaxbvh.tree.layout.BVH` (every object node with its BRef box, :func:`jaxbvh.twolevel.objects.bref_boxes`;
 primitive ids in world order) that validates against ``Mesh.local_boxes()`` and saves in
 the interchange form. :func:`sah` is the SAH of that tree: interior nodes and leaves of
 two-level, re-braided and single BVHs costed on the same footing (the paper's Table 1).
-For instanced nodes the world box is the conservative box of the transformed object box,
-as the top level sees it.
+For instanced nodes the world box is the BRef box (the union of the conservative boxes
+of the transformed object boxes three levels down), as the top level sees it.
 """
 
 from __future__ import annotations
@@ -56,6 +56,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+import types
 from typing import Any
 
 import jax
@@ -66,7 +67,17 @@ from jaxbvh.numerics import half_area
 from jaxbvh.tree.cost import sah as sah_of
 from jaxbvh.tree.layout import BVH, capacity_bucket, concat_ranges, depth, pad_to, to_jax, to_numpy
 from jaxbvh.twolevel import brefs as _brefs
-from jaxbvh.twolevel.objects import Forest, Instances, ObjectTree, build_objects, object_builder, pack, world_boxes
+from jaxbvh.twolevel.config import BOX_DEPTH
+from jaxbvh.twolevel.objects import (
+    Forest,
+    Instances,
+    ObjectTree,
+    bref_boxes,
+    build_objects,
+    object_builder,
+    pack,
+    world_boxes,
+)
 
 
 @jax.tree_util.register_dataclass
@@ -97,6 +108,11 @@ def _world_boxes_jit(lo, hi, to_scene, margin):
 
 
 _world_boxes_jit = jax.jit(_world_boxes_jit)
+
+
+@jax.jit
+def _bref_boxes_jit(forest, to_scene, margin, node):
+    return bref_boxes(forest, to_scene, margin, node, BOX_DEPTH)
 
 
 def _single_instance(forest: Forest, instances: Instances) -> TwoLevelBVH:
@@ -138,13 +154,15 @@ def build_from(mesh, trees: dict[int, ObjectTree], *, threshold: float = _brefs.
         tl, kept = _single_instance(forest, instances), "single object"
     else:
         top = dict(bins=top_bins, overlap=overlap, estimate=estimate, rounds=rounds, array_size=shapes.get("brefs"))
+        # on the device once for both top levels, without the triangles (not read there)
+        nodes, placed = jax.device_put((_brefs.without_triangles(forest), instances))
         # NumPy from here: the comparison and the root box are a few small steps, each
         # cheaper on the host than as a dispatched device op (measured: 1-2 ms each)
-        plain = jax.device_get(_brefs.build_top_level(forest, instances, n, threshold=math.inf, **top))
+        plain = jax.device_get(_brefs.build_top_level(nodes, placed, n, threshold=math.inf, **top))
         result, kept = plain, "two-level"
         if not math.isinf(threshold):
             braided = jax.device_get(_brefs.build_top_level(
-                forest, instances, n, threshold=threshold, capacity=slots, **top))
+                nodes, placed, n, threshold=threshold, capacity=slots, **top))
             braided = _same_root_box(braided, plain)
             if _keep_rebraided(braided, plain, forest, instances):
                 result, kept = braided, "rebraided"
@@ -180,16 +198,20 @@ def slots_of(mesh, threshold: float = _brefs.DEFAULT_THRESHOLD, budget: float | 
 # ----------------------------------------------------------------------------------
 #
 # The flattened re-braided tree and the flattened plain two-level tree share every node
-# strictly below the BRefs. The plain tree has, besides its top level, the object nodes
-# *above* the BRefs (the opened ones, each an interior node: an object's root with its
-# BRef box, a deeper one with its world box) and the BRefs' own nodes with their world
-# boxes; the re-braided tree has its larger top level instead, and the BRefs' nodes with
-# their (tighter) BRef boxes. With both roots on the same box the difference of their SAH
-# (Ct = Ci = 1) is therefore exactly
+# strictly below the BRefs (in both, every object node has its BRef box,
+# jaxbvh.twolevel.brefs "BRef boxes"). The plain tree has, besides its top level, the
+# object nodes *above* the BRefs (the opened ones, each an interior node); the
+# re-braided tree has its larger top level instead. With both roots on the same box the
+# difference of their SAH (Ct = Ci = 1) is therefore exactly
 #
 #     1 / A_root * (sum of A over re-braided top interior nodes
-#                   - sum of A over plain top interior nodes - sum of A over opened nodes
-#                   - sum over BRefs below a root of (A world - A BRef box) x their cost),
+#                   - sum of A over plain top interior nodes - sum of A over opened nodes)
+#
+# on world boxes. In object frames (what the traversal tests below a top-level leaf) a
+# node below an object's root costs the area of its box as transformed, so the opened
+# nodes below a root cost that, and every BRef below a root adds (A transformed - A BRef
+# box) x its cost: a BRef is tested on its world box, where the plain tree tested the
+# node in its object frame.
 #
 # O(BRefs) to compute, whatever the scene's size. Opening can make it positive: the top
 # level bins BRefs by primitive count, a greedy and coarse estimate of what a subtree
@@ -216,14 +238,14 @@ def _interior_area(top) -> float:
     return float(half_area(np.asarray(top.lo, np.float64)[inner], np.asarray(top.hi, np.float64)[inner]).sum())
 
 
-def _opened_area(node, instance, forest, instances, boxes: str = "world") -> float:
+def _opened_areas(node, instance, forest, instances) -> tuple[float, float]:
     """What the nodes above the BRefs ``(node, instance)`` [B] cost in the plain tree and
-    the BRefs' own nodes cost there beyond their BRef boxes: the half-areas of the opened
-    nodes' boxes as the plain flattened tree has them (an object's root: its BRef box;
-    below: its world box), plus, for every BRef below its object's root, (world box
-    half-area - BRef box half-area) x its cost (1 interior, its count a leaf; Ct = Ci = 1).
-    ``boxes="object"``: nodes below a BRef's own node costed as :func:`sah` does with that
-    footing (the area of the transformed box, what the traversal tests). float64."""
+    the BRefs' own nodes cost there beyond their BRef boxes, on both footings of
+    :func:`sah` (module comment above): ``(world, object)``, float64. World boxes: the
+    half-areas of the opened nodes' BRef boxes. Object frames, where the plain tree tests
+    nodes below an object's root in its object frame: those nodes costed by the area of
+    their transformed box, plus for every BRef below its object's root (that area -
+    BRef box half-area) x its cost (1 interior, its count a leaf; Ct = Ci = 1)."""
     node, instance = np.asarray(node, np.int64), np.asarray(instance, np.int64)
     parent = np.asarray(forest.parent)
     nf = parent.shape[0]
@@ -238,28 +260,21 @@ def _opened_area(node, instance, forest, instances, boxes: str = "world") -> flo
         pairs.append(key)
         inst_f, node_f = key // nf, parent[key % nf]
     if not pairs:
-        return 0.0
+        return 0.0, 0.0
     key = np.unique(np.concatenate(pairs))
     i, n = key // nf, key % nf
     root = parent[n] < 0
-    footing = _world_area if boxes == "world" else _object_area
-    loose = footing(forest, instances, n, i)
-    tight = _area(*_bref_box_np(forest, instances, n, i))
+    tight = _bref_area(forest, instances, n, i)
+    loose = np.where(root, tight, _object_area(forest, instances, n, i))
     below = parent[node] >= 0
     b_n, b_i = node[below], instance[below]
     cost = np.where(np.asarray(forest.left)[b_n] >= 0, 1.0, np.asarray(forest.prim_count)[b_n].astype(np.float64))
-    extra = (footing(forest, instances, b_n, b_i) - _area(*_bref_box_np(forest, instances, b_n, b_i))) * cost
-    return float(np.where(root, tight, loose).sum() + extra.sum())
+    extra = (_object_area(forest, instances, b_n, b_i) - _bref_area(forest, instances, b_n, b_i)) * cost
+    return float(tight.sum()), float(loose.sum() + extra.sum())
 
 
-def _world(forest, instances, n, i):
-    """World boxes of forest nodes ``n`` under instances ``i`` (NumPy)."""
-    to_scene, margin = np.asarray(instances.to_scene), np.asarray(instances.margin)
-    return world_boxes(np.asarray(forest.lo)[n], np.asarray(forest.hi)[n], to_scene[i], margin[i])
-
-
-def _world_area(forest, instances, n, i):
-    return _area(*_world(forest, instances, n, i))
+def _bref_area(forest, instances, n, i):
+    return _area(*_bref_box_np(forest, instances, n, i))
 
 
 def _object_area(forest, instances, n, i):
@@ -274,12 +289,9 @@ def _object_area(forest, instances, n, i):
 
 def _bref_box_np(forest, instances, n, i):
     """BRef boxes (jaxbvh.twolevel.brefs, "BRef boxes") of forest nodes ``n`` under ``i``."""
-    left, right = np.asarray(forest.left)[n], np.asarray(forest.right)[n]
-    inner = (left >= 0)[:, None]
-    lo, hi = _world(forest, instances, n, i)
-    l_lo, l_hi = _world(forest, instances, np.maximum(left, 0), i)
-    r_lo, r_hi = _world(forest, instances, np.maximum(right, 0), i)
-    return np.where(inner, np.minimum(l_lo, r_lo), lo), np.where(inner, np.maximum(l_hi, r_hi), hi)
+    to_scene, margin = np.asarray(instances.to_scene), np.asarray(instances.margin)
+    nodes = types.SimpleNamespace(**{k: np.asarray(getattr(forest, k)) for k in ("left", "right", "lo", "hi")})
+    return bref_boxes(nodes, to_scene[i], margin[i], np.asarray(n), BOX_DEPTH)
 
 
 def _area(lo, hi):
@@ -297,8 +309,8 @@ def _keep_rebraided(braided, plain, forest, instances) -> bool:
     added = _interior_area(braided.top)
     # lower on both footings: world boxes (the paper's Table 1) and object frames (what the
     # two-level traversal tests below a BRef; under rotations the two can disagree)
-    return all(added < (_interior_area(plain.top) + _opened_area(node, instance, forest, instances, boxes))
-               * (1 - 1e-6) for boxes in ("world", "object"))
+    return all(added < (_interior_area(plain.top) + opened) * (1 - 1e-6)
+               for opened in _opened_areas(node, instance, forest, instances))
 
 
 def build(mesh, builder: BuilderConfig | None = None, *, threshold: float = _brefs.DEFAULT_THRESHOLD,
@@ -397,13 +409,13 @@ def _flatten(tl):
         left[rows], right[rows] = ids_l, ids_r
         parent[ids_l], parent[ids_r] = rows, rows
     size = capacity_bucket(cf.size)  # one compile per bucket
-    pad_f = np.zeros(size, np.int64)
+    pad_f = np.full(size, -1, np.int64)
     pad_i = np.zeros(size, np.int64)
     pad_f[:cf.size], pad_i[:cf.size] = cf, ci_
-    w_lo, w_hi = _world_boxes_jit(f.lo[pad_f], f.hi[pad_f], inst.to_scene[pad_i], inst.margin[pad_i])
+    # every copy gets its BRef box (jaxbvh.twolevel.brefs "BRef boxes"): a child's lies
+    # inside its parent's, and a BRef's own node has the top-level leaf's box
+    w_lo, w_hi = _bref_boxes_jit(f, inst.to_scene[pad_i], inst.margin[pad_i], pad_f)
     lo[cid], hi[cid] = np.asarray(w_lo)[:cf.size], np.asarray(w_hi)[:cf.size]
-    # a BRef's own node keeps its BRef box (the union of its children's world boxes,
-    # jaxbvh.twolevel.brefs "BRef boxes"), which is the top-level leaf's box
     lo[top_leaf], hi[top_leaf] = top.lo[top_leaf], top.hi[top_leaf]
     exact = inst.margin[ci_] == 0
     axis[cid] = np.where(exact & (f.left[cf] >= 0), f.axis[cf], -1)
@@ -427,11 +439,12 @@ def sah(tl: TwoLevelBVH, ct: float = 1.0, ci: float = 1.0, *, boxes: str = "worl
 
     ``boxes="world"`` (the default, the paper's Table 1 footing): the SAH of the
     flattened tree (:func:`flatten`), every node with its world box, instanced nodes
-    with their conservative boxes. ``boxes="object"``: the cost of the traversal this
+    with their BRef boxes. ``boxes="object"``: the cost of the traversal this
     module runs, which tests the nodes below a top-level leaf in their object frame:
     such a node is hit by a random line with the probability of its box *as
     transformed* (a parallelepiped, whose surface area replaces the conservative box's;
-    Cauchy's formula), so this SAH is never above the world one and equals it when every
+    Cauchy's formula), so this SAH is usually below the world one (a BRef box, a union
+    of boxes three levels down, can be smaller than the parallelepiped) and equals it when every
     object is built in world space. Zero-area nodes follow :mod:`jaxbvh.tree.cost`.
     """
 
