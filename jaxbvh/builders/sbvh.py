@@ -278,12 +278,22 @@ def _level(scene: _Scene, s: _State, *, bins: int, slots: int, live: int) -> _St
     tried = is_open & found & (count > 1) & (splits.overlap_area(obj, scene.scale) > scene.threshold)
     node_bins = rules.spatial_bins(count, bins)  # [F] fewer spatial bins for few references
     empty_bins = splits.Bins(jnp.zeros((m, 3), jnp.int32), jnp.zeros((m, 3), jnp.int32))
-    spatial, ref_bins = jax.lax.cond(
-        jnp.any(tried),
-        lambda: splits.spatial_split(scene.columns, view.prim, view.lo, view.hi, seg, node_lo, node_hi, tried,
-                                     node_bins, slots, scene.scale, bins),
-        lambda: (_no_spatial(slots, dt), empty_bins))
     tol = jnp.asarray(1 + TIE_TOLERANCE, dt)
+
+    def search():
+        """The spatial split of the tried nodes whose bound lets it beat the object split."""
+        ref_bins = splits.reference_bins(view.lo, view.hi, seg, node_lo, node_hi, node_bins, slots, bins)
+        bound = splits.spatial_bound(view.lo, view.hi, seg, ref_bins, node_lo, node_hi, tried, slots, scene.scale,
+                                     bins)
+        searching = tried & (bound * jnp.asarray(1 - rules.BOUND_SLACK, dt) * tol < obj.cost)
+        spatial = jax.lax.cond(
+            jnp.any(searching),
+            lambda: splits.spatial_split(scene.columns, view.prim, view.lo, view.hi, seg, node_lo, node_hi, ref_bins,
+                                         searching, node_bins, slots, scene.scale, bins),
+            lambda: _no_spatial(slots, dt))
+        return spatial, ref_bins
+
+    spatial, ref_bins = jax.lax.cond(jnp.any(tried), search, lambda: (_no_spatial(slots, dt), empty_bins))
     use_spatial = tried & (spatial.cost * tol < obj.cost)
     best = jnp.where(use_spatial, spatial.cost, obj.cost)
 

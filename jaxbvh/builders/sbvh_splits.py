@@ -38,13 +38,14 @@ def segment(op, values, seg, slots):
     return op(values, seg, num_segments=slots + 1)[:slots]
 
 
-def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int) -> Split:
+def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int, right_boxes=None) -> Split:
     """Best plane of binned counts and boxes per slot and axis.
 
     ``count``: (entries, exits), ``box_lo``, ``box_hi``: three coordinate arrays each,
     all [B, F, 3] (bin, slot, axis). The plane after bin ``k`` has on its left the bins
     ``<= k`` (``N_L``: entries there) and on its right the others (``N_R``: exits
-    there). Tie-rule winner: least cost; within TIE_TOLERANCE the lowest axis, then the
+    there). ``right_boxes``: ``(lo, hi)`` of the bins for the right sides when they are
+    not ``box_lo``, ``box_hi`` (the spatial bound's). Tie-rule winner: least cost; within TIE_TOLERANCE the lowest axis, then the
     lowest plane. The sweeps are two ``lax.scan`` over the bins on flat [F * 3] rows
     (XLA's cumulative ops and arrays with a trailing axis of 3 are many times slower on
     CPU; the same sweeps unrolled bin by bin ran as fast but took ~6 s of compile each,
@@ -71,7 +72,8 @@ def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int) -> Split:
 
     n_l, lo_l, hi_l = sweep(rows(entries)[:-1], [rows(c)[:-1] for c in box_lo], [rows(c)[:-1] for c in box_hi],
                             False)  # row k, plane k: bins 0 .. k
-    n_r, lo_r, hi_r = sweep(rows(exits)[1:], [rows(c)[1:] for c in box_lo], [rows(c)[1:] for c in box_hi],
+    right_lo, right_hi = (box_lo, box_hi) if right_boxes is None else right_boxes
+    n_r, lo_r, hi_r = sweep(rows(exits)[1:], [rows(c)[1:] for c in right_lo], [rows(c)[1:] for c in right_hi],
                             True)  # row k, plane k: bins k + 1 ..
 
     def area(lo, hi):
@@ -206,9 +208,57 @@ def _piece_boxes(v, ref_lo, ref_hi, axis, node_lo_a, ext_a, b0, b1, b, valid, bi
     return lo, hi
 
 
-def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, tried, node_bins, slots: int, scale,
-                  bins: int):
-    """Binned spatial split of the slots ``tried`` [F] bool: ``(split, bins)``.
+def reference_bins(ref_lo, ref_hi, seg, node_lo, node_hi, node_bins, slots: int, bins: int) -> Bins:
+    """Entry and exit spatial bin per axis of every reference ([M, 3] int32 each), in the
+    ``node_bins`` [F] equal bins of its node's box ``node_lo``, ``node_hi`` [F, 3]."""
+    lo_r, ext_r = take(node_lo, seg, 0), take(node_hi - node_lo, seg, 0)  # [M, 3]
+    bins_r = take(node_bins, seg, bins)[:, None]
+    return Bins(rules.bin_of(ref_lo, lo_r, ext_r, bins_r), rules.bin_of(ref_hi, lo_r, ext_r, bins_r))
+
+
+def spatial_bound(ref_lo, ref_hi, seg, ref_bins: Bins, node_lo, node_hi, tried, slots: int, scale, bins: int):
+    """A lower bound [F] on the cost of every spatial split candidate of the slots
+    ``tried`` [F] bool (inf where there is none; other slots: inf).
+
+    Each candidate plane (axis, ``k``) of :func:`spatial_split` costs ``A(L) N_L + A(R)
+    N_R``, ``N_L``, ``N_R`` counted from the references' entry and exit bins, ``L`` the
+    box of the bins ``<= k``. The bound prices the same planes with the same counts, but
+    with ``L`` replaced by the box of the references that lie whole in bins ``<= k``
+    (exit bin ``<= k``) and ``R`` by that of those whole in bins ``> k``: no estimated
+    pieces, one scatter per reference and axis. It is a lower bound because ``L``
+    contains each such reference's whole box: the reference's pieces hold its
+    triangle's corners clamped to its box, whose box is the reference's box itself (a
+    reference box lies in its triangle's box: clipping only shrinks it), and a half-area
+    grows with the box. The node then skips the piece search where ``bound (1 + tol)``
+    is not below its object split's cost (:data:`jaxbvh.builders.sbvh_rules.BOUND_SLACK`
+    covers the rounding of the two sums).
+    """
+    live = (seg < slots) & take(tried, seg, False)
+    cells = slots * 3 * bins
+    axes = jnp.arange(3, dtype=jnp.int32)[None, :]
+
+    def keys(bin3):  # axis-major [3 M] cell keys, dead references to the dropped cell
+        return jnp.where(live[:, None], cell_key(bin3, seg[:, None], axes, slots), cells).T.ravel()
+
+    enter, leave = keys(ref_bins.entry), keys(ref_bins.exit)
+    ones = jnp.ones(enter.shape, jnp.int32)
+    entries = segment(jax.ops.segment_sum, ones, enter, cells).reshape(bins, slots, 3)
+    exits = segment(jax.ops.segment_sum, ones, leave, cells).reshape(bins, slots, 3)
+    lo3, hi3 = [jnp.tile(c, 3) for c in ref_lo.T], [jnp.tile(c, 3) for c in ref_hi.T]
+    # a reference is whole on the left of the planes at and after its exit bin, whole on
+    # the right of those before its entry bin
+    left_lo = _cells(jax.ops.segment_min, lo3, leave, cells, slots, bins)
+    left_hi = _cells(jax.ops.segment_max, hi3, leave, cells, slots, bins)
+    right_lo = _cells(jax.ops.segment_min, lo3, enter, cells, slots, bins)
+    right_hi = _cells(jax.ops.segment_max, hi3, enter, cells, slots, bins)
+    usable = (node_hi - node_lo > 0) & tried[:, None]
+    return _sweep_bins((entries, exits), left_lo, left_hi, usable, scale, bins, (right_lo, right_hi)).cost
+
+
+def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, ref_bins: Bins, tried, node_bins,
+                  slots: int, scale, bins: int):
+    """Binned spatial split of the slots ``tried`` [F] bool: a :class:`Split`. ``ref_bins``:
+    :func:`reference_bins`.
 
     Every live reference (one of a tried node) spans bins ``b0 .. b1`` per axis; it is cut
     into one *piece* per (axis, bin) it spans, the pieces are walked in chunks of
@@ -223,8 +273,7 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
     lo_columns, hi_columns = ref_lo.T, ref_hi.T  # [3, R]
     lo_r, ext_r = take(node_lo, seg, 0), take(ext, seg, 0)  # [R, 3]
     bins_r = take(node_bins, seg, bins)  # [R] the node's spatial bins
-    b0 = rules.bin_of(ref_lo, lo_r, ext_r, bins_r[:, None])  # [R, 3] entry and exit bins per axis
-    b1 = rules.bin_of(ref_hi, lo_r, ext_r, bins_r[:, None])
+    b0, b1 = ref_bins  # [R, 3] entry and exit bins per axis
     width = jnp.where(live[:, None], b1 - b0 + 1, 0).ravel()  # [3 R] pieces per (reference, axis)
     ends = jnp.cumsum(width)
     total = ends[-1]
@@ -261,7 +310,7 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
     # at most ceil(3 R B / chunk) steps: the pieces are at most 3 R B
     counts, box_lo, box_hi = jax.lax.fori_loop(0, (total + chunk - 1) // chunk, step, empty)
     counts, box_lo, box_hi = ([c.reshape(bins, slots, 3) for c in cs] for cs in (counts, box_lo, box_hi))
-    return _sweep_bins(counts, box_lo, box_hi, (ext > 0) & tried[:, None], scale, bins), Bins(b0, b1)
+    return _sweep_bins(counts, box_lo, box_hi, (ext > 0) & tried[:, None], scale, bins)
 
 
 class Sides(NamedTuple):
