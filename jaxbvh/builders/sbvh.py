@@ -283,8 +283,8 @@ def _level(scene: _Scene, s: _State, *, bins: int, slots: int, live: int) -> _St
     def search():
         """The spatial split of the tried nodes whose bound lets it beat the object split."""
         ref_bins = splits.reference_bins(view.lo, view.hi, seg, node_lo, node_hi, node_bins, slots, bins)
-        bound = splits.spatial_bound(view.lo, view.hi, seg, ref_bins, node_lo, node_hi, tried, slots, scene.scale,
-                                     bins)
+        bound = splits.spatial_bound(scene.columns, view.prim, view.lo, view.hi, seg, ref_bins, node_lo, node_hi,
+                                     tried, node_bins, slots, scene.scale, bins)
         searching = tried & (bound * jnp.asarray(1 - rules.BOUND_SLACK, dt) * tol < obj.cost)
         spatial = jax.lax.cond(
             jnp.any(searching),

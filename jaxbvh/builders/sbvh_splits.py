@@ -38,14 +38,14 @@ def segment(op, values, seg, slots):
     return op(values, seg, num_segments=slots + 1)[:slots]
 
 
-def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int, right_boxes=None) -> Split:
+def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int, reach=None) -> Split:
     """Best plane of binned counts and boxes per slot and axis.
 
     ``count``: (entries, exits), ``box_lo``, ``box_hi``: three coordinate arrays each,
     all [B, F, 3] (bin, slot, axis). The plane after bin ``k`` has on its left the bins
     ``<= k`` (``N_L``: entries there) and on its right the others (``N_R``: exits
-    there). ``right_boxes``: ``(lo, hi)`` of the bins for the right sides when they are
-    not ``box_lo``, ``box_hi`` (the spatial bound's). Tie-rule winner: least cost; within TIE_TOLERANCE the lowest axis, then the
+    there). ``reach``: ``(crossed, plane)``, [B - 1, F * 3] rows (plane, slot and axis):
+    where ``crossed``, both sides' boxes reach ``plane`` on the axis (the spatial bound's). Tie-rule winner: least cost; within TIE_TOLERANCE the lowest axis, then the
     lowest plane. The sweeps are two ``lax.scan`` over the bins on flat [F * 3] rows
     (XLA's cumulative ops and arrays with a trailing axis of 3 are many times slower on
     CPU; the same sweeps unrolled bin by bin ran as fast but took ~6 s of compile each,
@@ -72,9 +72,13 @@ def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int, right_boxes=Non
 
     n_l, lo_l, hi_l = sweep(rows(entries)[:-1], [rows(c)[:-1] for c in box_lo], [rows(c)[:-1] for c in box_hi],
                             False)  # row k, plane k: bins 0 .. k
-    right_lo, right_hi = (box_lo, box_hi) if right_boxes is None else right_boxes
-    n_r, lo_r, hi_r = sweep(rows(exits)[1:], [rows(c)[1:] for c in right_lo], [rows(c)[1:] for c in right_hi],
+    n_r, lo_r, hi_r = sweep(rows(exits)[1:], [rows(c)[1:] for c in box_lo], [rows(c)[1:] for c in box_hi],
                             True)  # row k, plane k: bins k + 1 ..
+    if reach is not None:
+        crossed, at = reach
+        on = [crossed & (jnp.arange(slots * 3, dtype=jnp.int32) % 3 == c)[None, :] for c in range(3)]
+        hi_l = tuple(jnp.where(o, jnp.maximum(h, at), h) for o, h in zip(on, hi_l))
+        lo_r = tuple(jnp.where(o, jnp.minimum(lo, at), lo) for o, lo in zip(on, lo_r))
 
     def area(lo, hi):
         return half_area(jnp.stack(lo, -1), jnp.stack(hi, -1), scale)
@@ -216,43 +220,70 @@ def reference_bins(ref_lo, ref_hi, seg, node_lo, node_hi, node_bins, slots: int,
     return Bins(rules.bin_of(ref_lo, lo_r, ext_r, bins_r), rules.bin_of(ref_hi, lo_r, ext_r, bins_r))
 
 
-def spatial_bound(ref_lo, ref_hi, seg, ref_bins: Bins, node_lo, node_hi, tried, slots: int, scale, bins: int):
+def spatial_bound(tri_columns, ref_prim, ref_lo, ref_hi, seg, ref_bins: Bins, node_lo, node_hi, tried, node_bins,
+                  slots: int, scale, bins: int):
     """A lower bound [F] on the cost of every spatial split candidate of the slots
-    ``tried`` [F] bool (inf where there is none; other slots: inf).
+    ``tried`` [F] bool (inf where there is none, and on the other slots).
 
     Each candidate plane (axis, ``k``) of :func:`spatial_split` costs ``A(L) N_L + A(R)
-    N_R``, ``N_L``, ``N_R`` counted from the references' entry and exit bins, ``L`` the
-    box of the bins ``<= k``. The bound prices the same planes with the same counts, but
-    with ``L`` replaced by the box of the references that lie whole in bins ``<= k``
-    (exit bin ``<= k``) and ``R`` by that of those whole in bins ``> k``: no estimated
-    pieces, one scatter per reference and axis. It is a lower bound because ``L``
-    contains each such reference's whole box: the reference's pieces hold its
-    triangle's corners clamped to its box, whose box is the reference's box itself (a
-    reference box lies in its triangle's box: clipping only shrinks it), and a half-area
-    grows with the box. The node then skips the piece search where ``bound (1 + tol)``
-    is not below its object split's cost (:data:`jaxbvh.builders.sbvh_rules.BOUND_SLACK`
-    covers the rounding of the two sums).
+    N_R``: ``N_L``, ``N_R`` counted from the references' entry and exit bins, ``L`` the
+    box of the pieces in the bins ``<= k``. A piece's box holds its reference's
+    triangle corners, clamped to the reference's box, that fall in its bin, and the
+    clamped crossings of its bin's planes. The bound prices the same planes with the
+    same counts and with the corners alone (each clamped corner into the cell of its
+    bin, one point per reference, axis and corner): no crossings, no pieces. Its boxes
+    lie in the search's, a half-area grows with the box, so it is a lower bound (the
+    clamped corners of a reference span its whole box, so a reference whole on one side
+    counts whole). A node skips the piece search where ``bound (1 + tol)`` is not below
+    its object split's cost (:data:`jaxbvh.builders.sbvh_rules.BOUND_SLACK` covers the
+    rounding of the two sums). ``tri_columns`` [9, T]: the triangles coordinate by
+    coordinate; the rest as :func:`spatial_split`'s.
     """
     live = (seg < slots) & take(tried, seg, False)
     cells = slots * 3 * bins
-    axes = jnp.arange(3, dtype=jnp.int32)[None, :]
-
-    def keys(bin3):  # axis-major [3 M] cell keys, dead references to the dropped cell
-        return jnp.where(live[:, None], cell_key(bin3, seg[:, None], axes, slots), cells).T.ravel()
-
-    enter, leave = keys(ref_bins.entry), keys(ref_bins.exit)
+    enter = jnp.where(live[:, None], cell_key(ref_bins.entry, seg[:, None], jnp.arange(3, dtype=jnp.int32)[None, :],
+                                              slots), cells).T.ravel()  # axis-major [3 M]
+    leave = jnp.where(live[:, None], cell_key(ref_bins.exit, seg[:, None], jnp.arange(3, dtype=jnp.int32)[None, :],
+                                              slots), cells).T.ravel()
     ones = jnp.ones(enter.shape, jnp.int32)
     entries = segment(jax.ops.segment_sum, ones, enter, cells).reshape(bins, slots, 3)
     exits = segment(jax.ops.segment_sum, ones, leave, cells).reshape(bins, slots, 3)
-    lo3, hi3 = [jnp.tile(c, 3) for c in ref_lo.T], [jnp.tile(c, 3) for c in ref_hi.T]
-    # a reference is whole on the left of the planes at and after its exit bin, whole on
-    # the right of those before its entry bin
-    left_lo = _cells(jax.ops.segment_min, lo3, leave, cells, slots, bins)
-    left_hi = _cells(jax.ops.segment_max, hi3, leave, cells, slots, bins)
-    right_lo = _cells(jax.ops.segment_min, lo3, enter, cells, slots, bins)
-    right_hi = _cells(jax.ops.segment_max, hi3, enter, cells, slots, bins)
+    prim = jnp.clip(ref_prim, 0, tri_columns.shape[1] - 1)
+    corner = [[jnp.clip(tri_columns[3 * k + c][prim], ref_lo[:, c], ref_hi[:, c]) for c in range(3)]
+              for k in range(3)]  # [M] each: corner k's coordinate c, clamped to the reference's box
+    lo_a, ext_a = take(node_lo, seg, 0), take(node_hi - node_lo, seg, 0)
+    bins_r = take(node_bins, seg, bins)
+    keys = []
+    for a in range(3):  # the point of (reference, axis a, corner k) goes to its bin on axis a
+        for k in range(3):
+            b = rules.bin_of(corner[k][a], lo_a[:, a], ext_a[:, a], bins_r)
+            keys.append(jnp.where(live, cell_key(b, seg, a, slots), cells))
+    key = jnp.concatenate(keys)  # [9 M]
+    points = [jnp.tile(jnp.concatenate([corner[k][c] for k in range(3)]), 3) for c in range(3)]
+    box_lo = _cells(jax.ops.segment_min, points, key, cells, slots, bins)
+    box_hi = _cells(jax.ops.segment_max, points, key, cells, slots, bins)
+    # a reference whose box spans the planes b0 + 1 .. b1 strictly (checked at both ends,
+    # planes grow with j) crosses each of them: the search's pieces on both sides of such
+    # a plane hold a crossing at the plane itself, clamped to the box (the plane again)
+    b0, b1 = ref_bins
+    p0 = rules.plane_at(lo_a, ext_a, b0 + 1, bins_r[:, None])  # [M, 3]
+    p1 = rules.plane_at(lo_a, ext_a, b1, bins_r[:, None])
+    spans = live[:, None] & (b0 < b1) & (ref_lo < p0) & (p1 < ref_hi)
+    axes = jnp.arange(3, dtype=jnp.int32)[None, :]
+    from_ = jnp.where(spans, cell_key(b0, seg[:, None], axes, slots), cells).T.ravel()
+    to = jnp.where(spans, cell_key(b1, seg[:, None], axes, slots), cells).T.ravel()
+    opened = segment(jax.ops.segment_sum, ones, from_, cells).reshape(bins, slots * 3)
+    closed = segment(jax.ops.segment_sum, ones, to, cells).reshape(bins, slots * 3)
+    running, crossed = jnp.zeros(slots * 3, jnp.int32), []
+    for k in range(bins - 1):  # plane k + 1: spanned by the references with b0 <= k < b1
+        running = running + opened[k] - closed[k]
+        crossed.append(running > 0)
+    dt = ref_lo.dtype
+    j = jnp.arange(1, bins, dtype=dt)[:, None, None]
+    at = rules.plane_at(node_lo[None], (node_hi - node_lo)[None], j, node_bins[None, :, None])  # [B - 1, F, 3]
     usable = (node_hi - node_lo > 0) & tried[:, None]
-    return _sweep_bins((entries, exits), left_lo, left_hi, usable, scale, bins, (right_lo, right_hi)).cost
+    return _sweep_bins((entries, exits), box_lo, box_hi, usable, scale, bins,
+                       (jnp.stack(crossed), at.reshape(bins - 1, slots * 3))).cost
 
 
 def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, ref_bins: Bins, tried, node_bins,
