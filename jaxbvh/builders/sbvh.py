@@ -28,7 +28,11 @@ over its references (box, triangle):
    reference's box. Plane ``k`` (after bin ``k``) has ``N_L`` = entries at or before
    ``k``, ``N_R`` = exits after it, priced on the bins' boxes; the same tie rule. It is
    taken when its cost times ``1 + TIE_TOLERANCE`` is below the object split's (ties go
-   to the object split, which duplicates nothing).
+   to the object split, which duplicates nothing). A node whose exact lower bound on
+   every spatial candidate's cost (:func:`jaxbvh.builders.sbvh_splits.spatial_bound`:
+   the same planes and counts, boxes of clamped corners and of the planes strictly
+   crossed, no pieces) cannot pass that test skips the search: the trees are the same
+   with or without it (the twin searches every node).
 3. **Reference unsplitting** (the paper's Section 4.4): a straddling reference goes
    whole to one side when that is cheaper (``C_1 = A(L + b) N_L + A_R (N_R - 1)``,
    ``C_2 = A_L (N_L - 1) + A(R + b) N_R`` against ``C_split = A_L N_L + A_R N_R``, by
