@@ -28,11 +28,7 @@ over its references (box, triangle):
    reference's box. Plane ``k`` (after bin ``k``) has ``N_L`` = entries at or before
    ``k``, ``N_R`` = exits after it, priced on the bins' boxes; the same tie rule. It is
    taken when its cost times ``1 + TIE_TOLERANCE`` is below the object split's (ties go
-   to the object split, which duplicates nothing). A node whose exact lower bound on
-   every spatial candidate's cost (:func:`jaxbvh.builders.sbvh_splits.spatial_bound`:
-   the same planes and counts, boxes of clamped corners and of the planes strictly
-   crossed, no pieces) cannot pass that test skips the search: the trees are the same
-   with or without it (the twin searches every node).
+   to the object split, which duplicates nothing).
 3. **Reference unsplitting** (the paper's Section 4.4): a straddling reference goes
    whole to one side when that is cheaper (``C_1 = A(L + b) N_L + A_R (N_R - 1)``,
    ``C_2 = A_L (N_L - 1) + A(R + b) N_R`` against ``C_split = A_L N_L + A_R N_R``, by
@@ -282,22 +278,12 @@ def _level(scene: _Scene, s: _State, *, bins: int, slots: int, live: int) -> _St
     tried = is_open & found & (count > 1) & (splits.overlap_area(obj, scene.scale) > scene.threshold)
     node_bins = rules.spatial_bins(count, bins)  # [F] fewer spatial bins for few references
     empty_bins = splits.Bins(jnp.zeros((m, 3), jnp.int32), jnp.zeros((m, 3), jnp.int32))
+    spatial, ref_bins = jax.lax.cond(
+        jnp.any(tried),
+        lambda: splits.spatial_split(scene.columns, view.prim, view.lo, view.hi, seg, node_lo, node_hi, tried,
+                                     node_bins, slots, scene.scale, bins),
+        lambda: (_no_spatial(slots, dt), empty_bins))
     tol = jnp.asarray(1 + TIE_TOLERANCE, dt)
-
-    def search():
-        """The spatial split of the tried nodes whose bound lets it beat the object split."""
-        ref_bins = splits.reference_bins(view.lo, view.hi, seg, node_lo, node_hi, node_bins, slots, bins)
-        bound = splits.spatial_bound(scene.columns, view.prim, view.lo, view.hi, seg, ref_bins, node_lo, node_hi,
-                                     tried, node_bins, slots, scene.scale, bins)
-        searching = tried & (bound * jnp.asarray(1 - rules.BOUND_SLACK, dt) * tol < obj.cost)
-        spatial = jax.lax.cond(
-            jnp.any(searching),
-            lambda: splits.spatial_split(scene.columns, view.prim, view.lo, view.hi, seg, node_lo, node_hi, ref_bins,
-                                         searching, node_bins, slots, scene.scale, bins),
-            lambda: _no_spatial(slots, dt))
-        return spatial, ref_bins
-
-    spatial, ref_bins = jax.lax.cond(jnp.any(tried), search, lambda: (_no_spatial(slots, dt), empty_bins))
     use_spatial = tried & (spatial.cost * tol < obj.cost)
     best = jnp.where(use_spatial, spatial.cost, obj.cost)
 

@@ -42,12 +42,6 @@ SPATIAL_MIN_BINS = 4
 #: widening of interpolated clip coordinates, in machine epsilons of ``|v_i| + |v_j|``
 CLIP_MARGIN_EPS = 8
 
-#: relative margin under which the spatial bound (:func:`jaxbvh.builders.sbvh_splits.spatial_bound`)
-#: is taken before it is compared: it and the cost it bounds are sums of products of
-#: ordered boxes, monotone under rounding, but XLA may fuse a product and an add in one
-#: and not the other (a few ulps); 2^-16 is far above that and skips as many nodes
-BOUND_SLACK = 2.0 ** -16
-
 EDGES = ((0, 1), (1, 2), (2, 0))  # a triangle's edges as vertex pairs
 
 

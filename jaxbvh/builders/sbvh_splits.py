@@ -38,14 +38,13 @@ def segment(op, values, seg, slots):
     return op(values, seg, num_segments=slots + 1)[:slots]
 
 
-def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int, reach=None) -> Split:
+def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int) -> Split:
     """Best plane of binned counts and boxes per slot and axis.
 
     ``count``: (entries, exits), ``box_lo``, ``box_hi``: three coordinate arrays each,
     all [B, F, 3] (bin, slot, axis). The plane after bin ``k`` has on its left the bins
     ``<= k`` (``N_L``: entries there) and on its right the others (``N_R``: exits
-    there). ``reach``: ``(crossed, plane)``, [B - 1, F * 3] rows (plane, slot and axis):
-    where ``crossed``, both sides' boxes reach ``plane`` on the axis (the spatial bound's). Tie-rule winner: least cost; within TIE_TOLERANCE the lowest axis, then the
+    there). Tie-rule winner: least cost; within TIE_TOLERANCE the lowest axis, then the
     lowest plane. The sweeps are two ``lax.scan`` over the bins on flat [F * 3] rows
     (XLA's cumulative ops and arrays with a trailing axis of 3 are many times slower on
     CPU; the same sweeps unrolled bin by bin ran as fast but took ~6 s of compile each,
@@ -74,11 +73,6 @@ def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int, reach=None) -> 
                             False)  # row k, plane k: bins 0 .. k
     n_r, lo_r, hi_r = sweep(rows(exits)[1:], [rows(c)[1:] for c in box_lo], [rows(c)[1:] for c in box_hi],
                             True)  # row k, plane k: bins k + 1 ..
-    if reach is not None:
-        crossed, at = reach
-        on = [crossed & (jnp.arange(slots * 3, dtype=jnp.int32) % 3 == c)[None, :] for c in range(3)]
-        hi_l = tuple(jnp.where(o, jnp.maximum(h, at), h) for o, h in zip(on, hi_l))
-        lo_r = tuple(jnp.where(o, jnp.minimum(lo, at), lo) for o, lo in zip(on, lo_r))
 
     def area(lo, hi):
         return half_area(jnp.stack(lo, -1), jnp.stack(hi, -1), scale)
@@ -212,84 +206,9 @@ def _piece_boxes(v, ref_lo, ref_hi, axis, node_lo_a, ext_a, b0, b1, b, valid, bi
     return lo, hi
 
 
-def reference_bins(ref_lo, ref_hi, seg, node_lo, node_hi, node_bins, slots: int, bins: int) -> Bins:
-    """Entry and exit spatial bin per axis of every reference ([M, 3] int32 each), in the
-    ``node_bins`` [F] equal bins of its node's box ``node_lo``, ``node_hi`` [F, 3]."""
-    lo_r, ext_r = take(node_lo, seg, 0), take(node_hi - node_lo, seg, 0)  # [M, 3]
-    bins_r = take(node_bins, seg, bins)[:, None]
-    return Bins(rules.bin_of(ref_lo, lo_r, ext_r, bins_r), rules.bin_of(ref_hi, lo_r, ext_r, bins_r))
-
-
-def spatial_bound(tri_columns, ref_prim, ref_lo, ref_hi, seg, ref_bins: Bins, node_lo, node_hi, tried, node_bins,
-                  slots: int, scale, bins: int):
-    """A lower bound [F] on the cost of every spatial split candidate of the slots
-    ``tried`` [F] bool (inf where there is none, and on the other slots).
-
-    Each candidate plane (axis, ``k``) of :func:`spatial_split` costs ``A(L) N_L + A(R)
-    N_R``: ``N_L``, ``N_R`` counted from the references' entry and exit bins, ``L`` the
-    box of the pieces in the bins ``<= k``. A piece's box holds its reference's
-    triangle corners, clamped to the reference's box, that fall in its bin, and the
-    clamped crossings of its bin's planes. The bound prices the same planes with the
-    same counts and with the corners alone (each clamped corner into the cell of its
-    bin, one point per reference, axis and corner): no crossings, no pieces. Its boxes
-    lie in the search's, a half-area grows with the box, so it is a lower bound (the
-    clamped corners of a reference span its whole box, so a reference whole on one side
-    counts whole). A node skips the piece search where ``bound (1 + tol)`` is not below
-    its object split's cost (:data:`jaxbvh.builders.sbvh_rules.BOUND_SLACK` covers the
-    rounding of the two sums). ``tri_columns`` [9, T]: the triangles coordinate by
-    coordinate; the rest as :func:`spatial_split`'s.
-    """
-    live = (seg < slots) & take(tried, seg, False)
-    cells = slots * 3 * bins
-    enter = jnp.where(live[:, None], cell_key(ref_bins.entry, seg[:, None], jnp.arange(3, dtype=jnp.int32)[None, :],
-                                              slots), cells).T.ravel()  # axis-major [3 M]
-    leave = jnp.where(live[:, None], cell_key(ref_bins.exit, seg[:, None], jnp.arange(3, dtype=jnp.int32)[None, :],
-                                              slots), cells).T.ravel()
-    ones = jnp.ones(enter.shape, jnp.int32)
-    entries = segment(jax.ops.segment_sum, ones, enter, cells).reshape(bins, slots, 3)
-    exits = segment(jax.ops.segment_sum, ones, leave, cells).reshape(bins, slots, 3)
-    prim = jnp.clip(ref_prim, 0, tri_columns.shape[1] - 1)
-    corner = [[jnp.clip(tri_columns[3 * k + c][prim], ref_lo[:, c], ref_hi[:, c]) for c in range(3)]
-              for k in range(3)]  # [M] each: corner k's coordinate c, clamped to the reference's box
-    lo_a, ext_a = take(node_lo, seg, 0), take(node_hi - node_lo, seg, 0)
-    bins_r = take(node_bins, seg, bins)
-    keys = []
-    for a in range(3):  # the point of (reference, axis a, corner k) goes to its bin on axis a
-        for k in range(3):
-            b = rules.bin_of(corner[k][a], lo_a[:, a], ext_a[:, a], bins_r)
-            keys.append(jnp.where(live, cell_key(b, seg, a, slots), cells))
-    key = jnp.concatenate(keys)  # [9 M]
-    points = [jnp.tile(jnp.concatenate([corner[k][c] for k in range(3)]), 3) for c in range(3)]
-    box_lo = _cells(jax.ops.segment_min, points, key, cells, slots, bins)
-    box_hi = _cells(jax.ops.segment_max, points, key, cells, slots, bins)
-    # a reference whose box spans the planes b0 + 1 .. b1 strictly (checked at both ends,
-    # planes grow with j) crosses each of them: the search's pieces on both sides of such
-    # a plane hold a crossing at the plane itself, clamped to the box (the plane again)
-    b0, b1 = ref_bins
-    p0 = rules.plane_at(lo_a, ext_a, b0 + 1, bins_r[:, None])  # [M, 3]
-    p1 = rules.plane_at(lo_a, ext_a, b1, bins_r[:, None])
-    spans = live[:, None] & (b0 < b1) & (ref_lo < p0) & (p1 < ref_hi)
-    axes = jnp.arange(3, dtype=jnp.int32)[None, :]
-    from_ = jnp.where(spans, cell_key(b0, seg[:, None], axes, slots), cells).T.ravel()
-    to = jnp.where(spans, cell_key(b1, seg[:, None], axes, slots), cells).T.ravel()
-    opened = segment(jax.ops.segment_sum, ones, from_, cells).reshape(bins, slots * 3)
-    closed = segment(jax.ops.segment_sum, ones, to, cells).reshape(bins, slots * 3)
-    running, crossed = jnp.zeros(slots * 3, jnp.int32), []
-    for k in range(bins - 1):  # plane k + 1: spanned by the references with b0 <= k < b1
-        running = running + opened[k] - closed[k]
-        crossed.append(running > 0)
-    dt = ref_lo.dtype
-    j = jnp.arange(1, bins, dtype=dt)[:, None, None]
-    at = rules.plane_at(node_lo[None], (node_hi - node_lo)[None], j, node_bins[None, :, None])  # [B - 1, F, 3]
-    usable = (node_hi - node_lo > 0) & tried[:, None]
-    return _sweep_bins((entries, exits), box_lo, box_hi, usable, scale, bins,
-                       (jnp.stack(crossed), at.reshape(bins - 1, slots * 3))).cost
-
-
-def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, ref_bins: Bins, tried, node_bins,
-                  slots: int, scale, bins: int):
-    """Binned spatial split of the slots ``tried`` [F] bool: a :class:`Split`. ``ref_bins``:
-    :func:`reference_bins`.
+def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, tried, node_bins, slots: int, scale,
+                  bins: int):
+    """Binned spatial split of the slots ``tried`` [F] bool: ``(split, bins)``.
 
     Every live reference (one of a tried node) spans bins ``b0 .. b1`` per axis; it is cut
     into one *piece* per (axis, bin) it spans, the pieces are walked in chunks of
@@ -304,7 +223,8 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
     lo_columns, hi_columns = ref_lo.T, ref_hi.T  # [3, R]
     lo_r, ext_r = take(node_lo, seg, 0), take(ext, seg, 0)  # [R, 3]
     bins_r = take(node_bins, seg, bins)  # [R] the node's spatial bins
-    b0, b1 = ref_bins  # [R, 3] entry and exit bins per axis
+    b0 = rules.bin_of(ref_lo, lo_r, ext_r, bins_r[:, None])  # [R, 3] entry and exit bins per axis
+    b1 = rules.bin_of(ref_hi, lo_r, ext_r, bins_r[:, None])
     width = jnp.where(live[:, None], b1 - b0 + 1, 0).ravel()  # [3 R] pieces per (reference, axis)
     ends = jnp.cumsum(width)
     total = ends[-1]
@@ -341,7 +261,7 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
     # at most ceil(3 R B / chunk) steps: the pieces are at most 3 R B
     counts, box_lo, box_hi = jax.lax.fori_loop(0, (total + chunk - 1) // chunk, step, empty)
     counts, box_lo, box_hi = ([c.reshape(bins, slots, 3) for c in cs] for cs in (counts, box_lo, box_hi))
-    return _sweep_bins(counts, box_lo, box_hi, (ext > 0) & tried[:, None], scale, bins)
+    return _sweep_bins(counts, box_lo, box_hi, (ext > 0) & tried[:, None], scale, bins), Bins(b0, b1)
 
 
 class Sides(NamedTuple):
