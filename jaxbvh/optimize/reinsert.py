@@ -165,6 +165,9 @@ from jaxbvh.tree.split_axes import apply_split_axes
 DEFAULT_MAX_STEPS = 1024       # search steps per node and iteration (legocar needs < 200)
 DEFAULT_MAX_ITERATIONS = 1000
 DEFAULT_SETTLE = False  # measured: reached tinybvh's SAH later on legocar (module docstring)
+DEFAULT_MAX_WIDENINGS = None  # widen as often as the rule says (the pipeline sets its own)
+#: ``max_widenings`` None, as a traced int32: more widenings than any run makes
+NO_WIDENING_LIMIT = 2**31 - 1
 
 
 # ----------------------------------------------------------------------------------
@@ -202,6 +205,9 @@ class Config(Checked):
     ``escalate``: relative SAH drop at or below which the next iteration searches one
     more octave (None: :data:`~jaxbvh.optimize.reinsert_rules.ESCALATE_NODES` over the
     node count, :func:`~jaxbvh.optimize.reinsert_rules.escalate_for`). ``settle``: skip the settled nodes (module docstring, step 1).
+    ``max_widenings``: the run ends after the iteration that would widen the candidates
+    once more than this (None: never; the pipeline's first round hands over to the
+    treelets there, ``jaxbvh.optimize.pipeline``).
     ``ct``, ``ci``: SAH constants. ``min_gain``: relative margin a place must beat (None: ``64 * eps`` of the tree's float type). ``split_axes``: Kensler's
     final pass (:func:`jaxbvh.tree.split_axes.assign_split_axes`) in ``result``.
     """
@@ -217,6 +223,9 @@ class Config(Checked):
                                                     "more octave of nodes is searched (none: 8 / nodes)")
     settle: bool = knob(DEFAULT_SETTLE, help="search again only the nodes whose last search found a move "
                                              "or that a move touched since (every node before stopping)")
+    max_widenings: int | None = knob(DEFAULT_MAX_WIDENINGS, check=optional(integer(0)), type=int, metavar="W",
+                                     help="the run ends at the iteration that would widen the candidates "
+                                          "for the (W+1)-th time (none: no limit)")
     ct: float = ct_knob()
     ci: float = ci_knob()
     min_gain: float | None = min_gain_knob()
@@ -234,6 +243,7 @@ class Params(NamedTuple):
     need: Any       # [] int32: candidates of the first iteration (reinsert_rules.candidates_needed)
     split_axes: Any  # [] bool: Kensler's final pass in result() (traced: no program of its own)
     settle: Any     # [] bool: skip settled nodes (module docstring, step 1; traced)
+    max_widenings: Any  # [] int32: the run ends at the widening past this many (NO_WIDENING_LIMIT: never)
 
 
 class Inner(NamedTuple):
@@ -243,6 +253,7 @@ class Inner(NamedTuple):
     octaves: Any  # [] int32: candidates' parent areas reach 2^-octaves of the root's
     nodes: Any    # [] int32: real nodes but the root (every one a candidate at ALL_OCTAVES)
     settled: Any  # [N] bool: last search found no move and no move touched the node since
+    widenings: Any  # [] int32: times the candidates have widened (octaves changed) in this run
 
 
 def init(tree, config: Config | None = None, key=None) -> OptimizerState:
@@ -264,7 +275,9 @@ def init(tree, config: Config | None = None, key=None) -> OptimizerState:
     params = Params(*(jnp.asarray(x, dtype) for x in (config.ct, config.ci, min_gain, escalate)),
                     max_steps=jnp.int32(config.max_steps),
                     need=jnp.int32(candidates_needed(config.first_fraction, nodes)),
-                    split_axes=jnp.bool_(config.split_axes), settle=jnp.bool_(config.settle))
+                    split_axes=jnp.bool_(config.split_axes), settle=jnp.bool_(config.settle),
+                    max_widenings=jnp.int32(NO_WIDENING_LIMIT if config.max_widenings is None
+                                            else config.max_widenings))
     limit = config.max_iterations if config.ct > 0 else 0  # with Ct = 0 no move changes the SAH
     return restart(params, tree, limit)
 
@@ -273,7 +286,8 @@ def init(tree, config: Config | None = None, key=None) -> OptimizerState:
 def _start(tree, need) -> Inner:
     st = prepare(tree)
     octaves = octaves_holding(st.area, st.parent, st.root, need, xp=jnp)
-    return Inner(st, octaves, jnp.sum(st.parent >= 0, dtype=jnp.int32), jnp.zeros(st.parent.shape, bool))
+    return Inner(st, octaves, jnp.sum(st.parent >= 0, dtype=jnp.int32), jnp.zeros(st.parent.shape, bool),
+                 jnp.int32(0))
 
 
 def restart(params: Params, tree, limit: int) -> OptimizerState:
@@ -294,7 +308,10 @@ def step(state: OptimizerState) -> OptimizerState:
     # no move among the unsettled nodes of every octave: search every node again
     settled = settled & ~((taken == 0) & (inner.octaves >= ALL_OCTAVES))
     progress = record(progress, sah, taken, converged=(taken == 0) & (count == inner.nodes))
-    inner = inner._replace(tree=st, octaves=octaves, settled=settled)
+    widenings = inner.widenings + (octaves != inner.octaves).astype(jnp.int32)
+    # past max_widenings the run ends with this iteration's tree instead of widening
+    progress = progress._replace(done=progress.done | (widenings > p.max_widenings))
+    inner = inner._replace(tree=st, octaves=octaves, settled=settled, widenings=widenings)
     return keep_if_done(state, state.replace(inner=inner, progress=progress))
 
 

@@ -303,7 +303,8 @@ def iteration(t: Tree, octaves: int, max_steps: int, min_gain: float, width: int
 
 
 def reinsert(tree, *, ct=1.0, ci=1.0, max_iterations=1000, max_steps=1024,
-             first_fraction=DEFAULT_FIRST_FRACTION, escalate=DEFAULT_ESCALATE, min_gain=None, settle=False):
+             first_fraction=DEFAULT_FIRST_FRACTION, escalate=DEFAULT_ESCALATE, min_gain=None, settle=False,
+             max_widenings=None):
     """Parallel reinsertion, one move at a time; returns ``(tree, info)``.
 
     The schedule and defaults of :func:`jaxbvh.optimize.reinsert.reinsert`: candidates from the octaves
@@ -312,7 +313,8 @@ def reinsert(tree, *, ct=1.0, ci=1.0, max_iterations=1000, max_steps=1024,
     :func:`jaxbvh.optimize.reinsert_rules.escalate_for`), every node after one that takes no
     move, until an iteration over all nodes takes none (or ``max_iterations``); with
     ``settle``, the settled nodes are skipped (:func:`iteration`) until an iteration over
-    every octave takes no move.
+    every octave takes no move. With ``max_widenings``, the run ends after the iteration
+    that would widen the candidates for the ``max_widenings + 1``-th time.
     ``info``: ``iterations``, ``moves`` (total), ``history`` (SAH after each iteration),
     ``taken`` (the moves of each iteration, best first), ``sah``.
     """
@@ -323,7 +325,7 @@ def reinsert(tree, *, ct=1.0, ci=1.0, max_iterations=1000, max_steps=1024,
     octaves = first_octaves(area, t.parent, t.root, first_fraction)
     nodes = sum(1 for a in range(t.child.shape[0]) if t.parent[a] >= 0)
     escalate = escalate_for(nodes, escalate)
-    history, taken_all, settled = [], [], set()
+    history, taken_all, settled, widenings = [], [], set(), 0
     start = t.sah(ct, ci)
     for _ in range(max_iterations if ct > 0 else 0):
         taken, count, settled = iteration(t, octaves, max_steps, min_gain, width, settled if settle else set())
@@ -335,7 +337,11 @@ def reinsert(tree, *, ct=1.0, ci=1.0, max_iterations=1000, max_steps=1024,
         if not taken and octaves >= ALL_OCTAVES:
             settled = set()  # no move left among the unsettled nodes: search every node again
         if count < nodes and (not taken or before - history[-1] <= escalate * before):
-            octaves = octaves + 1 if taken and octaves < 64 else ALL_OCTAVES
+            wider = octaves + 1 if taken and octaves < 64 else ALL_OCTAVES
+            widenings += wider != octaves
+            octaves = wider
+            if max_widenings is not None and widenings > max_widenings:
+                break  # the run ends here instead of widening once more
     return t.to_bvh(), {"iterations": len(taken_all), "moves": sum(map(len, taken_all)),
                         "history": history, "taken": taken_all, "sah": t.sah(ct, ci)}
 
