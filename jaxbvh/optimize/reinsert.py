@@ -156,6 +156,7 @@ from jaxbvh.optimize.reinsert_rules import (  # noqa: F401 (DEFAULT_FIRST_FRACTI
     candidates_needed,
     escalate_for,
     octaves_holding,
+    widening_stop,
 )
 from jaxbvh.optimize.reinsert_search import prepare, to_tree
 from jaxbvh.tree.cost import sah as sah_of
@@ -165,6 +166,7 @@ from jaxbvh.tree.split_axes import apply_split_axes
 DEFAULT_MAX_STEPS = 1024       # search steps per node and iteration (legocar needs < 200)
 DEFAULT_MAX_ITERATIONS = 1000
 DEFAULT_SETTLE = False  # measured: reached tinybvh's SAH later on legocar (module docstring)
+DEFAULT_WIDEN_UNTIL = None  # widen as the rule says until every node is searched
 
 
 # ----------------------------------------------------------------------------------
@@ -202,6 +204,9 @@ class Config(Checked):
     ``escalate``: relative SAH drop at or below which the next iteration searches one
     more octave (None: :data:`~jaxbvh.optimize.reinsert_rules.ESCALATE_NODES` over the
     node count, :func:`~jaxbvh.optimize.reinsert_rules.escalate_for`). ``settle``: skip the settled nodes (module docstring, step 1).
+    ``widen_until``: the run ends after an iteration that would widen the candidates
+    when that iteration searched at least this share of the nodes (None: never; the
+    pipeline's first round hands over to the treelets there, :mod:`jaxbvh.optimize.pipeline`).
     ``ct``, ``ci``: SAH constants. ``min_gain``: relative margin a place must beat (None: ``64 * eps`` of the tree's float type). ``split_axes``: Kensler's
     final pass (:func:`jaxbvh.tree.split_axes.assign_split_axes`) in ``result``.
     """
@@ -217,6 +222,10 @@ class Config(Checked):
                                                     "more octave of nodes is searched (none: 8 / nodes)")
     settle: bool = knob(DEFAULT_SETTLE, help="search again only the nodes whose last search found a move "
                                              "or that a move touched since (every node before stopping)")
+    widen_until: float | None = knob(DEFAULT_WIDEN_UNTIL, check=optional(real(above=0, maximum=1)), type=float,
+                                     metavar="F", help="the run ends at an iteration that would widen the "
+                                                       "candidates when they are this share of the nodes or "
+                                                       "more (none: never)")
     ct: float = ct_knob()
     ci: float = ci_knob()
     min_gain: float | None = min_gain_knob()
@@ -234,6 +243,7 @@ class Params(NamedTuple):
     need: Any       # [] int32: candidates of the first iteration (reinsert_rules.candidates_needed)
     split_axes: Any  # [] bool: Kensler's final pass in result() (traced: no program of its own)
     settle: Any     # [] bool: skip settled nodes (module docstring, step 1; traced)
+    widen_until: Any  # [] int32: a widening after an iteration over this many candidates or more ends the run
 
 
 class Inner(NamedTuple):
@@ -264,7 +274,8 @@ def init(tree, config: Config | None = None, key=None) -> OptimizerState:
     params = Params(*(jnp.asarray(x, dtype) for x in (config.ct, config.ci, min_gain, escalate)),
                     max_steps=jnp.int32(config.max_steps),
                     need=jnp.int32(candidates_needed(config.first_fraction, nodes)),
-                    split_axes=jnp.bool_(config.split_axes), settle=jnp.bool_(config.settle))
+                    split_axes=jnp.bool_(config.split_axes), settle=jnp.bool_(config.settle),
+                    widen_until=jnp.int32(widening_stop(config.widen_until, nodes)))
     limit = config.max_iterations if config.ct > 0 else 0  # with Ct = 0 no move changes the SAH
     return restart(params, tree, limit)
 
@@ -294,6 +305,8 @@ def step(state: OptimizerState) -> OptimizerState:
     # no move among the unsettled nodes of every octave: search every node again
     settled = settled & ~((taken == 0) & (inner.octaves >= ALL_OCTAVES))
     progress = record(progress, sah, taken, converged=(taken == 0) & (count == inner.nodes))
+    # widen_until: the run ends here, with this iteration's tree, instead of widening
+    progress = progress._replace(done=progress.done | ((octaves != inner.octaves) & (count >= p.widen_until)))
     inner = inner._replace(tree=st, octaves=octaves, settled=settled)
     return keep_if_done(state, state.replace(inner=inner, progress=progress))
 

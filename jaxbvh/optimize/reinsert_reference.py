@@ -24,6 +24,7 @@ from jaxbvh.optimize.reinsert_rules import (
     escalate_for,
     first_octaves,
     move_width,
+    widening_stop,
 )
 from jaxbvh.tree.layout import to_numpy
 from jaxbvh.tree.walks import post_order
@@ -303,7 +304,8 @@ def iteration(t: Tree, octaves: int, max_steps: int, min_gain: float, width: int
 
 
 def reinsert(tree, *, ct=1.0, ci=1.0, max_iterations=1000, max_steps=1024,
-             first_fraction=DEFAULT_FIRST_FRACTION, escalate=DEFAULT_ESCALATE, min_gain=None, settle=False):
+             first_fraction=DEFAULT_FIRST_FRACTION, escalate=DEFAULT_ESCALATE, min_gain=None, settle=False,
+             widen_until=None):
     """Parallel reinsertion, one move at a time; returns ``(tree, info)``.
 
     The schedule and defaults of :func:`jaxbvh.optimize.reinsert.reinsert`: candidates from the octaves
@@ -312,7 +314,8 @@ def reinsert(tree, *, ct=1.0, ci=1.0, max_iterations=1000, max_steps=1024,
     :func:`jaxbvh.optimize.reinsert_rules.escalate_for`), every node after one that takes no
     move, until an iteration over all nodes takes none (or ``max_iterations``); with
     ``settle``, the settled nodes are skipped (:func:`iteration`) until an iteration over
-    every octave takes no move.
+    every octave takes no move. With ``widen_until``, the run ends after an iteration that
+    would widen the candidates when it searched at least that share of the nodes.
     ``info``: ``iterations``, ``moves`` (total), ``history`` (SAH after each iteration),
     ``taken`` (the moves of each iteration, best first), ``sah``.
     """
@@ -323,6 +326,7 @@ def reinsert(tree, *, ct=1.0, ci=1.0, max_iterations=1000, max_steps=1024,
     octaves = first_octaves(area, t.parent, t.root, first_fraction)
     nodes = sum(1 for a in range(t.child.shape[0]) if t.parent[a] >= 0)
     escalate = escalate_for(nodes, escalate)
+    stop = widening_stop(widen_until, nodes)
     history, taken_all, settled = [], [], set()
     start = t.sah(ct, ci)
     for _ in range(max_iterations if ct > 0 else 0):
@@ -335,7 +339,10 @@ def reinsert(tree, *, ct=1.0, ci=1.0, max_iterations=1000, max_steps=1024,
         if not taken and octaves >= ALL_OCTAVES:
             settled = set()  # no move left among the unsettled nodes: search every node again
         if count < nodes and (not taken or before - history[-1] <= escalate * before):
-            octaves = octaves + 1 if taken and octaves < 64 else ALL_OCTAVES
+            wider = octaves + 1 if taken and octaves < 64 else ALL_OCTAVES
+            if wider != octaves and count >= stop:
+                break  # widen_until: the run ends here instead of widening
+            octaves = wider
     return t.to_bvh(), {"iterations": len(taken_all), "moves": sum(map(len, taken_all)),
                         "history": history, "taken": taken_all, "sah": t.sah(ct, ci)}
 

@@ -72,6 +72,15 @@ def escalate_for(nodes: int, escalate: float | None = None) -> float:
     return ESCALATE_NODES / max(int(nodes), 1)
 
 
+def widening_stop(widen_until: float | None, nodes: int) -> int:
+    """The candidate count from which a widening ends the run instead: ``ceil(widen_until
+    * nodes)``, or ``nodes + 1`` (never: no iteration searches more than every node) for
+    None. Host integers, float64 arithmetic, as :func:`candidates_needed`."""
+    if widen_until is None:
+        return int(nodes) + 1
+    return int(math.ceil(float(widen_until) * int(nodes)))
+
+
 def candidates_needed(first_fraction: float, nodes: int) -> int:
     """How many of ``nodes`` (real nodes but the root) the first iteration searches at
     least: ``ceil(first_fraction * nodes)``; ``nodes + 1`` (no octave holds that many:

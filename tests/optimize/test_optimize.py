@@ -35,7 +35,7 @@ def test_every_method_gives_a_valid_tree_and_reports_every_step():
 
 
 def chained_by_hand(tree, rounds=8, round_gain=1e-3, treelet_options=None, reinsert_options=None,
-                    first_passes=pipeline.DEFAULT_FIRST_TREELET_PASSES):
+                    first_passes=pipeline.DEFAULT_FIRST_TREELET_PASSES, widen_until=pipeline.DEFAULT_WIDEN_UNTIL):
     """The pipeline's rounds written out with the stages' own entry points: ``(tree, stages)``."""
     t, sah, stages = tree, float(jaxbvh.sah(jaxbvh.to_jax(tree))), []
     for round_ in range(rounds):
@@ -47,6 +47,8 @@ def chained_by_hand(tree, rounds=8, round_gain=1e-3, treelet_options=None, reins
         r = treelet.restructure(t, max_passes=passes, split_axes=False, **(treelet_options or {}))
         t, stages = r.tree, stages + ["treelet"] * int(r.steps)
         sah = float(r.history[r.steps - 1]) if r.steps else sah
+        # the pipeline's widen_until: the first round's hand-over (later rounds never widen)
+        first["widen_until"] = widen_until
         r = reinsert.reinsert(t, split_axes=False, **{**first, **(reinsert_options or {})})
         t, stages = r.tree, stages + ["reinsert"] * int(r.steps)
         sah = float(r.history[r.steps - 1]) if r.steps else sah
@@ -99,6 +101,12 @@ def test_pipeline_rounds_stop_at_max_rounds_and_chunks_change_nothing():
         assert_same_tree(short.tree, expected)
         assert [pipeline.STAGES[i] for i in short.history_stage[:short.steps]] == stages
         assert stages[:passes + 1].count("treelet") == passes
+    # the first round's hand-over (widen_until, traced: the same program) acts on this tree
+    full = optimize(tree, "pipeline", split_axes=False, max_rounds=2, widen_until=None)
+    expected, stages = chained_by_hand(tree, rounds=2, widen_until=None)
+    assert_same_tree(full.tree, expected)
+    assert [pipeline.STAGES[i] for i in full.history_stage[:full.steps]] == stages
+    assert stages != chained_by_hand(tree, rounds=2)[1]
 
 
 def test_pipeline_config():

@@ -236,6 +236,25 @@ def test_default_escalate_is_by_node_count():
     assert_same_tree(given.tree, expected)
 
 
+def test_widen_until_ends_the_run_where_it_would_widen():
+    """With ``widen_until`` F both sides end after the first iteration that would widen
+    candidates that are F of the nodes or more (reinsert_rules.widening_stop): the same
+    iterations and tree as the twin, fewer the smaller F on this tree, not converged."""
+    tree = random_tree(0, 60, 1)[0]
+    nodes = int(np.sum(np.asarray(tree.parent) >= 0))
+    assert reinsert_rules.widening_stop(None, nodes) == nodes + 1  # never: no widening of every node
+    assert reinsert_rules.widening_stop(0.3, 10) == 3 and reinsert_rules.widening_stop(0.31, 10) == 4
+    steps = []
+    for widen_until in (0.3, 0.6):
+        result = reinsert.reinsert(tree, first_fraction=0.2, split_axes=False, widen_until=widen_until)
+        expected, info = ref.reinsert(tree, first_fraction=0.2, widen_until=widen_until)
+        assert result.steps == info["iterations"] and not result.converged
+        assert_same_tree(result.tree, expected)
+        np.testing.assert_allclose(result.history[:result.steps], info["history"], rtol=1e-5)
+        steps.append(int(result.steps))
+    assert steps[0] < steps[1] < reinsert.reinsert(tree, first_fraction=0.2, split_axes=False).steps
+
+
 def test_reinsert_with_split_axes_and_float64():
     tree, plo, phi = random_tree(3, 30, 2)
     result = reinsert.reinsert(tree)
@@ -285,7 +304,8 @@ def test_no_retrace_for_trees_of_one_capacity():
     before = driver.advance._cache_size()
     for seed in range(2, 5):
         reinsert.reinsert(random_tree(seed, 30, 2)[0], max_steps=7 * seed, first_fraction=0.1,
-                          escalate=10.0 ** -seed, min_gain=1e-5 * seed, split_axes=seed % 2 == 0)
+                          escalate=10.0 ** -seed, min_gain=1e-5 * seed, split_axes=seed % 2 == 0,
+                          widen_until=0.2 * seed)
     assert driver.advance._cache_size() == before
 
 
@@ -293,7 +313,8 @@ def test_bad_arguments_raise_value_error():
     tree = random_tree(0, 5)[0]
     for kwargs in (dict(max_steps=0), dict(max_iterations=-1), dict(first_fraction=0),
                    dict(first_fraction=1.5), dict(ct=-1.0), dict(time_budget=0),
-                   dict(on_step=3), dict(min_gain=-1.0), dict(escalate=-1.0)):
+                   dict(on_step=3), dict(min_gain=-1.0), dict(escalate=-1.0),
+                   dict(widen_until=0.0), dict(widen_until=1.5)):
         with pytest.raises(ValueError):
             reinsert.reinsert(tree, **kwargs)
     wide = jaxbvh.from_interchange({**jaxbvh.to_interchange(tree), "child": np.full((9, 3), -1, np.int32)})
