@@ -78,7 +78,7 @@ def widening_stop(widen_until: float | None, nodes: int) -> int:
     None. Host integers, float64 arithmetic, as :func:`candidates_needed`."""
     if widen_until is None:
         return int(nodes) + 1
-    return int(math.ceil(float(widen_until) * int(nodes)))
+    return _share(widen_until, nodes)
 
 
 def candidates_needed(first_fraction: float, nodes: int) -> int:
@@ -87,7 +87,12 @@ def candidates_needed(first_fraction: float, nodes: int) -> int:
     every node) for ``first_fraction >= 1``. Host integers, float64 arithmetic."""
     if first_fraction >= 1:
         return int(nodes) + 1
-    return int(math.ceil(float(first_fraction) * int(nodes)))
+    return _share(first_fraction, nodes)
+
+
+def _share(fraction: float, nodes: int) -> int:
+    """``ceil(fraction * nodes)``: host integers, float64 arithmetic (both rules' count)."""
+    return int(math.ceil(float(fraction) * int(nodes)))
 
 
 def octaves_holding(area, parent, root, need, xp=np):
