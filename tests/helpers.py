@@ -22,8 +22,9 @@ from jaxbvh.tree.frame import Frame
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"  # meshes, scenes, reference trees (../shared beside the clone)
-# XLA's flag for compiles without LLVM's optimizations (conftest sets it for the suite)
-UNOPTIMIZED_XLA = "--xla_backend_optimization_level=0"
+# XLA's flags for cheap compiles (conftest sets them for the suite): LLVM's optimizations
+# off, and the older loop emitters for fusions instead of the MLIR fusion emitters
+UNOPTIMIZED_XLA = "--xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false"
 NODES, PRIMS = 128, 64  # random_tree's one capacity: one compiled program for all its trees
 CAPACITY = 64  # padded()'s primitive capacity
 
@@ -43,6 +44,16 @@ def assert_same_tree(a, b, fields=("left", "right", "parent", "lo", "hi", "root"
     for field in fields:
         np.testing.assert_array_equal(np.asarray(getattr(a, field)), np.asarray(getattr(b, field)),
                                       err_msg=field)
+
+
+def assert_same_costs(a, b, err_msg=""):
+    """Costs (SAH figures, histories; NaN past the end) of the same trees from two different
+    compiled programs, e.g. a vmapped batch against single runs: equal but for the last bits
+    of a float sum, whose order each program may choose (with the suite's XLA flags the
+    loop emitters sum a few figures in another order: 1-2 ulps in float32)."""
+    a, b = np.asarray(a), np.asarray(b)
+    eps = max(np.finfo(a.dtype).eps, np.finfo(b.dtype).eps)  # of the coarser one
+    np.testing.assert_allclose(a, b, rtol=8 * eps, atol=0, equal_nan=True, err_msg=err_msg)
 
 
 # Random tree cases: (seed, n, max_leaf, kind) for random_tree
