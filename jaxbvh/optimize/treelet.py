@@ -34,7 +34,9 @@ unions of their leaves' boxes (all interior boxes are refitted tight first).
 Rounds
 ======
 One *pass* visits every interior node once, as a treelet root, in order of height
-(longest path to a leaf) measured when the pass starts, lowest first: nodes of one
+(longest path to a leaf) measured when the pass starts, lowest first (nodes of height 1
+root two-leaf treelets, whose one topology is the current one: they are passed over,
+:data:`SKIPPED_HEIGHT`, speed only; the twin solves them and finds nothing): nodes of one
 height have disjoint subtrees, hence disjoint treelets, and are solved together (the
 DP vmapped over every treelet of a window of nodes); by the time a node is solved, every
 node below it has been (restructuring only permutes ids inside a subtree). Passes repeat
@@ -81,6 +83,10 @@ DEFAULT_WINDOWS = None  # treelets solved at once: by capacity (window_sizes)
 #: windows of a tree of fewer nodes than SMALL_WINDOWS_FROM, and of one of more
 WINDOWS_SMALL_TREE, WINDOWS_LARGE_TREE = (256,), (256, 16)
 SMALL_WINDOWS_FROM = 4096
+#: a pass solves the treelets of nodes above this height only: a node of height 1 (two leaf
+#: children) roots a two-leaf treelet, whose one topology is the current one (speed only,
+#: never the result; a pass over legocar solved 5,297 treelets, 1,976 of them of two leaves)
+SKIPPED_HEIGHT = 1
 
 
 
@@ -292,12 +298,16 @@ def window_sizes(capacity: int, windows=None) -> tuple:
 def _pass(st: _State, scale, ct, min_gain, *, n, windows):
     """One bottom-up pass over every interior node; returns the state and treelets changed."""
     cap = st.child.shape[0]
-    interior = st.child[:, 0] >= 0
     big = jnp.int32(2 ** 31 - 1)
-    height = jnp.where(interior, _heights(st.child), big)
+    height = _heights(st.child)
+    # a node whose children are both leaves (height 1) roots a treelet of two leaves, which
+    # has one topology: solving it never changes anything, so it is not solved (37 % of
+    # legocar's interior nodes; SKIPPED_HEIGHT)
+    solved = height > SKIPPED_HEIGHT
+    height = jnp.where(solved, height, big)
     order = jnp.argsort(height, stable=True).astype(jnp.int32)
     keys = height[order]
-    count = jnp.sum(interior, dtype=jnp.int32)
+    count = jnp.sum(solved, dtype=jnp.int32)
     widths = tuple(sorted({min(w, cap) for w in windows}, reverse=True))
     order = jnp.concatenate([order, jnp.full(widths[0], cap, jnp.int32)])
 
