@@ -179,7 +179,9 @@ def _start_reinsertion(inner: Inner, params: Params, static: Static) -> Inner:
 def _start_round(inner: Inner, sah, static: Static) -> Inner:
     """The next round's treelet stage, started from the reinsertion stage's tree."""
     tree = reinsert.result(inner.reinsert).tree
-    sub = treelet.init(tree, static.treelet)  # traceable: it reads nothing on the host
+    # traceable: it reads nothing on the host; the treelets that the last treelet stage
+    # found optimal and that no reinsertion move changed are not solved again
+    sub = treelet.resume(inner.treelet, tree, static.treelet)
     return inner._replace(treelet=sub, stage=jnp.int32(TREELETS), round=inner.round + 1,
                           round_start=jnp.asarray(sah, inner.round_start.dtype))
 
