@@ -30,7 +30,10 @@ one ``step`` is one step of the current stage (a treelet pass or a reinsertion
 iteration, chosen by ``lax.cond`` on the stage counter), recorded with its stage in the
 history. When that stage's state is done, the next stage starts (traced, inside the same
 step) from its tree: the links and boxes go on from one stage to the next, and a stage
-that has nothing to do (two-leaf treelets, ``ct = 0``) is passed over at once. A round
+that has nothing to do (two-leaf treelets, ``ct = 0``) is passed over at once; a later
+round's treelet stage starts with :func:`jaxbvh.optimize.treelet.resume`, so the treelets
+the last stage found optimal and no reinsertion move changed are not solved again (speed
+only: the same trees). A round
 ends when its reinsertion stage is done. Each stage is held equal to its NumPy twin, and
 the pipeline equal to the stages chained by hand (``tests/optimize/test_optimize.py``), so it has
 no twin of its own.
