@@ -30,7 +30,10 @@ one ``step`` is one step of the current stage (a treelet pass or a reinsertion
 iteration, chosen by ``lax.cond`` on the stage counter), recorded with its stage in the
 history. When that stage's state is done, the next stage starts (traced, inside the same
 step) from its tree: the links and boxes go on from one stage to the next, and a stage
-that has nothing to do (two-leaf treelets, ``ct = 0``) is passed over at once. A round
+that has nothing to do (two-leaf treelets, ``ct = 0``) is passed over at once; a later
+round's treelet stage starts with :func:`jaxbvh.optimize.treelet.resume`, so the treelets
+the last stage found optimal and no reinsertion move changed are not solved again (speed
+only: the same trees). A round
 ends when its reinsertion stage is done. Each stage is held equal to its NumPy twin, and
 the pipeline equal to the stages chained by hand (``tests/optimize/test_optimize.py``), so it has
 no twin of its own.
@@ -179,7 +182,9 @@ def _start_reinsertion(inner: Inner, params: Params, static: Static) -> Inner:
 def _start_round(inner: Inner, sah, static: Static) -> Inner:
     """The next round's treelet stage, started from the reinsertion stage's tree."""
     tree = reinsert.result(inner.reinsert).tree
-    sub = treelet.init(tree, static.treelet)  # traceable: it reads nothing on the host
+    # traceable: it reads nothing on the host; the treelets that the last treelet stage
+    # found optimal and that no reinsertion move changed are not solved again
+    sub = treelet.resume(inner.treelet, tree, static.treelet)
     return inner._replace(treelet=sub, stage=jnp.int32(TREELETS), round=inner.round + 1,
                           round_start=jnp.asarray(sah, inner.round_start.dtype))
 

@@ -102,6 +102,33 @@ def test_smaller_treelets_and_windows():
     assert float(b.sah) <= float(a.sah) * (1 + 1e-6)  # 7 leaves see more than 4
 
 
+def test_passes_solve_only_fresh_treelets():
+    """A pass solves only the fresh nodes (a treelet rewrote them or a node below them):
+    every other node, solved again, would change nothing; the pass that changes nothing
+    leaves none fresh; ``resume`` after a move keeps the flags of the nodes it left alone."""
+    tree = random_tree(9, 40, 2)[0]  # the capacity and program of test_smaller_treelets_and_windows
+    interior = np.asarray(tree.left) >= 0
+    state, skipped = treelet.init(tree, treelet.Config(split_axes=False)), 0  # result keeps the links
+    while not bool(state.progress.done):
+        state = driver.advance(treelet.step, state, state.progress.step + 1)
+        fresh = np.asarray(state.inner.fresh)
+        for node in np.nonzero(interior & ~fresh)[0]:
+            assert not bool(treelet.solve(state, int(node)).improves), node
+            skipped += 1
+    assert bool(state.progress.converged) and state.progress.step > 1 and skipped > 0
+    assert not fresh[interior].any()
+    out = treelet.result(state).tree
+    assert not np.asarray(treelet.resume(state, out).inner.fresh)[interior].any()
+    parent, left, right = np.asarray(out.parent), np.array(out.left), np.array(out.right)
+    moved = int(np.nonzero(interior & (parent >= 0))[0][0])  # a "move": its children swap sides
+    left[moved], right[moved] = right[moved], left[moved]
+    resumed = treelet.resume(state, out.replace(left=left, right=right))
+    path, node = [], moved
+    while node >= 0:
+        path, node = path + [node], parent[node]
+    assert sorted(np.nonzero(np.asarray(resumed.inner.fresh))[0]) == sorted(path)
+
+
 def test_window_sizes_by_capacity():
     """Speed only: one window size below SMALL_WINDOWS_FROM nodes, a small one beside it
     from there on (legocar's real-tree test below runs that one against the twin); given
