@@ -158,11 +158,15 @@ def build_from(mesh, trees: dict[int, ObjectTree], *, threshold: float = _brefs.
         nodes, placed = jax.device_put((_brefs.without_triangles(forest), instances))
         # NumPy from here: the comparison and the root box are a few small steps, each
         # cheaper on the host than as a dispatched device op (measured: 1-2 ms each)
-        plain = jax.device_get(_brefs.build_top_level(nodes, placed, n, threshold=math.inf, **top))
+        # both builds dispatched before waiting for either (JAX runs them asynchronously;
+        # on a multi-core CPU the small plain one overlaps the re-braided one)
+        opens = not math.isinf(threshold) and slots > n  # no spare slot: nothing can open
+        braided = _brefs.launch_top_level(nodes, placed, n, threshold=threshold, capacity=slots,
+                                          **top) if opens else None
+        plain = _brefs.launch_top_level(nodes, placed, n, threshold=math.inf, **top)
+        plain, braided = jax.device_get((_brefs.finished(plain), braided and _brefs.finished(braided)))
         result, kept = plain, "two-level"
-        if not math.isinf(threshold):
-            braided = jax.device_get(_brefs.build_top_level(
-                nodes, placed, n, threshold=threshold, capacity=slots, **top))
+        if opens:
             braided = _same_root_box(braided, plain)
             if _keep_rebraided(braided, plain, forest, instances):
                 result, kept = braided, "rebraided"
@@ -188,9 +192,21 @@ def slots_of(mesh, threshold: float = _brefs.DEFAULT_THRESHOLD, budget: float | 
         users: dict[int, int] = {}
         for obj, _ in mesh.instances:
             users[obj] = users.get(obj, 0) + 1
-        once = sum(1 for obj, _ in mesh.instances if users[obj] == 1)
-        capacity = _brefs.scene_slots(n, mesh.n_triangles, once)
+        once = [users[obj] == 1 for obj, _ in mesh.instances]
+        capacity = _brefs.scene_slots(n, mesh.n_triangles, sum(once), _once_overlap(mesh, np.array(once)))
     return _brefs.brefs_capacity(n, threshold, _brefs.DEFAULT_BUDGET if budget is None else budget, capacity)
+
+
+def _once_overlap(mesh, once) -> float:
+    """Sum over the instances flagged in ``once`` [n] bool of their world box's
+    half-area over the scene box's (float64; world triangles, instances in triangle
+    order)."""
+    lo, hi = mesh.prim_boxes()
+    sizes = [mesh.objects[obj][1].shape[0] for obj, _ in mesh.instances]
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+    lo, hi = np.minimum.reduceat(lo, starts, axis=0), np.maximum.reduceat(hi, starts, axis=0)
+    scene = _area(lo.min(axis=0), hi.max(axis=0))
+    return float(_area(lo[once], hi[once]).sum() / scene) if scene > 0 else math.inf
 
 
 # ----------------------------------------------------------------------------------
