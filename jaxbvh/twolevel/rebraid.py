@@ -142,7 +142,7 @@ def build_from(mesh, trees: dict[int, ObjectTree], *, threshold: float = _brefs.
     ``shapes``: least array sizes ``{"nodes", "prims", "instances", "brefs"}`` (so that
     many scenes share one compiled top-level build and traversal); ``info``, if given,
     receives ``slots`` (the BRef array's size) and ``kept`` (``"rebraided"``,
-    ``"two-level"`` when opening did not lower the SAH, or ``"single object"``).
+    ``"two-level"`` when opening did not lower the SAH or no slot was spare, or ``"single object"``).
     """
     _brefs.check_options(threshold, budget, top_bins, overlap, rounds)
     start = time.perf_counter()
@@ -203,7 +203,7 @@ def _once_overlap(mesh, once) -> float:
     half-area over the scene box's (float64). World boxes: of the 8 transformed corners
     of each object's box (exact under the identity, looser under a rotation), so
     O(instances + object vertices) and not O(triangles), which the top-level time of a
-    large scene would notice (the drone: ~8 ms for its transformed vertices)."""
+    large scene would notice (the drone's or the room's transformed vertices: milliseconds)."""
     verts = [np.asarray(v, np.float64) for v, _ in mesh.objects]
     starts = np.cumsum([0] + [v.shape[0] for v in verts[:-1]])
     every = np.concatenate(verts)
