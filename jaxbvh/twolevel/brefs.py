@@ -158,27 +158,33 @@ def brefs_capacity(n_instances: int, threshold: float, budget: float,
     return max(n_instances, int(math.ceil(budget * n_instances)))
 
 
-def scene_slots(n_instances: int, n_prims: int, n_once: int) -> int:
+def scene_slots(n_instances: int, n_prims: int, n_once: int, once_overlap: float = math.inf) -> int:
     """The default size of the BRef array for a scene (the paper's §5.2 rule, scaled down).
 
     ``n_instances`` instances, ``n_prims`` world triangles, ``n_once`` of the instances
-    place an object no other instance uses. The paper allocates ``4 x #instances`` for
-    trees over instances and ``#primitives / 1000`` for trees over objects, a rule made
-    for scenes of millions of triangles: it gives a 13k-triangle scene of 8 overlapping
-    objects 13 slots, too few to open anything that matters. So the array gets the
-    largest of ``4 x #instances``, ``#primitives / 1000`` and ``min(16 x n_once,
-    #primitives / 64)``: objects placed once (the by-material kind, whose overlap only
-    deep opening removes) get 16 slots each -- on such a scene 4, 16 and 64 slots per
-    object gave 0.86x, 0.81x and 0.79x the two-level SAH, most of the gain by 16 -- but
-    never so many that a BRef stands for fewer than 64 triangles on average, which keeps
-    the top level small beside the object trees (and a room of hundreds of small
-    objects from opening them all). Instances of shared objects keep the paper's 4.
-    (Tried: scaling each instance's slots by how much its world box overlaps the others'
-    boxes; every bench scene but the rails has an average overlap of 0.84-1.0 -- the
-    room's shell and the drone's body contain the rest -- so it changed almost nothing.)
+    place an object no other instance uses; ``once_overlap``: the sum, over those, of
+    their world box's half-area over the scene box's (how many of their boxes a random
+    ray through the scene meets; inf: unknown, taken as overlapping).
+
+    The paper allocates ``4 x #instances`` for trees over instances and ``#primitives /
+    1000`` for trees over objects, a rule made for scenes of millions of triangles: it
+    gives a 13k-triangle scene of 8 overlapping objects 13 slots, too few to open
+    anything that matters. So the array gets the largest of ``4 x #instances`` of shared
+    objects, ``#primitives / 1000`` and, for the objects placed once (the by-material
+    kind, whose overlap only deep opening removes), the larger of 4 and 16 each, but
+    never so many that a BRef stands for fewer than 64 triangles on average (which keeps
+    the top level small beside the object trees) -- on a by-material fandisk 4, 16 and 64
+    slots per object gave 0.86x, 0.81x and 0.79x the two-level SAH, most of the gain by
+    16 -- scaled by ``min(1, once_overlap - 1)``, the boxes beyond the first that a ray
+    meets: where their boxes tile the scene rather than overlap, opening gains little
+    and a large array only costs top-level time (the drone's 39 parts, overlap 1.01:
+    0.992x the two-level SAH at 511 slots, 6-7x the plain top level's time; a room of 254
+    objects, overlap 0.75: no gain at 1,016 slots). At least one slot per instance.
     """
-    paper = max(4 * n_instances, math.ceil(n_prims / PRIMS_PER_SLOT))
-    return int(max(n_instances, paper, min(ONCE_BUDGET * n_once, n_prims // LEAST_PRIMS_PER_SLOT)))
+    once = max(4 * n_once, min(ONCE_BUDGET * n_once, n_prims // LEAST_PRIMS_PER_SLOT))
+    scale = min(1.0, max(0.0, once_overlap - 1.0))
+    paper = max(4 * (n_instances - n_once), math.ceil(n_prims / PRIMS_PER_SLOT))
+    return int(max(n_instances, paper, math.floor(once * scale)))
 
 
 def build_top_level(forest, instances, n_instances: int, *, threshold: float = DEFAULT_THRESHOLD,
@@ -198,17 +204,38 @@ def build_top_level(forest, instances, n_instances: int, *, threshold: float = D
     larger one changes nothing but the shapes, e.g. to compile once for many scenes).
     Returns a :class:`TopLevel` of JAX arrays.
     """
+    return finished(launch_top_level(forest, instances, n_instances, threshold=threshold, budget=budget,
+                                     capacity=capacity, bins=bins, overlap=overlap, estimate=estimate,
+                                     rounds=rounds, array_size=array_size))
+
+
+def launch_top_level(forest, instances, n_instances: int, *, threshold: float = DEFAULT_THRESHOLD,
+                     budget: float = DEFAULT_BUDGET, capacity: int | None = None,
+                     bins: int = DEFAULT_BINS, overlap: float = DEFAULT_OVERLAP,
+                     estimate: bool = False, rounds: int = DEFAULT_ROUNDS,
+                     array_size: int | None = None) -> TopLevel:
+    """:func:`build_top_level` without waiting for it: JAX dispatches the build and
+    returns at once, so a caller can start two builds (``jaxbvh.twolevel.build_from``: the
+    plain and the re-braided top level) before waiting for either; pass the result to
+    :func:`finished` before reading it."""
     check_options(threshold, budget, bins, overlap, rounds)
     if n_instances < 1:
         raise ValueError("a top level needs at least one instance")
     slots = brefs_capacity(n_instances, threshold, budget, capacity)
     cap = max(capacity_bucket(slots), array_size or 0)
     dtype = np.asarray(forest.lo).dtype
-    result = build_levels(jax.tree_util.tree_map(jnp.asarray, without_triangles(forest)),
-                          jax.tree_util.tree_map(jnp.asarray, instances), jnp.int32(n_instances),
-                          jnp.int32(slots), jnp.asarray(threshold, dtype), jnp.asarray(overlap, dtype),
-                          jnp.int32(rounds), cap=cap, bins=int(bins), estimate=bool(estimate))
-    if not bool(result.complete):  # cannot happen: every level splits every segment of >= 2 BRefs
+    return build_levels(jax.tree_util.tree_map(jnp.asarray, without_triangles(forest)),
+                        jax.tree_util.tree_map(jnp.asarray, instances), jnp.int32(n_instances),
+                        jnp.int32(slots), jnp.asarray(threshold, dtype), jnp.asarray(overlap, dtype),
+                        jnp.int32(rounds), cap=cap, bins=int(bins), estimate=bool(estimate))
+
+
+def finished(result: TopLevel) -> TopLevel:
+    """``result`` of :func:`launch_top_level` once the build has ended (waits for it);
+    raises if its loop stopped at its bound (cannot happen: every level splits every
+    segment of >= 2 BRefs)."""
+    if not bool(result.complete):
+        cap = result.node.shape[0]
         raise RuntimeError(f"top-level build stopped at its bound of {cap + 1} levels with segments left")
     return result
 

@@ -54,6 +54,7 @@ of the transformed object boxes three levels down), as the top level sees it.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import time
 import types
@@ -141,7 +142,7 @@ def build_from(mesh, trees: dict[int, ObjectTree], *, threshold: float = _brefs.
     ``shapes``: least array sizes ``{"nodes", "prims", "instances", "brefs"}`` (so that
     many scenes share one compiled top-level build and traversal); ``info``, if given,
     receives ``slots`` (the BRef array's size) and ``kept`` (``"rebraided"``,
-    ``"two-level"`` when opening did not lower the SAH, or ``"single object"``).
+    ``"two-level"`` when opening did not lower the SAH or no slot was spare, or ``"single object"``).
     """
     _brefs.check_options(threshold, budget, top_bins, overlap, rounds)
     start = time.perf_counter()
@@ -158,11 +159,15 @@ def build_from(mesh, trees: dict[int, ObjectTree], *, threshold: float = _brefs.
         nodes, placed = jax.device_put((_brefs.without_triangles(forest), instances))
         # NumPy from here: the comparison and the root box are a few small steps, each
         # cheaper on the host than as a dispatched device op (measured: 1-2 ms each)
-        plain = jax.device_get(_brefs.build_top_level(nodes, placed, n, threshold=math.inf, **top))
+        # both builds dispatched before waiting for either (JAX runs them asynchronously;
+        # on a multi-core CPU the small plain one overlaps the re-braided one)
+        opens = not math.isinf(threshold) and slots > n  # no spare slot: nothing can open
+        braided = _brefs.launch_top_level(nodes, placed, n, threshold=threshold, capacity=slots,
+                                          **top) if opens else None
+        plain = _brefs.launch_top_level(nodes, placed, n, threshold=math.inf, **top)
+        plain, braided = jax.device_get((_brefs.finished(plain), braided and _brefs.finished(braided)))
         result, kept = plain, "two-level"
-        if not math.isinf(threshold):
-            braided = jax.device_get(_brefs.build_top_level(
-                nodes, placed, n, threshold=threshold, capacity=slots, **top))
+        if opens:
             braided = _same_root_box(braided, plain)
             if _keep_rebraided(braided, plain, forest, instances):
                 result, kept = braided, "rebraided"
@@ -188,9 +193,30 @@ def slots_of(mesh, threshold: float = _brefs.DEFAULT_THRESHOLD, budget: float | 
         users: dict[int, int] = {}
         for obj, _ in mesh.instances:
             users[obj] = users.get(obj, 0) + 1
-        once = sum(1 for obj, _ in mesh.instances if users[obj] == 1)
-        capacity = _brefs.scene_slots(n, mesh.n_triangles, once)
+        once = [users[obj] == 1 for obj, _ in mesh.instances]
+        capacity = _brefs.scene_slots(n, mesh.n_triangles, sum(once), _once_overlap(mesh, np.array(once)))
     return _brefs.brefs_capacity(n, threshold, _brefs.DEFAULT_BUDGET if budget is None else budget, capacity)
+
+
+def _once_overlap(mesh, once) -> float:
+    """Sum over the instances flagged in ``once`` [n] bool of their world box's
+    half-area over the scene box's (float64). World boxes: of the 8 transformed corners
+    of each object's box (exact under the identity, looser under a rotation), so
+    O(instances + object vertices) and not O(triangles), which the top-level time of a
+    large scene would notice (the drone's or the room's transformed vertices: milliseconds)."""
+    verts = [np.asarray(v, np.float64) for v, _ in mesh.objects]
+    starts = np.cumsum([0] + [v.shape[0] for v in verts[:-1]])
+    every = np.concatenate(verts)
+    which = np.array([obj for obj, _ in mesh.instances])
+    low = np.minimum.reduceat(every, starts, axis=0)[which]  # [n, 3] object boxes by instance
+    high = np.maximum.reduceat(every, starts, axis=0)[which]
+    m = np.stack([t for _, t in mesh.instances]).astype(np.float64)  # [n, 4, 4]
+    pick = np.array(list(itertools.product((0, 1), repeat=3)), bool)  # [8, 3]: high where True
+    corners = np.where(pick[None], high[:, None], low[:, None])  # [n, 8, 3]
+    world = corners @ m[:, :3, :3].transpose(0, 2, 1) + m[:, None, :3, 3]
+    lo, hi = world.min(axis=1), world.max(axis=1)
+    scene = _area(lo.min(axis=0), hi.max(axis=0))
+    return float(_area(lo[once], hi[once]).sum() / scene) if scene > 0 else math.inf
 
 
 # ----------------------------------------------------------------------------------
@@ -264,12 +290,17 @@ def _opened_areas(node, instance, forest, instances) -> tuple[float, float]:
     key = np.unique(np.concatenate(pairs))
     i, n = key // nf, key % nf
     root = parent[n] < 0
-    tight = _bref_area(forest, instances, n, i)
-    loose = np.where(root, tight, _object_area(forest, instances, n, i))
     below = parent[node] >= 0
     b_n, b_i = node[below], instance[below]
+    # the opened nodes and the BRefs below a root in one call each (half the fixed cost)
+    every_n, every_i = np.concatenate([n, b_n]), np.concatenate([i, b_i])
+    box_area, obj_area = _bref_area(forest, instances, every_n, every_i), _object_area(forest, instances, every_n,
+                                                                                    every_i)
+    k = n.size
+    tight = box_area[:k]
+    loose = np.where(root, tight, obj_area[:k])
     cost = np.where(np.asarray(forest.left)[b_n] >= 0, 1.0, np.asarray(forest.prim_count)[b_n].astype(np.float64))
-    extra = (_object_area(forest, instances, b_n, b_i) - _bref_area(forest, instances, b_n, b_i)) * cost
+    extra = (obj_area[k:] - box_area[k:]) * cost
     return float(tight.sum()), float(loose.sum() + extra.sum())
 
 

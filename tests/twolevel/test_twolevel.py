@@ -550,8 +550,22 @@ def test_scene_slots_scale_with_the_scene():
     assert brefs.scene_slots(8, 12_946, 8) == 128
     assert brefs.scene_slots(254, 32_396, 254) == 1016
     assert brefs.scene_slots(8, 640, 8) == 32
-    mesh = scenes.by_material(*small_tree(1), groups=4)
-    assert twolevel.slots_of(mesh) == brefs.scene_slots(len(mesh.instances), mesh.n_triangles, len(mesh.instances))
+    # ... scaled by how many of their boxes a ray meets beyond the first (none: tiling)
+    assert brefs.scene_slots(8, 12_946, 8, 1.5) == 64
+    assert brefs.scene_slots(8, 12_946, 8, 1.0) == brefs.scene_slots(8, 12_946, 8, 0.5) == 13  # #prims / 1000
+    assert brefs.scene_slots(254, 32_396, 254, 0.75) == 254
+    assert brefs.scene_slots(40, 32_396, 8, 0.0) == 128  # shared objects keep the paper's 4 each
+    mesh = scenes.by_material(*small_tree(1), groups=4)  # placed once by the identity
+    lo = np.array([v.min(axis=0) for v, _ in mesh.objects])
+    hi = np.array([v.max(axis=0) for v, _ in mesh.objects])
+    half = lambda d: d[..., 0] * d[..., 1] + d[..., 1] * d[..., 2] + d[..., 2] * d[..., 0]  # noqa: E731
+    overlap = half(hi - lo).sum() / half(hi.max(axis=0) - lo.min(axis=0))
+    n = len(mesh.instances)
+    assert twolevel.slots_of(mesh) == brefs.scene_slots(n, mesh.n_triangles, n, overlap) > n
+    # a room of objects placed once that tile it (a ray meets < 2 of their boxes): no
+    # spare slot, so build_from builds no re-braided top level
+    room = scenes.furnished_room(jax.random.key(3), n_objects=6, triangles=8)
+    assert twolevel.slots_of(room) == len(room.instances)
     assert twolevel.slots_of(mesh, budget=2.0) == 2 * len(mesh.instances)
     assert twolevel.slots_of(mesh, threshold=math.inf) == len(mesh.instances)
 
