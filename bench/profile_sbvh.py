@@ -2,7 +2,7 @@
 
     python bench/profile_sbvh.py [--meshes legocar,rocker-arm] [--repeat 3] [--max-leaf 16]
 
-Runs the engine's levels one at a time from the host (the stage each level runs in is
+Runs the engine's levels one at a time from the host (the program each level runs in is
 chosen as :func:`jaxbvh.builders.sbvh.engine` chooses it) and times, per level (min of
 ``--repeat``, process CPU time, ms): the whole level, and apart from it its parts on the
 same state: the compaction of the level's references (``view``), the object split, the
@@ -65,10 +65,7 @@ def profile(name, args):
                        jnp.float32(1), jnp.float32(1))
     state = eng._initial(scene, n)
     live = eng.live_slots(refs)
-    tail = (eng.TAIL_SLOTS, max(eng.TAIL_SLOTS, live // eng.TAIL_LIVE_DIVISOR))
-    small = len(eng.stage_slots(refs)) == 1
-    grow = [f for f in eng.stage_slots(refs)[:-1] if not (f <= tail[0] and live <= tail[1])]
-    stages = [((f, live), True) for f in grow] + [(tail, False)] * (not small) + [((refs, refs), False)]
+    programs = eng.level_programs(refs)
 
     def fits(s, f, m):
         return int(s.next_free - s.level_start) <= f and int(jnp.sum(eng._in_level(s))) <= m
@@ -107,18 +104,13 @@ def profile(name, args):
         level_fn[(f, m)] = (prefix, obj, spatial, sides, level)
         return level_fn[(f, m)]
 
-    stage = 0
     depth = 0
     stats = []
     total = {}
-    print(f"# {name}: {n} triangles, R = {refs}, M = {live}, stages {[s[0] for s in stages]}")
-    print("depth stage(F,M) open refs tried pieces | level view object spatial sides rest (CPU ms)")
+    print(f"# {name}: {n} triangles, R = {refs}, M = {live}, level programs (F, M) {programs}")
+    print("depth (F,M) open refs tried pieces | level view object spatial sides rest (CPU ms)")
     while int(state.next_free) > int(state.level_start):
-        while True:
-            (f, m), before_tail = stages[stage]
-            if fits(state, f, m) and not (before_tail and fits(state, *tail)):
-                break
-            stage += 1
+        f, m = next(p for p in programs if fits(state, *p))  # as the engine picks
         prefix, obj, spatial, sides, level = parts(f, m)
         view, seg, count, node_lo, node_hi = prefix(state)
         o, bin3 = obj(view, seg)

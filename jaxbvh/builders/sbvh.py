@@ -379,23 +379,19 @@ def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int) -> SBVHBuil
     """
     scene = _Scene(tri, tri.reshape(tri.shape[0], 9).T, scale, threshold, max_leaf, ct, ci)
     state = _initial(scene, n)
-    refs = tri.shape[0]
-    live = live_slots(refs)
-    # levels with few open nodes run on small per-node arrays, and levels whose references
-    # fit on compacted per-reference arrays (all but the last stage); the deep levels,
-    # where the open nodes and their references dwindle, on small ones again (the tail)
-    tail = (TAIL_SLOTS, max(TAIL_SLOTS, live // TAIL_LIVE_DIVISOR))
-    small = len(stage_slots(refs)) == 1  # one stage: all slots, no compaction
-    grow = [slots for slots in stage_slots(refs)[:-1] if not (slots <= tail[0] and live <= tail[1])]
-    stages = [((slots, live), True) for slots in grow] + [(tail, False)] * (not small) + [((refs, refs), False)]
+    programs = level_programs(tri.shape[0])
+    levels = [partial(_level, scene, bins=bins, slots=slots, live=live) for slots, live in programs]
 
-    def fits(s: _State, slots: int, m: int):
-        return (s.next_free - s.level_start <= slots) & (jnp.sum(_in_level(s)) <= m)
+    def level(s: _State) -> _State:
+        """One level in the cheapest program that holds its open nodes and references
+        (the last holds any level; lax.switch runs only the chosen one)."""
+        if len(levels) == 1:
+            return levels[0](s)
+        open_nodes, in_level = s.next_free - s.level_start, jnp.sum(_in_level(s), dtype=jnp.int32)
+        fits = jnp.stack([(open_nodes <= slots) & (in_level <= live) for slots, live in programs])
+        return jax.lax.switch(jnp.argmax(fits), levels, s)
 
-    for (slots, m), before_tail in stages:
-        state = jax.lax.while_loop(lambda s, f=slots, m=m, b=before_tail: (s.next_free > s.level_start) & fits(s, f, m)
-                                   & ~(b & fits(s, *tail)),
-                                   partial(_level, scene, bins=bins, slots=slots, live=m), state)
+    state = jax.lax.while_loop(lambda s: s.next_free > s.level_start, level, state)
     return SBVHBuild(_tree(state), state.n_refs, state.spatial, state.short)
 
 
@@ -421,12 +417,11 @@ def live_slots(refs: int) -> int:
 
 
 def stage_slots(refs: int) -> list[int]:
-    """Slot counts F of the engine's stages for ``refs`` reference slots: 64, 512, ...
-    up to ``refs`` (only ``refs`` up to ``SMALL_STAGE`` slots). A level runs in the
-    first stage whose F holds its open nodes; the open nodes of a level are at most
-    ``refs``, so the last stage takes any level. Each stage compiles the level once
-    more, and saves the work of per-node arrays sized for the widest level on every
-    narrow one (the top of the tree)."""
+    """Slot counts F of the engine's level programs for ``refs`` reference slots: 64,
+    64 ``STAGE_GROWTH``, ... below ``refs``, then ``refs`` (only ``refs`` up to
+    ``SMALL_STAGE`` slots). The open nodes of a level are at most ``refs``, so the last
+    takes any level. Each program compiles the level once more, and saves the work of
+    per-node arrays sized for the widest level on every narrower one."""
     if refs <= SMALL_STAGE:  # small inputs: one stage (one compiled level) is cheap enough
         return [refs]
     out, f = [], 64
@@ -434,3 +429,20 @@ def stage_slots(refs: int) -> list[int]:
         out.append(f)
         f *= STAGE_GROWTH
     return out + [refs]
+
+
+def level_programs(refs: int) -> list[tuple[int, int]]:
+    """The (F, M) of the engine's compiled levels for ``refs`` reference slots, cheapest
+    first: the tail (``TAIL_SLOTS`` nodes, ``live_slots / TAIL_LIVE_DIVISOR``
+    references), then F from :func:`stage_slots` on ``live_slots`` compacted
+    references, last all ``refs`` slots uncompacted (any level fits it). Each level runs
+    in the first that holds its open nodes and references, so a level never pays for
+    per-node arrays much wider than it needs, whether above or below the widest level
+    (small inputs: one program)."""
+    slots = stage_slots(refs)
+    if len(slots) == 1:
+        return [(refs, refs)]
+    live = live_slots(refs)
+    tail = (TAIL_SLOTS, max(TAIL_SLOTS, live // TAIL_LIVE_DIVISOR))
+    grow = [(f, live) for f in slots[:-1] if not (f <= tail[0] and live <= tail[1])]
+    return [tail] + grow + [(refs, refs)]
