@@ -396,7 +396,7 @@ def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int) -> SBVHBuil
 
 
 #: growth of the per-level slot arrays from one stage to the next (:func:`stage_slots`)
-STAGE_GROWTH = 8
+STAGE_GROWTH = 4
 #: reference slots up to which the engine runs in one stage
 SMALL_STAGE = 512
 
@@ -425,7 +425,7 @@ def stage_slots(refs: int) -> list[int]:
     if refs <= SMALL_STAGE:  # small inputs: one stage (one compiled level) is cheap enough
         return [refs]
     out, f = [], 64
-    while f < refs:
+    while 2 * f <= refs:  # one of more than half the slots would save little over the last
         out.append(f)
         f *= STAGE_GROWTH
     return out + [refs]
