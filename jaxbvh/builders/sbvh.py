@@ -64,20 +64,22 @@ or shift ran 5-10x slower (profiled: they, not the segment reductions, made the 
 version 20-40x slower than the binned build). Nodes are numbered level by level, root
 0; the loop ends when a level opens no node (at most ``2 R`` levels: every level adds
 nodes, and there are fewer than ``2 R``). The per-node arrays of a level have F slots,
-F at least its open nodes; the loop runs in stages of growing F (:func:`stage_slots`),
-so the narrow top levels do not pay for the widest level's arrays. Every stage but the
-last first compacts the level's references (a cumsum of the live slots and a scatter,
-no sort) into M < R per-reference slots (:func:`live_slots`; the last stage, which
-takes any level, works on all R): the references of finished leaves and the free slots
-(R is a capacity bucket of twice the triangles, the builds use 1.1-1.3 times) then
-cost nothing in the object split, the spatial search and the bookkeeping. The deep
-levels, whose open nodes and references dwindle again, leave the widest stage for a
-*tail* stage of small F and M (``TAIL_SLOTS``; legocar: 512 nodes, 1,024 references),
-which took their cost from ~25 ms to 3-6 ms a level on legocar. Compile time grows
-with the stages (each compiles the level once); the level is kept cheap to compile (one
-loop body for the pieces, scans for the sweeps: legocar's four stages compiled in ~22 s,
-not ~70-100 s with unrolled sweeps and a switch over six piece-buffer sizes; the
-compaction and the tail stage cost some of that back, docs/spatial-splits.md).
+F at least its open nodes, and its per-reference arrays M slots, M at least its
+references: the level is compiled for a few (F, M) (:func:`level_programs`) and each
+level runs in the cheapest that holds it (a ``lax.switch`` in the loop body), so
+neither the narrow top levels nor the dwindling deep ones pay for the widest level's
+arrays. F grows by ``STAGE_GROWTH`` (64, 256, 1,024, 4,096, ...; by 8 before the
+sixth round, when rocker-arm's levels of 4-7k open nodes ran on 32,768 node slots).
+Every program but the last first compacts the level's references (a cumsum of the
+live slots and a scatter, no sort) into M < R per-reference slots (:func:`live_slots`;
+the last, which takes any level, works on all R): the references of finished leaves
+and the free slots (R is a capacity bucket of twice the triangles, the builds use
+1.1-1.3 times) then cost nothing in the object split, the spatial search and the
+bookkeeping. The *tail* program, small F and M (``TAIL_SLOTS``; legocar: 512 nodes,
+1,024 references), takes the deep levels (~25 ms to 3-6 ms a level on legocar).
+Compile time grows with the programs (each compiles the level once); the level is kept
+cheap to compile (one loop body for the pieces, scans for the sweeps; not ~70-100 s
+with unrolled sweeps and a switch over six piece-buffer sizes, docs/spatial-splits.md).
 """
 
 from __future__ import annotations
@@ -395,22 +397,22 @@ def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int) -> SBVHBuil
     return SBVHBuild(_tree(state), state.n_refs, state.spatial, state.short)
 
 
-#: growth of the per-level slot arrays from one stage to the next (:func:`stage_slots`)
+#: growth of the per-level node slots F from one level program to the next (:func:`stage_slots`)
 STAGE_GROWTH = 4
-#: reference slots up to which the engine runs in one stage
+#: reference slots up to which the engine compiles one level program
 SMALL_STAGE = 512
 
 
-#: the deep levels' stage: at most TAIL_SLOTS open nodes ...
+#: the deep levels' program: at most TAIL_SLOTS open nodes ...
 TAIL_SLOTS = 512
 #: ... and at most live_slots / TAIL_LIVE_DIVISOR references
 TAIL_LIVE_DIVISOR = 16
 
 
 def live_slots(refs: int) -> int:
-    """Per-reference slots M of the stages before the last for ``refs`` reference slots:
-    a capacity bucket of at least two thirds of them (a level whose references do not
-    fit goes on to the last stage, which has all R). With the default
+    """Per-reference slots M of the level programs but the tail and the last for ``refs``
+    reference slots: a capacity bucket of at least two thirds of them (a level whose
+    references do not fit runs in the last program, which has all R). With the default
     ``reference_capacity`` (2, rounded up to a bucket) that is 1.3 to 2 references per
     triangle; the builds measured used 1.06 to 1.27."""
     return refs if refs <= SMALL_STAGE else min(refs, capacity_bucket(-(-2 * refs // 3)))
