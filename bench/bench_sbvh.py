@@ -3,8 +3,9 @@
     python bench/bench_sbvh.py [--meshes legocar,fandisk,rocker-arm] [--repeat 3] [--rays 20000]
                                [--max-leaf 16] [--out bench/results]
 
-Per mesh, in one process (compiled once, the first call timed apart; wall and process
-CPU time, CPU time being the steadier measure on a shared machine):
+Per mesh, in one process (compiled once, the first call timed apart, then binned and
+sbvh builds taken in turn, so that their ratio compares builds under the same load;
+wall and process CPU time, CPU time being the steadier measure on a shared machine):
 
 * ours: ``binned`` and ``sbvh`` (same ``bins``, ``max_leaf``, SAH leaf test), warm build
   time (min of ``--repeat``), SAH (Ct = Ci = 1, normalised by the root's area),
@@ -39,20 +40,25 @@ MESHES = {"legocar": "meshes/legocar.obj", "fandisk": "meshes/fandisk.obj", "roc
           "bunny": "meshes/stanford-bunny.obj", "drone": "scenes/drone/scene.gltf"}
 
 
-def timed(call, repeat: int):
-    """``(result, first_wall, best_wall, best_cpu)``: the first call (compiles) apart."""
+def timed(calls: dict, repeat: int) -> dict:
+    """``{name: (result, first_wall, best_wall, best_cpu)}`` of each call: the first
+    calls (they compile) apart, then ``repeat`` rounds that take the calls in turn, so
+    that each ratio compares builds run under the same load."""
     import jax
 
-    start = time.perf_counter()
-    out = jax.block_until_ready(call())
-    first = time.perf_counter() - start
-    walls, cpus = [], []
+    out, first = {}, {}
+    for name, call in calls.items():
+        start = time.perf_counter()
+        out[name] = jax.block_until_ready(call())
+        first[name] = time.perf_counter() - start
+    walls, cpus = {name: [] for name in calls}, {name: [] for name in calls}
     for _ in range(repeat):
-        w, c = time.perf_counter(), time.process_time()
-        out = jax.block_until_ready(call())
-        walls.append(time.perf_counter() - w)
-        cpus.append(time.process_time() - c)
-    return out, first, min(walls), min(cpus)
+        for name, call in calls.items():
+            w, c = time.perf_counter(), time.process_time()
+            out[name] = jax.block_until_ready(call())
+            walls[name].append(time.perf_counter() - w)
+            cpus[name].append(time.process_time() - c)
+    return {name: (out[name], first[name], min(walls[name]), min(cpus[name])) for name in calls}
 
 
 def peer(mesh_path: Path, repeat: int, prefix: str) -> dict:
@@ -91,10 +97,12 @@ def one_mesh(name: str, args, work: Path) -> dict:
     tri = mesh.local_triangles()
     lo, hi = mesh.local_boxes()
     row = {"mesh": name, "triangles": mesh.n_triangles}
-    binned, first, wall, cpu = timed(lambda: jaxbvh.build(lo, hi, BinnedConfig(max_leaf=args.max_leaf)), args.repeat)
-    row["binned"] = {"sah": float(jaxbvh.sah(binned)), "first_s": first, "wall_s": wall, "cpu_s": cpu}
     config = SBVHConfig(max_leaf=args.max_leaf)
-    built, first, wall, cpu = timed(lambda: build_sbvh(tri, config), args.repeat)
+    times = timed({"binned": lambda: jaxbvh.build(lo, hi, BinnedConfig(max_leaf=args.max_leaf)),
+                   "sbvh": lambda: build_sbvh(tri, config)}, args.repeat)
+    binned, first, wall, cpu = times["binned"]
+    row["binned"] = {"sah": float(jaxbvh.sah(binned)), "first_s": first, "wall_s": wall, "cpu_s": cpu}
+    built, first, wall, cpu = times["sbvh"]
     problems = jaxbvh.check(built.tree, tri.min(1), tri.max(1), references=True, triangles=tri)
     row["sbvh"] = {"sah": float(jaxbvh.sah(built.tree)), "first_s": first, "wall_s": wall, "cpu_s": cpu,
                    "references_per_triangle": int(built.references) / mesh.n_triangles,
@@ -122,7 +130,7 @@ def one_mesh(name: str, args, work: Path) -> dict:
 
 def markdown(rows, args) -> str:
     lines = [f"# SBVH vs binned vs tinybvh BuildHQ ({platform.machine()}, {platform.processor() or 'cpu'}; "
-             f"max_leaf {args.max_leaf}; min of {args.repeat} warm runs)", "",
+             f"max_leaf {args.max_leaf}; min of {args.repeat} warm runs, binned and sbvh in turn)", "",
              "Shared 2-core machine under load: compare times as ratios taken in the same run; "
              "CPU time (process) is steadier than wall time.", "",
              "| mesh | tris | SAH binned | SAH sbvh | SAH tinybvh hq | sbvh / hq SAH | refs/tri sbvh | refs/tri hq "

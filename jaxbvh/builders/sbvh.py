@@ -64,20 +64,22 @@ or shift ran 5-10x slower (profiled: they, not the segment reductions, made the 
 version 20-40x slower than the binned build). Nodes are numbered level by level, root
 0; the loop ends when a level opens no node (at most ``2 R`` levels: every level adds
 nodes, and there are fewer than ``2 R``). The per-node arrays of a level have F slots,
-F at least its open nodes; the loop runs in stages of growing F (:func:`stage_slots`),
-so the narrow top levels do not pay for the widest level's arrays. Every stage but the
-last first compacts the level's references (a cumsum of the live slots and a scatter,
-no sort) into M < R per-reference slots (:func:`live_slots`; the last stage, which
-takes any level, works on all R): the references of finished leaves and the free slots
-(R is a capacity bucket of twice the triangles, the builds use 1.1-1.3 times) then
-cost nothing in the object split, the spatial search and the bookkeeping. The deep
-levels, whose open nodes and references dwindle again, leave the widest stage for a
-*tail* stage of small F and M (``TAIL_SLOTS``; legocar: 512 nodes, 1,024 references),
-which took their cost from ~25 ms to 3-6 ms a level on legocar. Compile time grows
-with the stages (each compiles the level once); the level is kept cheap to compile (one
-loop body for the pieces, scans for the sweeps: legocar's four stages compiled in ~22 s,
-not ~70-100 s with unrolled sweeps and a switch over six piece-buffer sizes; the
-compaction and the tail stage cost some of that back, docs/spatial-splits.md).
+F at least its open nodes, and its per-reference arrays M slots, M at least its
+references: the level is compiled for a few (F, M) (:func:`level_programs`) and each
+level runs in the cheapest that holds it (a ``lax.switch`` in the loop body), so
+neither the narrow top levels nor the dwindling deep ones pay for the widest level's
+arrays. F grows by ``STAGE_GROWTH`` (64, 256, 1,024, 4,096, ...; by 8 before the
+sixth round, when rocker-arm's levels of 4-7k open nodes ran on 32,768 node slots).
+Every program but the last first compacts the level's references (a cumsum of the
+live slots and a scatter, no sort) into M < R per-reference slots (:func:`live_slots`;
+the last, which takes any level, works on all R): the references of finished leaves
+and the free slots (R is a capacity bucket of twice the triangles, the builds use
+1.1-1.3 times) then cost nothing in the object split, the spatial search and the
+bookkeeping. The *tail* program, small F and M (``TAIL_SLOTS``; legocar: 512 nodes,
+1,024 references), takes the deep levels (~25 ms to 3-6 ms a level on legocar).
+Compile time grows with the programs (each compiles the level once); the level is kept
+cheap to compile (one loop body for the pieces, scans for the sweeps; not ~70-100 s
+with unrolled sweeps and a switch over six piece-buffer sizes, docs/spatial-splits.md).
 """
 
 from __future__ import annotations
@@ -379,58 +381,70 @@ def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int) -> SBVHBuil
     """
     scene = _Scene(tri, tri.reshape(tri.shape[0], 9).T, scale, threshold, max_leaf, ct, ci)
     state = _initial(scene, n)
-    refs = tri.shape[0]
-    live = live_slots(refs)
-    # levels with few open nodes run on small per-node arrays, and levels whose references
-    # fit on compacted per-reference arrays (all but the last stage); the deep levels,
-    # where the open nodes and their references dwindle, on small ones again (the tail)
-    tail = (TAIL_SLOTS, max(TAIL_SLOTS, live // TAIL_LIVE_DIVISOR))
-    small = len(stage_slots(refs)) == 1  # one stage: all slots, no compaction
-    grow = [slots for slots in stage_slots(refs)[:-1] if not (slots <= tail[0] and live <= tail[1])]
-    stages = [((slots, live), True) for slots in grow] + [(tail, False)] * (not small) + [((refs, refs), False)]
+    programs = level_programs(tri.shape[0])
+    levels = [partial(_level, scene, bins=bins, slots=slots, live=live) for slots, live in programs]
 
-    def fits(s: _State, slots: int, m: int):
-        return (s.next_free - s.level_start <= slots) & (jnp.sum(_in_level(s)) <= m)
+    def level(s: _State) -> _State:
+        """One level in the cheapest program that holds its open nodes and references
+        (the last holds any level; lax.switch runs only the chosen one)."""
+        if len(levels) == 1:
+            return levels[0](s)
+        open_nodes, in_level = s.next_free - s.level_start, jnp.sum(_in_level(s), dtype=jnp.int32)
+        fits = jnp.stack([(open_nodes <= slots) & (in_level <= live) for slots, live in programs])
+        return jax.lax.switch(jnp.argmax(fits), levels, s)
 
-    for (slots, m), before_tail in stages:
-        state = jax.lax.while_loop(lambda s, f=slots, m=m, b=before_tail: (s.next_free > s.level_start) & fits(s, f, m)
-                                   & ~(b & fits(s, *tail)),
-                                   partial(_level, scene, bins=bins, slots=slots, live=m), state)
+    state = jax.lax.while_loop(lambda s: s.next_free > s.level_start, level, state)
     return SBVHBuild(_tree(state), state.n_refs, state.spatial, state.short)
 
 
-#: growth of the per-level slot arrays from one stage to the next (:func:`stage_slots`)
-STAGE_GROWTH = 8
-#: reference slots up to which the engine runs in one stage
+#: growth of the per-level node slots F from one level program to the next (:func:`stage_slots`)
+STAGE_GROWTH = 4
+#: reference slots up to which the engine compiles one level program
 SMALL_STAGE = 512
 
 
-#: the deep levels' stage: at most TAIL_SLOTS open nodes ...
+#: the deep levels' program: at most TAIL_SLOTS open nodes ...
 TAIL_SLOTS = 512
 #: ... and at most live_slots / TAIL_LIVE_DIVISOR references
 TAIL_LIVE_DIVISOR = 16
 
 
 def live_slots(refs: int) -> int:
-    """Per-reference slots M of the stages before the last for ``refs`` reference slots:
-    a capacity bucket of at least two thirds of them (a level whose references do not
-    fit goes on to the last stage, which has all R). With the default
+    """Per-reference slots M of the level programs but the tail and the last for ``refs``
+    reference slots: a capacity bucket of at least two thirds of them (a level whose
+    references do not fit runs in the last program, which has all R). With the default
     ``reference_capacity`` (2, rounded up to a bucket) that is 1.3 to 2 references per
     triangle; the builds measured used 1.06 to 1.27."""
     return refs if refs <= SMALL_STAGE else min(refs, capacity_bucket(-(-2 * refs // 3)))
 
 
 def stage_slots(refs: int) -> list[int]:
-    """Slot counts F of the engine's stages for ``refs`` reference slots: 64, 512, ...
-    up to ``refs`` (only ``refs`` up to ``SMALL_STAGE`` slots). A level runs in the
-    first stage whose F holds its open nodes; the open nodes of a level are at most
-    ``refs``, so the last stage takes any level. Each stage compiles the level once
-    more, and saves the work of per-node arrays sized for the widest level on every
-    narrow one (the top of the tree)."""
+    """Slot counts F of the engine's level programs for ``refs`` reference slots: 64,
+    64 ``STAGE_GROWTH``, ... below ``refs``, then ``refs`` (only ``refs`` up to
+    ``SMALL_STAGE`` slots). The open nodes of a level are at most ``refs``, so the last
+    takes any level. Each program compiles the level once more, and saves the work of
+    per-node arrays sized for the widest level on every narrower one."""
     if refs <= SMALL_STAGE:  # small inputs: one stage (one compiled level) is cheap enough
         return [refs]
     out, f = [], 64
-    while f < refs:
+    while 2 * f <= refs:  # one of more than half the slots would save little over the last
         out.append(f)
         f *= STAGE_GROWTH
     return out + [refs]
+
+
+def level_programs(refs: int) -> list[tuple[int, int]]:
+    """The (F, M) of the engine's compiled levels for ``refs`` reference slots, cheapest
+    first: the tail (``TAIL_SLOTS`` nodes, ``live_slots / TAIL_LIVE_DIVISOR``
+    references), then F from :func:`stage_slots` on ``live_slots`` compacted
+    references, last all ``refs`` slots uncompacted (any level fits it). Each level runs
+    in the first that holds its open nodes and references, so a level never pays for
+    per-node arrays much wider than it needs, whether above or below the widest level
+    (small inputs: one program)."""
+    slots = stage_slots(refs)
+    if len(slots) == 1:
+        return [(refs, refs)]
+    live = live_slots(refs)
+    tail = (TAIL_SLOTS, max(TAIL_SLOTS, live // TAIL_LIVE_DIVISOR))
+    grow = [(f, live) for f in slots[:-1] if not (f <= tail[0] and live <= tail[1])]
+    return [tail] + grow + [(refs, refs)]

@@ -167,17 +167,21 @@ def _on_axis(axis, coords):
     return jnp.where(axis == 0, coords[0], jnp.where(axis == 1, coords[1], coords[2]))
 
 
-def _piece_boxes(v, ref_lo, ref_hi, axis, node_lo_a, ext_a, b0, b1, b, valid, bins):
-    """Estimated box (lo, hi: three coordinate arrays [P] each) of pieces: a reference's
-    part in spatial bin ``b`` of ``axis`` (all [P], one entry per piece): its corners
-    clamped to its box that fall in ``b``, and the clamped crossings of the planes ``b``
-    and ``b + 1`` where its box spans them (the twin's ``_bin_boxes`` for one reference
-    and one bin). ``v[k][c]``: vertex ``k``'s coordinate ``c``; ``ref_lo[c]``, ``ref_hi[c]``.
+def _piece_boxes(v, ref_lo, ref_hi, axis, node_lo_a, ext_a, b1, b, valid, bins):
+    """What piece ``b`` (a reference's part in spatial bin ``b`` of ``axis``) adds to the
+    bins' boxes: ``(corner_lo, corner_hi, cross_lo, cross_hi)``, three coordinate arrays
+    [P] each (one entry per piece). ``corner_*``: the box of its corners clamped to its
+    box that fall in ``b``, for bin ``b``; ``cross_*``: the clamped crossing of plane
+    ``b + 1`` where its box spans it (``b < b1``), for both bins beside that plane.
+    Bin ``b``'s box (the twin's ``_bin_boxes`` for one reference and one bin) is then
+    the corners in it with the crossings of planes ``b`` and ``b + 1``: each plane's
+    crossing is computed once, by the piece below it (computing both planes per piece
+    cost nearly twice the search). ``v[k][c]``: vertex ``k``'s coordinate ``c``;
+    ``ref_lo[c]``, ``ref_hi[c]``.
 
     Written coordinate by coordinate on flat arrays, with no concatenation or shift:
     XLA on CPU runs arrays with a trailing axis of 3, and fusions that mix elements,
-    many times slower. (Each plane's crossing is found twice, once for each bin beside
-    it: cheaper here than sharing it between neighbouring pieces.)
+    many times slower.
     """
     dt = ref_lo[0].dtype
     inf = jnp.asarray(jnp.inf, dt)
@@ -188,22 +192,21 @@ def _piece_boxes(v, ref_lo, ref_hi, axis, node_lo_a, ext_a, b0, b1, b, valid, bi
         lo = [jnp.minimum(lo[c], jnp.where(inside, corner[k][c], inf)) for c in range(3)]
         hi = [jnp.maximum(hi[c], jnp.where(inside, corner[k][c], -inf)) for c in range(3)]
     a = [_on_axis(axis, v[k]) for k in range(3)]  # the vertices on the split axis
-    for j in (b, b + 1):  # plane b's crossing lies in bins b - 1 and b, plane b + 1's in b and b + 1
-        p = rules.plane_at(node_lo_a, ext_a, j, bins)
-        x_lo, x_hi, crossed = [inf] * 3, [-inf] * 3, jnp.zeros(p.shape, bool)
-        for i, k in rules.EDGES:
-            crosses = ((a[i] < p) & (a[k] > p)) | ((a[i] > p) & (a[k] < p))
-            denominator = jnp.where(crosses, a[k] - a[i], jnp.ones((), dt))
-            crossed = crossed | crosses
-            for c in range(3):
-                x = rules.crossing_coordinate(v[i][c], v[k][c], a[i], p, denominator)
-                margin = rules.clip_margin(v[i][c], v[k][c])
-                x_lo[c] = jnp.minimum(x_lo[c], jnp.where(crosses, jnp.where(axis == c, p, x - margin), inf))
-                x_hi[c] = jnp.maximum(x_hi[c], jnp.where(crosses, jnp.where(axis == c, p, x + margin), -inf))
-        used = valid & (b0 < j) & (j <= b1) & crossed
-        lo = [jnp.minimum(lo[c], jnp.where(used, jnp.clip(x_lo[c], ref_lo[c], ref_hi[c]), inf)) for c in range(3)]
-        hi = [jnp.maximum(hi[c], jnp.where(used, jnp.clip(x_hi[c], ref_lo[c], ref_hi[c]), -inf)) for c in range(3)]
-    return lo, hi
+    p = rules.plane_at(node_lo_a, ext_a, b + 1, bins)
+    x_lo, x_hi, crossed = [inf] * 3, [-inf] * 3, jnp.zeros(p.shape, bool)
+    for i, k in rules.EDGES:
+        crosses = ((a[i] < p) & (a[k] > p)) | ((a[i] > p) & (a[k] < p))
+        denominator = jnp.where(crosses, a[k] - a[i], jnp.ones((), dt))
+        crossed = crossed | crosses
+        for c in range(3):
+            x = rules.crossing_coordinate(v[i][c], v[k][c], a[i], p, denominator)
+            margin = rules.clip_margin(v[i][c], v[k][c])
+            x_lo[c] = jnp.minimum(x_lo[c], jnp.where(crosses, jnp.where(axis == c, p, x - margin), inf))
+            x_hi[c] = jnp.maximum(x_hi[c], jnp.where(crosses, jnp.where(axis == c, p, x + margin), -inf))
+    used = valid & (b < b1) & crossed
+    cross_lo = [jnp.where(used, jnp.clip(x_lo[c], ref_lo[c], ref_hi[c]), inf) for c in range(3)]
+    cross_hi = [jnp.where(used, jnp.clip(x_hi[c], ref_lo[c], ref_hi[c]), -inf) for c in range(3)]
+    return lo, hi, cross_lo, cross_hi
 
 
 def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, tried, node_bins, slots: int, scale,
@@ -213,9 +216,11 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
     Every live reference (one of a tried node) spans bins ``b0 .. b1`` per axis; it is cut
     into one *piece* per (axis, bin) it spans, the pieces are walked in chunks of
     :func:`piece_chunk` (a loop of as many steps as the level needs, one compiled body),
-    and each piece's estimated box enters its (node, axis, bin) cell by scatter. A reference
-    inside one bin (most of them) is one piece per axis, so the work follows the live
-    references and their straddling, not ``bins`` times every slot.
+    and each piece's estimated box enters its (node, axis, bin) cell by scatter: its
+    corners in that bin, and the crossing of the plane above it, which enters a cell of
+    that plane and reaches both bins beside it after the loop (:func:`_piece_boxes`). A
+    reference inside one bin (most of them) is one piece per axis, so the work follows
+    the live references and their straddling, not ``bins`` times every slot.
     """
     refs = seg.shape[0]
     ext = node_hi - node_lo  # [F, 3]
@@ -233,10 +238,12 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
     chunk = piece_chunk(refs, bins)
     dt = ref_lo.dtype
 
+    planes = (bins + 1) * slots * 3  # cells of the planes' crossings: (plane j, slot, axis), j = 0 .. B
+
     def step(i, cell):
         """Pieces ``i chunk .. (i + 1) chunk - 1`` into the cells (scatter min, max and add:
         the same values as one segment reduction over all pieces)."""
-        counts, box_lo, box_hi = cell
+        counts, box_lo, box_hi, cross_lo, cross_hi = cell
         p = i * chunk + jnp.arange(chunk, dtype=jnp.int32)
         owner = jnp.clip(jnp.searchsorted(ends, p, side="right"), 0, 3 * refs - 1).astype(jnp.int32)
         valid = p < total
@@ -248,19 +255,33 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
         corners = [column[prim] for column in tri_columns]  # gathered column by column
         piece_lo, piece_hi = [column[r] for column in lo_columns], [column[r] for column in hi_columns]
         v = [corners[3 * k: 3 * k + 3] for k in range(3)]
-        piece_lo, piece_hi = _piece_boxes(v, piece_lo, piece_hi, axis, lo_r.ravel()[owner], ext_r.ravel()[owner],
-                                          b0_p, b1_p, b, valid, bins_r[r])
+        piece_lo, piece_hi, x_lo, x_hi = _piece_boxes(v, piece_lo, piece_hi, axis, lo_r.ravel()[owner],
+                                                      ext_r.ravel()[owner], b1_p, b, valid, bins_r[r])
         key = jnp.where(valid, cell_key(b, seg_p, axis, slots), cells)  # cells: dropped
+        x_key = jnp.where(valid & (b < b1_p), cell_key(b + 1, seg_p, axis, slots), planes)
         counts = [c.at[key].add((flag & valid).astype(jnp.int32), mode="drop")
                   for c, flag in zip(counts, (b == b0_p, b == b1_p))]
         box_lo = [c.at[key].min(x, mode="drop") for c, x in zip(box_lo, piece_lo)]
         box_hi = [c.at[key].max(x, mode="drop") for c, x in zip(box_hi, piece_hi)]
-        return counts, box_lo, box_hi
+        cross_lo = [c.at[x_key].min(x, mode="drop") for c, x in zip(cross_lo, x_lo)]
+        cross_hi = [c.at[x_key].max(x, mode="drop") for c, x in zip(cross_hi, x_hi)]
+        return counts, box_lo, box_hi, cross_lo, cross_hi
 
-    empty = ([jnp.zeros(cells, jnp.int32)] * 2, [jnp.full(cells, jnp.inf, dt)] * 3, [jnp.full(cells, -jnp.inf, dt)] * 3)
+    inf = jnp.full(cells, jnp.inf, dt)
+    empty = ([jnp.zeros(cells, jnp.int32)] * 2, [inf] * 3, [-inf] * 3, [jnp.full(planes, jnp.inf, dt)] * 3,
+             [jnp.full(planes, -jnp.inf, dt)] * 3)
     # at most ceil(3 R B / chunk) steps: the pieces are at most 3 R B
-    counts, box_lo, box_hi = jax.lax.fori_loop(0, (total + chunk - 1) // chunk, step, empty)
-    counts, box_lo, box_hi = ([c.reshape(bins, slots, 3) for c in cs] for cs in (counts, box_lo, box_hi))
+    counts, box_lo, box_hi, cross_lo, cross_hi = jax.lax.fori_loop(0, (total + chunk - 1) // chunk, step, empty)
+    rows = slots * 3
+
+    def with_planes(op, corner, cross):
+        """Bin b's box: its corners' with the crossings of planes b and b + 1 (rows of [B, F 3])."""
+        corner, cross = corner.reshape(bins, rows), cross.reshape(bins + 1, rows)
+        return op(corner, op(cross[:-1], cross[1:])).reshape(bins, slots, 3)
+
+    counts = [c.reshape(bins, slots, 3) for c in counts]
+    box_lo = [with_planes(jnp.minimum, c, x) for c, x in zip(box_lo, cross_lo)]
+    box_hi = [with_planes(jnp.maximum, c, x) for c, x in zip(box_hi, cross_hi)]
     return _sweep_bins(counts, box_lo, box_hi, (ext > 0) & tried[:, None], scale, bins), Bins(b0, b1)
 
 
