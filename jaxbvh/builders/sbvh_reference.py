@@ -20,6 +20,7 @@ from typing import NamedTuple
 import numpy as np
 
 from jaxbvh.builders import sbvh_rules as rules
+from jaxbvh.builders.binning_rules import binned_split
 from jaxbvh.builders.node_list_rules import NodeList
 from jaxbvh.numerics import TIE_TOLERANCE, half_area, scene_scale
 from jaxbvh.tree.layout import BVH
@@ -57,31 +58,12 @@ def _overlap_area(a_lo, a_hi, b_lo, b_hi, scale):
 
 
 def _object_split(refs: _Refs, scale, bins):
-    """Binned object split over the reference boxes' centres (the binned builder's rule):
+    """Binned object split over the reference boxes' centres (the binned builder's rule,
+    :func:`~jaxbvh.builders.binning_rules.binned_split`, one primitive per reference):
     ``(cost, axis, plane, goes_left [m])`` or None without a plane."""
     dt = refs.lo.dtype
     centre = dt.type(0.5) * refs.lo + dt.type(0.5) * refs.hi
-    cmin, cmax = centre.min(0), centre.max(0)
-    candidates = []  # lowest axis, then lowest plane first
-    for axis in range(3):
-        span = cmax[axis] - cmin[axis]
-        if not span > 0:
-            continue
-        raw = np.floor((centre[:, axis] - cmin[axis]) * dt.type(bins) / span)
-        b = np.clip(raw, 0, bins - 1).astype(np.int64)
-        for plane in range(bins - 1):
-            left = b <= plane
-            if left.all() or not left.any():
-                continue
-            cost = (half_area(*_union(refs.lo[left], refs.hi[left]), scale) * dt.type(left.sum())
-                    + half_area(*_union(refs.lo[~left], refs.hi[~left]), scale) * dt.type((~left).sum()))
-            candidates.append((cost, axis, plane, left))
-    if not candidates:
-        return None
-    best = min(c[0] for c in candidates)
-    near = best * dt.type(1 + TIE_TOLERANCE)
-    _, axis, plane, left = next(c for c in candidates if c[0] <= near)
-    return best, axis, plane, left
+    return binned_split(centre, refs.lo, refs.hi, np.ones(len(refs.lo), np.int64), bins, scale)
 
 
 class _Spatial(NamedTuple):

@@ -14,6 +14,7 @@ import numpy as np
 
 from jaxbvh.builders import lbvh_reference as lbvh
 from jaxbvh.builders import ploc_reference as ploc
+from jaxbvh.builders.binning_rules import binned_split
 from jaxbvh.builders.node_list_rules import NodeList
 from jaxbvh.numerics import TIE_TOLERANCE, half_area, scene_scale
 from jaxbvh.tree.layout import BVH
@@ -64,30 +65,13 @@ def _sweep_split(ids, lo, hi, centre, scale):
 
 
 def _binned_split(ids, lo, hi, centre, scale, bins):
-    """Wald's binned SAH; returns (cost, axis, left, right) or None without a plane."""
-    dtype = lo.dtype
-    c = centre[ids]
-    cmin, cmax = c.min(0), c.max(0)
-    candidates = []  # (cost, axis, left, right), lowest axis then plane first
-    for axis in range(3):
-        span = cmax[axis] - cmin[axis]
-        if not span > 0:
-            continue
-        raw = np.floor((c[:, axis] - cmin[axis]) * dtype.type(bins) / span)
-        b = np.clip(raw, 0, bins - 1).astype(np.int64)
-        for plane in range(bins - 1):
-            left, right = ids[b <= plane], ids[b > plane]
-            if len(left) == 0 or len(right) == 0:
-                continue
-            cost = (half_area(lo[left].min(0), hi[left].max(0), scale) * dtype.type(len(left))
-                    + half_area(lo[right].min(0), hi[right].max(0), scale) * dtype.type(len(right)))
-            candidates.append((cost, axis, left, right))
-    if not candidates:
+    """Wald's binned SAH (:func:`~jaxbvh.builders.binning_rules.binned_split`, one
+    primitive per row); returns (cost, axis, left, right) or None without a plane."""
+    split = binned_split(centre[ids], lo[ids], hi[ids], np.ones(len(ids), np.int64), bins, scale)
+    if split is None:
         return None
-    best = min(c[0] for c in candidates)
-    near = best * dtype.type(1 + TIE_TOLERANCE)
-    _, axis, left, right = next(c for c in candidates if c[0] <= near)
-    return best, axis, left, right
+    cost, axis, _, left = split
+    return cost, axis, ids[left], ids[~left]
 
 
 def _node_split(config, ids, lo, hi, centre, scale, box_lo, box_hi):

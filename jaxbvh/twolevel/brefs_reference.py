@@ -16,7 +16,7 @@ import dataclasses
 
 import numpy as np
 
-from jaxbvh.numerics import TIE_TOLERANCE, half_area
+from jaxbvh.builders.binning_rules import binned_split
 from jaxbvh.tree.layout import BVH
 
 SMALL_SEGMENT = 4
@@ -217,31 +217,17 @@ def _open_once(refs, f, instances, ids, end, extra, box_lo, box_hi, threshold, e
 
 
 def _best_split(refs, ids, bins, dtype):
-    """Binning, bins counting primitives: ``(axis, goes_left)`` of the cheapest plane
-    (first within the tie tolerance), or ``(None, first half)`` without any plane."""
-    centre = dtype.type(0.5) * refs.lo[ids] + dtype.type(0.5) * refs.hi[ids]
-    c_min, c_max = centre.min(0), centre.max(0)
-    candidates = []  # (cost, axis, plane, bin of each BRef on that axis)
-    for axis in range(3):
-        span = c_max[axis] - c_min[axis]
-        if not span > 0:
-            continue
-        raw = np.floor((centre[:, axis] - c_min[axis]) * dtype.type(bins) / span)
-        b = np.clip(raw, 0, bins - 1).astype(np.int64)
-        for plane in range(bins - 1):
-            on_left = b <= plane
-            if on_left.all() or not on_left.any():
-                continue
-            l_ids, r_ids = ids[on_left], ids[~on_left]
-            cost = (half_area(refs.lo[l_ids].min(0), refs.hi[l_ids].max(0)) * dtype.type(refs.prims[l_ids].sum())
-                    + half_area(refs.lo[r_ids].min(0), refs.hi[r_ids].max(0)) * dtype.type(refs.prims[r_ids].sum()))
-            candidates.append((cost, axis, plane, b))
-    if not candidates:
+    """Binning, bins counting primitives
+    (:func:`~jaxbvh.builders.binning_rules.binned_split`, each BRef weighing its
+    primitives): ``(axis, goes_left)`` of the cheapest plane (first within the tie
+    tolerance), or ``(None, first half)`` without any plane."""
+    lo, hi = refs.lo[ids], refs.hi[ids]
+    centre = dtype.type(0.5) * lo + dtype.type(0.5) * hi
+    split = binned_split(centre, lo, hi, refs.prims[ids], bins)
+    if split is None:
         return None, np.arange(len(ids)) < len(ids) // 2
-    least = min(c[0] for c in candidates)
-    near = least * dtype.type(1 + TIE_TOLERANCE)
-    _, axis, plane, b = next(c for c in candidates if c[0] <= near)
-    return axis, b <= plane
+    _, axis, _, goes_left = split
+    return axis, goes_left
 
 
 def _spare_left(refs, f, l_ids, r_ids, spare, threshold) -> int:
