@@ -248,21 +248,28 @@ def _process(st: _State, roots, scale, ct, min_gain, n):
 # ----------------------------------------------------------------------------------
 
 
-def _heights(child):
-    """Height of every node [N] (leaves and padding 0), by sweeps (at most N + 1)."""
-    cap = child.shape[0]
-    interior = child[:, 0] >= 0
+def _to_fixpoint(update, start, cap: int):
+    """``update`` applied to ``start`` until it changes nothing: at most ``cap + 1``
+    sweeps (a bound: a walk up or down a tree of ``cap`` nodes settles within ``cap``)."""
 
     def cond(c):
         return c[1] & (c[2] <= cap)
 
     def body(c):
-        h, _, i = c
-        new = jnp.where(interior, 1 + jnp.maximum(take_clipped(h, child[:, 0]), take_clipped(h, child[:, 1])), 0)
-        return new, jnp.any(new != h), i + 1
+        x, _, i = c
+        new = update(x)
+        return new, jnp.any(new != x), i + 1
 
-    h, _, _ = jax.lax.while_loop(cond, body, (jnp.zeros(cap, jnp.int32), jnp.bool_(True), jnp.int32(0)))
-    return h
+    out, _, _ = jax.lax.while_loop(cond, body, (start, jnp.bool_(True), jnp.int32(0)))
+    return out
+
+
+def _heights(child):
+    """Height of every node [N] (leaves and padding 0), by sweeps (at most N + 1)."""
+    interior = child[:, 0] >= 0
+    return _to_fixpoint(
+        lambda h: jnp.where(interior, 1 + jnp.maximum(take_clipped(h, child[:, 0]), take_clipped(h, child[:, 1])), 0),
+        jnp.zeros(child.shape[0], jnp.int32), child.shape[0])
 
 
 def _costs(child, area, prim_count, ct, ci):
@@ -303,19 +310,10 @@ def window_sizes(capacity: int, windows=None) -> tuple:
 
 def _above(marked, child):
     """``marked`` [N] bool and every ancestor of a marked node, by sweeps (at most N + 1)."""
-    cap = child.shape[0]
     interior = child[:, 0] >= 0
-
-    def cond(c):
-        return c[1] & (c[2] <= cap)
-
-    def body(c):
-        m, _, i = c
-        new = m | (interior & (take_clipped(m, child[:, 0]) | take_clipped(m, child[:, 1])))
-        return new, jnp.any(new != m), i + 1
-
-    m, _, _ = jax.lax.while_loop(cond, body, (marked, jnp.bool_(True), jnp.int32(0)))
-    return m
+    return _to_fixpoint(
+        lambda m: m | (interior & (take_clipped(m, child[:, 0]) | take_clipped(m, child[:, 1]))),
+        marked, child.shape[0])
 
 
 def _pass(st: _State, fresh, scale, ct, min_gain, *, n, windows):
