@@ -10,16 +10,18 @@ from helpers import UNOPTIMIZED_XLA
 from hypothesis import settings
 
 # XLA compiles our programs cheaply in the tests: the suite is almost all compiling (small
-# inputs, many shapes). Two flags (helpers.UNOPTIMIZED_XLA): LLVM's optimizations off (about
-# a third cheaper), and the older loop emitters for fusions instead of the MLIR fusion
-# emitters (compiles about 45% cheaper again; a fresh clone's .ci/run went from 15.0 to
-# 8.4 min on an idle 2-core machine, with a round of new tests in between). XLA keeps IEEE semantics either way (no fast math), but it may order a
-# float reduction differently: a sum can differ in its last bits between two programs, so
-# costs from two different programs (a vmapped batch against single runs) are compared
-# with helpers.assert_same_costs, while trees and every comparison with a NumPy twin hold
+# inputs, many shapes). Two flags (helpers.UNOPTIMIZED_XLA): LLVM's optimizations off
+# (about a third cheaper), and the older loop emitters for fusions instead of the MLIR
+# fusion emitters (compiles about 45% cheaper again; a fresh clone's .ci/run went from
+# 15.0 to 8.4 min on an idle 2-core machine, with a round of new tests in between). XLA
+# keeps IEEE semantics either way (no fast math), but it may order a float reduction
+# differently: a sum can differ in its last bits between two programs, so costs from two
+# different programs (a vmapped batch against single runs) are compared with
+# helpers.assert_same_costs, while trees and every comparison with a NumPy twin hold
 # exactly. JAXBVH_TEST_OPTIMIZED=1 runs the suite on optimized code (notebook kernels
 # inherit the flags: with optimized code the optimize notebook ran faster but the builders
-# and collapse notebooks compiled slower, and the whole suite took 15.6 min instead of 13.0).
+# and collapse notebooks compiled slower, and the whole suite took 15.6 min instead of
+# 13.0).
 if os.environ.get("JAXBVH_TEST_OPTIMIZED") != "1" and UNOPTIMIZED_XLA not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {UNOPTIMIZED_XLA}".strip()
 
