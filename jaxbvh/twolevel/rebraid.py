@@ -312,7 +312,13 @@ def _object_area(forest, instances, n, i):
     """Half-areas of the parallelepipeds the object boxes of nodes ``n`` become under
     instances ``i`` (as :func:`sah` with ``boxes="object"``)."""
     ext = np.maximum(np.asarray(forest.hi, np.float64)[n] - np.asarray(forest.lo, np.float64)[n], 0)
-    linear = np.asarray(instances.to_scene, np.float64)[i][:, :, :3]
+    return _parallelepiped_area(np.asarray(instances.to_scene, np.float64)[i][:, :, :3], ext)
+
+
+def _parallelepiped_area(linear, ext):
+    """Half surface areas [n] of the parallelepipeds that boxes of extents ``ext`` [n, 3]
+    become under the linear maps ``linear`` [n, 3, 3] (float64; boxes stay boxes under
+    axis-aligned scalings)."""
     e0, e1, e2 = (linear[:, :, k] * ext[:, k:k + 1] for k in range(3))
     return (np.linalg.norm(np.cross(e0, e1), axis=1) + np.linalg.norm(np.cross(e1, e2), axis=1)
             + np.linalg.norm(np.cross(e2, e0), axis=1))
@@ -487,10 +493,6 @@ def sah(tl: TwoLevelBVH, ct: float = 1.0, ci: float = 1.0, *, boxes: str = "worl
     t = to_numpy(tl)
     lo, hi = flat.lo.astype(np.float64), flat.hi.astype(np.float64)
 
-    def half_area(e0, e1, e2):  # edge vectors [n, 3] of parallelepipeds (boxes: axis-aligned)
-        return (np.linalg.norm(np.cross(e0, e1), axis=1) + np.linalg.norm(np.cross(e1, e2), axis=1)
-                + np.linalg.norm(np.cross(e2, e0), axis=1))
-
     d = np.maximum(hi - lo, 0)
     area = d[:, 0] * d[:, 1] + d[:, 1] * d[:, 2] + d[:, 2] * d[:, 0]
     # copies below a BRef's root are tested in their object frame
@@ -499,7 +501,7 @@ def sah(tl: TwoLevelBVH, ct: float = 1.0, ci: float = 1.0, *, boxes: str = "worl
     f_lo, f_hi = t.forest.lo[cf[below]].astype(np.float64), t.forest.hi[cf[below]].astype(np.float64)
     ext = np.maximum(f_hi - f_lo, 0)
     linear = t.instances.to_scene[ci_[below]][:, :, :3].astype(np.float64)
-    area[cid[below]] = half_area(*(linear[:, :, k] * ext[:, k:k + 1] for k in range(3)))
+    area[cid[below]] = _parallelepiped_area(linear, ext)
     cost = np.where(flat.prim_count > 0, ci * flat.prim_count.astype(np.float64), ct)
     level = depth(flat)
     for k in range(int(level.max()), -1, -1):
