@@ -420,7 +420,7 @@ def live_slots(refs: int) -> int:
 
 def stage_slots(refs: int) -> list[int]:
     """Slot counts F of the engine's level programs for ``refs`` reference slots: 64,
-    64 ``STAGE_GROWTH``, ... below ``refs``, then ``refs`` (only ``refs`` up to
+    64 x ``STAGE_GROWTH``, ... below ``refs``, then ``refs`` (only ``refs`` up to
     ``SMALL_STAGE`` slots). The open nodes of a level are at most ``refs``, so the last
     takes any level. Each program compiles the level once more, and saves the work of
     per-node arrays sized for the widest level on every narrower one."""
