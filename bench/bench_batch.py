@@ -21,6 +21,9 @@ peak resident set (``ru_maxrss``) after each phase, beside the plan's estimate. 
 the same triangles in one process on one thread: ``BVH::Build`` (binned SAH) and
 ``BVH::Optimize(200, extreme)``.
 
+On a CPU the batch is split over one JAX device per core (``--cpu-devices``; the loop of
+single calls runs on one); ``--cpu-devices 1`` gives the one-device figures.
+
 Writes ``bench/results/batch.json``, ``batch.md`` and ``batch.png`` (``--tag`` adds a
 suffix, e.g. ``--tag gpu`` from ``bench/gpu.sh``).
 """
@@ -192,7 +195,10 @@ def main(argv=None):
                         help="time the optimizer's batch with rows vmapped too (slow on a CPU)")
     parser.add_argument("--no-peer", action="store_true")
     parser.add_argument("--tag", default="", help="suffix of the result files (batch_<tag>.*)")
+    parser.add_argument("--cpu-devices", type=int, default=None,
+                        help="JAX CPU devices the batch is split over (default: one per core, as `jaxbvh batch`)")
     args = parser.parse_args(argv)
+    batch.use_cpu_cores(args.cpu_devices)  # before JAX's first operation
 
     config = batch.BatchConfig(memory_mb=args.memory_mb)
     modes = {mode: config.replace(rows=mode) for mode in ("map", "vmap")}

@@ -6,7 +6,7 @@ module             what it holds
 ``layout``         :class:`TreeBatch`: trees stacked in capacity groups, ``unstack()``
 ``plan``           capacity groups and chunks under a memory bound (:class:`BatchConfig`)
 ``rows``           how a call runs its rows: one after another (CPU) or vmapped (GPU)
-``devices``        the batch axis split over devices (``jax.shard_map``)
+``devices``        the batch axis split over devices (``jax.shard_map``); :func:`use_cpu_cores`
 ``build``          every builder over a chunk of meshes: :func:`build`
 ``optimize``       every optimizer over a chunk of trees: :func:`optimize`
 ``measure``        :func:`costs`, :func:`trace` and :func:`collapse` over a batch
@@ -17,10 +17,11 @@ Every per-tree result equals the single-tree call (``jaxbvh.build``,
 """
 
 from jaxbvh.batch.build import BuildResult, build, mesh_boxes
+from jaxbvh.batch.devices import use_cpu_cores
 from jaxbvh.batch.layout import Group, TreeBatch
 from jaxbvh.batch.measure import collapse, costs, trace
 from jaxbvh.batch.optimize import BatchOptimizeResult, optimize
 from jaxbvh.batch.plan import BatchConfig
 
 __all__ = ["build", "optimize", "costs", "trace", "collapse", "mesh_boxes", "BuildResult",
-           "BatchOptimizeResult", "TreeBatch", "Group", "BatchConfig"]
+           "BatchOptimizeResult", "TreeBatch", "Group", "BatchConfig", "use_cpu_cores"]

@@ -10,6 +10,11 @@ call are a multiple of the device count (:func:`jaxbvh.batch.plan.batch_rows`). 
 is computed by the same program whichever device holds it, so one device and several
 give identical trees (tested on two fake CPU devices).
 
+CPU cores: XLA runs one compiled program on about one core, so on a CPU a batch with
+one device leaves the other cores idle. :func:`use_cpu_cores`, called before JAX's
+first operation, splits the CPU into one JAX device per core; the batch axis is then
+split over them like over several GPUs (``jaxbvh batch`` does it by default).
+
 Several hosts: start every process with :func:`jax.distributed.initialize` first; then
 ``jax.devices()`` lists the devices of all hosts and the same code shards over them,
 every process getting the whole batch back (``process_allgather``; not tested here: one
@@ -18,6 +23,8 @@ host only; ``docs/batches.md``).
 
 from __future__ import annotations
 
+import os
+import re
 from functools import lru_cache, partial
 from typing import Callable
 
@@ -28,6 +35,43 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 AXIS = "batch"  # the mesh axis name the batch axis is split over
+
+
+def cpu_cores() -> int:
+    """Cores this process may run on (its CPU affinity; ``os.cpu_count()`` where the
+    platform has none)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # macOS, Windows
+        return os.cpu_count() or 1
+
+
+def use_cpu_cores(count: int | None = None) -> int:
+    """Split JAX's CPU into ``count`` devices (None: one per core, :func:`cpu_cores`) so
+    that a batch's rows run on every core (module docstring); returns the CPU device count.
+
+    Call it before JAX's first operation (importing :mod:`jaxbvh` runs none): JAX fixes
+    its devices then. Afterwards, ``count`` None keeps the devices JAX has, and any other
+    count is a ``ValueError``. With ``count`` None a device count already set in
+    ``XLA_FLAGS`` (``--xla_force_host_platform_device_count``) is kept. Single-tree
+    calls are unchanged (they run on the first device); a machine with a GPU still
+    batches over its GPUs (``jax.devices()``).
+    """
+    if count is not None and (isinstance(count, bool) or not isinstance(count, (int, np.integer)) or count < 1):
+        raise ValueError(f"cpu devices must be a whole number >= 1, got {count!r}")
+    flagged = re.search(r"--xla_force_host_platform_device_count=(\d+)", os.environ.get("XLA_FLAGS", ""))
+    if count is None and flagged:
+        count = int(flagged.group(1))
+    wanted = cpu_cores() if count is None else int(count)
+    try:
+        jax.config.update("jax_num_cpu_devices", wanted)
+    except RuntimeError:  # JAX has started: its CPU devices are fixed
+        have = len(jax.devices("cpu"))
+        if count is not None and have != wanted:
+            raise ValueError(f"cpu devices: JAX has started with {have} CPU device(s), so {wanted} cannot be set; "
+                             "call use_cpu_cores before JAX's first operation") from None
+        return have
+    return wanted
 
 
 def resolve(devices=None) -> tuple:

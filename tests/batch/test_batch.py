@@ -206,7 +206,7 @@ def test_bad_meshes_fail_alone():
 
 
 # ----------------------------------------------------------------------------------
-# Devices: two fake CPU devices give exactly what one gives (subprocess: XLA flags)
+# Devices: two CPU devices give exactly what one gives (subprocess: a fresh JAX)
 # ----------------------------------------------------------------------------------
 
 _SUBPROCESS = textwrap.dedent("""
@@ -214,6 +214,7 @@ _SUBPROCESS = textwrap.dedent("""
     import jax, numpy as np
     sys.path.insert(0, {repo!r})
     from jaxbvh import batch
+    assert batch.use_cpu_cores(2) == 2  # before JAX's first operation
     rng = np.random.default_rng(0)
     meshes = []
     for n in (5, 9, 14, 3, 11):
@@ -234,13 +235,24 @@ _SUBPROCESS = textwrap.dedent("""
 
 
 def test_two_devices_give_what_one_gives():
-    # one process with two fake CPU devices (XLA flags: a subprocess), the batch over one and over both
+    # one process whose CPU is split into two devices (use_cpu_cores, so a fresh process),
+    # the batch over one and over both
     code = _SUBPROCESS.format(repo=str(REPO))
-    env = {**os.environ, "XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=2",
-           "JAX_PLATFORMS": "cpu"}
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
     proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
     out = json.loads([line for line in proc.stdout.splitlines() if line.startswith("RESULT")][-1][len("RESULT"):])
     assert out["devices"] == 2
     for key in ("sweep", "lbvh", "hc", "sah"):
         assert out["2"][key] == out["1"][key], key
+
+
+def test_cpu_devices_are_fixed_once_jax_has_started():
+    # this process's JAX has started: the count it has is kept, another is refused by name
+    have = len(jax.devices("cpu"))
+    assert batch.use_cpu_cores() == have and batch.use_cpu_cores(have) == have
+    with pytest.raises(ValueError, match=f"started with {have} CPU device"):
+        batch.use_cpu_cores(have + 1)
+    for bad in (0, -2, 1.5, True, "2"):
+        with pytest.raises(ValueError, match="whole number"):
+            batch.use_cpu_cores(bad)

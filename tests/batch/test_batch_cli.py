@@ -3,6 +3,7 @@ entries fail alone with their own error, options checked before any work."""
 
 from __future__ import annotations
 
+import jax
 import numpy as np
 from helpers import assert_one_line_error, grid_obj, run_cli, run_json
 
@@ -26,6 +27,7 @@ def test_batch_build_writes_every_good_mesh_and_reports_the_bad_ones(tmp_path, c
     rows = {r["mesh"].rsplit("/", 1)[-1]: r for r in result["rows"]}
     assert set(rows) == {"a.obj", "b.obj", "nan.obj", "junk.obj"}
     assert result["failed"] == 2 and result["written"] == 2 and result["valid"] is False
+    assert result["devices"] == jax.device_count()  # JAX had started: its devices are kept
     assert "NaN" in rows["nan.obj"]["error"] and rows["junk.obj"]["error"].startswith("load:")
     for name in ("a", "b"):
         tree, frame = jaxbvh.load(out / f"{name}.npz")
@@ -61,5 +63,9 @@ def test_options_are_checked_before_any_work(tmp_path, capsys):
     assert_one_line_error(*run_cli(capsys, "batch", "build", tmp_path, "-o", out, "--iterations", "5"),
                           "batch optimize")
     assert_one_line_error(*run_cli(capsys, "batch", "build", tmp_path), "-o OUTDIR")
+    assert_one_line_error(*run_cli(capsys, "batch", "build", tmp_path, "-o", out, "--cpu-devices", "0"),
+                          "cpu devices")
+    assert_one_line_error(*run_cli(capsys, "batch", "build", tmp_path, "-o", out, "--cpu-devices",
+                                   str(jax.device_count() + 1)), "JAX has started")
     assert_one_line_error(*run_cli(capsys, "batch", "build", tmp_path / "none*.obj", "-o", out), "no file matches")
     assert not out.exists()  # nothing was written

@@ -6,7 +6,8 @@ files, not recursive). Every mesh is loaded, then all are built together
 (:func:`jaxbvh.batch.optimize`); each tree is validated against its mesh and written to
 ``OUTDIR/<name>.npz`` (interchange, with its scene frame). The summary has one row per
 mesh (triangles, SAH after the build and after the optimizer, seconds: the mesh's share
-of its compiled calls) and the totals. A mesh that fails to load, build or validate
+of its compiled calls) and the totals. On a CPU the batch runs on every core: JAX's CPU
+is split into one device per core (``--cpu-devices``; :func:`jaxbvh.batch.use_cpu_cores`). A mesh that fails to load, build or validate
 gets its own one-line error in its row, the others are still written, and the exit
 status is 1. Every option is checked before any mesh is read.
 """
@@ -23,7 +24,7 @@ import jax
 import numpy as np
 
 import jaxbvh
-from jaxbvh.batch import BatchConfig, build, costs, optimize
+from jaxbvh.batch import BatchConfig, build, costs, optimize, use_cpu_cores
 from jaxbvh.cli import command_kit
 from jaxbvh.cli.commands.optimize import OPTIONS as OPTIMIZER_OPTIONS
 from jaxbvh.cli.options import add_config_options
@@ -46,6 +47,9 @@ def add_parser(subparsers):
                         help="folder for the trees (OUTDIR/<name>.npz; made if missing; required)")
     parser.add_argument("--method", choices=tuple(OPTIMIZERS), default=DEFAULT_METHOD,
                         help=f"optimizer of 'batch optimize' (default: {DEFAULT_METHOD})")
+    parser.add_argument("--cpu-devices", type=int, metavar="N", default=None,
+                        help="split the CPU into N JAX devices, the batch over them (default: one per core; "
+                             "no effect where JAX runs on a GPU)")
     command_kit.add_seed(parser, "random seed for annealing (mesh i gets fold_in(key(seed), i))")
     parser.set_defaults(batch_options=add_config_options(parser, BatchConfig, title="batch options"))
     OPTIMIZER_OPTIONS.add_to(parser, "optimizer options of 'batch optimize' (fields of each method's Config)")
@@ -110,7 +114,8 @@ class Clock:
 
 def run(args) -> dict:
     """Run ``jaxbvh batch`` on parsed ``args``; returns the result the command prints (a row per mesh)."""
-    # every option first: the builder's, the optimizer's, the batch's, the folder
+    # every option first: the devices, the builder's, the optimizer's, the batch's, the folder
+    use_cpu_cores(args.cpu_devices)  # before JAX's first operation (it fixes the devices then)
     builder = command_kit.builder_config(args)
     optimizer = None
     given = OPTIMIZER_OPTIONS.given(args)
@@ -189,7 +194,7 @@ def run(args) -> dict:
               "method": args.method if optimizer is not None else None, "meshes": len(rows),
               "written": len(rows) - failed, "failed": failed,
               "triangles": int(sum(r.get("triangles", 0) for r in rows)),
-              "seconds": time.perf_counter() - started, "output_dir": str(out_dir),
+              "seconds": time.perf_counter() - started, "devices": jax.device_count(), "output_dir": str(out_dir),
               "valid": failed == 0, "rows": rows}
     if not getattr(args, "json", False):
         # people get the rows as a table here, and the totals below it
