@@ -283,7 +283,7 @@ def _level(scene: _Scene, s: _State, *, bins: int, slots: int, live: int) -> _St
     spatial, ref_bins = jax.lax.cond(
         jnp.any(tried),
         lambda: splits.spatial_split(scene.columns, view.prim, view.lo, view.hi, seg, node_lo, node_hi, tried,
-                                     node_bins, slots, scene.scale, bins),
+                                     node_bins, count, slots, scene.scale, bins),
         lambda: (_no_spatial(slots, dt), empty_bins))
     tol = jnp.asarray(1 + TIE_TOLERANCE, dt)
     use_spatial = tried & (spatial.cost * tol < obj.cost)
@@ -397,8 +397,11 @@ def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int) -> SBVHBuil
     return SBVHBuild(_tree(state), state.n_refs, state.spatial, state.short)
 
 
-#: growth of the per-level node slots F from one level program to the next (:func:`stage_slots`)
+#: growth of the per-level node slots F from one level program to the next (:func:`stage_slots`) ...
 STAGE_GROWTH = 4
+#: ... up to FINE_STAGE node slots; past it F doubles (seventh round: legocar's levels of
+#: 4.5-5.8k open nodes at max_leaf 1 ran on all R slots, ~4x the time of a 4,096 level)
+FINE_STAGE = 4096
 #: reference slots up to which the engine compiles one level program
 SMALL_STAGE = 512
 
@@ -420,8 +423,8 @@ def live_slots(refs: int) -> int:
 
 def stage_slots(refs: int) -> list[int]:
     """Slot counts F of the engine's level programs for ``refs`` reference slots: 64,
-    64 x ``STAGE_GROWTH``, ... below ``refs``, then ``refs`` (only ``refs`` up to
-    ``SMALL_STAGE`` slots). The open nodes of a level are at most ``refs``, so the last
+    64 x ``STAGE_GROWTH``, ... up to ``FINE_STAGE``, then doubling, none past half of
+    ``refs``; then ``refs`` (only ``refs`` up to ``SMALL_STAGE`` slots). The open nodes of a level are at most ``refs``, so the last
     takes any level. Each program compiles the level once more, and saves the work of
     per-node arrays sized for the widest level on every narrower one."""
     if refs <= SMALL_STAGE:  # small inputs: one stage (one compiled level) is cheap enough
@@ -429,7 +432,7 @@ def stage_slots(refs: int) -> list[int]:
     out, f = [], 64
     while 2 * f <= refs:  # one of more than half the slots would save little over the last
         out.append(f)
-        f *= STAGE_GROWTH
+        f *= STAGE_GROWTH if f < FINE_STAGE else 2
     return out + [refs]
 
 

@@ -66,6 +66,13 @@ def spatial_bins(count, bins: int):
     return xp.clip(xp.asarray(count) // SPATIAL_REFS_PER_BIN, min(SPATIAL_MIN_BINS, bins), bins).astype(xp.int32)
 
 
+def separates(n_left, n_right, count):
+    """Whether a spatial plane with ``n_left`` and ``n_right`` references on its sides
+    (entries at or before it, exits after it) may split a node of ``count``: each side
+    gets fewer than all of them (any equal shapes; see the module docstring)."""
+    return (n_left < count) & (n_right < count)
+
+
 def plane_at(lo, ext, j, bins: int):
     """Position of spatial plane ``j`` of a node whose box on the axis is ``[lo, lo + ext]``."""
     xp = _xp(lo, ext, j)

@@ -38,14 +38,16 @@ def segment(op, values, seg, slots):
     return op(values, seg, num_segments=slots + 1)[:slots]
 
 
-def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int) -> Split:
+def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int, most=None) -> Split:
     """Best plane of binned counts and boxes per slot and axis.
 
     ``count``: (entries, exits), ``box_lo``, ``box_hi``: three coordinate arrays each,
     all [B, F, 3] (bin, slot, axis). The plane after bin ``k`` has on its left the bins
     ``<= k`` (``N_L``: entries there) and on its right the others (``N_R``: exits
     there). Tie-rule winner: least cost; within TIE_TOLERANCE the lowest axis, then the
-    lowest plane. The sweeps are two ``lax.scan`` over the bins on flat [F * 3] rows
+    lowest plane. ``most`` [F] int32 (spatial splits): a plane is a candidate only if
+    each side has fewer references than that (the node's count: neither child may get
+    every reference, :func:`jaxbvh.builders.sbvh_rules.separates`). The sweeps are two ``lax.scan`` over the bins on flat [F * 3] rows
     (XLA's cumulative ops and arrays with a trailing axis of 3 are many times slower on
     CPU; the same sweeps unrolled bin by bin ran as fast but took ~6 s of compile each,
     two per stage). Sums of counts and minima of boxes are exact: any order gives the
@@ -77,7 +79,10 @@ def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int) -> Split:
     def area(lo, hi):
         return half_area(jnp.stack(lo, -1), jnp.stack(hi, -1), scale)
 
-    cost = jnp.where(usable.reshape(1, -1) & (n_l > 0) & (n_r > 0),
+    candidate = usable.reshape(1, -1) & (n_l > 0) & (n_r > 0)
+    if most is not None:
+        candidate = candidate & rules.separates(n_l, n_r, jnp.repeat(most, 3)[None, :])
+    cost = jnp.where(candidate,
                      area(lo_l, hi_l) * n_l.astype(dt) + area(lo_r, hi_r) * n_r.astype(dt), jnp.inf)
 
     def flat(values):  # [B - 1, F * 3] (plane, slot and axis) -> [F, 3 (B - 1)], axis-major then plane
@@ -209,9 +214,10 @@ def _piece_boxes(v, ref_lo, ref_hi, axis, node_lo_a, ext_a, b1, b, valid, bins):
     return lo, hi, cross_lo, cross_hi
 
 
-def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, tried, node_bins, slots: int, scale,
-                  bins: int):
-    """Binned spatial split of the slots ``tried`` [F] bool: ``(split, bins)``.
+def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, tried, node_bins, count, slots: int,
+                  scale, bins: int):
+    """Binned spatial split of the slots ``tried`` [F] bool: ``(split, bins)``; ``count``
+    [F] int32 each slot's references (no side may get all of them).
 
     Every live reference (one of a tried node) spans bins ``b0 .. b1`` per axis; it is cut
     into one *piece* per (axis, bin) it spans, the pieces are walked in chunks of
@@ -282,7 +288,7 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
     counts = [c.reshape(bins, slots, 3) for c in counts]
     box_lo = [with_planes(jnp.minimum, c, x) for c, x in zip(box_lo, cross_lo)]
     box_hi = [with_planes(jnp.maximum, c, x) for c, x in zip(box_hi, cross_hi)]
-    return _sweep_bins(counts, box_lo, box_hi, (ext > 0) & tried[:, None], scale, bins), Bins(b0, b1)
+    return _sweep_bins(counts, box_lo, box_hi, (ext > 0) & tried[:, None], scale, bins, count), Bins(b0, b1)
 
 
 class Sides(NamedTuple):
