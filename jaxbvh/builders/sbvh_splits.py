@@ -249,7 +249,7 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
     def step(i, cell):
         """Pieces ``i chunk .. (i + 1) chunk - 1`` into the cells (scatter min, max and add:
         the same values as one segment reduction over all pieces)."""
-        counts, box_lo, box_hi, cross_lo, cross_hi = cell
+        box_lo, box_hi, cross_lo, cross_hi = cell
         p = i * chunk + jnp.arange(chunk, dtype=jnp.int32)
         owner = jnp.clip(jnp.searchsorted(ends, p, side="right"), 0, 3 * refs - 1).astype(jnp.int32)
         valid = p < total
@@ -265,20 +265,23 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
                                                       ext_r.ravel()[owner], b1_p, b, valid, bins_r[r])
         key = jnp.where(valid, cell_key(b, seg_p, axis, slots), cells)  # cells: dropped
         x_key = jnp.where(valid & (b < b1_p), cell_key(b + 1, seg_p, axis, slots), planes)
-        counts = [c.at[key].add((flag & valid).astype(jnp.int32), mode="drop")
-                  for c, flag in zip(counts, (b == b0_p, b == b1_p))]
         box_lo = [c.at[key].min(x, mode="drop") for c, x in zip(box_lo, piece_lo)]
         box_hi = [c.at[key].max(x, mode="drop") for c, x in zip(box_hi, piece_hi)]
         cross_lo = [c.at[x_key].min(x, mode="drop") for c, x in zip(cross_lo, x_lo)]
         cross_hi = [c.at[x_key].max(x, mode="drop") for c, x in zip(cross_hi, x_hi)]
-        return counts, box_lo, box_hi, cross_lo, cross_hi
+        return box_lo, box_hi, cross_lo, cross_hi
 
     inf = jnp.full(cells, jnp.inf, dt)
-    empty = ([jnp.zeros(cells, jnp.int32)] * 2, [inf] * 3, [-inf] * 3, [jnp.full(planes, jnp.inf, dt)] * 3,
-             [jnp.full(planes, -jnp.inf, dt)] * 3)
+    empty = ([inf] * 3, [-inf] * 3, [jnp.full(planes, jnp.inf, dt)] * 3, [jnp.full(planes, -jnp.inf, dt)] * 3)
     # at most ceil(3 R B / chunk) steps: the pieces are at most 3 R B
-    counts, box_lo, box_hi, cross_lo, cross_hi = jax.lax.fori_loop(0, (total + chunk - 1) // chunk, step, empty)
+    box_lo, box_hi, cross_lo, cross_hi = jax.lax.fori_loop(0, (total + chunk - 1) // chunk, step, empty)
     rows = slots * 3
+    # entries and exits: one per live reference and axis, counted outside the piece loop
+    axes = jnp.arange(3, dtype=jnp.int32)[None, :]
+    ones = jnp.ones(3 * refs, jnp.int32)
+    counts = [segment(jax.ops.segment_sum, ones, jnp.where(live[:, None], cell_key(b, seg[:, None], axes, slots),
+                                                            cells).ravel(), cells)
+              for b in (b0, b1)]
 
     def with_planes(op, corner, cross):
         """Bin b's box: its corners' with the crossings of planes b and b + 1 (rows of [B, F 3])."""

@@ -26,6 +26,23 @@ def local_triangles(tri, dtype=np.float32):
     return Frame.fit(lo, hi).to_local(tri).astype(dtype)
 
 
+def assert_children_hold_fewer_references(tree):
+    """Every child holds fewer references than its parent: a spatial split never hands a
+    side all of its node's references (rules.separates), so splitting always progresses."""
+    t = jaxbvh.to_numpy(tree)
+    order, frontier = [], [int(t.root)]
+    while frontier:  # breadth first from the root; reversed, children come before parents
+        order += frontier
+        frontier = [int(c) for i in frontier if t.left[i] >= 0 for c in (t.left[i], t.right[i])]
+    held = t.prim_count.astype(np.int64)
+    for i in reversed(order):
+        if t.left[i] >= 0:
+            held[i] = held[t.left[i]] + held[t.right[i]]
+    inner = np.asarray([i for i in order if t.left[i] >= 0], np.int64)
+    if inner.size:
+        assert (held[t.left[inner]] < held[inner]).all() and (held[t.right[inner]] < held[inner]).all()
+
+
 def long_thin_scene():
     """Long slivers crossing each other on a grid: object splits overlap, spatial splits pay."""
     tri = []
@@ -63,6 +80,7 @@ def test_jax_sbvh_equals_reference_where_spatial_splits_and_unsplitting_happen(s
     want = reference.build(tri, config, capacity=BIG_SLOTS)
     assert want.spatial_splits > 0
     assert canonical(got.tree) == canonical(want.tree)
+    assert_children_hold_fewer_references(got.tree)
     assert (int(got.references), int(got.spatial_splits)) == (want.references, want.spatial_splits)
 
 
@@ -77,6 +95,7 @@ def test_every_sbvh_tree_is_valid_with_references_and_covers_every_triangle(tri,
     t = jaxbvh.to_numpy(got.tree)
     assert int(t.prim_count.sum()) == int(got.references) >= tri.shape[0]
     assert t.prim_count.max() <= max_leaf
+    assert_children_hold_fewer_references(got.tree)
 
 
 def test_spatial_splits_pay_on_long_thin_triangles():
