@@ -120,7 +120,8 @@ def profile(name, args):
         node_bins = rules.spatial_bins(count, bins)
         row = {"level": 0.0, "view": 0.0, "object": 0.0, "spatial": 0.0, "sides": 0.0}
         if not args.stats:
-            row = {"level": cpu_ms(lambda: level(state), args.repeat), "view": cpu_ms(lambda: prefix(state), args.repeat),
+            row = {"level": cpu_ms(lambda: level(state), args.repeat),
+                   "view": cpu_ms(lambda: prefix(state), args.repeat),
                    "object": cpu_ms(lambda: obj(view, seg), args.repeat)}
         n_tried = int(tried.sum())
         pieces = 0

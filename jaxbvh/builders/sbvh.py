@@ -22,10 +22,11 @@ over its references (box, triangle):
 2. **Spatial split**, tried only when the object split's two boxes overlap by more than
    ``alpha`` times the root's half-area (areas on the scene's scale): ``b`` equal bins
    of the node's box per axis, ``b`` = ``B`` for a node of at least ``B`` references,
-   fewer for fewer (:func:`jaxbvh.builders.sbvh_rules.spatial_bins`); a reference enters the bin of its box's low corner and
-   leaves by the bin of its high corner; each bin's box is estimated from the reference's
-   triangle corners and the crossings of the inner planes its box spans, clamped to the
-   reference's box. Plane ``k`` (after bin ``k``) has ``N_L`` = entries at or before
+   fewer for fewer (:func:`jaxbvh.builders.sbvh_rules.spatial_bins`); a reference enters
+   the bin of its box's low corner and leaves by the bin of its high corner; each bin's
+   box is estimated from the reference's triangle corners and the crossings of the inner
+   planes its box spans, clamped to the reference's box. Plane ``k`` (after bin ``k``)
+   has ``N_L`` = entries at or before
    ``k``, ``N_R`` = exits after it, priced on the bins' boxes; the same tie rule. It is
    taken when its cost times ``1 + TIE_TOLERANCE`` is below the object split's (ties go
    to the object split, which duplicates nothing).
@@ -424,9 +425,10 @@ def live_slots(refs: int) -> int:
 def stage_slots(refs: int) -> list[int]:
     """Slot counts F of the engine's level programs for ``refs`` reference slots: 64,
     64 x ``STAGE_GROWTH``, ... up to ``FINE_STAGE``, then doubling, none past half of
-    ``refs``; then ``refs`` (only ``refs`` up to ``SMALL_STAGE`` slots). The open nodes of a level are at most ``refs``, so the last
-    takes any level. Each program compiles the level once more, and saves the work of
-    per-node arrays sized for the widest level on every narrower one."""
+    ``refs``; then ``refs`` (only ``refs`` up to ``SMALL_STAGE`` slots). The open nodes
+    of a level are at most ``refs``, so the last takes any level. Each program compiles
+    the level once more, and saves the work of per-node arrays sized for the widest
+    level on every narrower one."""
     if refs <= SMALL_STAGE:  # small inputs: one stage (one compiled level) is cheap enough
         return [refs]
     out, f = [], 64

@@ -50,8 +50,8 @@ def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int, most=None) -> S
     every reference, :func:`jaxbvh.builders.sbvh_rules.separates`). The sweeps are two
     ``lax.scan`` over the bins on flat [F * 3] rows (XLA's cumulative ops and arrays
     with a trailing axis of 3 are many times slower on CPU; the same sweeps unrolled bin
-    by bin ran as fast but took ~6 s of compile each, two per stage). Sums of counts and minima of boxes are exact: any order gives the
-    same values.
+    by bin ran as fast but took ~6 s of compile each, two per stage). Sums of counts and
+    minima of boxes are exact: any order gives the same values.
     """
     entries, exits = count
     dt = box_lo[0].dtype
