@@ -27,9 +27,13 @@ over its references (box, triangle):
    box is estimated from the reference's triangle corners and the crossings of the inner
    planes its box spans, clamped to the reference's box. Plane ``k`` (after bin ``k``)
    has ``N_L`` = entries at or before
-   ``k``, ``N_R`` = exits after it, priced on the bins' boxes; the same tie rule. It is
-   taken when its cost times ``1 + TIE_TOLERANCE`` is below the object split's (ties go
-   to the object split, which duplicates nothing).
+   ``k``, ``N_R`` = exits after it, priced on the bins' boxes; the same tie rule. A
+   plane is a candidate only if ``N_L < N`` and ``N_R < N`` (``N``: the node's
+   references; :func:`jaxbvh.builders.sbvh_rules.separates`): no side gets every
+   reference, so every split makes progress (seventh round: at ``max_leaf`` 1 two
+   overlapping references were otherwise split spatially again and again, each side
+   keeping both). It is taken when its cost times ``1 + TIE_TOLERANCE`` is below the
+   object split's (ties go to the object split, which duplicates nothing).
 3. **Reference unsplitting** (the paper's Section 4.4): a straddling reference goes
    whole to one side when that is cheaper (``C_1 = A(L + b) N_L + A_R (N_R - 1)``,
    ``C_2 = A_L (N_L - 1) + A(R + b) N_R`` against ``C_split = A_L N_L + A_R N_R``, by
