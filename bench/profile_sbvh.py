@@ -91,9 +91,9 @@ def profile(name, args):
             return splits.object_split(view.lo, view.hi, seg, f, scene.scale, bins)
 
         @jax.jit
-        def spatial(view, seg, node_lo, node_hi, tried, node_bins):
+        def spatial(view, seg, node_lo, node_hi, tried, node_bins, count):
             return splits.spatial_split(scene.columns, view.prim, view.lo, view.hi, seg, node_lo, node_hi, tried,
-                                        node_bins, f, scene.scale, bins)
+                                        node_bins, count, f, scene.scale, bins)
 
         @jax.jit
         def sides(view, seg, node_lo, node_hi, sp, ref_bins, node_bins):
@@ -120,12 +120,13 @@ def profile(name, args):
         node_bins = rules.spatial_bins(count, bins)
         row = {"level": 0.0, "view": 0.0, "object": 0.0, "spatial": 0.0, "sides": 0.0}
         if not args.stats:
-            row = {"level": cpu_ms(lambda: level(state), args.repeat), "view": cpu_ms(lambda: prefix(state), args.repeat),
+            row = {"level": cpu_ms(lambda: level(state), args.repeat),
+                   "view": cpu_ms(lambda: prefix(state), args.repeat),
                    "object": cpu_ms(lambda: obj(view, seg), args.repeat)}
         n_tried = int(tried.sum())
         pieces = 0
         if n_tried and args.stats:
-            sp, _ = spatial(view, seg, node_lo, node_hi, tried, node_bins)
+            sp, _ = spatial(view, seg, node_lo, node_hi, tried, node_bins, count)
             area = half_area(node_lo, node_hi, scene.scale)
             take = np.asarray(tried & (sp.cost * (1 + 2**-20) < o.cost))
             tr = np.asarray(tried)
@@ -134,8 +135,8 @@ def profile(name, args):
                                    ov[tr] / np.asarray(area)[tr], take[tr], (np.asarray(o.cost)[tr]
                                    - np.asarray(sp.cost)[tr]) / np.asarray(o.cost)[tr]], 1))
         if n_tried and not args.stats:
-            row["spatial"] = cpu_ms(lambda: spatial(view, seg, node_lo, node_hi, tried, node_bins), args.repeat)
-            sp, ref_bins = spatial(view, seg, node_lo, node_hi, tried, node_bins)
+            row["spatial"] = cpu_ms(lambda: spatial(view, seg, node_lo, node_hi, tried, node_bins, count), args.repeat)
+            sp, ref_bins = spatial(view, seg, node_lo, node_hi, tried, node_bins, count)
             row["sides"] = cpu_ms(lambda: sides(view, seg, node_lo, node_hi, sp, ref_bins, node_bins), args.repeat)
             livemask = np.asarray((seg < f) & jnp.take(tried, jnp.clip(seg, 0, f - 1)))
             b0, b1 = np.asarray(ref_bins.entry), np.asarray(ref_bins.exit)

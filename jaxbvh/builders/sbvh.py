@@ -22,13 +22,18 @@ over its references (box, triangle):
 2. **Spatial split**, tried only when the object split's two boxes overlap by more than
    ``alpha`` times the root's half-area (areas on the scene's scale): ``b`` equal bins
    of the node's box per axis, ``b`` = ``B`` for a node of at least ``B`` references,
-   fewer for fewer (:func:`jaxbvh.builders.sbvh_rules.spatial_bins`); a reference enters the bin of its box's low corner and
-   leaves by the bin of its high corner; each bin's box is estimated from the reference's
-   triangle corners and the crossings of the inner planes its box spans, clamped to the
-   reference's box. Plane ``k`` (after bin ``k``) has ``N_L`` = entries at or before
-   ``k``, ``N_R`` = exits after it, priced on the bins' boxes; the same tie rule. It is
-   taken when its cost times ``1 + TIE_TOLERANCE`` is below the object split's (ties go
-   to the object split, which duplicates nothing).
+   fewer for fewer (:func:`jaxbvh.builders.sbvh_rules.spatial_bins`); a reference enters
+   the bin of its box's low corner and leaves by the bin of its high corner; each bin's
+   box is estimated from the reference's triangle corners and the crossings of the inner
+   planes its box spans, clamped to the reference's box. Plane ``k`` (after bin ``k``)
+   has ``N_L`` = entries at or before
+   ``k``, ``N_R`` = exits after it, priced on the bins' boxes; the same tie rule. A
+   plane is a candidate only if ``N_L < N`` and ``N_R < N`` (``N``: the node's
+   references; :func:`jaxbvh.builders.sbvh_rules.separates`): no side gets every
+   reference, so every split makes progress (seventh round: at ``max_leaf`` 1 two
+   overlapping references were otherwise split spatially again and again, each side
+   keeping both). It is taken when its cost times ``1 + TIE_TOLERANCE`` is below the
+   object split's (ties go to the object split, which duplicates nothing).
 3. **Reference unsplitting** (the paper's Section 4.4): a straddling reference goes
    whole to one side when that is cheaper (``C_1 = A(L + b) N_L + A_R (N_R - 1)``,
    ``C_2 = A_L (N_L - 1) + A(R + b) N_R`` against ``C_split = A_L N_L + A_R N_R``, by
@@ -283,7 +288,7 @@ def _level(scene: _Scene, s: _State, *, bins: int, slots: int, live: int) -> _St
     spatial, ref_bins = jax.lax.cond(
         jnp.any(tried),
         lambda: splits.spatial_split(scene.columns, view.prim, view.lo, view.hi, seg, node_lo, node_hi, tried,
-                                     node_bins, slots, scene.scale, bins),
+                                     node_bins, count, slots, scene.scale, bins),
         lambda: (_no_spatial(slots, dt), empty_bins))
     tol = jnp.asarray(1 + TIE_TOLERANCE, dt)
     use_spatial = tried & (spatial.cost * tol < obj.cost)
@@ -397,8 +402,11 @@ def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int) -> SBVHBuil
     return SBVHBuild(_tree(state), state.n_refs, state.spatial, state.short)
 
 
-#: growth of the per-level node slots F from one level program to the next (:func:`stage_slots`)
+#: growth of the per-level node slots F from one level program to the next (:func:`stage_slots`) ...
 STAGE_GROWTH = 4
+#: ... up to FINE_STAGE node slots; past it F doubles (seventh round: legocar's levels of
+#: 4.5-5.8k open nodes at max_leaf 1 ran on all R slots, ~4x the time of a 4,096 level)
+FINE_STAGE = 4096
 #: reference slots up to which the engine compiles one level program
 SMALL_STAGE = 512
 
@@ -420,16 +428,17 @@ def live_slots(refs: int) -> int:
 
 def stage_slots(refs: int) -> list[int]:
     """Slot counts F of the engine's level programs for ``refs`` reference slots: 64,
-    64 x ``STAGE_GROWTH``, ... below ``refs``, then ``refs`` (only ``refs`` up to
-    ``SMALL_STAGE`` slots). The open nodes of a level are at most ``refs``, so the last
-    takes any level. Each program compiles the level once more, and saves the work of
-    per-node arrays sized for the widest level on every narrower one."""
+    64 x ``STAGE_GROWTH``, ... up to ``FINE_STAGE``, then doubling, none past half of
+    ``refs``; then ``refs`` (only ``refs`` up to ``SMALL_STAGE`` slots). The open nodes
+    of a level are at most ``refs``, so the last takes any level. Each program compiles
+    the level once more, and saves the work of per-node arrays sized for the widest
+    level on every narrower one."""
     if refs <= SMALL_STAGE:  # small inputs: one stage (one compiled level) is cheap enough
         return [refs]
     out, f = [], 64
     while 2 * f <= refs:  # one of more than half the slots would save little over the last
         out.append(f)
-        f *= STAGE_GROWTH
+        f *= STAGE_GROWTH if f < FINE_STAGE else 2
     return out + [refs]
 
 

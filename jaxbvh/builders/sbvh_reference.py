@@ -124,7 +124,7 @@ def _spatial_split(tri, refs: _Refs, node_lo, node_hi, scale, bins):
         box_lo, box_hi = _bin_boxes(tri, refs, axis, node_lo, ext, bins)
         for k in range(bins - 1):
             n_left, n_right = int((entry <= k).sum()), int((exit_ > k).sum())
-            if n_left == 0 or n_right == 0:
+            if n_left == 0 or n_right == 0 or not rules.separates(n_left, n_right, len(refs.prim)):
                 continue
             l_lo, l_hi = _union(box_lo[: k + 1], box_hi[: k + 1])
             r_lo, r_hi = _union(box_lo[k + 1:], box_hi[k + 1:])

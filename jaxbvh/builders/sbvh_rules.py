@@ -16,6 +16,15 @@ pieces per axis, and the spatial search works per piece (legocar, depth 12: 28 p
 per reference with 16 bins, 16 with this rule); a plane per reference is as many
 candidates as the references can tell apart. The object split keeps ``B`` bins.
 
+Progress (:func:`separates`, seventh round). A spatial plane is a candidate only if each
+side gets fewer references than the node has (``N_L < N``, ``N_R < N``, counts before
+unsplitting, which only lowers them). Without it, a node whose references all cross
+every plane (two triangles of a thin quad along a diagonal) splits into two children of
+the same references with smaller clipped boxes, and at ``max_leaf`` 1, where the leaf
+test cannot stop it, again and again: legocar's tree went 25 levels deep with 1.69
+references per triangle (1.22 and 20 levels with the rule; SAH +0.1%). The paper and
+tinybvh's ``BuildHQ`` stop such nodes by the SAH leaf test alone.
+
 Clipping (why a reference box covers its piece of the triangle). The part of a triangle
 on one side of a plane is a convex polygon whose corners are the triangle's corners on
 that side (the plane included) and the points where edges cross the plane. Its box is
@@ -64,6 +73,13 @@ def spatial_bins(count, bins: int):
     configured ``bins`` at most, fewer for few references (see the module docstring)."""
     xp = _xp(count)
     return xp.clip(xp.asarray(count) // SPATIAL_REFS_PER_BIN, min(SPATIAL_MIN_BINS, bins), bins).astype(xp.int32)
+
+
+def separates(n_left, n_right, count):
+    """Whether a spatial plane with ``n_left`` and ``n_right`` references on its sides
+    (entries at or before it, exits after it) may split a node of ``count``: each side
+    gets fewer than all of them (any equal shapes; see the module docstring)."""
+    return (n_left < count) & (n_right < count)
 
 
 def plane_at(lo, ext, j, bins: int):

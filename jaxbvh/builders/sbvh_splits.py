@@ -38,18 +38,20 @@ def segment(op, values, seg, slots):
     return op(values, seg, num_segments=slots + 1)[:slots]
 
 
-def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int) -> Split:
+def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int, most=None) -> Split:
     """Best plane of binned counts and boxes per slot and axis.
 
     ``count``: (entries, exits), ``box_lo``, ``box_hi``: three coordinate arrays each,
     all [B, F, 3] (bin, slot, axis). The plane after bin ``k`` has on its left the bins
     ``<= k`` (``N_L``: entries there) and on its right the others (``N_R``: exits
     there). Tie-rule winner: least cost; within TIE_TOLERANCE the lowest axis, then the
-    lowest plane. The sweeps are two ``lax.scan`` over the bins on flat [F * 3] rows
-    (XLA's cumulative ops and arrays with a trailing axis of 3 are many times slower on
-    CPU; the same sweeps unrolled bin by bin ran as fast but took ~6 s of compile each,
-    two per stage). Sums of counts and minima of boxes are exact: any order gives the
-    same values.
+    lowest plane. ``most`` [F] int32 (spatial splits): a plane is a candidate only if
+    each side has fewer references than that (the node's count: neither child may get
+    every reference, :func:`jaxbvh.builders.sbvh_rules.separates`). The sweeps are two
+    ``lax.scan`` over the bins on flat [F * 3] rows (XLA's cumulative ops and arrays
+    with a trailing axis of 3 are many times slower on CPU; the same sweeps unrolled bin
+    by bin ran as fast but took ~6 s of compile each, two per stage). Sums of counts and
+    minima of boxes are exact: any order gives the same values.
     """
     entries, exits = count
     dt = box_lo[0].dtype
@@ -59,43 +61,52 @@ def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int) -> Split:
         return values.reshape(bins, slots * 3)
 
     def sweep(n, lo, hi, reverse: bool):
-        """Running count and box over the bins (rows of [B - 1, F * 3] arrays), one
-        output row per bin: that bin and those before it (after it when ``reverse``)."""
+        """Running count and half-area of the running box over the bins (rows of [B - 1,
+        F * 3] arrays), one output row per bin: that bin and those before it (after it
+        when ``reverse``). Only counts and areas come out: the winner's boxes are
+        reduced afterwards from its own axis's cells (seventh round: the scans' 14
+        stacked outputs and their transposes were most of the object split at 8,192
+        node slots)."""
         def step(carry, row):
             carry = (carry[0] + row[0], tuple(jnp.minimum(c, r) for c, r in zip(carry[1], row[1])),
                      tuple(jnp.maximum(c, r) for c, r in zip(carry[2], row[2])))
-            return carry, carry
+            return carry, (carry[0], half_area(jnp.stack(carry[1], -1), jnp.stack(carry[2], -1), scale))
         width = n.shape[1]
         start = (jnp.zeros(width, jnp.int32), (jnp.full(width, jnp.inf, dt),) * 3, (jnp.full(width, -jnp.inf, dt),) * 3)
         return jax.lax.scan(step, start, (n, tuple(lo), tuple(hi)), reverse=reverse)[1]
 
-    n_l, lo_l, hi_l = sweep(rows(entries)[:-1], [rows(c)[:-1] for c in box_lo], [rows(c)[:-1] for c in box_hi],
-                            False)  # row k, plane k: bins 0 .. k
-    n_r, lo_r, hi_r = sweep(rows(exits)[1:], [rows(c)[1:] for c in box_lo], [rows(c)[1:] for c in box_hi],
-                            True)  # row k, plane k: bins k + 1 ..
+    n_l, a_l = sweep(rows(entries)[:-1], [rows(c)[:-1] for c in box_lo], [rows(c)[:-1] for c in box_hi],
+                     False)  # row k, plane k: bins 0 .. k
+    n_r, a_r = sweep(rows(exits)[1:], [rows(c)[1:] for c in box_lo], [rows(c)[1:] for c in box_hi],
+                     True)  # row k, plane k: bins k + 1 ..
 
-    def area(lo, hi):
-        return half_area(jnp.stack(lo, -1), jnp.stack(hi, -1), scale)
+    candidate = usable.reshape(1, -1) & (n_l > 0) & (n_r > 0)
+    if most is not None:
+        candidate = candidate & rules.separates(n_l, n_r, jnp.repeat(most, 3)[None, :])
+    cost = jnp.where(candidate, a_l * n_l.astype(dt) + a_r * n_r.astype(dt), jnp.inf)
 
-    cost = jnp.where(usable.reshape(1, -1) & (n_l > 0) & (n_r > 0),
-                     area(lo_l, hi_l) * n_l.astype(dt) + area(lo_r, hi_r) * n_r.astype(dt), jnp.inf)
-
-    def flat(values):  # [B - 1, F * 3] (plane, slot and axis) -> [F, 3 (B - 1)], axis-major then plane
-        return values.reshape(bins - 1, slots, 3).transpose(1, 2, 0).reshape(slots, -1)
-
-    costs = flat(cost)
+    # [B - 1, F * 3] (plane, slot and axis) -> [F, 3 (B - 1)], axis-major then plane
+    costs = cost.reshape(bins - 1, slots, 3).transpose(1, 2, 0).reshape(slots, -1)
     best = costs.min(axis=1)
     near = best * jnp.asarray(1 + TIE_TOLERANCE, dt)
     first = jnp.argmax((costs <= near[:, None]) & (costs < jnp.inf), axis=1).astype(jnp.int32)
     axis, plane = first // (bins - 1), first % (bins - 1)
 
-    def pick(values):  # the winner's value
-        return jnp.take_along_axis(flat(values), first[:, None], axis=1)[:, 0]
+    # the winner's sides: its axis's bins up to its plane and after it (min, max and
+    # sums in any order: the values of the running sweeps at that plane)
+    column = jnp.arange(slots, dtype=jnp.int32) * 3 + axis  # each slot's winner axis in a row of F * 3
+    left = jnp.arange(bins, dtype=jnp.int32)[:, None] <= plane[None, :]  # [B, F]
 
-    def box(coords):
-        return jnp.stack([pick(c) for c in coords], axis=1)
+    def side(values, op, fill, mask):  # [B, F, 3] -> [F], over the bins of one side
+        return op(jnp.where(mask, rows(values)[:, column], fill), axis=0)
 
-    return Split(best, axis, plane, box(lo_l), box(hi_l), box(lo_r), box(hi_r), pick(n_l), pick(n_r))
+    def box(coords, op, fill, mask):
+        return jnp.stack([side(c, op, fill, mask) for c in coords], axis=1)
+
+    inf = jnp.asarray(jnp.inf, dt)
+    return Split(best, axis, plane, box(box_lo, jnp.min, inf, left), box(box_hi, jnp.max, -inf, left),
+                 box(box_lo, jnp.min, inf, ~left), box(box_hi, jnp.max, -inf, ~left),
+                 side(entries, jnp.sum, 0, left).astype(jnp.int32), side(exits, jnp.sum, 0, ~left).astype(jnp.int32))
 
 
 def _cells(op, columns, key, cells: int, slots: int, bins: int):
@@ -209,9 +220,10 @@ def _piece_boxes(v, ref_lo, ref_hi, axis, node_lo_a, ext_a, b1, b, valid, bins):
     return lo, hi, cross_lo, cross_hi
 
 
-def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, tried, node_bins, slots: int, scale,
-                  bins: int):
-    """Binned spatial split of the slots ``tried`` [F] bool: ``(split, bins)``.
+def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, tried, node_bins, count, slots: int,
+                  scale, bins: int):
+    """Binned spatial split of the slots ``tried`` [F] bool: ``(split, bins)``; ``count``
+    [F] int32 each slot's references (no side may get all of them).
 
     Every live reference (one of a tried node) spans bins ``b0 .. b1`` per axis; it is cut
     into one *piece* per (axis, bin) it spans, the pieces are walked in chunks of
@@ -243,7 +255,7 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
     def step(i, cell):
         """Pieces ``i chunk .. (i + 1) chunk - 1`` into the cells (scatter min, max and add:
         the same values as one segment reduction over all pieces)."""
-        counts, box_lo, box_hi, cross_lo, cross_hi = cell
+        box_lo, box_hi, cross_lo, cross_hi = cell
         p = i * chunk + jnp.arange(chunk, dtype=jnp.int32)
         owner = jnp.clip(jnp.searchsorted(ends, p, side="right"), 0, 3 * refs - 1).astype(jnp.int32)
         valid = p < total
@@ -259,20 +271,23 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
                                                       ext_r.ravel()[owner], b1_p, b, valid, bins_r[r])
         key = jnp.where(valid, cell_key(b, seg_p, axis, slots), cells)  # cells: dropped
         x_key = jnp.where(valid & (b < b1_p), cell_key(b + 1, seg_p, axis, slots), planes)
-        counts = [c.at[key].add((flag & valid).astype(jnp.int32), mode="drop")
-                  for c, flag in zip(counts, (b == b0_p, b == b1_p))]
         box_lo = [c.at[key].min(x, mode="drop") for c, x in zip(box_lo, piece_lo)]
         box_hi = [c.at[key].max(x, mode="drop") for c, x in zip(box_hi, piece_hi)]
         cross_lo = [c.at[x_key].min(x, mode="drop") for c, x in zip(cross_lo, x_lo)]
         cross_hi = [c.at[x_key].max(x, mode="drop") for c, x in zip(cross_hi, x_hi)]
-        return counts, box_lo, box_hi, cross_lo, cross_hi
+        return box_lo, box_hi, cross_lo, cross_hi
 
     inf = jnp.full(cells, jnp.inf, dt)
-    empty = ([jnp.zeros(cells, jnp.int32)] * 2, [inf] * 3, [-inf] * 3, [jnp.full(planes, jnp.inf, dt)] * 3,
-             [jnp.full(planes, -jnp.inf, dt)] * 3)
+    empty = ([inf] * 3, [-inf] * 3, [jnp.full(planes, jnp.inf, dt)] * 3, [jnp.full(planes, -jnp.inf, dt)] * 3)
     # at most ceil(3 R B / chunk) steps: the pieces are at most 3 R B
-    counts, box_lo, box_hi, cross_lo, cross_hi = jax.lax.fori_loop(0, (total + chunk - 1) // chunk, step, empty)
+    box_lo, box_hi, cross_lo, cross_hi = jax.lax.fori_loop(0, (total + chunk - 1) // chunk, step, empty)
     rows = slots * 3
+    # entries and exits: one per live reference and axis, counted outside the piece loop
+    axes = jnp.arange(3, dtype=jnp.int32)[None, :]
+    ones = jnp.ones(3 * refs, jnp.int32)
+    counts = [segment(jax.ops.segment_sum, ones, jnp.where(live[:, None], cell_key(b, seg[:, None], axes, slots),
+                                                            cells).ravel(), cells)
+              for b in (b0, b1)]
 
     def with_planes(op, corner, cross):
         """Bin b's box: its corners' with the crossings of planes b and b + 1 (rows of [B, F 3])."""
@@ -282,7 +297,7 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
     counts = [c.reshape(bins, slots, 3) for c in counts]
     box_lo = [with_planes(jnp.minimum, c, x) for c, x in zip(box_lo, cross_lo)]
     box_hi = [with_planes(jnp.maximum, c, x) for c, x in zip(box_hi, cross_hi)]
-    return _sweep_bins(counts, box_lo, box_hi, (ext > 0) & tried[:, None], scale, bins), Bins(b0, b1)
+    return _sweep_bins(counts, box_lo, box_hi, (ext > 0) & tried[:, None], scale, bins, count), Bins(b0, b1)
 
 
 class Sides(NamedTuple):

@@ -26,6 +26,32 @@ def local_triangles(tri, dtype=np.float32):
     return Frame.fit(lo, hi).to_local(tri).astype(dtype)
 
 
+def assert_children_hold_fewer_references(tree):
+    """Every child holds fewer references than its parent (a node's references are the
+    distinct triangles below it): a spatial split never hands a side all of its node's
+    references (rules.separates), so splitting always progresses."""
+    t = jaxbvh.to_numpy(tree)
+    order, frontier = [], [int(t.root)]
+    while frontier:  # breadth first from the root; reversed, children come before parents
+        order += frontier
+        frontier = [int(c) for i in frontier if t.left[i] >= 0 for c in (t.left[i], t.right[i])]
+    below = {}
+    for i in reversed(order):
+        if t.left[i] >= 0:
+            below[i] = below[int(t.left[i])] | below[int(t.right[i])]
+            assert len(below[int(t.left[i])]) < len(below[i]) and len(below[int(t.right[i])]) < len(below[i])
+        else:
+            start = int(t.prim_start[i])
+            below[i] = frozenset(t.prim_index[start: start + int(t.prim_count[i])].tolist())
+
+
+def diagonal_quad():
+    """A thin quad along the cube's diagonal, as two triangles: every spatial plane cuts
+    both, and each side's clipped boxes are far smaller than the node's."""
+    return np.asarray([[[0, 0, 0], [1, 1, 1], [0.1, 0, 0]], [[0.02, 0.02, 0.02], [1, 1, 1], [0.95, 1, 1]]],
+                      np.float32)
+
+
 def long_thin_scene():
     """Long slivers crossing each other on a grid: object splits overlap, spatial splits pay."""
     tri = []
@@ -63,6 +89,7 @@ def test_jax_sbvh_equals_reference_where_spatial_splits_and_unsplitting_happen(s
     want = reference.build(tri, config, capacity=BIG_SLOTS)
     assert want.spatial_splits > 0
     assert canonical(got.tree) == canonical(want.tree)
+    assert_children_hold_fewer_references(got.tree)
     assert (int(got.references), int(got.spatial_splits)) == (want.references, want.spatial_splits)
 
 
@@ -77,6 +104,19 @@ def test_every_sbvh_tree_is_valid_with_references_and_covers_every_triangle(tri,
     t = jaxbvh.to_numpy(got.tree)
     assert int(t.prim_count.sum()) == int(got.references) >= tri.shape[0]
     assert t.prim_count.max() <= max_leaf
+    assert_children_hold_fewer_references(got.tree)
+
+
+def test_a_spatial_split_leaves_each_side_fewer_references():
+    """Two triangles that every plane cuts: without the rule each spatial split hands
+    both sides both references, and at ``max_leaf`` 1 the node is split again and again
+    (29 spatial splits, 60 references, depth 6); with it the object split is taken."""
+    tri = diagonal_quad()
+    config = SBVHConfig(alpha=0.0, max_leaf=1, bins=4)
+    got = build_sbvh(tri, config, capacity=SLOTS)
+    assert canonical(got.tree) == canonical(reference.build(tri, config, capacity=SLOTS).tree)
+    assert int(got.references) == 2 and int(got.spatial_splits) == 0
+    assert_children_hold_fewer_references(got.tree)
 
 
 def test_spatial_splits_pay_on_long_thin_triangles():
