@@ -76,7 +76,9 @@ One iteration
    :func:`~jaxbvh.optimize.reinsert_search.search_width` lanes of one ``while_loop`` (a
    work queue: every :data:`~jaxbvh.optimize.reinsert_search.REFILL_STEPS` steps, lanes
    whose walk ended hand in their result and take the next candidate), over node data
-   packed by rows, so the work follows the steps the walks take.
+   packed by rows, so the work follows the steps the walks take; once every candidate
+   has started, the walks still running move into fewer lanes
+   (:func:`~jaxbvh.optimize.reinsert_search.lane_widths`: speed only).
 3. Conflicts: a move *locks* ``a``, ``s``, the paths from ``p`` and from ``out`` up to
    their common ancestor (both ends included) and the parents of ``p`` and ``out``
    (their child links change). The moves found (the first
@@ -92,7 +94,9 @@ One iteration
    and the order of applying them does not matter.
 4. All taken moves are applied at once (scatters), then the boxes on each move's two
    changed paths are refitted bottom-up, all moves in lockstep, stopping below the
-   common ancestor (whose box cannot change).
+   common ancestor (whose box cannot change). Steps 3 and 4 run in the narrowest of
+   :func:`~jaxbvh.optimize.reinsert_moves.move_lanes` that holds the moves found
+   (speed only: the same moves in the same ranks).
 
 Iterations repeat until one over all nodes takes no move (the run has converged),
 ``max_iterations``, or ``time_budget``; every iteration lowers the SAH, so the last tree
