@@ -243,21 +243,22 @@ def init(tree, config: Config | None = None, key=None) -> OptimizerState:
     config = check_config(config, Config, "pipeline")
     tree = to_jax(tree)
     dtype = float_dtype(tree)
-    treelets = treelet.init(tree, config.treelet)
+    # one SAH for the three progress records (each stage's config has the pipeline's ct, ci)
+    sah_start = sah_of(tree, config.ct, config.ci)
+    treelets = treelet.init(tree, config.treelet, sah_start=sah_start)
     if config.first_treelet_passes is not None:
         # the first round's own pass limit (traced: the same program as later rounds')
         first = min(config.first_treelet_passes, int(treelets.progress.limit))
         treelets = treelets.replace(progress=treelets.progress._replace(
             limit=jnp.int32(first), done=treelets.progress.done | (first <= 0)))
-    reinsertion = reinsert.init(tree, config.reinsert)  # its params and settings; restarted later
+    reinsertion = reinsert.init(tree, config.reinsert, sah_start=sah_start)  # its params and settings; restarted later
     nodes = int(jnp.sum(tree.parent >= 0))
     params = Params(ct=jnp.asarray(config.ct, dtype), ci=jnp.asarray(config.ci, dtype),
                     round_gain=jnp.asarray(config.round_gain, dtype), max_rounds=jnp.int32(config.max_rounds),
                     need_first=reinsertion.params.need, need_later=jnp.int32(candidates_needed(1.0, nodes)),
                     split_axes=jnp.bool_(config.split_axes))
     treelet_limit, reinsert_limit = int(treelets.progress.limit), int(reinsertion.progress.limit)
-    progress = new_progress(sah_of(tree, config.ct, config.ci),
-                            config.max_rounds * (treelet_limit + reinsert_limit), dtype)
+    progress = new_progress(sah_start, config.max_rounds * (treelet_limit + reinsert_limit), dtype)
     inner = Inner(treelets, reinsertion, jnp.int32(TREELETS), jnp.int32(0), progress.sah_start)
     static = Static(config.treelet, reinsert_limit)
     return _settle_at_init(OptimizerState(tree, progress, params, inner, static))

@@ -76,7 +76,9 @@ One iteration
    :func:`~jaxbvh.optimize.reinsert_search.search_width` lanes of one ``while_loop`` (a
    work queue: every :data:`~jaxbvh.optimize.reinsert_search.REFILL_STEPS` steps, lanes
    whose walk ended hand in their result and take the next candidate), over node data
-   packed by rows, so the work follows the steps the walks take.
+   packed by rows, so the work follows the steps the walks take; once every candidate
+   has started, the walks still running move into fewer lanes
+   (:func:`~jaxbvh.optimize.reinsert_search.lane_widths`: speed only).
 3. Conflicts: a move *locks* ``a``, ``s``, the paths from ``p`` and from ``out`` up to
    their common ancestor (both ends included) and the parents of ``p`` and ``out``
    (their child links change). The moves found (the first
@@ -92,7 +94,9 @@ One iteration
    and the order of applying them does not matter.
 4. All taken moves are applied at once (scatters), then the boxes on each move's two
    changed paths are refitted bottom-up, all moves in lockstep, stopping below the
-   common ancestor (whose box cannot change).
+   common ancestor (whose box cannot change). Steps 3 and 4 run in the narrowest of
+   :func:`~jaxbvh.optimize.reinsert_moves.move_lanes` that holds the moves found
+   (speed only: the same moves in the same ranks).
 
 Iterations repeat until one over all nodes takes no move (the run has converged),
 ``max_iterations``, or ``time_budget``; every iteration lowers the SAH, so the last tree
@@ -255,11 +259,13 @@ class Inner(NamedTuple):
     settled: Any  # [N] bool: last search found no move and no move touched the node since
 
 
-def init(tree, config: Config | None = None, key=None) -> OptimizerState:
+def init(tree, config: Config | None = None, key=None, *, sah_start=None) -> OptimizerState:
     """The state before the first iteration: boxes refitted tight, the first octaves.
 
     ``tree``: a :class:`~jaxbvh.tree.layout.BVH` (NumPy or JAX arrays, any capacity,
-    leaves of any size). ``key``: unused (the method is deterministic).
+    leaves of any size). ``key``: unused (the method is deterministic). ``sah_start``:
+    the tree's SAH with the config's ``ct``, ``ci`` when the caller has it (the pipeline),
+    else computed here.
     """
     del key
     check_tree(tree)
@@ -277,7 +283,7 @@ def init(tree, config: Config | None = None, key=None) -> OptimizerState:
                     split_axes=jnp.bool_(config.split_axes), settle=jnp.bool_(config.settle),
                     widen_until=jnp.int32(widening_stop(config.widen_until, nodes)))
     limit = config.max_iterations if config.ct > 0 else 0  # with Ct = 0 no move changes the SAH
-    return restart(params, tree, limit)
+    return restart(params, tree, limit, sah_start)
 
 
 @jax.jit
@@ -287,10 +293,12 @@ def _start(tree, need) -> Inner:
     return Inner(st, octaves, jnp.sum(st.parent >= 0, dtype=jnp.int32), jnp.zeros(st.parent.shape, bool))
 
 
-def restart(params: Params, tree, limit: int) -> OptimizerState:
+def restart(params: Params, tree, limit: int, sah_start=None) -> OptimizerState:
     """The state of a fresh run on ``tree`` (a JAX BVH) with these settings (traceable:
-    the pipeline starts each reinsertion stage with it). ``limit``: most iterations."""
-    progress = new_progress(sah_of(tree, params.ct, params.ci), limit, float_dtype(tree))
+    the pipeline starts each reinsertion stage with it). ``limit``: most iterations.
+    ``sah_start``: the tree's SAH with ``params.ct``, ``params.ci`` (None: computed here)."""
+    sah_start = sah_of(tree, params.ct, params.ci) if sah_start is None else sah_start
+    progress = new_progress(sah_start, limit, float_dtype(tree))
     # every setting is traced (no static part): one compiled program for every config
     return OptimizerState(tree, progress, params, _start(tree, params.need), None)
 

@@ -305,20 +305,66 @@ def find(st: State, octaves, max_steps, min_gain, settled=None):
     return m, select(st, m), jnp.where(a >= 0, take_clipped(gain, a), 0), count, searched & (out < 0)
 
 
+#: the moves of an iteration are chosen and applied in this many times fewer lanes while
+#: the moves found fit there (speed only; :func:`move_lanes`)
+MOVE_SHRINK = 4
+#: the fewest lanes the moves are narrowed to
+MIN_MOVE_LANES = 256
+
+
+def move_lanes(capacity: int) -> tuple[int, ...]:
+    """The lane counts an iteration may choose and apply its moves in (static):
+    :func:`~jaxbvh.optimize.reinsert_rules.move_width`, then narrower by
+    :data:`MOVE_SHRINK` while that is at least :data:`MIN_MOVE_LANES`.
+
+    Why: ranking, :func:`select` (rounds of walks up every lane's paths) and
+    :func:`apply` work on every lane, found or idle, and an iteration finds far fewer
+    moves than the width (legocar: at most about 700 for 4,096 lanes, 18 - 210 in the
+    first round). An iteration runs them in the narrowest of these that holds every move
+    found; the first ``found`` lanes are the same moves in the same ranks and the other
+    lanes are idle in every width, so the same moves are taken (speed only)."""
+    widths = [move_width(capacity)]
+    while widths[-1] // MOVE_SHRINK >= MIN_MOVE_LANES:
+        widths.append(widths[-1] // MOVE_SHRINK)
+    return tuple(widths)
+
+
 def iteration(st: State, prim_count, ct, ci, octaves, max_steps, min_gain, settled=None):
     """One iteration: ``(state, moves taken, total gain, SAH after, candidates searched,
     settled after)``.
 
-    :func:`find`, then :func:`apply`; ``prim_count`` [N] int32, ``ct``, ``ci``: the SAH
-    of the new state (:func:`interior_sah`). The gain is in scaled half-areas (the SAH
-    drops by ``ct * gain / area(root)``). ``settled`` [N] bool (None: none): nodes not
-    searched, whose last search stands; after: those and the nodes searched without a
-    move, less the nodes the moves touched (:func:`touched`). Traceable.
+    :func:`find`'s search and choice, then :func:`apply` (the choice and the moves in
+    the narrowest of :func:`move_lanes` that holds the moves found: the same moves as
+    :func:`find` takes); ``prim_count`` [N] int32, ``ct``, ``ci``: the SAH of the new
+    state (:func:`interior_sah`). The gain is in scaled half-areas (the SAH drops by
+    ``ct * gain / area(root)``). ``settled`` [N] bool (None: none): nodes not searched,
+    whose last search stands; after: those and the nodes searched without a move, less
+    the nodes the moves touched (:func:`touched`). Traceable.
     """
-    m, taken, gain, count, idle = find(st, octaves, max_steps, min_gain, settled)
-    new = apply(st, m, taken, scale_of(st))
-    made = jnp.sum(taken, dtype=jnp.int32)
+    cap = st.child.shape[0]
+    scale = scale_of(st)
+    ids, count = candidates(st, octaves, settled)
+    gain, out, lca = search(st, ids, count, scale, max_steps, min_gain)
+    searched = jnp.zeros(cap, bool).at[none_to_oob(ids, cap)].set(True, mode="drop")
+    idle = searched & (out < 0)
+
+    def in_lanes(width):
+        def run(_):
+            a = best(gain, out, width)
+            m = moves(st, a, out, lca)
+            taken = select(st, m)
+            new = apply(st, m, taken, scale)
+            total = jnp.sum(jnp.where(taken & (a >= 0), take_clipped(gain, a), 0))
+            return new, jnp.sum(taken, dtype=jnp.int32), total, touched(st, m, taken, new.parent)
+        return run
+
+    widths = move_lanes(cap)
+    if len(widths) == 1:
+        new, made, total, marks = in_lanes(widths[0])(None)
+    else:
+        found = jnp.sum(out >= 0, dtype=jnp.int32)
+        # 0: every lane; k: the k-th narrower width, the narrowest that holds the moves found
+        which = sum((found <= w).astype(jnp.int32) for w in widths[1:])
+        new, made, total, marks = jax.lax.switch(which, [in_lanes(w) for w in widths], None)
     settled = idle if settled is None else settled | idle
-    settled = settled & ~touched(st, m, taken, new.parent)
-    return (new, made, jnp.sum(jnp.where(taken, gain, 0)), interior_sah(new, prim_count, ct, ci), count,
-            settled)
+    return new, made, total, interior_sah(new, prim_count, ct, ci), count, settled & ~marks

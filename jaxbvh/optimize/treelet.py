@@ -436,11 +436,13 @@ def _sah(st: _State, root, prim_count, ct, ci):
     return jnp.where(root_area > 0, st.cost[root] / jnp.where(root_area > 0, root_area, 1), flat)
 
 
-def init(tree, config: Config | None = None, key=None) -> OptimizerState:
+def init(tree, config: Config | None = None, key=None, *, sah_start=None) -> OptimizerState:
     """The state before the first pass: boxes refitted tight, costs of every node.
 
     ``tree``: a :class:`~jaxbvh.tree.layout.BVH` (NumPy or JAX arrays, any capacity,
-    leaves of any size). ``key``: unused (the method is deterministic).
+    leaves of any size). ``key``: unused (the method is deterministic). ``sah_start``:
+    the tree's SAH with the config's ``ct``, ``ci`` when the caller has it (the pipeline:
+    computing it takes a sweep per level), else computed here.
     """
     del key
     check_tree(tree)
@@ -458,7 +460,8 @@ def init(tree, config: Config | None = None, key=None) -> OptimizerState:
                     split_axes=jnp.bool_(config.split_axes))
     inner = _prepare(tree, params.ct, params.ci)
     limit = config.max_passes if config.leaves > 2 else 0  # two-leaf treelets cannot change
-    progress = new_progress(sah_of(tree, config.ct, config.ci), limit, dtype)
+    sah_start = sah_of(tree, config.ct, config.ci) if sah_start is None else sah_start
+    progress = new_progress(sah_start, limit, dtype)
     return OptimizerState(tree, progress, params, inner,
                           Static(int(config.leaves), window_sizes(tree.left.shape[0], config.windows)))
 
