@@ -192,7 +192,8 @@ def _piece_boxes(v, ref_lo, ref_hi, axis, node_lo_a, ext_a, b1, b, valid, bins):
 
     Written coordinate by coordinate on flat arrays, with no concatenation or shift:
     XLA on CPU runs arrays with a trailing axis of 3, and fusions that mix elements,
-    many times slower.
+    many times slower (:func:`spatial_split` shifts the crossings by one lane only
+    after they are held in memory).
     """
     dt = ref_lo[0].dtype
     inf = jnp.asarray(jnp.inf, dt)
@@ -229,8 +230,9 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
     into one *piece* per (axis, bin) it spans, the pieces are walked in chunks of
     :func:`piece_chunk` (a loop of as many steps as the level needs, one compiled body),
     and each piece's estimated box enters its (node, axis, bin) cell by scatter: its
-    corners in that bin, and the crossing of the plane above it, which enters a cell of
-    that plane and reaches both bins beside it after the loop (:func:`_piece_boxes`). A
+    corners in that bin and the crossings of the planes below and above it; each plane's
+    crossing is computed once, by the piece below it, and handed to the piece above it
+    (the next lane: a reference's pieces are consecutive; :func:`_piece_boxes`). A
     reference inside one bin (most of them) is one piece per axis, so the work follows
     the live references and their straddling, not ``bins`` times every slot.
     """
