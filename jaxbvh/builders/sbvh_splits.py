@@ -192,7 +192,8 @@ def _piece_boxes(v, ref_lo, ref_hi, axis, node_lo_a, ext_a, b1, b, valid, bins):
 
     Written coordinate by coordinate on flat arrays, with no concatenation or shift:
     XLA on CPU runs arrays with a trailing axis of 3, and fusions that mix elements,
-    many times slower.
+    many times slower (:func:`spatial_split` shifts the crossings by one lane only
+    after they are held in memory).
     """
     dt = ref_lo[0].dtype
     inf = jnp.asarray(jnp.inf, dt)
@@ -229,8 +230,9 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
     into one *piece* per (axis, bin) it spans, the pieces are walked in chunks of
     :func:`piece_chunk` (a loop of as many steps as the level needs, one compiled body),
     and each piece's estimated box enters its (node, axis, bin) cell by scatter: its
-    corners in that bin, and the crossing of the plane above it, which enters a cell of
-    that plane and reaches both bins beside it after the loop (:func:`_piece_boxes`). A
+    corners in that bin and the crossings of the planes below and above it; each plane's
+    crossing is computed once, by the piece below it, and handed to the piece above it
+    (the next lane: a reference's pieces are consecutive; :func:`_piece_boxes`). A
     reference inside one bin (most of them) is one piece per axis, so the work follows
     the live references and their straddling, not ``bins`` times every slot.
     """
@@ -250,15 +252,20 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
     chunk = piece_chunk(refs, bins)
     dt = ref_lo.dtype
 
-    planes = (bins + 1) * slots * 3  # cells of the planes' crossings: (plane j, slot, axis), j = 0 .. B
-
     def step(i, cell):
-        """Pieces ``i chunk .. (i + 1) chunk - 1`` into the cells (scatter min, max and add:
-        the same values as one segment reduction over all pieces)."""
-        box_lo, box_hi, cross_lo, cross_hi = cell
-        p = i * chunk + jnp.arange(chunk, dtype=jnp.int32)
+        """Pieces ``i chunk .. (i + 1) chunk - 1`` into the cells (scatter min and max: the
+        same values as one segment reduction over all pieces).
+
+        A piece's box is its corners with the crossings of the planes below and above
+        it. It computes the plane above (:func:`_piece_boxes`); the plane below is the
+        one its pair's previous piece computed, which is the previous lane (the pieces
+        of a pair are consecutive), so each step also computes the piece before its
+        first (lane 0, for that crossing only). One scatter per coordinate and side: the
+        crossings need no cells of their own (six scatters a piece, not twelve)."""
+        box_lo, box_hi = cell
+        p = i * chunk - 1 + jnp.arange(chunk + 1, dtype=jnp.int32)
         owner = jnp.clip(jnp.searchsorted(ends, p, side="right"), 0, 3 * refs - 1).astype(jnp.int32)
-        valid = p < total
+        valid = (p >= 0) & (p < total)
         r, axis = owner // 3, owner % 3
         b0_p, b1_p = b0.ravel()[owner], b1.ravel()[owner]
         b = b0_p + p - (ends[owner] - width[owner])
@@ -269,34 +276,28 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
         v = [corners[3 * k: 3 * k + 3] for k in range(3)]
         piece_lo, piece_hi, x_lo, x_hi = _piece_boxes(v, piece_lo, piece_hi, axis, lo_r.ravel()[owner],
                                                       ext_r.ravel()[owner], b1_p, b, valid, bins_r[r])
-        key = jnp.where(valid, cell_key(b, seg_p, axis, slots), cells)  # cells: dropped
-        x_key = jnp.where(valid & (b < b1_p), cell_key(b + 1, seg_p, axis, slots), planes)
-        box_lo = [c.at[key].min(x, mode="drop") for c, x in zip(box_lo, piece_lo)]
-        box_hi = [c.at[key].max(x, mode="drop") for c, x in zip(box_hi, piece_hi)]
-        cross_lo = [c.at[x_key].min(x, mode="drop") for c, x in zip(cross_lo, x_lo)]
-        cross_hi = [c.at[x_key].max(x, mode="drop") for c, x in zip(cross_hi, x_hi)]
-        return box_lo, box_hi, cross_lo, cross_hi
+        # the crossings held in memory once: each is read by its own lane and the next
+        x_lo, x_hi = jax.lax.optimization_barrier((x_lo, x_hi))
+        below = (b > b0_p)[1:]  # the previous lane is this pair's piece in bin b - 1
+        inf = jnp.asarray(jnp.inf, dt)
+        lo = [jnp.minimum(jnp.minimum(c[1:], x[1:]), jnp.where(below, x[:-1], inf)) for c, x in zip(piece_lo, x_lo)]
+        hi = [jnp.maximum(jnp.maximum(c[1:], x[1:]), jnp.where(below, x[:-1], -inf)) for c, x in zip(piece_hi, x_hi)]
+        key = jnp.where(valid, cell_key(b, seg_p, axis, slots), cells)[1:]  # cells: dropped
+        box_lo = [c.at[key].min(x, mode="drop") for c, x in zip(box_lo, lo)]
+        box_hi = [c.at[key].max(x, mode="drop") for c, x in zip(box_hi, hi)]
+        return box_lo, box_hi
 
     inf = jnp.full(cells, jnp.inf, dt)
-    empty = ([inf] * 3, [-inf] * 3, [jnp.full(planes, jnp.inf, dt)] * 3, [jnp.full(planes, -jnp.inf, dt)] * 3)
     # at most ceil(3 R B / chunk) steps: the pieces are at most 3 R B
-    box_lo, box_hi, cross_lo, cross_hi = jax.lax.fori_loop(0, (total + chunk - 1) // chunk, step, empty)
-    rows = slots * 3
+    box_lo, box_hi = jax.lax.fori_loop(0, (total + chunk - 1) // chunk, step, ([inf] * 3, [-inf] * 3))
     # entries and exits: one per live reference and axis, counted outside the piece loop
     axes = jnp.arange(3, dtype=jnp.int32)[None, :]
     ones = jnp.ones(3 * refs, jnp.int32)
     counts = [segment(jax.ops.segment_sum, ones, jnp.where(live[:, None], cell_key(b, seg[:, None], axes, slots),
-                                                            cells).ravel(), cells)
+                                                            cells).ravel(), cells).reshape(bins, slots, 3)
               for b in (b0, b1)]
-
-    def with_planes(op, corner, cross):
-        """Bin b's box: its corners' with the crossings of planes b and b + 1 (rows of [B, F 3])."""
-        corner, cross = corner.reshape(bins, rows), cross.reshape(bins + 1, rows)
-        return op(corner, op(cross[:-1], cross[1:])).reshape(bins, slots, 3)
-
-    counts = [c.reshape(bins, slots, 3) for c in counts]
-    box_lo = [with_planes(jnp.minimum, c, x) for c, x in zip(box_lo, cross_lo)]
-    box_hi = [with_planes(jnp.maximum, c, x) for c, x in zip(box_hi, cross_hi)]
+    box_lo = [c.reshape(bins, slots, 3) for c in box_lo]
+    box_hi = [c.reshape(bins, slots, 3) for c in box_hi]
     return _sweep_bins(counts, box_lo, box_hi, (ext > 0) & tried[:, None], scale, bins, count), Bins(b0, b1)
 
 
