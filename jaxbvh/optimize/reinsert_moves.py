@@ -295,14 +295,26 @@ def find(st: State, octaves, max_steps, min_gain, settled=None):
     the number of candidates searched ([] int32) and which nodes were searched and
     found no move (bool [N]). Traceable.
     """
-    scale = scale_of(st)
+    found, count, idle = _search(st, octaves, max_steps, min_gain, settled)
+    m, taken, gains = _choose(st, found, move_width(st.child.shape[0]))
+    return m, taken, gains, count, idle
+
+
+def _search(st: State, octaves, max_steps, min_gain, settled):
+    """:func:`find`'s search: ``((gain, out, lca) [N] each, count, idle [N] bool)``."""
     ids, count = candidates(st, octaves, settled)
-    gain, out, lca = search(st, ids, count, scale, max_steps, min_gain)
-    a = best(gain, out, move_width(st.child.shape[0]))
-    m = moves(st, a, out, lca)
+    gain, out, lca = search(st, ids, count, scale_of(st), max_steps, min_gain)
     cap = st.child.shape[0]
     searched = jnp.zeros(cap, bool).at[none_to_oob(ids, cap)].set(True, mode="drop")
-    return m, select(st, m), jnp.where(a >= 0, take_clipped(gain, a), 0), count, searched & (out < 0)
+    return (gain, out, lca), count, searched & (out < 0)
+
+
+def _choose(st: State, found, width: int):
+    """:func:`find`'s choice in ``width`` lanes: ``(moves, taken [W] bool, gains [W])``."""
+    gain, out, lca = found
+    a = best(gain, out, width)
+    m = moves(st, a, out, lca)
+    return m, select(st, m), jnp.where(a >= 0, take_clipped(gain, a), 0)
 
 
 #: the moves of an iteration are chosen and applied in this many times fewer lanes while
@@ -341,30 +353,23 @@ def iteration(st: State, prim_count, ct, ci, octaves, max_steps, min_gain, settl
     whose last search stands; after: those and the nodes searched without a move, less
     the nodes the moves touched (:func:`touched`). Traceable.
     """
-    cap = st.child.shape[0]
-    scale = scale_of(st)
-    ids, count = candidates(st, octaves, settled)
-    gain, out, lca = search(st, ids, count, scale, max_steps, min_gain)
-    searched = jnp.zeros(cap, bool).at[none_to_oob(ids, cap)].set(True, mode="drop")
-    idle = searched & (out < 0)
+    found, count, idle = _search(st, octaves, max_steps, min_gain, settled)
 
     def in_lanes(width):
         def run(_):
-            a = best(gain, out, width)
-            m = moves(st, a, out, lca)
-            taken = select(st, m)
-            new = apply(st, m, taken, scale)
-            total = jnp.sum(jnp.where(taken & (a >= 0), take_clipped(gain, a), 0))
+            m, taken, gains = _choose(st, found, width)
+            new = apply(st, m, taken, scale_of(st))
+            total = jnp.sum(jnp.where(taken, gains, 0))
             return new, jnp.sum(taken, dtype=jnp.int32), total, touched(st, m, taken, new.parent)
         return run
 
-    widths = move_lanes(cap)
+    widths = move_lanes(st.child.shape[0])
     if len(widths) == 1:
         new, made, total, marks = in_lanes(widths[0])(None)
     else:
-        found = jnp.sum(out >= 0, dtype=jnp.int32)
+        moves_found = jnp.sum(found[1] >= 0, dtype=jnp.int32)
         # 0: every lane; k: the k-th narrower width, the narrowest that holds the moves found
-        which = sum((found <= w).astype(jnp.int32) for w in widths[1:])
+        which = sum((moves_found <= w).astype(jnp.int32) for w in widths[1:])
         new, made, total, marks = jax.lax.switch(which, [in_lanes(w) for w in widths], None)
     settled = idle if settled is None else settled | idle
     return new, made, total, interior_sah(new, prim_count, ct, ci), count, settled & ~marks
