@@ -156,10 +156,12 @@ def _placed_boxes(forest: Forest, node_off, obj_of, to_scene, margin, n_inst: in
     [len(obj_of)] int32, world_lo, world_hi [W, 3])``, NumPy in ``forest.lo``'s dtype.
 
     Instance ``i``'s rows are its object's nodes in forest order; under the identity they
-    are the forest's own boxes, otherwise its object-frame triangles are mapped to the
-    scene frame in float64, widened by ``margin`` and refit bottom-up (O(triangles) per
-    instance). Rows are padded to a capacity bucket (``pad``; at least ``want["boxes"]``)
-    with empty boxes.
+    are the forest's own boxes. Under any other map every vertex ``v`` of a leaf maps to
+    ``t + M v`` in float64, widened by ``(margin + eps) * (|t| + |M| |v|) + tiny`` (the
+    extra ``eps`` of the dtype: rounding the result to the dtype cannot move it inward);
+    a leaf takes the box of its vertices, an interior node the union of its children's,
+    bottom-up (O(triangles) per instance). Rows are padded to a capacity bucket
+    (``pad``; at least ``want["boxes"]``) with empty boxes.
     """
     dtype = forest.lo.dtype
     obj = obj_of[:n_inst].astype(np.int64)
@@ -167,43 +169,46 @@ def _placed_boxes(forest: Forest, node_off, obj_of, to_scene, margin, n_inst: in
     base = np.cumsum(sizes) - sizes
     shift = np.zeros(obj_of.shape[0], np.int64)
     shift[:n_inst] = base - node_off[obj]
+    cap = max(capacity_bucket(int(sizes.sum())) if pad else int(sizes.sum()), want.get("boxes", 0))
+    lo = np.full((cap, 3), np.inf, dtype)
+    hi = np.full((cap, 3), -np.inf, dtype)
     f = concat_ranges(node_off[obj], sizes)  # forest node of every row
-    inst = np.repeat(np.arange(n_inst), sizes)
-    lo, hi = forest.lo[f].astype(np.float64), forest.hi[f].astype(np.float64)
-    moved = margin[inst] > 0  # rows of instances that are not the identity: refit there
-    leaf = moved & (forest.prim_count[f] > 0)
-    if leaf.any():
-        counts = forest.prim_count[f[leaf]].astype(np.int64)
-        tri = forest.triangles[forest.prim_index[concat_ranges(forest.prim_start[f[leaf]], counts)]]
-        m = to_scene[np.repeat(inst[leaf], counts)].astype(np.float64)  # [k, 3, 4]
-        linear, t = m[:, None, :, :3], m[:, None, :, 3]  # per vertex
-        v = tri.astype(np.float64)[:, :, None, :]  # [k, 3 vertices, 1, 3]
-        point = (linear * v).sum(-1) + t  # [k, 3, 3]: exact products of float32 inputs
-        scale = (np.abs(linear) * np.abs(v)).sum(-1) + np.abs(t)
-        widen = np.repeat(margin[inst[leaf]].astype(np.float64), counts)[:, None, None] * scale \
-            + np.finfo(dtype).tiny
-        first = np.cumsum(counts) - counts
-        lo[leaf] = np.minimum.reduceat((point - widen).min(1), first)
-        hi[leaf] = np.maximum.reduceat((point + widen).max(1), first)
-    level = _forest_depth(forest)[f]
-    for d in range(int(level.max(initial=0)) - 1, -1, -1):  # refit the moved interior rows
-        rows = np.flatnonzero(moved & (level == d) & (forest.left[f] >= 0))
-        kid_l = forest.left[f[rows]] + shift[inst[rows]]
-        kid_r = forest.right[f[rows]] + shift[inst[rows]]
+    lo[:f.size], hi[:f.size] = forest.lo[f], forest.hi[f]  # final under the identity
+    leaves: dict[int, tuple] = {}  # per object: its leaves, their first vertex rows, the vertices
+    tiny, eps = np.finfo(dtype).tiny, np.finfo(dtype).eps
+    moved = np.flatnonzero(margin[:n_inst] > 0)
+    for i in moved:
+        o = int(obj[i])
+        if o not in leaves:
+            nodes = np.arange(node_off[o], node_off[o + 1])
+            leaf = nodes[forest.prim_count[nodes] > 0]
+            counts = forest.prim_count[leaf].astype(np.int64)
+            v = forest.triangles[forest.prim_index[concat_ranges(forest.prim_start[leaf], counts)]]
+            v = v.reshape(-1, 3).astype(np.float64)  # 3 vertices a slot, the leaves' slots in order
+            leaves[o] = (leaf, np.cumsum(counts) - counts, v, np.abs(v), bool(np.all(counts == 1)))
+        leaf, first, v, size, single = leaves[o]
+        linear, t = to_scene[i, :, :3].astype(np.float64), to_scene[i, :, 3].astype(np.float64)
+        point = v @ linear.T + t  # products of float32 inputs are exact in float64
+        widen = (float(margin[i]) + eps) * (size @ np.abs(linear).T + np.abs(t)) + tiny
+        tri_lo = (point - widen).reshape(-1, 3, 3).min(axis=1)  # per slot
+        tri_hi = (point + widen).reshape(-1, 3, 3).max(axis=1)
+        rows = leaf + shift[i]
+        lo[rows] = tri_lo if single else np.minimum.reduceat(tri_lo, first, axis=0)
+        hi[rows] = tri_hi if single else np.maximum.reduceat(tri_hi, first, axis=0)
+    # refit the interior rows of those instances bottom-up, a level at a time (in the
+    # dtype: rounding is monotone, so it commutes with min and max)
+    rows = concat_ranges(base[moved], sizes[moved])
+    inner = rows[forest.left[f[rows]] >= 0]
+    level = _forest_depth(forest)[f[inner]]
+    inner = inner[np.argsort(-level, kind="stable")]
+    ends = np.cumsum(np.bincount(level.max(initial=0) - level))
+    for a, b in zip(np.concatenate([[0], ends[:-1]]), ends):
+        rows = inner[a:b]
+        kid_l = forest.left[f[rows]] + shift[np.searchsorted(base, rows, "right") - 1]
+        kid_r = kid_l - forest.left[f[rows]] + forest.right[f[rows]]
         lo[rows] = np.minimum(lo[kid_l], lo[kid_r])
         hi[rows] = np.maximum(hi[kid_l], hi[kid_r])
-    cap = max(capacity_bucket(f.size) if pad else f.size, want.get("boxes", 0))
-    world_lo = np.full((cap, 3), np.inf, dtype)
-    world_hi = np.full((cap, 3), -np.inf, dtype)
-    world_lo[:f.size], world_hi[:f.size] = _outward(lo, dtype, -np.inf), _outward(hi, dtype, np.inf)
-    return shift.astype(np.int32), world_lo, world_hi
-
-
-def _outward(x, dtype, toward):
-    """float64 ``x`` in ``dtype``, rounded toward ``toward`` (-inf or inf) so a box only grows."""
-    y = x.astype(dtype)
-    inward = (y > x) if toward < 0 else (y < x)
-    return np.where(inward, np.nextafter(y, np.asarray(toward, dtype)), y)
+    return shift.astype(np.int32), lo, hi
 
 
 def _forest_depth(forest: Forest) -> np.ndarray:
