@@ -68,15 +68,7 @@ from jaxbvh.numerics import half_area
 from jaxbvh.tree.cost import sah as sah_of
 from jaxbvh.tree.layout import BVH, capacity_bucket, concat_ranges, depth, pad_to, to_jax, to_numpy
 from jaxbvh.twolevel import brefs as _brefs
-from jaxbvh.twolevel.objects import (
-    Forest,
-    Instances,
-    ObjectTree,
-    bref_boxes,
-    build_objects,
-    object_builder,
-    pack,
-)
+from jaxbvh.twolevel.objects import Forest, Instances, ObjectTree, bref_boxes, build_objects, object_builder, pack
 
 
 @jax.tree_util.register_dataclass
