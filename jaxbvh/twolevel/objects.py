@@ -38,7 +38,7 @@ boxes), which keeps float32 precise whatever the transforms; the map ``to_scene 
 scene^-1 * transform * object`` is composed in float64 and then cast.
 
 Placed nodes' world boxes
-========================
+=========================
 The top level and the flattened tree see an object node under an instance through its
 *world box* (:func:`bref_boxes`; the BRef box of :mod:`jaxbvh.twolevel.brefs`), one per
 (instance, node), computed once by :func:`pack` into ``Instances.world_lo`` /
@@ -47,15 +47,16 @@ any other map, the box of the node's triangles as the instance places them -- ev
 object-frame vertex ``v`` of the node's leaves mapped to ``t + M v`` in float64 (the
 products of float32 inputs are exact), each coordinate widened by ``margin * (|t_i| +
 sum_j |M_ij v_j|) + tiny`` with ``margin = 8 eps`` of the boxes' dtype (16 units of
-rounding: the casts of the vertex, the map and the world triangle add about 2), the
-leaves' boxes refit bottom-up and rounded outward to the dtype. So it contains the
+rounding: the casts of the vertex, the map and the world triangle add about 2) and one
+``eps`` more (rounding the result to the dtype), the leaves' boxes refit bottom-up. So it contains the
 exactly transformed triangles and their float32 world boxes of
 :meth:`Mesh.local_boxes` (``jaxbvh.validate`` of the flattened tree checks it), and a
 child's box lies inside its parent's. It is the tightest axis-aligned box of the node's
 geometry up to that margin: under a rotation the box of a node's 8 transformed corners
-is much looser (a pile of rotated cows: the roots' corner boxes are 1.3-1.9x the area
-of their geometry's), and rotated instances reach the top level only through these
-boxes. O(triangles) per instance and one row per placed node: the size of the flattened
+is much looser (a pile of 6 rotated cows: the roots' corner boxes have 1.4-2.0x the
+half-area of their geometry's box, the union of the corner boxes three levels down, the
+rule before, still 1.1-1.4x), and rotated instances reach the top level only through
+these boxes. O(triangles) per instance and one row per placed node: the size of the flattened
 tree, built once per :func:`pack`.
 """
 
