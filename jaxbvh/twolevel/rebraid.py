@@ -270,18 +270,14 @@ def _opened_areas(node, instance, forest, instances) -> tuple[float, float]:
     b_n, b_i = node[below], instance[below]
     # the opened nodes and the BRefs below a root in one call each (half the fixed cost)
     every_n, every_i = np.concatenate([n, b_n]), np.concatenate([i, b_i])
-    box_area, obj_area = _bref_area(forest, instances, every_n, every_i), _object_area(forest, instances, every_n,
-                                                                                    every_i)
+    box_area = _area(*bref_boxes(instances, every_n, every_i))
+    obj_area = _object_area(forest, instances, every_n, every_i)
     k = n.size
     tight = box_area[:k]
     loose = np.where(root, tight, obj_area[:k])
     cost = np.where(np.asarray(forest.left)[b_n] >= 0, 1.0, np.asarray(forest.prim_count)[b_n].astype(np.float64))
     extra = (obj_area[k:] - box_area[k:]) * cost
     return float(tight.sum()), float(loose.sum() + extra.sum())
-
-
-def _bref_area(forest, instances, n, i):
-    return _area(*bref_boxes(instances, n, i))
 
 
 def _object_area(forest, instances, n, i):
