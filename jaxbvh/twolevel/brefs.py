@@ -51,17 +51,18 @@ room that opening may fill. The root segment is ``[0, C)`` with the instances' B
 
 BRef boxes
 ==========
-A BRef's box is the union of the world boxes of its node's *frontier* ``BOX_DEPTH`` (3)
-levels down: the nodes at that depth below it, and the leaves above it
-(:func:`jaxbvh.twolevel.objects.bref_boxes`). Under a rotation the conservative world box
-of an object node (the box of its 8 transformed corners) is much looser than its
-descendants' together, and rotated instances reach the top level only through these
-boxes (a pile of rotated instances); the union still contains every triangle below the
-node, and a child's union lies inside its parent's (world boxes are monotone), so the
-flattened tree, which gives every node below a BRef its own such box, stays valid
-(:func:`jaxbvh.twolevel.flatten`). Under the identity it is the node's own box. One
-level down (the previous rule) the pile of 6 cows was raw 0.949x the two-level SAH on
-world boxes but worse in object frames, and the plain top level was kept.
+A BRef's box is the world box of its node's triangles as its instance places them
+(:func:`jaxbvh.twolevel.objects.bref_boxes`: one row per placed node, computed once by
+:func:`jaxbvh.twolevel.objects.pack`, refit from the transformed triangles and widened
+by the rounding margin): it contains every triangle below the node, a child's box lies
+inside its parent's, so the flattened tree, which gives every node below a BRef its own
+such box, stays valid (:func:`jaxbvh.twolevel.flatten`), and under the identity it is
+the node's own box. Under a rotation the box of a node's 8 transformed corners is much
+looser, and rotated instances reach the top level only through these boxes: with the
+union of the corner boxes three levels down (rounds 3-5) the pile of 6 cows opened to
+raw 0.960x the plain two-level SAH on world boxes but was worse in object frames, so the
+plain top level was kept; with the exact boxes the re-braided one is lower on both and
+kept. The engine and its twin read the same rows (a gather: exact in both).
 
 Primitive counts are exact by default (``Forest.subtree_prims``); ``estimate=True``
 uses the paper's estimate instead: the root has its object's count, a child gets

@@ -19,7 +19,6 @@ import jax.numpy as jnp
 
 from jaxbvh.numerics import take
 from jaxbvh.twolevel.brefs_segments import best_planes, exclusive_rank, segment
-from jaxbvh.twolevel.config import BOX_DEPTH
 from jaxbvh.twolevel.objects import bref_boxes
 
 SMALL_SEGMENT = 4        # paper §4.4: the overlap test applies to <= 4 BRefs
@@ -113,14 +112,11 @@ class _Halves(NamedTuple):
 
 
 def _child_box(forest, instances, node, inst):
-    """BRef boxes of forest nodes under instances (padding: the empty box): the union of
-    the world boxes of the node's frontier ``BOX_DEPTH`` levels down -- under a rotation
-    much tighter than the node's own transformed box, and still containing every
-    triangle below it (:mod:`jaxbvh.twolevel.brefs`, "BRef boxes";
-    :func:`jaxbvh.twolevel.objects.bref_boxes`)."""
+    """BRef boxes of forest nodes under instances (padding: the empty box): the world box
+    of the node's triangles as the instance places them (:mod:`jaxbvh.twolevel.brefs`,
+    "BRef boxes"; :func:`jaxbvh.twolevel.objects.bref_boxes`)."""
     ok = (node >= 0) & (inst >= 0)
-    k = jnp.where(ok, inst, 0)
-    return bref_boxes(forest, instances.to_scene[k], instances.margin[k], jnp.where(ok, node, -1), BOX_DEPTH)
+    return bref_boxes(instances, jnp.where(ok, node, -1), jnp.where(ok, inst, 0))
 
 
 def _interior(forest, node):

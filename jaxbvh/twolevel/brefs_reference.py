@@ -20,29 +20,6 @@ from jaxbvh.builders.binning_rules import binned_split
 from jaxbvh.tree.layout import BVH
 
 SMALL_SEGMENT = 4
-BOX_DEPTH = 3  # as jaxbvh.twolevel.config.BOX_DEPTH (a twin imports no module of the engine's)
-
-
-def world_box(lo, hi, to_scene, margin):
-    """Scene-frame box of one object-frame box: Arvo's per-axis min/max, widened (see jaxbvh.forest)."""
-    dtype = lo.dtype
-    out_lo = np.empty(3, dtype)
-    out_hi = np.empty(3, dtype)
-    for i in range(3):
-        a = to_scene[i, :3] * lo
-        b = to_scene[i, :3] * hi
-        low, high = np.minimum(a, b), np.maximum(a, b)
-        size = np.maximum(np.abs(a), np.abs(b))
-        t = to_scene[i, 3]
-        out_lo[i] = ((t + low[0]) + low[1]) + low[2]
-        out_hi[i] = ((t + high[0]) + high[1]) + high[2]
-        if margin > 0:
-            scale = ((np.abs(t) + size[0]) + size[1]) + size[2]
-            widen = margin * scale + np.finfo(dtype).tiny
-            out_lo[i] -= widen
-            out_hi[i] += widen
-    return out_lo, out_hi
-
 
 
 @dataclasses.dataclass
@@ -127,14 +104,11 @@ def build_top_level(forest, instances, n_instances, *, threshold=0.1, slots=None
     return _to_bvh(top, dtype), brefs
 
 
-def _bref_box(f, instances, n, i, depth=BOX_DEPTH):
-    """BRef box of forest node ``n`` under instance ``i``: the union of the world boxes
-    of the nodes ``depth`` levels below it (a leaf above that level: its own)."""
-    if depth == 0 or f.left[n] < 0:
-        return world_box(f.lo[n], f.hi[n], instances.to_scene[i], instances.margin[i])
-    l_lo, l_hi = _bref_box(f, instances, f.left[n], i, depth - 1)
-    r_lo, r_hi = _bref_box(f, instances, f.right[n], i, depth - 1)
-    return np.minimum(l_lo, r_lo), np.maximum(l_hi, r_hi)
+def _bref_box(instances, n, i):
+    """BRef box of forest node ``n`` under instance ``i``: its row of the placed nodes'
+    world boxes (:func:`jaxbvh.twolevel.objects.pack` computes them once for both builds)."""
+    row = n + int(instances.box_shift[i])
+    return instances.world_lo[row].copy(), instances.world_hi[row].copy()
 
 
 def _instances_brefs(f, instances, n_instances, slots, dtype) -> _BRefArray:
@@ -145,7 +119,7 @@ def _instances_brefs(f, instances, n_instances, slots, dtype) -> _BRefArray:
     for i in range(n_instances):
         n = int(f.root[instances.object[i]])
         refs.node[i], refs.inst[i] = n, i
-        refs.lo[i], refs.hi[i] = _bref_box(f, instances, n, i)
+        refs.lo[i], refs.hi[i] = _bref_box(instances, n, i)
         refs.prims[i] = f.subtree_prims[n]
     return refs
 
@@ -210,9 +184,9 @@ def _open_once(refs, f, instances, ids, end, extra, box_lo, box_hi, threshold, e
         else:
             count_l, count_r = f.subtree_prims[kid_l], f.subtree_prims[kid_r]
         refs.node[slot], refs.inst[slot], refs.prims[slot] = kid_r, i, count_r
-        refs.lo[slot], refs.hi[slot] = _bref_box(f, instances, kid_r, i)
+        refs.lo[slot], refs.hi[slot] = _bref_box(instances, kid_r, i)
         refs.node[p], refs.prims[p] = kid_l, count_l
-        refs.lo[p], refs.hi[p] = _bref_box(f, instances, kid_l, i)
+        refs.lo[p], refs.hi[p] = _bref_box(instances, kid_l, i)
     return end + len(candidates)
 
 

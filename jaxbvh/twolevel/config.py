@@ -20,7 +20,6 @@ DEFAULT_THRESHOLD = 0.1  # paper §4.2 / Figure 4
 DEFAULT_OVERLAP = 0.1    # ours: "barely overlapping" (the paper gives no number)
 DEFAULT_BINS = 16
 DEFAULT_ROUNDS = 64      # ours: rounds of opening per top-level node (1: one level of opening per split)
-BOX_DEPTH = 3            # ours: a BRef's box is the union of its nodes' world boxes this many levels down
 
 
 @dataclasses.dataclass(frozen=True)

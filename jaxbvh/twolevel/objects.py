@@ -37,20 +37,27 @@ one that several instances share, is built once in its own frame (``Frame.fit`` 
 boxes), which keeps float32 precise whatever the transforms; the map ``to_scene =
 scene^-1 * transform * object`` is composed in float64 and then cast.
 
-Conservative world boxes
-========================
-:func:`world_boxes` maps an object-frame box to the scene frame: the box of its 8
-transformed corners, computed per output axis as ``t_i + sum_j min(M_ij lo_j, M_ij hi_j)``
-(Arvo 1990; the same box as the corners, without enumerating them). Rounding moves that
-box by at most a few units in the last place of ``S_i = |t_i| + sum_j max(|M_ij lo_j|,
-|M_ij hi_j|)``, and the cast matrix and the cast object boxes add one more each, so the
-box is widened by ``margin * S_i + tiny`` with ``margin = 8 eps`` (16 units of rounding):
-it always contains the exactly transformed triangles, hence their float32 boxes in
-:meth:`Mesh.local_boxes`. Two properties make the JAX builder and its NumPy twin agree
-bit for bit and keep flattened trees valid: no product feeds an addition directly (a
-``min``/``max``/``abs`` sits between them, and ``margin`` is a power of two), so fused
-multiply-adds cannot change a result; and every step is monotone in the box, so a child
-box never pokes out of its parent's world box.
+Placed nodes' world boxes
+=========================
+The top level and the flattened tree see an object node under an instance through its
+*world box* (:func:`bref_boxes`; the BRef box of :mod:`jaxbvh.twolevel.brefs`), one per
+(instance, node), computed once by :func:`pack` into ``Instances.world_lo`` /
+``world_hi`` (row ``f + box_shift[i]``): under the identity, the node's own box; under
+any other map, the box of the node's triangles as the instance places them -- every
+object-frame vertex ``v`` of the node's leaves mapped to ``t + M v`` in float64 (the
+products of float32 inputs are exact), each coordinate widened by ``margin * (|t_i| +
+sum_j |M_ij v_j|) + tiny`` with ``margin = 8 eps`` of the boxes' dtype (16 units of
+rounding: the casts of the vertex, the map and the world triangle add about 2) and one
+``eps`` more (rounding the result to the dtype), the leaves' boxes refit bottom-up. So it contains the
+exactly transformed triangles and their float32 world boxes of
+:meth:`Mesh.local_boxes` (``jaxbvh.validate`` of the flattened tree checks it), and a
+child's box lies inside its parent's. It is the tightest axis-aligned box of the node's
+geometry up to that margin: under a rotation the box of a node's 8 transformed corners
+is much looser (a pile of 6 rotated cows: the roots' corner boxes have 1.4-2.0x the
+half-area of their geometry's box, the union of the corner boxes three levels down, the
+rule before, still 1.1-1.4x), and rotated instances reach the top level only through
+these boxes. O(triangles) per instance and one row per placed node: the size of the flattened
+tree, built once per :func:`pack`.
 """
 
 from __future__ import annotations
@@ -65,7 +72,7 @@ import numpy as np
 from jaxbvh.builders.configs import BinnedConfig, BuilderConfig, make_config
 from jaxbvh.builders.dispatch import build
 from jaxbvh.tree.frame import Frame
-from jaxbvh.tree.layout import BVH, capacity_bucket, depth, to_numpy
+from jaxbvh.tree.layout import BVH, capacity_bucket, concat_ranges, depth, to_numpy
 from jaxbvh.tree.validate import validate
 
 
@@ -104,7 +111,9 @@ class Instances:
     """Placed objects (layout: module docstring); padded entries are identity maps of object 0.
 
     ``object`` [I] int32; ``to_scene``, ``to_object`` [I, 3, 4] float;
-    ``margin`` [I] float; ``prim_shift`` [I] int32.
+    ``margin`` [I] float; ``prim_shift`` [I] int32; ``box_shift`` [I] int32 and
+    ``world_lo``, ``world_hi`` [W, 3] float: the world box of forest node ``f`` under
+    instance ``i`` is row ``f + box_shift[i]`` (:func:`bref_boxes`).
     """
 
     object: Any
@@ -112,83 +121,108 @@ class Instances:
     to_object: Any
     margin: Any
     prim_shift: Any
+    box_shift: Any
+    world_lo: Any
+    world_hi: Any
 
 
 # ----------------------------------------------------------------------------------
-# Conservative world boxes
+# Placed nodes' world boxes
 # ----------------------------------------------------------------------------------
 
 
-def world_boxes(lo, hi, to_scene, margin):
-    """Scene-frame boxes of object-frame boxes (module docstring), for JAX or NumPy arrays.
+def bref_boxes(instances, node, inst):
+    """Scene-frame boxes of forest nodes ``node`` under instances ``inst`` (module
+    docstring, "Placed nodes' world boxes"), for JAX or NumPy arrays: a look-up in
+    ``instances.world_lo`` / ``world_hi``.
 
-    ``lo``, ``hi`` [..., 3] object-frame boxes (finite); ``to_scene`` [..., 3, 4];
-    ``margin`` [...] (0: exact map, no widening). Returns ``(lo, hi)`` [..., 3] in the
-    boxes' dtype.
+    ``instances``: :class:`Instances`; ``node``, ``inst`` [...] int (node -1: none, the
+    empty box). Returns ``(lo, hi)`` [..., 3]: each box contains every triangle below the
+    node as the instance places it, and a child's box lies inside its parent's. Exact
+    (a gather), so equal in XLA and NumPy.
     """
-    xp = jnp if isinstance(lo, jax.Array) or isinstance(to_scene, jax.Array) else np
-    linear = to_scene[..., :, :3]
-    a = linear * lo[..., None, :]  # [..., out, in]
-    b = linear * hi[..., None, :]
-    low = xp.minimum(a, b)
-    high = xp.maximum(a, b)
-    size = xp.maximum(xp.abs(a), xp.abs(b))
-    t = to_scene[..., :, 3]
-    # fixed order of additions, no product feeding an addition (module docstring)
-    out_lo = ((t + low[..., 0]) + low[..., 1]) + low[..., 2]
-    out_hi = ((t + high[..., 0]) + high[..., 1]) + high[..., 2]
-    scale = ((xp.abs(t) + size[..., 0]) + size[..., 1]) + size[..., 2]
-    dtype = lo.dtype
-    tiny = xp.asarray(np.finfo(dtype).tiny, dtype)
-    m = margin[..., None]
-    widen = xp.where(m > 0, m * scale + tiny, xp.zeros((), dtype))
-    return out_lo - widen, out_hi + widen
+    xp = jnp if isinstance(node, jax.Array) or isinstance(instances.world_lo, jax.Array) else np
+    rows = instances.world_lo.shape[0]
+    k = xp.clip(inst, 0, instances.box_shift.shape[0] - 1)
+    row = xp.where(node >= 0, node + instances.box_shift[k], -1)
+    ok = ((row >= 0) & (row < rows))[..., None]
+    safe = xp.clip(row, 0, rows - 1)
+    inf = xp.asarray(np.inf, instances.world_lo.dtype)
+    return xp.where(ok, instances.world_lo[safe], inf), xp.where(ok, instances.world_hi[safe], -inf)
 
 
-def frontier(left, right, node, depth: int):
-    """The nodes ``depth`` levels below ``node`` (leaves above that level stand for
-    themselves), for JAX or NumPy arrays.
+def _placed_boxes(forest: Forest, node_off, obj_of, to_scene, margin, n_inst: int, *, pad: bool,
+                  want: dict):
+    """The world boxes of every node of every instance (module docstring): ``(box_shift
+    [len(obj_of)] int32, world_lo, world_hi [W, 3])``, NumPy in ``forest.lo``'s dtype.
 
-    ``left``, ``right`` [N] int: a forest's children (-1: a leaf); ``node`` [...] int
-    (-1: none). Returns int [..., 2^depth], -1 where no node: the *frontier* whose world
-    boxes bound a node's under a rotation more tightly than its own (``bref_boxes``).
+    Instance ``i``'s rows are its object's nodes in forest order; under the identity they
+    are the forest's own boxes. Under any other map every vertex ``v`` of a leaf maps to
+    ``t + M v`` in float64, widened by ``(margin + eps) * (|t| + |M| |v|) + tiny`` (the
+    extra ``eps`` of the dtype: rounding the result to the dtype cannot move it inward);
+    a leaf takes the box of its vertices, an interior node the union of its children's,
+    bottom-up (O(triangles) per instance). Rows are padded to a capacity bucket
+    (``pad``; at least ``want["boxes"]``) with empty boxes.
     """
-    xp = jnp if isinstance(node, jax.Array) or isinstance(left, jax.Array) else np
-    nodes = node[..., None]
-    n = left.shape[0]
-    for _ in range(depth):
-        safe = xp.clip(nodes, 0, n - 1)
-        kid_l = xp.where(nodes >= 0, left[safe], -1)
-        kid_r = xp.where(nodes >= 0, right[safe], -1)
-        inner = kid_l >= 0
-        pair = xp.stack([xp.where(inner, kid_l, nodes), xp.where(inner, kid_r, -1)], axis=-1)
-        nodes = pair.reshape(pair.shape[:-2] + (2 * pair.shape[-2],))
-    return nodes
+    dtype = forest.lo.dtype
+    obj = obj_of[:n_inst].astype(np.int64)
+    sizes = (node_off[obj + 1] - node_off[obj]).astype(np.int64)
+    base = np.cumsum(sizes) - sizes
+    shift = np.zeros(obj_of.shape[0], np.int64)
+    shift[:n_inst] = base - node_off[obj]
+    cap = max(capacity_bucket(int(sizes.sum())) if pad else int(sizes.sum()), want.get("boxes", 0))
+    lo = np.full((cap, 3), np.inf, dtype)
+    hi = np.full((cap, 3), -np.inf, dtype)
+    f = concat_ranges(node_off[obj], sizes)  # forest node of every row
+    lo[:f.size], hi[:f.size] = forest.lo[f], forest.hi[f]  # final under the identity
+    leaves: dict[int, tuple] = {}  # per object: its leaves, their first vertex rows, the vertices
+    tiny, eps = np.finfo(dtype).tiny, np.finfo(dtype).eps
+    moved = np.flatnonzero(margin[:n_inst] > 0)
+    for i in moved:
+        o = int(obj[i])
+        if o not in leaves:
+            nodes = np.arange(node_off[o], node_off[o + 1])
+            leaf = nodes[forest.prim_count[nodes] > 0]
+            counts = forest.prim_count[leaf].astype(np.int64)
+            v = forest.triangles[forest.prim_index[concat_ranges(forest.prim_start[leaf], counts)]]
+            v = v.reshape(-1, 3).astype(np.float64)  # 3 vertices a slot, the leaves' slots in order
+            leaves[o] = (leaf, np.cumsum(counts) - counts, v, np.abs(v), bool(np.all(counts == 1)))
+        leaf, first, v, size, single = leaves[o]
+        linear, t = to_scene[i, :, :3].astype(np.float64), to_scene[i, :, 3].astype(np.float64)
+        point = v @ linear.T + t  # products of float32 inputs are exact in float64
+        widen = (float(margin[i]) + eps) * (size @ np.abs(linear).T + np.abs(t)) + tiny
+        tri_lo = (point - widen).reshape(-1, 3, 3).min(axis=1)  # per slot
+        tri_hi = (point + widen).reshape(-1, 3, 3).max(axis=1)
+        rows = leaf + shift[i]
+        lo[rows] = tri_lo if single else np.minimum.reduceat(tri_lo, first, axis=0)
+        hi[rows] = tri_hi if single else np.maximum.reduceat(tri_hi, first, axis=0)
+    # refit the interior rows of those instances bottom-up, a level at a time (in the
+    # dtype: rounding is monotone, so it commutes with min and max)
+    rows = concat_ranges(base[moved], sizes[moved])
+    inner = rows[forest.left[f[rows]] >= 0]
+    level = _forest_depth(forest)[f[inner]]
+    inner = inner[np.argsort(-level, kind="stable")]
+    ends = np.cumsum(np.bincount(level.max(initial=0) - level))
+    for a, b in zip(np.concatenate([[0], ends[:-1]]), ends):
+        rows = inner[a:b]
+        kid_l = forest.left[f[rows]] + shift[np.searchsorted(base, rows, "right") - 1]
+        kid_r = kid_l - forest.left[f[rows]] + forest.right[f[rows]]
+        lo[rows] = np.minimum(lo[kid_l], lo[kid_r])
+        hi[rows] = np.maximum(hi[kid_l], hi[kid_r])
+    return shift.astype(np.int32), lo, hi
 
 
-def bref_boxes(forest, to_scene, margin, node, depth: int):
-    """Scene-frame boxes of forest nodes under their instances' maps, tighter than their
-    own world boxes under a rotation (:mod:`jaxbvh.twolevel.brefs`, "BRef boxes"), for
-    JAX or NumPy arrays.
-
-    The union of the world boxes (:func:`world_boxes`) of the node's :func:`frontier`
-    ``depth`` levels down. ``forest``: :class:`Forest`; ``to_scene`` [..., 3, 4],
-    ``margin`` [...]: each node's instance map; ``node`` [...] int (-1: none, the empty
-    box). It contains every triangle below the node, and the box of a child is inside
-    its parent's (each frontier node of the child lies below one of the parent's, and
-    world boxes are monotone), so a flattened tree with these boxes is valid. Under the
-    identity it is the node's own box. Returns ``(lo, hi)`` [..., 3]; min/max only, so
-    exact and equal in XLA and NumPy.
-    """
-    xp = jnp if isinstance(node, jax.Array) or isinstance(forest.lo, jax.Array) else np
-    front = frontier(forest.left, forest.right, node, depth)  # [..., K]
-    ok = front >= 0
-    safe = xp.clip(front, 0, forest.lo.shape[0] - 1)
-    lo, hi = world_boxes(forest.lo[safe], forest.hi[safe], to_scene[..., None, :, :], margin[..., None])
-    inf = xp.asarray(np.inf, forest.lo.dtype)
-    lo = xp.where(ok[..., None], lo, inf).min(axis=-2)
-    hi = xp.where(ok[..., None], hi, -inf).max(axis=-2)
-    return lo, hi
+def _forest_depth(forest: Forest) -> np.ndarray:
+    """Depth of every forest node below its object's root [N] int64 (-1: padding)."""
+    out = np.full(forest.left.shape[0], -1, np.int64)
+    nodes = forest.root[forest.root >= 0].astype(np.int64)
+    d = 0
+    while nodes.size:
+        out[nodes] = d
+        kids = np.concatenate([forest.left[nodes], forest.right[nodes]])
+        nodes = kids[kids >= 0].astype(np.int64)
+        d += 1
+    return out
 
 
 def margin_for(dtype) -> float:
@@ -342,15 +376,20 @@ def pack(mesh, trees: dict[int, ObjectTree], *, pad: bool = True,
     ``trees`` must hold every object some instance uses, each built where
     :func:`placements` says (checked). Returns NumPy arrays padded to capacity
     buckets (``pad=False``: exact sizes; ``capacity``: at least ``{"nodes": N, "prims":
-    P, "instances": I}``, e.g. to give many scenes one shape). Raises ``ValueError``
+    P, "instances": I, "boxes": W}``, e.g. to give many scenes one shape). Raises ``ValueError``
     for a singular instance transform.
     """
     where = _check_placements(mesh, trees)
     used = sorted({obj for obj, _ in mesh.instances})
     dtype = np.asarray(trees[used[0]].tree.lo).dtype
     want = capacity or {}
-    forest, prim_off = _pack_forest(trees, len(mesh.objects), dtype, pad=pad, want=want)
-    return forest, _pack_instances(mesh, where, prim_off, dtype, pad=pad, want=want)
+    forest, node_off, prim_off = _pack_forest(trees, len(mesh.objects), dtype, pad=pad, want=want)
+    obj_of, to_scene, to_object, margin, prim_shift = _pack_instances(mesh, where, prim_off, dtype, pad=pad,
+                                                                      want=want)
+    box_shift, world_lo, world_hi = _placed_boxes(forest, node_off, obj_of, to_scene, margin,
+                                                  len(mesh.instances), pad=pad, want=want)
+    return forest, Instances(object=obj_of, to_scene=to_scene, to_object=to_object, margin=margin,
+                             prim_shift=prim_shift, box_shift=box_shift, world_lo=world_lo, world_hi=world_hi)
 
 
 def _check_placements(mesh, trees: dict[int, ObjectTree]) -> list[Placement]:
@@ -370,8 +409,9 @@ def _check_placements(mesh, trees: dict[int, ObjectTree]) -> list[Placement]:
 
 
 def _pack_forest(trees: dict[int, ObjectTree], n_obj: int, dtype, *, pad: bool, want: dict):
-    """The object trees one after the other in object order: ``(Forest, prim_off)``,
-    ``prim_off`` [O + 1] int64 the first primitive slot of every object."""
+    """The object trees one after the other in object order: ``(Forest, node_off,
+    prim_off)``, ``node_off``, ``prim_off`` [O + 1] int64 the first node and primitive
+    slot of every object."""
     node_off = np.zeros(n_obj + 1, np.int64)
     prim_off = np.zeros(n_obj + 1, np.int64)
     for o in range(n_obj):
@@ -412,12 +452,14 @@ def _pack_forest(trees: dict[int, ObjectTree], n_obj: int, dtype, *, pad: bool, 
     forest = Forest(left=left, right=right, parent=parent, lo=lo, hi=hi, prim_start=start,
                     prim_count=count, axis=axis, prim_index=prim_index, subtree_prims=sub,
                     root=root, triangles=triangles)
-    return forest, prim_off
+    return forest, node_off, prim_off
 
 
-def _pack_instances(mesh, where: list[Placement], prim_off, dtype, *, pad: bool, want: dict) -> Instances:
-    """The instances' maps between their object's frame and the scene frame (``ValueError``
-    for a singular one, or one that does not fit ``dtype``)."""
+def _pack_instances(mesh, where: list[Placement], prim_off, dtype, *, pad: bool, want: dict):
+    """The instances' maps between their object's frame and the scene frame: the arrays
+    ``object``, ``to_scene``, ``to_object``, ``margin``, ``prim_shift`` of
+    :class:`Instances` (``ValueError`` for a singular map, or one that does not fit
+    ``dtype``)."""
     n_inst = len(mesh.instances)
     cap_i = max(capacity_bucket(n_inst) if pad else n_inst, want.get("instances", 0))
     scene_inverse = np.linalg.inv(_affine(mesh.frame))
@@ -445,5 +487,4 @@ def _pack_instances(mesh, where: list[Placement], prim_off, dtype, *, pad: bool,
         margin[i] = 0 if np.array_equal(m, np.eye(4)) else margin_for(dtype)
         prim_shift[i] = offset - prim_off[obj]
         offset += mesh.objects[obj][1].shape[0]
-    return Instances(object=obj_of, to_scene=to_scene, to_object=to_object, margin=margin,
-                     prim_shift=prim_shift)
+    return obj_of, to_scene, to_object, margin, prim_shift

@@ -47,8 +47,9 @@ Flattening and costs
 primitive ids in world order) that validates against ``Mesh.local_boxes()`` and saves in
 the interchange form. :func:`sah` is the SAH of that tree: interior nodes and leaves of
 two-level, re-braided and single BVHs costed on the same footing (the paper's Table 1).
-For instanced nodes the world box is the BRef box (the union of the conservative boxes
-of the transformed object boxes three levels down), as the top level sees it.
+For instanced nodes the world box is the BRef box (the box of the node's triangles as
+its instance places them, :func:`jaxbvh.twolevel.objects.bref_boxes`), as the top level
+sees it and tests it.
 """
 
 from __future__ import annotations
@@ -57,7 +58,6 @@ import dataclasses
 import itertools
 import math
 import time
-import types
 from typing import Any
 
 import jax
@@ -68,17 +68,7 @@ from jaxbvh.numerics import half_area
 from jaxbvh.tree.cost import sah as sah_of
 from jaxbvh.tree.layout import BVH, capacity_bucket, concat_ranges, depth, pad_to, to_jax, to_numpy
 from jaxbvh.twolevel import brefs as _brefs
-from jaxbvh.twolevel.config import BOX_DEPTH
-from jaxbvh.twolevel.objects import (
-    Forest,
-    Instances,
-    ObjectTree,
-    bref_boxes,
-    build_objects,
-    object_builder,
-    pack,
-    world_boxes,
-)
+from jaxbvh.twolevel.objects import Forest, Instances, ObjectTree, bref_boxes, build_objects, object_builder, pack
 
 
 @jax.tree_util.register_dataclass
@@ -104,24 +94,10 @@ class TwoLevelBVH:
     n_instances: Any
 
 
-def _world_boxes_jit(lo, hi, to_scene, margin):
-    return world_boxes(lo, hi, to_scene, margin)
-
-
-_world_boxes_jit = jax.jit(_world_boxes_jit)
-
-
-@jax.jit
-def _bref_boxes_jit(forest, to_scene, margin, node):
-    return bref_boxes(forest, to_scene, margin, node, BOX_DEPTH)
-
-
 def _single_instance(forest: Forest, instances: Instances) -> TwoLevelBVH:
     """The top level of a one-instance scene: one leaf naming the object's root (no build)."""
     root = int(forest.root[instances.object[0]])
-    lo, hi = _world_boxes_jit(forest.lo[root][None], forest.hi[root][None],
-                              instances.to_scene[:1], instances.margin[:1])
-    lo, hi = np.asarray(lo), np.asarray(hi)
+    lo, hi = bref_boxes(instances, np.array([root]), np.array([0]))
     one = lambda v: np.full(1, v, np.int32)  # noqa: E731
     top = BVH(left=one(-1), right=one(-1), parent=one(-1), lo=lo, hi=hi, prim_start=one(0),
               prim_count=one(1), axis=one(-1), prim_index=one(0), root=np.int32(0))
@@ -294,18 +270,14 @@ def _opened_areas(node, instance, forest, instances) -> tuple[float, float]:
     b_n, b_i = node[below], instance[below]
     # the opened nodes and the BRefs below a root in one call each (half the fixed cost)
     every_n, every_i = np.concatenate([n, b_n]), np.concatenate([i, b_i])
-    box_area, obj_area = _bref_area(forest, instances, every_n, every_i), _object_area(forest, instances, every_n,
-                                                                                    every_i)
+    box_area = _area(*bref_boxes(instances, every_n, every_i))
+    obj_area = _object_area(forest, instances, every_n, every_i)
     k = n.size
     tight = box_area[:k]
     loose = np.where(root, tight, obj_area[:k])
     cost = np.where(np.asarray(forest.left)[b_n] >= 0, 1.0, np.asarray(forest.prim_count)[b_n].astype(np.float64))
     extra = (obj_area[k:] - box_area[k:]) * cost
     return float(tight.sum()), float(loose.sum() + extra.sum())
-
-
-def _bref_area(forest, instances, n, i):
-    return _area(*_bref_box_np(forest, instances, n, i))
 
 
 def _object_area(forest, instances, n, i):
@@ -322,13 +294,6 @@ def _parallelepiped_area(linear, ext):
     e0, e1, e2 = (linear[:, :, k] * ext[:, k:k + 1] for k in range(3))
     return (np.linalg.norm(np.cross(e0, e1), axis=1) + np.linalg.norm(np.cross(e1, e2), axis=1)
             + np.linalg.norm(np.cross(e2, e0), axis=1))
-
-
-def _bref_box_np(forest, instances, n, i):
-    """BRef boxes (jaxbvh.twolevel.brefs, "BRef boxes") of forest nodes ``n`` under ``i``."""
-    to_scene, margin = np.asarray(instances.to_scene), np.asarray(instances.margin)
-    nodes = types.SimpleNamespace(**{k: np.asarray(getattr(forest, k)) for k in ("left", "right", "lo", "hi")})
-    return bref_boxes(nodes, to_scene[i], margin[i], np.asarray(n), BOX_DEPTH)
 
 
 def _area(lo, hi):
@@ -445,14 +410,9 @@ def _flatten(tl):
     for rows, ids_l, ids_r in child_rows:
         left[rows], right[rows] = ids_l, ids_r
         parent[ids_l], parent[ids_r] = rows, rows
-    size = capacity_bucket(cf.size)  # one compile per bucket
-    pad_f = np.full(size, -1, np.int64)
-    pad_i = np.zeros(size, np.int64)
-    pad_f[:cf.size], pad_i[:cf.size] = cf, ci_
     # every copy gets its BRef box (jaxbvh.twolevel.brefs "BRef boxes"): a child's lies
     # inside its parent's, and a BRef's own node has the top-level leaf's box
-    w_lo, w_hi = _bref_boxes_jit(f, inst.to_scene[pad_i], inst.margin[pad_i], pad_f)
-    lo[cid], hi[cid] = np.asarray(w_lo)[:cf.size], np.asarray(w_hi)[:cf.size]
+    lo[cid], hi[cid] = bref_boxes(inst, cf, ci_)
     lo[top_leaf], hi[top_leaf] = top.lo[top_leaf], top.hi[top_leaf]
     exact = inst.margin[ci_] == 0
     axis[cid] = np.where(exact & (f.left[cf] >= 0), f.axis[cf], -1)
@@ -480,9 +440,9 @@ def sah(tl: TwoLevelBVH, ct: float = 1.0, ci: float = 1.0, *, boxes: str = "worl
     module runs, which tests the nodes below a top-level leaf in their object frame:
     such a node is hit by a random line with the probability of its box *as
     transformed* (a parallelepiped, whose surface area replaces the conservative box's;
-    Cauchy's formula), so this SAH is usually below the world one (a BRef box, a union
-    of boxes three levels down, can be smaller than the parallelepiped) and equals it when every
-    object is built in world space. Zero-area nodes follow :mod:`jaxbvh.tree.cost`.
+    Cauchy's formula), so this SAH is usually below the world one (under a rotation the
+    box of a node's placed triangles is mostly larger than the parallelepiped) and equals
+    it when every object is built in world space. Zero-area nodes follow :mod:`jaxbvh.tree.cost`.
     """
 
     if boxes == "world":

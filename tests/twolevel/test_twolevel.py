@@ -8,6 +8,7 @@ compile once for all examples.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax
@@ -25,7 +26,7 @@ from jaxbvh.twolevel import brefs_reference as ref
 from jaxbvh.twolevel import objects as fm
 from tests.strategies import triangle_soups
 
-SHAPES = {"nodes": 128, "prims": 64, "instances": 8, "brefs": 32}
+SHAPES = {"nodes": 128, "prims": 64, "instances": 8, "brefs": 32, "boxes": 512}
 FLAT = (512, 256)  # flattened trees padded to one shape for the traversal
 STACK = 48
 
@@ -201,70 +202,102 @@ def test_flattened_tree_is_valid_and_traversal_finds_the_closest_hits(mesh, opti
 # ----------------------------------------------------------------------------------
 
 
+def _subtree_triangles(forest, node):
+    """Primitive ids below ``node`` of a forest (object-triangle ids) or a tree."""
+    below, out = [node], []
+    while below:
+        m = below.pop()
+        if forest.left[m] >= 0:
+            below += [forest.left[m], forest.right[m]]
+        else:
+            s0 = forest.prim_start[m]
+            out += list(forest.prim_index[s0:s0 + forest.prim_count[m]])
+    return np.asarray(out)
+
+
 @settings(max_examples=examples(10))
-@given(seed=st.integers(0, 1000))
-def test_bref_boxes_tighten_with_depth_and_hold_every_triangle(seed):
-    """A BRef box one level deeper lies inside the shallower one (and depth 0 is the
-    node's world box); every box holds its node's triangles as the instance places them."""
-    mesh = scenes.instanced_scene(jax.random.key(seed), [small_tree(seed % 7)], 3, spread=0.5)
+@given(mesh=st.one_of(random_scenes(), forest_scenes()))
+def test_placed_boxes_are_the_tight_world_boxes_of_their_triangles(mesh):
+    """Every (instance, node) box holds the node's triangles as the instance places them
+    (exactly transformed, and as the world triangles of Mesh.local_triangles), lies
+    within the margin of their exact box (much tighter than the node's transformed
+    corners under a rotation), nests in its parent's, and is the node's own box under
+    the identity; the look-up is the same in JAX and NumPy."""
     forest, inst = fm.pack(mesh, fm.build_objects(mesh), pad=False)
-    real = np.flatnonzero((forest.left >= 0) | (forest.prim_count > 0))
-    nodes, k = np.tile(real, 3), np.repeat(np.arange(3), real.size)
-    to_scene, margin = inst.to_scene[k], inst.margin[k]
-    boxes = [fm.bref_boxes(forest, to_scene, margin, nodes, d) for d in range(4)]
-    w_lo, w_hi = fm.world_boxes(forest.lo[nodes], forest.hi[nodes], to_scene, margin)
-    assert np.array_equal(boxes[0][0], w_lo) and np.array_equal(boxes[0][1], w_hi)
-    for (a_lo, a_hi), (b_lo, b_hi) in zip(boxes, boxes[1:]):
-        assert np.all(a_lo <= b_lo) and np.all(b_hi <= a_hi)
-    world = mesh.local_triangles()  # [T, 3, 3], world triangle ids
-    lo, hi = boxes[-1]
+    world = mesh.local_triangles()
+    eps = float(np.finfo(np.float32).eps)
+    rows_n, rows_i = [], []
+    for i, (obj, _) in enumerate(mesh.instances):
+        nodes, todo = [], [int(forest.root[obj])]  # the object's nodes
+        while todo:
+            nodes.append(todo.pop())
+            if forest.left[nodes[-1]] >= 0:
+                todo += [forest.left[nodes[-1]], forest.right[nodes[-1]]]
+        nodes = np.asarray(nodes)
+        rows_n.append(nodes)
+        rows_i.append(np.full(nodes.size, i))
+    nodes, k = np.concatenate(rows_n), np.concatenate(rows_i)
+    lo, hi = fm.bref_boxes(inst, nodes, k)
+    j_lo, j_hi = jax.jit(fm.bref_boxes)(jaxbvh.to_jax(inst), nodes, k)
+    np.testing.assert_array_equal(np.asarray(j_lo), lo)
+    np.testing.assert_array_equal(np.asarray(j_hi), hi)
+    m = inst.to_scene.astype(np.float64)
     for row, (n, i) in enumerate(zip(nodes, k)):
-        below = [n]  # the triangles under node n: walk its subtree
-        tris = []
-        while below:
-            m = below.pop()
-            if forest.left[m] >= 0:
-                below += [forest.left[m], forest.right[m]]
-            else:
-                s0 = forest.prim_start[m]
-                tris += list(forest.prim_index[s0:s0 + forest.prim_count[m]] + inst.prim_shift[i])
-        v = world[np.asarray(tris)].reshape(-1, 3)
-        assert np.all(lo[row] <= v.min(0)) and np.all(v.max(0) <= hi[row])
+        g = _subtree_triangles(forest, n)
+        v = forest.triangles[g].astype(np.float64).reshape(-1, 3) @ m[i, :, :3].T + m[i, :, 3]
+        w = world[g + inst.prim_shift[i]].reshape(-1, 3)
+        for pts in (v, w):
+            assert np.all(lo[row] <= pts.min(0)) and np.all(pts.max(0) <= hi[row]), (n, i)
+        # tight: off the exact box by no more than the margin (16 eps of the map's scale)
+        scale = np.abs(m[i, :, 3]) + np.abs(m[i, :, :3]).sum(1) * np.abs(forest.triangles[g]).max()
+        assert np.all(v.min(0) - lo[row] <= 16 * eps * scale + 1e-37), (n, i)
+        assert np.all(hi[row] - v.max(0) <= 16 * eps * scale + 1e-37), (n, i)
+        if inst.margin[i] == 0:
+            np.testing.assert_array_equal(lo[row], forest.lo[n])
+            np.testing.assert_array_equal(hi[row], forest.hi[n])
+        p = forest.parent[n]
+        if p >= 0:
+            p_lo, p_hi = fm.bref_boxes(inst, np.array([p]), np.array([i]))
+            assert np.all(p_lo[0] <= lo[row]) and np.all(hi[row] <= p_hi[0])
+    # none: the empty box
+    e_lo, e_hi = fm.bref_boxes(inst, np.array([-1]), np.array([0]))
+    assert np.all(e_lo == np.inf) and np.all(e_hi == -np.inf)
 
 
-@settings(max_examples=examples(15))
-@given(seed=st.integers(0, 2**32 - 1), exponent=st.sampled_from([0, -20, 20]))
-def test_world_boxes_are_conservative_and_monotone(seed, exponent):
-    rng = np.random.default_rng(seed)
-    scale = 10.0 ** exponent  # object boxes at any scale, mapped to a scene frame of size ~1
-    m = np.eye(4)
-    m[:3] = rng.normal(size=(3, 4))
-    m[:3, :3] /= scale
-    lo = (rng.normal(size=(50, 3)) * scale).astype(np.float32)
-    hi = lo + (rng.exponential(size=(50, 3)) * scale).astype(np.float32)
-    inner_lo = lo + (hi - lo) * rng.uniform(0, 0.5, (50, 3)).astype(np.float32)
-    inner_hi = np.maximum(inner_lo, hi - (hi - lo) * rng.uniform(0, 0.5, (50, 3)).astype(np.float32))
-    m32 = np.broadcast_to(m[:3].astype(np.float32), (50, 3, 4))
-    margin = np.full(50, fm.margin_for(np.float32), np.float32)
-    world_boxes = jax.jit(fm.world_boxes)  # compiled, as rebraid's flatten runs it
-    w_lo, w_hi = map(np.asarray, world_boxes(lo, hi, m32, margin))
-    # the exactly transformed corners (float64 from the float64 matrix) lie inside
-    corners = np.stack(np.meshgrid([0, 1], [0, 1], [0, 1], indexing="ij"), -1).reshape(8, 3)
-    pts = np.where(corners[None] == 0, lo[:, None].astype(np.float64), hi[:, None].astype(np.float64))
-    world = pts @ m[:3, :3].T + m[:3, 3]
-    assert (w_lo <= world.min(1)).all() and (w_hi >= world.max(1)).all()
-    # a box inside another maps inside the other's image; NumPy twin gives the same bits
-    i_lo, i_hi = map(np.asarray, world_boxes(inner_lo, inner_hi, m32, margin))
-    assert (i_lo >= w_lo).all() and (i_hi <= w_hi).all()
-    for k in range(5):
-        r_lo, r_hi = ref.world_box(lo[k], hi[k], m32[k], margin[k])
-        np.testing.assert_array_equal(r_lo, w_lo[k])
-        np.testing.assert_array_equal(r_hi, w_hi[k])
-    # the identity with margin 0 is exact
-    eye = np.broadcast_to(np.eye(4, dtype=np.float32)[:3], (50, 3, 4))
-    e_lo, e_hi = map(np.asarray, world_boxes(lo, hi, eye, np.zeros(50, np.float32)))
-    np.testing.assert_array_equal(e_lo, lo)
-    np.testing.assert_array_equal(e_hi, hi)
+@pytest.mark.parametrize("seed", [2, 5])
+def test_a_pile_of_rotated_instances_keeps_its_opened_nodes(seed):
+    """Piles of 4 rotated 22-triangle trees: with the boxes of the placed triangles the
+    re-braided top level is lower than the plain one on both footings and kept (checked:
+    with the union of corner boxes three levels down, the rule before, both kept the
+    plain top level)."""
+    mesh = scenes.pile(jax.random.key(seed), *small_tree(3), 4)
+    trees = fm.build_objects(mesh)
+    plain = twolevel.build_from(mesh, trees, threshold=math.inf, shapes=SHAPES)
+    info = {}
+    tl = twolevel.build_from(mesh, trees, budget=4.0, shapes=SHAPES, info=info)
+    assert info["kept"] == "rebraided"
+    for boxes in ("world", "object"):
+        assert twolevel.sah(tl, boxes=boxes) < 0.95 * twolevel.sah(plain, boxes=boxes)
+
+
+def test_a_node_box_that_misses_a_triangle_is_invalid():
+    """The check behind every flattened tree: a re-braided pile whose opened BRef box, or
+    a node below it, is shrunk off one of its world triangles fails jaxbvh.validate."""
+    mesh = scenes.pile(jax.random.key(0), *small_tree(3), 4)
+    tl = twolevel.build_from(mesh, fm.build_objects(mesh), budget=4.0, shapes=SHAPES)
+    flat = twolevel.flatten(tl, pad=False)
+    lo, hi = mesh.local_boxes()
+    jaxbvh.validate(flat, lo, hi)
+    top = np.asarray(tl.top.prim_count) > 0
+    opened = np.asarray(tl.bref_node)[: int(tl.bref_count)] != np.asarray(tl.forest.root)[0]
+    assert opened.any()  # BRefs below the roots reach the top level
+    leaf = np.flatnonzero(top)[0]
+    for node in (leaf, int(flat.left[leaf]) if flat.left[leaf] >= 0 else leaf):
+        below = _subtree_triangles(flat, node)  # world triangle ids
+        broken = flat.lo.copy()
+        broken[node, 0] = np.nextafter(lo[below, 0].min(), np.inf)  # just off the lowest triangle
+        with pytest.raises(jaxbvh.InvalidTreeError):
+            jaxbvh.validate(dataclasses.replace(flat, lo=broken), lo, hi)
 
 
 def test_plain_mesh_builds_no_top_level_and_equals_the_single_bvh():
