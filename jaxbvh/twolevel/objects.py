@@ -216,13 +216,13 @@ def _forest_depth(forest: Forest) -> np.ndarray:
     """Depth of every forest node below its object's root [N] int64 (-1: padding)."""
     out = np.full(forest.left.shape[0], -1, np.int64)
     nodes = forest.root[forest.root >= 0].astype(np.int64)
-    d = 0
-    while nodes.size:
+    for d in range(out.size + 1):  # no deeper than its node count: bounded even if links were cyclic
+        if not nodes.size:
+            return out
         out[nodes] = d
         kids = np.concatenate([forest.left[nodes], forest.right[nodes]])
         nodes = kids[kids >= 0].astype(np.int64)
-        d += 1
-    return out
+    raise ValueError("forest links do not end in leaves (a cycle): refusing to compute node depths")
 
 
 def margin_for(dtype) -> float:
