@@ -376,30 +376,78 @@ def _tree(s: _State) -> BVH:
                prim_index=jnp.where(s.ref_node[order] < nodes, s.ref_prim[order], -1), root=jnp.int32(0))
 
 
-@partial(jax.jit, static_argnames=("bins",))
 def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int) -> SBVHBuild:
     """The level-synchronous SBVH on prepared inputs (:func:`build_sbvh` makes them).
 
     ``tri`` [R, 3, 3]: the triangles in their first ``n`` rows, R the reference slots;
     ``max_leaf`` int32; ``ct``, ``ci``, ``scale``, ``threshold``: scalars in ``tri``'s
     dtype; ``bins`` static. Returns an :class:`SBVHBuild`.
+
+    Driven from the host in runs of levels (:func:`_levels`): the narrow programs'
+    levels in one compiled loop, and only when a level fits none of them (wider than
+    ``FINE_STAGE`` open nodes, or more references than the compacted slots) a run in
+    the wide programs, compiled on that first need (ninth round: ``lax.switch``
+    compiles every branch, so every build paid for the wide programs' compile, which
+    legocar at ``max_leaf`` 16 never runs). The levels, and the program each runs in,
+    are the same as one loop over all programs would give: the trees are too.
     """
+    scene, state = _start(tri, n, max_leaf, ct, ci, scale, threshold)
+    wide = False
+    while bool(state.next_free > state.level_start):  # waits for the run before
+        state = _levels(scene, state, bins=bins, wide=wide)
+        wide = not wide
+    return _finish(state)
+
+
+@jax.jit
+def _start(tri, n, max_leaf, ct, ci, scale, threshold) -> tuple[_Scene, _State]:
+    """The scene and the state before the first level (root open, every triangle a reference)."""
     scene = _Scene(tri, tri.reshape(tri.shape[0], 9).T, scale, threshold, max_leaf, ct, ci)
-    state = _initial(scene, n)
-    programs = level_programs(tri.shape[0])
+    return scene, _initial(scene, n)
+
+
+@jax.jit
+def _finish(state: _State) -> SBVHBuild:
+    return SBVHBuild(_tree(state), state.n_refs, state.spatial, state.short)
+
+
+def split_programs(programs: list[tuple[int, int]]) -> tuple[list, list]:
+    """``(narrow, wide)``: the level programs (:func:`level_programs`, cheapest first) of
+    at most ``FINE_STAGE`` node slots, all but the last, and the others; a single
+    program is narrow. Narrow ones come first in ``programs``, so a level's first
+    fitting program is narrow whenever some narrow one fits."""
+    if len(programs) == 1:
+        return programs, []
+    narrow = [p for p in programs[:-1] if p[0] <= FINE_STAGE]
+    return narrow, programs[len(narrow):]
+
+
+def _fits(s: _State, programs) -> Any:
+    """[P] bool: which of ``programs`` hold the level's open nodes and references."""
+    open_nodes, in_level = s.next_free - s.level_start, jnp.sum(_in_level(s), dtype=jnp.int32)
+    return jnp.stack([(open_nodes <= slots) & (in_level <= live) for slots, live in programs])
+
+
+@partial(jax.jit, static_argnames=("bins", "wide"))
+def _levels(scene: _Scene, state: _State, *, bins: int, wide: bool) -> _State:
+    """Levels from ``state`` on, each in the cheapest program that holds it (a
+    ``lax.switch``, which runs only the chosen one), while they fit a narrow program
+    (``wide`` False) or while they fit none (``wide`` True; the last program holds any
+    level), and the tree is not finished (:func:`split_programs`)."""
+    narrow, wide_programs = split_programs(level_programs(scene.tri.shape[0]))
+    programs = wide_programs if wide else narrow
     levels = [partial(_level, scene, bins=bins, slots=slots, live=live) for slots, live in programs]
 
     def level(s: _State) -> _State:
-        """One level in the cheapest program that holds its open nodes and references
-        (the last holds any level; lax.switch runs only the chosen one)."""
         if len(levels) == 1:
             return levels[0](s)
-        open_nodes, in_level = s.next_free - s.level_start, jnp.sum(_in_level(s), dtype=jnp.int32)
-        fits = jnp.stack([(open_nodes <= slots) & (in_level <= live) for slots, live in programs])
-        return jax.lax.switch(jnp.argmax(fits), levels, s)
+        return jax.lax.switch(jnp.argmax(_fits(s, programs)), levels, s)
 
-    state = jax.lax.while_loop(lambda s: s.next_free > s.level_start, level, state)
-    return SBVHBuild(_tree(state), state.n_refs, state.spatial, state.short)
+    def more(s: _State):
+        fits_narrow = jnp.any(_fits(s, narrow))
+        return (s.next_free > s.level_start) & (~fits_narrow if wide else fits_narrow)
+
+    return jax.lax.while_loop(more, level, state)
 
 
 #: growth of the per-level node slots F from one level program to the next (:func:`stage_slots`) ...
