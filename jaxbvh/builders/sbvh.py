@@ -82,8 +82,11 @@ and the free slots (R is a capacity bucket of twice the triangles, the builds us
 1.1-1.3 times) then cost nothing in the object split, the spatial search and the
 bookkeeping. The *tail* program, small F and M (``TAIL_SLOTS``; legocar: 512 nodes,
 1,024 references), takes the deep levels (~25 ms to 3-6 ms a level on legocar).
-Compile time grows with the programs (each compiles the level once); the level is kept
-cheap to compile (one loop body for the pieces, scans for the sweeps; not ~70-100 s
+Compile time grows with the programs (each compiles the level once), so the *wide*
+ones (past ``FINE_STAGE`` node slots, and the last) are compiled only when a level needs
+one: the engine runs the levels from the host in runs, the narrow programs' in one
+compiled loop and a level that fits none of them in the wide programs' (:func:`engine`;
+legocar at ``max_leaf`` 16 never needs them). The level is kept cheap to compile (one loop body for the pieces, scans for the sweeps; not ~70-100 s
 with unrolled sweeps and a switch over six piece-buffer sizes, docs/spatial-splits.md).
 """
 
