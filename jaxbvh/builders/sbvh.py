@@ -85,8 +85,9 @@ bookkeeping. The *tail* program, small F and M (``TAIL_SLOTS``; legocar: 512 nod
 Compile time grows with the programs (each compiles the level once), so the *wide*
 ones (past ``FINE_STAGE`` node slots, and the last) are compiled only when a level needs
 one: the engine runs the levels from the host in runs, the narrow programs' in one
-compiled loop and a level that fits none of them in the wide programs' (:func:`engine`;
-legocar at ``max_leaf`` 16 never needs them). The level is kept cheap to compile (one loop body for the pieces, scans for the sweeps; not ~70-100 s
+compiled loop and a level that fits none of them in the cheapest wide program that
+holds it, each compiled on its first use (:func:`engine`; legocar at ``max_leaf`` 16
+needs none). The level is kept cheap to compile (one loop body for the pieces, scans for the sweeps; not ~70-100 s
 with unrolled sweeps and a switch over six piece-buffer sizes, docs/spatial-splits.md).
 """
 
@@ -386,20 +387,23 @@ def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int) -> SBVHBuil
     ``max_leaf`` int32; ``ct``, ``ci``, ``scale``, ``threshold``: scalars in ``tri``'s
     dtype; ``bins`` static. Returns an :class:`SBVHBuild`.
 
-    Driven from the host in runs of levels (:func:`_levels`): the narrow programs'
-    levels in one compiled loop, and only when a level fits none of them (wider than
-    ``FINE_STAGE`` open nodes, or more references than the compacted slots) a run in
-    the wide programs, compiled on that first need (ninth round: ``lax.switch``
-    compiles every branch, so every build paid for the wide programs' compile, which
-    legocar at ``max_leaf`` 16 never runs). The levels, and the program each runs in,
-    are the same as one loop over all programs would give: the trees are too.
+    Driven from the host in runs of levels (:func:`_levels`), one run a group of level
+    programs (:func:`program_groups`): the narrow programs' levels in one compiled loop,
+    and a level that fits none of them in the cheapest wide program that holds it, its
+    own loop, compiled on that first need (ninth round: ``lax.switch`` compiles every
+    branch, so every build paid for every wide program's compile, which legocar at
+    ``max_leaf`` 16 never runs). Each level runs in the program one loop over all
+    programs would choose (the first that fits), so the trees are the same.
     """
     scene, state = _start(tri, n, max_leaf, ct, ci, scale, threshold)
-    wide = False
-    while bool(state.next_free > state.level_start):  # waits for the run before
-        state = _levels(scene, state, bins=bins, wide=wide)
-        wide = not wide
-    return _finish(state)
+    groups = program_groups(level_programs(tri.shape[0]))
+    while True:
+        open_nodes, in_level = (int(x) for x in _size(state))  # waits for the run before
+        if open_nodes == 0:
+            return _finish(state)
+        group = next(g for g, programs in enumerate(groups)
+                     if any(open_nodes <= slots and in_level <= live for slots, live in programs))
+        state = _levels(scene, state, bins=bins, group=group)
 
 
 @jax.jit
@@ -410,35 +414,40 @@ def _start(tri, n, max_leaf, ct, ci, scale, threshold) -> tuple[_Scene, _State]:
 
 
 @jax.jit
-def _finish(state: _State) -> SBVHBuild:
-    return SBVHBuild(_tree(state), state.n_refs, state.spatial, state.short)
+def _size(s: _State):
+    """The level's open nodes and references (int32 each)."""
+    return s.next_free - s.level_start, jnp.sum(_in_level(s), dtype=jnp.int32)
 
 
-def split_programs(programs: list[tuple[int, int]]) -> tuple[list, list]:
-    """``(narrow, wide)``: the level programs (:func:`level_programs`, cheapest first) of
-    at most ``FINE_STAGE`` node slots, all but the last, and the others; a single
-    program is narrow. Narrow ones come first in ``programs``, so a level's first
-    fitting program is narrow whenever some narrow one fits."""
+@jax.jit
+def _finish(s: _State) -> SBVHBuild:
+    return SBVHBuild(_tree(s), s.n_refs, s.spatial, s.short)
+
+
+def program_groups(programs: list[tuple[int, int]]) -> list[list[tuple[int, int]]]:
+    """The level programs (:func:`level_programs`, cheapest first) in groups compiled
+    together: the narrow ones (at most ``FINE_STAGE`` node slots, all but the last)
+    first, then each wider one alone; a single program is one group. The groups keep
+    the order of ``programs``."""
     if len(programs) == 1:
-        return programs, []
+        return [programs]
     narrow = [p for p in programs[:-1] if p[0] <= FINE_STAGE]
-    return narrow, programs[len(narrow):]
+    return [narrow] + [[p] for p in programs[len(narrow):]]
 
 
 def _fits(s: _State, programs) -> Any:
     """[P] bool: which of ``programs`` hold the level's open nodes and references."""
-    open_nodes, in_level = s.next_free - s.level_start, jnp.sum(_in_level(s), dtype=jnp.int32)
+    open_nodes, in_level = _size(s)
     return jnp.stack([(open_nodes <= slots) & (in_level <= live) for slots, live in programs])
 
 
-@partial(jax.jit, static_argnames=("bins", "wide"))
-def _levels(scene: _Scene, state: _State, *, bins: int, wide: bool) -> _State:
-    """Levels from ``state`` on, each in the cheapest program that holds it (a
-    ``lax.switch``, which runs only the chosen one), while they fit a narrow program
-    (``wide`` False) or while they fit none (``wide`` True; the last program holds any
-    level), and the tree is not finished (:func:`split_programs`)."""
-    narrow, wide_programs = split_programs(level_programs(scene.tri.shape[0]))
-    programs = wide_programs if wide else narrow
+@partial(jax.jit, static_argnames=("bins", "group"))
+def _levels(scene: _Scene, state: _State, *, bins: int, group: int) -> _State:
+    """Levels from ``state`` on, while the tree is not finished and each level's first
+    fitting program is in group ``group`` of :func:`program_groups`; each level in
+    that program (a ``lax.switch`` among the group's, which runs only the chosen one)."""
+    groups = program_groups(level_programs(scene.tri.shape[0]))
+    programs, cheaper = groups[group], [p for g in groups[:group] for p in g]
     levels = [partial(_level, scene, bins=bins, slots=slots, live=live) for slots, live in programs]
 
     def level(s: _State) -> _State:
@@ -447,8 +456,8 @@ def _levels(scene: _Scene, state: _State, *, bins: int, wide: bool) -> _State:
         return jax.lax.switch(jnp.argmax(_fits(s, programs)), levels, s)
 
     def more(s: _State):
-        fits_narrow = jnp.any(_fits(s, narrow))
-        return (s.next_free > s.level_start) & (~fits_narrow if wide else fits_narrow)
+        here = (s.next_free > s.level_start) & jnp.any(_fits(s, programs))
+        return here & ~jnp.any(_fits(s, cheaper)) if cheaper else here
 
     return jax.lax.while_loop(more, level, state)
 

@@ -144,7 +144,7 @@ def test_levels_no_narrow_program_holds_run_in_the_wide_ones():
     """520 references at 640 slots: the top levels hold more than the narrow program's 512
     and run in the wide one (compiled only then, :func:`jaxbvh.builders.sbvh.engine`),
     the deeper ones back in the narrow one; the tree is the binned builder's all the same."""
-    narrow, wide = sbvh.split_programs(sbvh.level_programs(BIG_SLOTS))
+    narrow, *wide = sbvh.program_groups(sbvh.level_programs(BIG_SLOTS))
     rng = np.random.default_rng(7)
     tri = (rng.random((520, 1, 3)) + 0.02 * rng.random((520, 3, 3))).astype(np.float32)
     assert wide and max(live for _, live in narrow) < tri.shape[0] <= BIG_SLOTS
