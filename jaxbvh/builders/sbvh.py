@@ -82,8 +82,12 @@ and the free slots (R is a capacity bucket of twice the triangles, the builds us
 1.1-1.3 times) then cost nothing in the object split, the spatial search and the
 bookkeeping. The *tail* program, small F and M (``TAIL_SLOTS``; legocar: 512 nodes,
 1,024 references), takes the deep levels (~25 ms to 3-6 ms a level on legocar).
-Compile time grows with the programs (each compiles the level once); the level is kept
-cheap to compile (one loop body for the pieces, scans for the sweeps; not ~70-100 s
+Compile time grows with the programs (each compiles the level once), so the *wide*
+ones (past ``FINE_STAGE`` node slots, and the last) are compiled only when a level needs
+one: the engine runs the levels from the host in runs, the narrow programs' in one
+compiled loop and a level that fits none of them in the cheapest wide program that
+holds it, each compiled on its first use (:func:`engine`; legocar at ``max_leaf`` 16
+needs none). The level is kept cheap to compile (one loop body for the pieces, scans for the sweeps; not ~70-100 s
 with unrolled sweeps and a switch over six piece-buffer sizes, docs/spatial-splits.md).
 """
 
@@ -376,30 +380,86 @@ def _tree(s: _State) -> BVH:
                prim_index=jnp.where(s.ref_node[order] < nodes, s.ref_prim[order], -1), root=jnp.int32(0))
 
 
-@partial(jax.jit, static_argnames=("bins",))
 def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int) -> SBVHBuild:
     """The level-synchronous SBVH on prepared inputs (:func:`build_sbvh` makes them).
 
     ``tri`` [R, 3, 3]: the triangles in their first ``n`` rows, R the reference slots;
     ``max_leaf`` int32; ``ct``, ``ci``, ``scale``, ``threshold``: scalars in ``tri``'s
     dtype; ``bins`` static. Returns an :class:`SBVHBuild`.
+
+    Driven from the host in runs of levels (:func:`_levels`), one run a group of level
+    programs (:func:`program_groups`): the narrow programs' levels in one compiled loop,
+    and a level that fits none of them in the cheapest wide program that holds it, its
+    own loop, compiled on that first need (ninth round: ``lax.switch`` compiles every
+    branch, so every build paid for every wide program's compile, which legocar at
+    ``max_leaf`` 16 never runs). Each level runs in the program one loop over all
+    programs would choose (the first that fits), so the trees are the same.
     """
+    scene, state = _start(tri, n, max_leaf, ct, ci, scale, threshold)
+    groups = program_groups(level_programs(tri.shape[0]))
+    while True:
+        open_nodes, in_level = (int(x) for x in _size(state))  # waits for the run before
+        if open_nodes == 0:
+            return _finish(state)
+        group = next(g for g, programs in enumerate(groups)
+                     if any(open_nodes <= slots and in_level <= live for slots, live in programs))
+        state = _levels(scene, state, bins=bins, group=group)
+
+
+@jax.jit
+def _start(tri, n, max_leaf, ct, ci, scale, threshold) -> tuple[_Scene, _State]:
+    """The scene and the state before the first level (root open, every triangle a reference)."""
     scene = _Scene(tri, tri.reshape(tri.shape[0], 9).T, scale, threshold, max_leaf, ct, ci)
-    state = _initial(scene, n)
-    programs = level_programs(tri.shape[0])
+    return scene, _initial(scene, n)
+
+
+@jax.jit
+def _size(s: _State):
+    """The level's open nodes and references (int32 each)."""
+    return s.next_free - s.level_start, jnp.sum(_in_level(s), dtype=jnp.int32)
+
+
+@jax.jit
+def _finish(s: _State) -> SBVHBuild:
+    return SBVHBuild(_tree(s), s.n_refs, s.spatial, s.short)
+
+
+def program_groups(programs: list[tuple[int, int]]) -> list[list[tuple[int, int]]]:
+    """The level programs (:func:`level_programs`, cheapest first) in groups compiled
+    together: the narrow ones (at most ``FINE_STAGE`` node slots, all but the last)
+    first, then each wider one alone; a single program is one group. The groups keep
+    the order of ``programs``."""
+    if len(programs) == 1:
+        return [programs]
+    narrow = [p for p in programs[:-1] if p[0] <= FINE_STAGE]
+    return [narrow] + [[p] for p in programs[len(narrow):]]
+
+
+def _fits(s: _State, programs) -> Any:
+    """[P] bool: which of ``programs`` hold the level's open nodes and references."""
+    open_nodes, in_level = _size(s)
+    return jnp.stack([(open_nodes <= slots) & (in_level <= live) for slots, live in programs])
+
+
+@partial(jax.jit, static_argnames=("bins", "group"))
+def _levels(scene: _Scene, state: _State, *, bins: int, group: int) -> _State:
+    """Levels from ``state`` on, while the tree is not finished and each level's first
+    fitting program is in group ``group`` of :func:`program_groups`; each level in
+    that program (a ``lax.switch`` among the group's, which runs only the chosen one)."""
+    groups = program_groups(level_programs(scene.tri.shape[0]))
+    programs, cheaper = groups[group], [p for g in groups[:group] for p in g]
     levels = [partial(_level, scene, bins=bins, slots=slots, live=live) for slots, live in programs]
 
     def level(s: _State) -> _State:
-        """One level in the cheapest program that holds its open nodes and references
-        (the last holds any level; lax.switch runs only the chosen one)."""
         if len(levels) == 1:
             return levels[0](s)
-        open_nodes, in_level = s.next_free - s.level_start, jnp.sum(_in_level(s), dtype=jnp.int32)
-        fits = jnp.stack([(open_nodes <= slots) & (in_level <= live) for slots, live in programs])
-        return jax.lax.switch(jnp.argmax(fits), levels, s)
+        return jax.lax.switch(jnp.argmax(_fits(s, programs)), levels, s)
 
-    state = jax.lax.while_loop(lambda s: s.next_free > s.level_start, level, state)
-    return SBVHBuild(_tree(state), state.n_refs, state.spatial, state.short)
+    def more(s: _State):
+        here = (s.next_free > s.level_start) & jnp.any(_fits(s, programs))
+        return here & ~jnp.any(_fits(s, cheaper)) if cheaper else here
+
+    return jax.lax.while_loop(more, level, state)
 
 
 #: growth of the per-level node slots F from one level program to the next (:func:`stage_slots`) ...

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from strategies import boxes, triangle_soups
 
 import jaxbvh
-from jaxbvh.builders import SBVHConfig, build_sbvh
+from jaxbvh.builders import SBVHConfig, build_sbvh, sbvh
 from jaxbvh.builders import sbvh_reference as reference
 from jaxbvh.testing.plugin import examples
 from jaxbvh.tree.frame import Frame
@@ -138,6 +138,20 @@ def test_without_spatial_splits_sbvh_is_the_binned_builder(tri, max_leaf):
     got = build_sbvh(tri, SBVHConfig(alpha=1e30, max_leaf=max_leaf, bins=8), capacity=SLOTS)
     assert int(got.spatial_splits) == 0 and int(got.references) == tri.shape[0]
     assert canonical(got.tree) == canonical(jaxbvh.build(lo, hi, method="binned", max_leaf=max_leaf, bins=8))
+
+
+def test_levels_no_narrow_program_holds_run_in_the_wide_ones():
+    """520 references at 640 slots: the top levels hold more than the narrow program's 512
+    and run in the wide one (compiled only then, :func:`jaxbvh.builders.sbvh.engine`),
+    the deeper ones back in the narrow one; the tree is the binned builder's all the same."""
+    narrow, *wide = sbvh.program_groups(sbvh.level_programs(BIG_SLOTS))
+    rng = np.random.default_rng(7)
+    tri = (rng.random((520, 1, 3)) + 0.02 * rng.random((520, 3, 3))).astype(np.float32)
+    assert wide and max(live for _, live in narrow) < tri.shape[0] <= BIG_SLOTS
+    tri = local_triangles(tri)
+    lo, hi = boxes(tri)
+    got = build_sbvh(tri, SBVHConfig(alpha=1e30, max_leaf=1, bins=8), capacity=BIG_SLOTS)
+    assert canonical(got.tree) == canonical(jaxbvh.build(lo, hi, method="binned", max_leaf=1, bins=8))
 
 
 def test_reference_capacity_runs_out_gracefully():
