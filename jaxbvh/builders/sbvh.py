@@ -397,13 +397,14 @@ def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int) -> SBVHBuil
     """
     scene, state = _start(tri, n, max_leaf, ct, ci, scale, threshold)
     groups = program_groups(level_programs(tri.shape[0]))
-    while True:
+    for _ in range(2 * tri.shape[0] + 1):  # a run takes at least one level; a tree of R slots has fewer
         open_nodes, in_level = (int(x) for x in _size(state))  # waits for the run before
         if open_nodes == 0:
             return _finish(state)
         group = next(g for g, programs in enumerate(groups)
                      if any(open_nodes <= slots and in_level <= live for slots, live in programs))
         state = _levels(scene, state, bins=bins, group=group)
+    raise RuntimeError(f"SBVH engine: levels still open after {2 * tri.shape[0] + 1} runs (a bug: please report)")
 
 
 @jax.jit
