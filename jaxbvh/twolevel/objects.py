@@ -200,7 +200,7 @@ def _placed_boxes(forest: Forest, node_off, obj_of, to_scene, margin, n_inst: in
     # dtype: rounding is monotone, so it commutes with min and max)
     rows = concat_ranges(base[moved], sizes[moved])
     inner = rows[forest.left[f[rows]] >= 0]
-    level = _forest_depth(forest)[f[inner]]
+    level = forest_depths(forest)[f[inner]]
     inner = inner[np.argsort(-level, kind="stable")]
     ends = np.cumsum(np.bincount(level.max(initial=0) - level))
     for a, b in zip(np.concatenate([[0], ends[:-1]]), ends):
@@ -212,8 +212,12 @@ def _placed_boxes(forest: Forest, node_off, obj_of, to_scene, margin, n_inst: in
     return shift.astype(np.int32), lo, hi
 
 
-def _forest_depth(forest: Forest) -> np.ndarray:
-    """Depth of every forest node below its object's root [N] int64 (-1: padding)."""
+def forest_depths(forest) -> np.ndarray:
+    """Depth of every forest node below its object's root [N] int64 (-1: padding).
+
+    ``forest``: a :class:`Forest` (any object with ``left``, ``right`` [N] and ``root``
+    int arrays). Raises ``ValueError`` if the links hold a cycle (the walk is bounded).
+    """
     out = np.full(forest.left.shape[0], -1, np.int64)
     nodes = forest.root[forest.root >= 0].astype(np.int64)
     for d in range(out.size + 1):  # no deeper than its node count: bounded even if links were cyclic

@@ -630,15 +630,15 @@ def test_overlapping_scenes_are_what_they_say():
     assert len(room.objects) == len(room.instances) == 6 and room.n_triangles == 12 + 5 * 8
 
 
-def test_forest_depth_refuses_cyclic_links():
+def testforest_depths_refuses_cyclic_links():
     """Node depths of a forest come from a bounded walk: a cycle in the links is refused,
     never an endless loop (the brief's rule: every loop over a tree has a bound)."""
     import types
 
-    from jaxbvh.twolevel.objects import _forest_depth
+    from jaxbvh.twolevel.objects import forest_depths
 
     good = types.SimpleNamespace(left=np.array([1, -1, -1]), right=np.array([2, -1, -1]), root=np.array([0]))
-    np.testing.assert_array_equal(_forest_depth(good), [0, 1, 1])
+    np.testing.assert_array_equal(forest_depths(good), [0, 1, 1])
     cyclic = types.SimpleNamespace(left=np.array([1, 0, -1]), right=np.array([2, -1, -1]), root=np.array([0]))
     with pytest.raises(ValueError, match="cycle"):
-        _forest_depth(cyclic)
+        forest_depths(cyclic)
