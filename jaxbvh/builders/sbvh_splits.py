@@ -38,7 +38,7 @@ def segment(op, values, seg, slots):
     return op(values, seg, num_segments=slots + 1)[:slots]
 
 
-def _sweep_bins(count, box_lo, box_hi, usable, scale, bins: int, most=None) -> Split:
+def sweep_bins(count, box_lo, box_hi, usable, scale, bins: int, most=None) -> Split:
     """Best plane of binned counts and boxes per slot and axis.
 
     ``count``: (entries, exits), ``box_lo``, ``box_hi``: three coordinate arrays each,
@@ -145,7 +145,7 @@ def object_split(ref_lo, ref_hi, seg, slots: int, scale, bins: int):
     count = segment(jax.ops.segment_sum, jnp.ones(key.shape, jnp.int32), key, cells).reshape(bins, slots, 3)
     box_lo = _cells(jax.ops.segment_min, [jnp.tile(column, 3) for column in ref_lo.T], key, cells, slots, bins)
     box_hi = _cells(jax.ops.segment_max, [jnp.tile(column, 3) for column in ref_hi.T], key, cells, slots, bins)
-    split = _sweep_bins((count, count), box_lo, box_hi, span > 0, scale, bins)
+    split = sweep_bins((count, count), box_lo, box_hi, span > 0, scale, bins)
     return split, bin3
 
 
@@ -305,7 +305,7 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
               for b in (b0, b1)]
     box_lo = [c.reshape(bins, slots, 3) for c in box_lo]
     box_hi = [c.reshape(bins, slots, 3) for c in box_hi]
-    return _sweep_bins(counts, box_lo, box_hi, (ext > 0) & tried[:, None], scale, bins, count), Bins(b0, b1)
+    return sweep_bins(counts, box_lo, box_hi, (ext > 0) & tried[:, None], scale, bins, count), Bins(b0, b1)
 
 
 class Sides(NamedTuple):

@@ -3,6 +3,7 @@ the binned builder when no spatial split pays, a bounded reference capacity, cle
 
 from __future__ import annotations
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from helpers import canonical
@@ -11,8 +12,9 @@ from hypothesis import strategies as st
 from strategies import boxes, triangle_soups
 
 import jaxbvh
-from jaxbvh.builders import SBVHConfig, build_sbvh, sbvh
+from jaxbvh.builders import SBVHConfig, build_sbvh, sbvh, sbvh_splits
 from jaxbvh.builders import sbvh_reference as reference
+from jaxbvh.numerics import TIE_TOLERANCE, half_area
 from jaxbvh.testing.plugin import examples
 from jaxbvh.tree.frame import Frame
 
@@ -138,6 +140,49 @@ def test_without_spatial_splits_sbvh_is_the_binned_builder(tri, max_leaf):
     got = build_sbvh(tri, SBVHConfig(alpha=1e30, max_leaf=max_leaf, bins=8), capacity=SLOTS)
     assert int(got.spatial_splits) == 0 and int(got.references) == tri.shape[0]
     assert canonical(got.tree) == canonical(jaxbvh.build(lo, hi, method="binned", max_leaf=max_leaf, bins=8))
+
+
+SWEEP_SLOTS, SWEEP_BINS = 4, 4
+
+
+def swept(entries, exits, lo, hi):
+    """The tie rule read plainly: per slot, every (axis, plane) priced ``A_L N_L + A_R
+    N_R`` over the bins up to and after the plane (integer boxes: exact), the least
+    cost, and the first (axis, plane) in axis-major order within the tie tolerance;
+    axis 0, plane 0 and an infinite cost where no plane has references on both sides.
+    ``entries``, ``exits`` [B, F, 3]; ``lo``, ``hi`` [3, B, F, 3] (coordinate, bin, slot, axis)."""
+    out = []
+    for f in range(SWEEP_SLOTS):
+        costs = np.full((3, SWEEP_BINS - 1), np.inf)
+        for a, k in np.ndindex(3, SWEEP_BINS - 1):
+            n_l, n_r = entries[: k + 1, f, a].sum(), exits[k + 1:, f, a].sum()
+            if n_l and n_r:
+                a_l = half_area(lo[:, : k + 1, f, a].min(1), hi[:, : k + 1, f, a].max(1), 1.0)
+                a_r = half_area(lo[:, k + 1:, f, a].min(1), hi[:, k + 1:, f, a].max(1), 1.0)
+                costs[a, k] = a_l * n_l + a_r * n_r
+        near = np.flatnonzero((costs.ravel() <= costs.min() * (1 + TIE_TOLERANCE)) & np.isfinite(costs.ravel()))
+        first = near[0] if near.size else 0
+        out.append((costs.min(), first // (SWEEP_BINS - 1), first % (SWEEP_BINS - 1)))
+    return out
+
+
+@settings(max_examples=examples(40), deadline=None)
+@given(st.data())
+def test_the_sweeps_take_the_least_cost_then_the_lowest_axis_then_the_lowest_plane(data):
+    """``sbvh_splits.sweep_bins`` on small integer cells (exact costs, so ties are real
+    and frequent): cost, axis and plane per slot as the rule reads plainly."""
+    def ints(top, shape):
+        size = int(np.prod(shape))
+        return np.array(data.draw(st.lists(st.integers(0, top), min_size=size, max_size=size)), np.int32).reshape(shape)
+
+    cells = (SWEEP_BINS, SWEEP_SLOTS, 3)
+    entries, exits = ints(2, cells), ints(2, cells)
+    lo = ints(3, (3,) + cells).astype(np.float32)
+    hi = lo + ints(2, (3,) + cells)
+    got = sbvh_splits.sweep_bins((jnp.asarray(entries), jnp.asarray(exits)), list(jnp.asarray(lo)),
+                                 list(jnp.asarray(hi)), jnp.ones((SWEEP_SLOTS, 3), bool), jnp.float32(1), SWEEP_BINS)
+    for f, (cost, axis, plane) in enumerate(swept(entries, exits, lo, hi)):
+        assert (float(got.cost[f]), int(got.axis[f]), int(got.plane[f])) == (cost, axis, plane)
 
 
 def test_levels_no_narrow_program_holds_run_in_the_wide_ones():
