@@ -28,6 +28,36 @@ def exclusive_rank(flag, start):
     return before - take(before, start, 0)
 
 
+def widest_rank(width, candidate, block, start, size):
+    """Rank of every candidate among its segment's candidates by (``width`` descending,
+    slot) (int32 [C]; other slots: any value).
+
+    ``width`` [C] float, ``candidate`` [C] bool; ``block`` [C] bool: the slot lies in its
+    segment's BRefs ``[start, start + size)`` (``start``, ``size`` [C] int32 per slot; a
+    segment's candidates lie in it). One sort of plain int keys, as :func:`best_planes`:
+    with ``above`` the number of candidates wider than the slot's (C for a non-candidate),
+    the key ``start (C + 1) + above size + offset`` orders a segment's slots inside the
+    range ``[start (C + 1), (start + size) (C + 1))``, a slot outside every segment keeps
+    ``pos (C + 1)``; the sorted position minus ``start`` is the rank. Keys below 2^31
+    need ``C (C + 1) < 2^31``; larger arrays sort (segment, -width, slot) with a lexsort.
+    """
+    i32 = jnp.int32
+    C = width.shape[0]
+    pos = jnp.arange(C, dtype=i32)
+    if C * (C + 1) >= 2 ** 31:
+        key = jnp.where(candidate & block, start, C)
+        order = jnp.lexsort((pos, -width, key)).astype(i32)
+        first = segment(jax.ops.segment_min, pos, key[order], C)
+        return jnp.zeros(C, i32).at[order].set(pos - take(first, key[order], 0))
+    ordered = jnp.sort(jnp.where(candidate, width, -jnp.inf))
+    above = jnp.where(candidate, C - jnp.searchsorted(ordered, width, side="right").astype(i32), C)
+    stride = C + 1
+    keys = jnp.where(block, start * stride + above * size + (pos - start), pos * stride)
+    rel = jnp.sort(keys) - start * stride  # sorted position j lies in the block of slot j
+    slot = jnp.where(block, start + rel % jnp.maximum(size, 1), C)
+    return jnp.zeros(C, i32).at[slot].set(pos - start, mode="drop")
+
+
 def _scan(starts, lo, hi, prims):
     """Inclusive running (box, primitive count) along axis 1, restarting where ``starts``."""
 
@@ -56,11 +86,21 @@ def best_planes(sid, bin_p, lo, hi, prims, *, bins, cap):
     i32 = jnp.int32
     dtype = lo.dtype
     axes = jnp.arange(3, dtype=i32)
-    none = cap * bins  # sorts after every real key
-    keys = jnp.where(sid[None, :] < cap, sid[None, :] * bins + bin_p.T, none)  # [3, C]
-    order = jnp.argsort(keys, axis=1, stable=True).astype(i32)
-    seg = jnp.take_along_axis(jnp.broadcast_to(sid, (3, cap)), order, axis=1)
-    b = jnp.take_along_axis(bin_p.T, order, axis=1)
+    pos = jnp.arange(cap, dtype=i32)
+    takes = sid < cap
+    start = jnp.where(takes, sid, pos)
+    size = take(segment(jax.ops.segment_sum, takes.astype(i32), sid, cap), sid, 1)  # its segment's BRefs
+    # one sort of plain int keys per axis (a sort that carries the slots along costs ~6x
+    # more on a CPU): a segment's BRefs sit in [start, start + size), so the key
+    # start * bins + bin * size + offset orders them by (bin, slot) inside the range
+    # [start * bins, (start + size) * bins) that no other slot's key enters; a slot that
+    # takes no part keeps pos * bins, and its place. Decoding the sorted keys gives each
+    # sorted position its slot and bin (the sorted order of the stable sort by (segment, bin)).
+    keys = jnp.where(takes, start * bins + bin_p.T * size + (pos - start), pos * bins)  # [3, C]
+    rel = jnp.sort(keys, axis=1) - start * bins
+    order = jnp.where(takes, start + rel % size, pos).astype(i32)
+    seg = jnp.broadcast_to(sid, (3, cap))
+    b = jnp.where(takes, rel // size, 0)
     s_lo, s_hi, s_p = lo[order], hi[order], prims[order]  # [3, C, 3], [3, C]
     step = jnp.concatenate([seg[:, 1:] != seg[:, :-1], jnp.ones((3, 1), bool)], axis=1)  # last of a run
     first = jnp.concatenate([jnp.ones((3, 1), bool), step[:, :-1]], axis=1)
