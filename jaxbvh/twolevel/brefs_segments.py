@@ -104,8 +104,10 @@ def best_planes(sid, bin_p, lo, hi, prims, *, bins, cap):
     s_lo, s_hi, s_p = lo[order], hi[order], prims[order]  # [3, C, 3], [3, C]
     step = jnp.concatenate([seg[:, 1:] != seg[:, :-1], jnp.ones((3, 1), bool)], axis=1)  # last of a run
     first = jnp.concatenate([jnp.ones((3, 1), bool), step[:, :-1]], axis=1)
-    l_lo, l_hi, l_p = _scan(first, s_lo, s_hi, s_p)
-    r_lo, r_hi, r_p = (a[:, ::-1] for a in _scan(step[:, ::-1], s_lo[:, ::-1], s_hi[:, ::-1], s_p[:, ::-1]))
+    # the forward scans (left sides) and the backward ones (right sides) as one scan of 6 rows
+    both = lambda a, b: jnp.concatenate([a, b[:, ::-1]], axis=0)  # noqa: E731
+    out = _scan(both(first, step), both(s_lo, s_lo), both(s_hi, s_hi), both(s_p, s_p))
+    (l_lo, l_hi, l_p), (r_lo, r_hi, r_p) = [a[:3] for a in out], [a[3:, ::-1] for a in out]
     shift = lambda a, fill: jnp.concatenate([a[:, 1:], jnp.full_like(a[:, :1], fill)], axis=1)  # noqa: E731
     r_lo, r_hi, r_p = shift(r_lo, jnp.inf), shift(r_hi, -jnp.inf), shift(r_p, 0)
     # a plane after every sorted BRef whose successor in the segment has a higher bin (so
