@@ -4,8 +4,11 @@ Part of :mod:`jaxbvh.twolevel.brefs` (Benthin et al. 2017), whose docstring expl
 BRef array, its segments and the binning (step 4: bins over the BRef centres, the plane
 cost ``A_L N_L + A_R N_R``, the tie rule). Per-segment arrays are keyed by the
 segment's start slot; :func:`segment` reduces over segments, :func:`exclusive_rank`
-ranks flagged slots within theirs, :func:`best_planes` finds each segment's cheapest
-plane with sorts and segmented scans (no segments x bins table).
+ranks flagged slots within theirs, :func:`widest_rank` ranks the opening's candidates
+widest first, :func:`best_planes` finds each segment's cheapest plane with sorts and
+segmented scans (no segments x bins table). Both sort plain int keys that encode the
+slot: on a CPU a sort that carries the slots along as a second operand cost ~6x more
+(3 x 2,048 keys: 1.05 against 0.18 ms).
 """
 
 from __future__ import annotations
@@ -90,8 +93,7 @@ def best_planes(sid, bin_p, lo, hi, prims, *, bins, cap):
     takes = sid < cap
     start = jnp.where(takes, sid, pos)
     size = take(segment(jax.ops.segment_sum, takes.astype(i32), sid, cap), sid, 1)  # its segment's BRefs
-    # one sort of plain int keys per axis (a sort that carries the slots along costs ~6x
-    # more on a CPU): a segment's BRefs sit in [start, start + size), so the key
+    # one sort of plain int keys per axis (module docstring): a segment's BRefs sit in [start, start + size), so the key
     # start * bins + bin * size + offset orders them by (bin, slot) inside the range
     # [start * bins, (start + size) * bins) that no other slot's key enters; a slot that
     # takes no part keeps pos * bins, and its place. Decoding the sorted keys gives each
