@@ -71,8 +71,11 @@ plain two-level BVH over the instances (its array then has room for the instance
 
 Level-synchronous. The JAX builder runs all segments of one level of the top-level
 tree at once (segment reductions keyed by the segment's start position; the binning
-sorts each axis by (segment, bin) and scans, so no segments x bins table is needed), in
-a ``while_loop`` bounded by ``C + 1`` levels (reaching the bound raises). It equals the recursive NumPy twin
+sorts each axis by (segment, bin) and scans, so no segments x bins table is needed; its
+sorts, and the widest-first ranking of step 3, sort plain int keys that encode the slot,
+:mod:`jaxbvh.twolevel.brefs_segments`), in a ``while_loop`` bounded by ``C + 1`` levels
+(reaching the bound raises); the levels where no segment has room left skip steps 2-3
+and the spare split. It equals the recursive NumPy twin
 :func:`jaxbvh.twolevel.brefs_reference.build_top_level` BRef by BRef: every BRef ends in the
 same slot of the array with the same node, instance, box and count, and the top-level
 trees are the same up to node numbering. Exactness: world boxes, centres, bins, opening

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxbvh.numerics import take
-from jaxbvh.twolevel.brefs_segments import best_planes, exclusive_rank, segment
+from jaxbvh.twolevel.brefs_segments import best_planes, exclusive_rank, segment, widest_rank
 from jaxbvh.twolevel.objects import bref_boxes
 
 SMALL_SEGMENT = 4        # paper §4.4: the overlap test applies to <= 4 BRefs
@@ -160,9 +160,15 @@ def level(forest, instances, s: Build, threshold, overlap, rounds, *, cap, bins,
     ``bins``, ``estimate``: static, as for :func:`initial` and
     :func:`jaxbvh.twolevel.brefs.build_top_level`."""
     view = _view(s.refs, s.segs, cap=cap)
-    may_open = _may_open(s.refs, s.segs, view, overlap, cap=cap)
-    refs, seg_end, extra = _open(forest, instances, s.refs, s.segs, view, may_open, threshold, rounds,
-                                 cap=cap, estimate=estimate)
+
+    def opening():
+        may_open = _may_open(s.refs, s.segs, view, overlap, cap=cap)
+        return _open(forest, instances, s.refs, s.segs, view, may_open, threshold, rounds, cap=cap,
+                     estimate=estimate)
+
+    # below the first few levels no segment has room left (dropped or used): skip steps 2-3
+    has_room = jnp.any(view.split & (s.segs.extra > s.segs.end))
+    refs, seg_end, extra = jax.lax.cond(has_room, opening, lambda: (s.refs, s.segs.end, s.segs.end))
     binned = _bin(refs, view, seg_end, cap=cap, bins=bins)
     halves = _partition(forest, refs, view, binned, seg_end, extra, threshold, cap=cap)
     refs, seg_of = _move(refs, view, binned, halves, extra, cap=cap)
@@ -254,14 +260,10 @@ def _open_once(forest, instances, refs: Refs, view: _View, may_open, seg_end, ex
     key = jnp.where(candidate, seg, C)
     room_s = jnp.maximum(extra - seg_end, 0)
 
-    def widest_first():  # rank every candidate within its segment by (width descending, slot)
-        order = jnp.lexsort((pos, -width, key)).astype(i32)
-        first = segment(jax.ops.segment_min, pos, key[order], C)
-        return jnp.zeros(C, i32).at[order].set(pos - take(first, key[order], 0))
-
     # the sort only where some segment has more candidates than room (else all open)
     short = jnp.any(segment(jax.ops.segment_sum, candidate.astype(i32), key, C) > room_s)
-    rank = jax.lax.cond(short, widest_first, lambda: jnp.zeros(C, i32))
+    rank = jax.lax.cond(short, lambda: widest_rank(width, candidate, view.in_live & (pos < end_p), seg, end_p - seg),
+                        lambda: jnp.zeros(C, i32))
     opens = candidate & (rank < take(room_s, seg, 0))
     slot = jnp.where(opens, end_p + exclusive_rank(opens, jnp.minimum(seg, C - 1)), C)
     safe = jnp.where(opens, refs.node, NF)
@@ -323,25 +325,29 @@ def _partition(forest, refs: Refs, view: _View, b: _Binned, seg_end, extra, thre
     n_left = segment(jax.ops.segment_sum, goes_left.astype(i32), b.sid, C)
     n_right = b.count - n_left
     rank_left = exclusive_rank(goes_left, jnp.minimum(seg, C - 1))
-    # the spare room goes in proportion to the BRefs that would open in each half
-    key2 = jnp.where(b.is_ref, 2 * seg + jnp.where(goes_left, 0, 1), 2 * C)
-    ch_lo = segment(jax.ops.segment_min, lo, key2, 2 * C).reshape(C, 2, 3)
-    ch_hi = segment(jax.ops.segment_max, hi, key2, 2 * C).reshape(C, 2, 3)
-    ch_ext = ch_hi - ch_lo
-    ch_dim = jnp.argmax(ch_ext, axis=2).astype(i32)
-    ch_ext_dim = jnp.take_along_axis(ch_ext, ch_dim[..., None], axis=2)[..., 0]
-    k2 = jnp.minimum(key2, 2 * C - 1)
-    d2 = ch_dim.reshape(-1)[k2]
-    w2 = (jnp.take_along_axis(hi, d2[:, None], axis=1) - jnp.take_along_axis(lo, d2[:, None], axis=1))[:, 0]
-    meets = b.is_ref & _interior(forest, refs.node) & (w2 > threshold * ch_ext_dim.reshape(-1)[k2])
-    weight = segment(jax.ops.segment_sum, meets.astype(i32), key2, 2 * C).reshape(C, 2)
-    none = weight.sum(axis=1) == 0
-    w_l = jnp.where(none, n_left, weight[:, 0])
-    w_r = jnp.where(none, n_right, weight[:, 1])
     spare = jnp.maximum(extra - seg_end, 0)
-    f32 = jnp.float32
-    share = jnp.floor(w_l.astype(f32) / jnp.maximum(w_l + w_r, 1).astype(f32) * spare.astype(f32))
-    spare_l = jnp.minimum(share.astype(i32), spare)
+
+    def share_of_spare():  # the spare room goes in proportion to the BRefs that would open in each half
+        key2 = jnp.where(b.is_ref, 2 * seg + jnp.where(goes_left, 0, 1), 2 * C)
+        ch_lo = segment(jax.ops.segment_min, lo, key2, 2 * C).reshape(C, 2, 3)
+        ch_hi = segment(jax.ops.segment_max, hi, key2, 2 * C).reshape(C, 2, 3)
+        ch_ext = ch_hi - ch_lo
+        ch_dim = jnp.argmax(ch_ext, axis=2).astype(i32)
+        ch_ext_dim = jnp.take_along_axis(ch_ext, ch_dim[..., None], axis=2)[..., 0]
+        k2 = jnp.minimum(key2, 2 * C - 1)
+        d2 = ch_dim.reshape(-1)[k2]
+        w2 = (jnp.take_along_axis(hi, d2[:, None], axis=1) - jnp.take_along_axis(lo, d2[:, None], axis=1))[:, 0]
+        meets = b.is_ref & _interior(forest, refs.node) & (w2 > threshold * ch_ext_dim.reshape(-1)[k2])
+        weight = segment(jax.ops.segment_sum, meets.astype(i32), key2, 2 * C).reshape(C, 2)
+        none = weight.sum(axis=1) == 0
+        w_l = jnp.where(none, n_left, weight[:, 0])
+        w_r = jnp.where(none, n_right, weight[:, 1])
+        f32 = jnp.float32
+        share = jnp.floor(w_l.astype(f32) / jnp.maximum(w_l + w_r, 1).astype(f32) * spare.astype(f32))
+        return jnp.minimum(share.astype(i32), spare)
+
+    # no room anywhere (every level below the opening ones): the share is 0, skip computing it
+    spare_l = jax.lax.cond(jnp.any(view.split & (spare > 0)), share_of_spare, lambda: jnp.zeros(C, i32))
     return _Halves(goes_left=goes_left, rank_left=rank_left, rank_right=offset - rank_left, n_left=n_left,
                    n_right=n_right, right_start=pos + n_left + spare_l)
 

@@ -24,6 +24,7 @@ from jaxbvh.testing.plugin import examples
 from jaxbvh.twolevel import brefs
 from jaxbvh.twolevel import brefs_reference as ref
 from jaxbvh.twolevel import objects as fm
+from jaxbvh.twolevel.brefs_segments import widest_rank
 from tests.strategies import triangle_soups
 
 SHAPES = {"nodes": 128, "prims": 64, "instances": 8, "brefs": 32, "boxes": 512}
@@ -162,6 +163,37 @@ def test_top_level_equals_reference_on_forests(seed, spread, threshold, budget):
     np.testing.assert_array_equal(res.position[:count], np.flatnonzero(br["node"] >= 0))
     for key in ("node", "instance", "prims", "lo", "hi"):
         np.testing.assert_array_equal(getattr(res, key)[:count], br[key][res.position[:count]], err_msg=key)
+
+
+def _segmented_widths(rng, size):
+    """Random contiguous segments over ``size`` slots (BRefs, then spare room) with few
+    distinct widths (many ties) and candidates among the BRefs."""
+    starts = np.sort(rng.choice(size, max(1, size // 5), replace=False))
+    starts[0] = 0
+    ends = starts + (rng.random(starts.size) * (np.append(starts[1:], size) - starts + 1)).astype(int)
+    k = np.searchsorted(starts, np.arange(size), side="right") - 1
+    block = np.arange(size) < ends[k]
+    start = np.where(block, starts[k], size).astype(np.int32)
+    length = np.where(block, ends[k] - starts[k], 0).astype(np.int32)
+    width = (rng.integers(0, 5, size) / 4).astype(np.float32)
+    return width, block & (rng.random(size) < 0.6), block, start, length
+
+
+@pytest.mark.parametrize("size", [64, 46341])  # keys below 2^31, and the lexsort beyond
+def test_widest_rank_orders_each_segments_candidates_by_width_then_slot(size):
+    """The opening's widest-first rank (one sort of encoded int keys) equals a lexsort by
+    (segment, width descending, slot) (checked: fails with the slot offset left out of the
+    key or with the width order reversed)."""
+    rng = np.random.default_rng(size)
+    for _ in range(5 if size < 1000 else 1):
+        width, candidate, block, start, length = _segmented_widths(rng, size)
+        got = np.asarray(jax.jit(widest_rank)(width, candidate, block, start, length))
+        seg = np.where(candidate, start, size)
+        order = np.lexsort((np.arange(size), -width, seg))
+        first = np.searchsorted(seg[order], seg[order])
+        expected = np.empty(size, np.int64)
+        expected[order] = np.arange(size) - first
+        np.testing.assert_array_equal(got[candidate], expected[candidate])
 
 
 @settings(max_examples=examples(10))
