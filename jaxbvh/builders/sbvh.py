@@ -402,7 +402,7 @@ def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int) -> SBVHBuil
         if open_nodes == 0:
             return _finish(state)
         group = next(g for g, programs in enumerate(groups)
-                     if any(open_nodes <= slots and in_level <= live for slots, live in programs))
+                     if any(_fitting(open_nodes, in_level, programs)))
         state = _levels(scene, state, bins=bins, group=group)
     raise RuntimeError(f"SBVH engine: levels still open after {2 * tri.shape[0] + 1} runs (a bug: please report)")
 
@@ -436,10 +436,16 @@ def program_groups(programs: list[tuple[int, int]]) -> list[list[tuple[int, int]
     return [narrow] + [[p] for p in programs[len(narrow):]]
 
 
+def _fitting(open_nodes, in_level, programs) -> list:
+    """Per program of ``programs``, whether it holds a level of ``open_nodes`` open nodes
+    and ``in_level`` references (the one rule for the host, on ints, and the loop, on
+    traced scalars)."""
+    return [(open_nodes <= slots) & (in_level <= live) for slots, live in programs]
+
+
 def _fits(s: _State, programs) -> Any:
     """[P] bool: which of ``programs`` hold the level's open nodes and references."""
-    open_nodes, in_level = _size(s)
-    return jnp.stack([(open_nodes <= slots) & (in_level <= live) for slots, live in programs])
+    return jnp.stack(_fitting(*_size(s), programs))
 
 
 @partial(jax.jit, static_argnames=("bins", "group"))
