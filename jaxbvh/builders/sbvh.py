@@ -73,7 +73,7 @@ F at least its open nodes, and its per-reference arrays M slots, M at least its
 references: the level is compiled for a few (F, M) (:func:`level_programs`) and each
 level runs in the cheapest that holds it (a ``lax.switch`` in the loop body), so
 neither the narrow top levels nor the dwindling deep ones pay for the widest level's
-arrays. F grows by ``STAGE_GROWTH`` (64, 256, 1,024, 4,096, ...; by 8 before the
+arrays. F grows by ``STAGE_GROWTH`` (64, 256, 1,024), then doubles (2,048, 4,096, ...; by 8 before the
 sixth round, when rocker-arm's levels of 4-7k open nodes ran on 32,768 node slots).
 Every program but the last first compacts the level's references (a cumsum of the
 live slots and a scatter, no sort) into M < R per-reference slots (:func:`live_slots`;
@@ -471,8 +471,12 @@ def _levels(scene: _Scene, state: _State, *, bins: int, group: int) -> _State:
 
 #: growth of the per-level node slots F from one level program to the next (:func:`stage_slots`) ...
 STAGE_GROWTH = 4
-#: ... up to FINE_STAGE node slots; past it F doubles (seventh round: legocar's levels of
-#: 4.5-5.8k open nodes at max_leaf 1 ran on all R slots, ~4x the time of a 4,096 level)
+#: ... up to DOUBLING_STAGE node slots; past it F doubles (seventh round, from 4,096:
+#: legocar's levels of 4.5-5.8k open nodes at max_leaf 1 ran on all R slots, ~4x the time
+#: of a 4,096 level; eleventh round, from 1,024: its levels of 1.4-1.6k open nodes at
+#: max_leaf 16 ran on 4,096 slots, 13-15 ms a level more than on 2,048)
+DOUBLING_STAGE = 1024
+#: the level programs of at most FINE_STAGE node slots are compiled together (:func:`program_groups`)
 FINE_STAGE = 4096
 #: reference slots up to which the engine compiles one level program
 SMALL_STAGE = 512
@@ -495,7 +499,7 @@ def live_slots(refs: int) -> int:
 
 def stage_slots(refs: int) -> list[int]:
     """Slot counts F of the engine's level programs for ``refs`` reference slots: 64,
-    64 x ``STAGE_GROWTH``, ... up to ``FINE_STAGE``, then doubling, none past half of
+    64 x ``STAGE_GROWTH``, ... up to ``DOUBLING_STAGE``, then doubling, none past half of
     ``refs``; then ``refs`` (only ``refs`` up to ``SMALL_STAGE`` slots). The open nodes
     of a level are at most ``refs``, so the last takes any level. Each program compiles
     the level once more, and saves the work of per-node arrays sized for the widest
@@ -505,7 +509,7 @@ def stage_slots(refs: int) -> list[int]:
     out, f = [], 64
     while 2 * f <= refs:  # one of more than half the slots would save little over the last
         out.append(f)
-        f *= STAGE_GROWTH if f < FINE_STAGE else 2
+        f *= STAGE_GROWTH if f < DOUBLING_STAGE else 2
     return out + [refs]
 
 
