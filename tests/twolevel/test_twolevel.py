@@ -372,6 +372,34 @@ def test_object_frame_sah_bounds_and_limits():
     with pytest.raises(ValueError, match="boxes"):
         twolevel.sah(tl, boxes="local")
 
+def test_object_frame_sah_of_a_skewed_instance_by_lagrange():
+    """One instance under a rotation with unequal scales, its object built in its own
+    frame: the object-frame SAH is the object tree's recursion with every node below the
+    root costed by its parallelepiped's half area, computed here another way (Lagrange's
+    identity, |a x b|^2 = |a|^2 |b|^2 - (a . b)^2), and the root by its world box."""
+    transform = np.eye(4)
+    transform[:3, :3] = np.asarray(scenes.random_rotations(jax.random.key(3), 1)[0]) @ np.diag([0.5, 1.0, 3.0])
+    mesh = scenes.assemble([small_tree(2)], [(0, transform)])
+    trees = fm.build_objects(mesh, world_space=False)
+    tl = twolevel.build_from(mesh, trees, shapes=SHAPES)
+    linear = np.asarray(fm.pack(mesh, trees, pad=False)[1].to_scene[0], np.float64)[:, :3]
+    tree = jaxbvh.to_numpy(trees[0].tree)
+
+    def area(node):
+        ext = np.maximum(tree.hi[node].astype(np.float64) - tree.lo[node].astype(np.float64), 0)
+        e = [linear[:, k] * ext[k] for k in range(3)]
+        return sum(math.sqrt(max((a @ a) * (b @ b) - (a @ b) ** 2, 0.0)) for a, b in zip(e, e[1:] + e[:1]))
+
+    def cost(node, own):
+        if tree.left[node] < 0:
+            return float(tree.prim_count[node])
+        kids = (int(tree.left[node]), int(tree.right[node]))
+        return 1.0 + sum(area(k) * cost(k, area(k)) for k in kids) / own
+
+    d = np.maximum(np.asarray(tl.top.hi[0], np.float64) - np.asarray(tl.top.lo[0], np.float64), 0)
+    world = d[0] * d[1] + d[1] * d[2] + d[2] * d[0]
+    assert twolevel.sah(tl, boxes="object") == pytest.approx(cost(int(tree.root), world), rel=1e-6)
+
 
 def test_estimated_counts_halve_from_the_object_count():
     mesh = scenes.instanced_scene(jax.random.key(3), [small_tree(0)], 6, spread=0.3)
