@@ -372,6 +372,7 @@ def test_object_frame_sah_bounds_and_limits():
     with pytest.raises(ValueError, match="boxes"):
         twolevel.sah(tl, boxes="local")
 
+
 def test_object_frame_sah_of_a_skewed_instance_by_lagrange():
     """One instance under a rotation with unequal scales, its object built in its own
     frame: the object-frame SAH is the object tree's recursion with every node below the
