@@ -37,12 +37,10 @@ def widest_rank(width, candidate, block, start, size):
 
     ``width`` [C] float, ``candidate`` [C] bool; ``block`` [C] bool: the slot lies in its
     segment's BRefs ``[start, start + size)`` (``start``, ``size`` [C] int32 per slot; a
-    segment's candidates lie in it). One sort of plain int keys, as :func:`best_planes`:
-    with ``above`` the number of candidates wider than the slot's (C for a non-candidate),
-    the key ``start (C + 1) + above size + offset`` orders a segment's slots inside the
-    range ``[start (C + 1), (start + size) (C + 1))``, a slot outside every segment keeps
-    ``pos (C + 1)``; the sorted position minus ``start`` is the rank. Keys below 2^31
-    need ``C (C + 1) < 2^31``; larger arrays sort (segment, -width, slot) with a lexsort.
+    segment's candidates lie in it). One :func:`_sort_in_blocks` by ``above``, the number
+    of candidates wider than the slot's (C for a non-candidate); the sorted position minus
+    ``start`` is the rank. Keys below 2^31 need ``C (C + 1) < 2^31``; larger arrays sort
+    (segment, -width, slot) with a lexsort.
     """
     i32 = jnp.int32
     C = width.shape[0]
@@ -54,11 +52,29 @@ def widest_rank(width, candidate, block, start, size):
         return jnp.zeros(C, i32).at[order].set(pos - take(first, key[order], 0))
     ordered = jnp.sort(jnp.where(candidate, width, -jnp.inf))
     above = jnp.where(candidate, C - jnp.searchsorted(ordered, width, side="right").astype(i32), C)
-    stride = C + 1
-    keys = jnp.where(block, start * stride + above * size + (pos - start), pos * stride)
-    rel = jnp.sort(keys) - start * stride  # sorted position j lies in the block of slot j
-    slot = jnp.where(block, start + rel % jnp.maximum(size, 1), C)
-    return jnp.zeros(C, i32).at[slot].set(pos - start, mode="drop")
+    slot, _ = _sort_in_blocks(above, block, start, size, C + 1)
+    return jnp.zeros(C, i32).at[jnp.where(block, slot, C)].set(pos - start, mode="drop")
+
+
+def _sort_in_blocks(major, block, start, size, stride: int):
+    """Every segment's slots sorted by (``major``, slot) in place of the segment, by one
+    sort of plain int keys along the last axis: ``(slot, major)`` int32 [..., C] at every
+    sorted position (a position outside every segment keeps its own slot and major 0).
+
+    ``major`` [..., C] int32 in ``[0, stride)``; ``block`` [C] bool: the slot lies in its
+    segment's slots ``[start, start + size)`` (``start``, ``size`` [C] int32 per slot).
+    The key ``start stride + major size + offset`` orders a segment's slots by (major,
+    slot) inside the range ``[start stride, (start + size) stride)``, which no other
+    slot's key enters (a slot outside every segment keeps ``pos stride``, and its place),
+    so sorted position j lies in the block of slot j, and decoding the sorted key there
+    gives its slot and major (the order of a stable sort by (segment, major)). Keys need
+    ``C stride < 2^31``.
+    """
+    pos = jnp.arange(block.shape[0], dtype=jnp.int32)
+    keys = jnp.where(block, start * stride + major * size + (pos - start), pos * stride)
+    rel = jnp.sort(keys, axis=-1) - start * stride
+    width = jnp.maximum(size, 1)
+    return jnp.where(block, start + rel % width, pos).astype(jnp.int32), jnp.where(block, rel // width, 0)
 
 
 def _scan(starts, lo, hi, prims):
@@ -93,16 +109,9 @@ def best_planes(sid, bin_p, lo, hi, prims, *, bins, cap):
     takes = sid < cap
     start = jnp.where(takes, sid, pos)
     size = take(segment(jax.ops.segment_sum, takes.astype(i32), sid, cap), sid, 1)  # its segment's BRefs
-    # one sort of plain int keys per axis (module docstring): a segment's BRefs sit in [start, start + size), so the key
-    # start * bins + bin * size + offset orders them by (bin, slot) inside the range
-    # [start * bins, (start + size) * bins) that no other slot's key enters; a slot that
-    # takes no part keeps pos * bins, and its place. Decoding the sorted keys gives each
-    # sorted position its slot and bin (the sorted order of the stable sort by (segment, bin)).
-    keys = jnp.where(takes, start * bins + bin_p.T * size + (pos - start), pos * bins)  # [3, C]
-    rel = jnp.sort(keys, axis=1) - start * bins
-    order = jnp.where(takes, start + rel % size, pos).astype(i32)
+    # per axis, each segment's BRefs (slots [start, start + size)) sorted by (bin, slot)
+    order, b = _sort_in_blocks(bin_p.T, takes, start, size, bins)  # [3, C]
     seg = jnp.broadcast_to(sid, (3, cap))
-    b = jnp.where(takes, rel // size, 0)
     s_lo, s_hi, s_p = lo[order], hi[order], prims[order]  # [3, C, 3], [3, C]
     step = jnp.concatenate([seg[:, 1:] != seg[:, :-1], jnp.ones((3, 1), bool)], axis=1)  # last of a run
     first = jnp.concatenate([jnp.ones((3, 1), bool), step[:, :-1]], axis=1)
