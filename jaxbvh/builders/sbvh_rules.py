@@ -70,7 +70,8 @@ def _full(xp, divisor, like):
 
 def spatial_bins(count, bins: int):
     """Spatial bins of a node of ``count`` references (int, or an int array [...]): the
-    configured ``bins`` at most, fewer for few references (see the module docstring)."""
+    configured ``bins`` (``SBVHConfig.spatial_bins``) at most, fewer for few references
+    (see the module docstring)."""
     xp = _xp(count)
     return xp.clip(xp.asarray(count) // SPATIAL_REFS_PER_BIN, min(SPATIAL_MIN_BINS, bins), bins).astype(xp.int32)
 
