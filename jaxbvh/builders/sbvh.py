@@ -21,8 +21,9 @@ over its references (box, triangle):
    ``TIE_TOLERANCE``) to the lowest axis, then the lowest plane.
 2. **Spatial split**, tried only when the object split's two boxes overlap by more than
    ``alpha`` times the root's half-area (areas on the scene's scale): ``b`` equal bins
-   of the node's box per axis, ``b`` = ``B`` for a node of at least ``B`` references,
-   fewer for fewer (:func:`jaxbvh.builders.sbvh_rules.spatial_bins`); a reference enters
+   of the node's box per axis, ``b`` = ``S`` (``spatial_bins``, default 4) for a node of
+   at least ``S`` references, fewer for fewer but at least 4
+   (:func:`jaxbvh.builders.sbvh_rules.spatial_bins`); a reference enters
    the bin of its box's low corner and leaves by the bin of its high corner; each bin's
    box is estimated from the reference's triangle corners and the crossings of the inner
    planes its box spans, clamped to the reference's box. Plane ``k`` (after bin ``k``)
