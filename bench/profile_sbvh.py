@@ -54,7 +54,7 @@ def profile(name, args):
     config = SBVHConfig(max_leaf=args.max_leaf)
     n = tri.shape[0]
     refs = eng.reference_slots(n, config)
-    bins = config.bins
+    bins, spatial_bins = config.bins, config.spatial_bins
     lo, hi = tri.min(1), tri.max(1)
     scale = np.float32(scene_scale(lo, hi))
     threshold = np.float32(config.alpha) * half_area(lo.min(0), hi.max(0), scale)
@@ -93,14 +93,14 @@ def profile(name, args):
         @jax.jit
         def spatial(view, seg, node_lo, node_hi, tried, node_bins, count):
             return splits.spatial_split(scene.columns, view.prim, view.lo, view.hi, seg, node_lo, node_hi, tried,
-                                        node_bins, count, f, scene.scale, bins)
+                                        node_bins, count, f, scene.scale, spatial_bins)
 
         @jax.jit
         def sides(view, seg, node_lo, node_hi, sp, ref_bins, node_bins):
             return splits.spatial_sides(scene.columns, view.prim, view.lo, view.hi, seg, node_lo, node_hi, sp,
-                                        ref_bins, node_bins, f, scene.scale, bins)
+                                        ref_bins, node_bins, f, scene.scale, spatial_bins)
 
-        level = jax.jit(partial(eng._level, scene, bins=bins, slots=f, live=m))
+        level = jax.jit(partial(eng._level, scene, bins=bins, spatial_bins=spatial_bins, slots=f, live=m))
         level_fn[(f, m)] = (prefix, obj, spatial, sides, level)
         return level_fn[(f, m)]
 
@@ -117,7 +117,7 @@ def profile(name, args):
         open_nodes = int(state.next_free - state.level_start)
         is_open = jnp.arange(f) < open_nodes
         tried = is_open & (o.cost < jnp.inf) & (count > 1) & (splits.overlap_area(o, scene.scale) > scene.threshold)
-        node_bins = rules.spatial_bins(count, bins)
+        node_bins = rules.spatial_bins(count, spatial_bins)
         row = {"level": 0.0, "view": 0.0, "object": 0.0, "spatial": 0.0, "sides": 0.0}
         if not args.stats:
             row = {"level": cpu_ms(lambda: level(state), args.repeat),

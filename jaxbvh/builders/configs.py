@@ -15,8 +15,9 @@ class              method           knobs beyond ``max_leaf, ct, ci, pad, dtype`
 :class:`MedianConfig`  ``"median"``     none (``ct``, ``ci`` unused: it never prices a split)
 :class:`LBVHConfig`    ``"lbvh"``       ``morton_bits``
 :class:`PLOCConfig`    ``"ploc"``       ``morton_bits``, ``radius``
-:class:`SBVHConfig`    ``"sbvh"``       ``bins``, ``alpha``, ``reference_capacity`` (needs the
-                                        triangles, not only their boxes)
+:class:`SBVHConfig`    ``"sbvh"``       ``bins``, ``spatial_bins``, ``alpha``,
+                                        ``reference_capacity`` (needs the triangles, not
+                                        only their boxes)
 =================  ===============  =====================================================
 """
 
@@ -117,7 +118,8 @@ class SBVHConfig(BuilderConfig):
     plane; a triangle may then sit in several leaves. Needs the triangles
     (``jaxbvh.build(..., triangles=tri)``); :mod:`jaxbvh.builders.sbvh`.
 
-    ``bins``: bins per axis for both kinds of split. ``alpha``: the paper's overlap
+    ``bins``: bins per axis of the object split. ``spatial_bins``: spatial bins per axis
+    at most (fewer for nodes of few references). ``alpha``: the paper's overlap
     threshold (1e-5; 0 tries spatial splits at every node, a large value never).
     ``reference_capacity``: slots for references as a multiple of the triangle count
     (at least 1); when they run out, nodes take object splits and the build says so.
@@ -126,6 +128,8 @@ class SBVHConfig(BuilderConfig):
     method: ClassVar[str] = "sbvh"
 
     bins: int = knob(16, check=integer(2), metavar="B", help="bins per axis")
+    spatial_bins: int = knob(4, check=integer(2), metavar="S",
+                             help="spatial bins per axis at most (fewer for nodes of few references)")
     alpha: float = knob(1e-5, check=real(0.0), metavar="A",
                         help="overlap (fraction of the root's area) above which spatial splits are tried")
     reference_capacity: float = knob(2.0, check=real(1.0, 64.0), metavar="F",

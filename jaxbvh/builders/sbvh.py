@@ -21,8 +21,9 @@ over its references (box, triangle):
    ``TIE_TOLERANCE``) to the lowest axis, then the lowest plane.
 2. **Spatial split**, tried only when the object split's two boxes overlap by more than
    ``alpha`` times the root's half-area (areas on the scene's scale): ``b`` equal bins
-   of the node's box per axis, ``b`` = ``B`` for a node of at least ``B`` references,
-   fewer for fewer (:func:`jaxbvh.builders.sbvh_rules.spatial_bins`); a reference enters
+   of the node's box per axis, ``b`` = ``S`` (``spatial_bins``, default 4) for a node of
+   at least ``S`` references, fewer for fewer but at least 4
+   (:func:`jaxbvh.builders.sbvh_rules.spatial_bins`); a reference enters
    the bin of its box's low corner and leaves by the bin of its high corner; each bin's
    box is estimated from the reference's triangle corners and the crossings of the inner
    planes its box spans, clamped to the reference's box. Plane ``k`` (after bin ``k``)
@@ -172,7 +173,8 @@ def build_sbvh(triangles, config: SBVHConfig | None = None, *, capacity: int | N
     tri_p = np.zeros((slots, 3, 3), dt)  # padding triangles are never read: no reference names them
     tri_p[:n] = tri
     return engine(jnp.asarray(tri_p), jnp.int32(n), jnp.int32(config.max_leaf), jnp.asarray(config.ct, dt),
-                  jnp.asarray(config.ci, dt), jnp.asarray(scale, dt), jnp.asarray(threshold, dt), bins=config.bins)
+                  jnp.asarray(config.ci, dt), jnp.asarray(scale, dt), jnp.asarray(threshold, dt), bins=config.bins,
+                  spatial_bins=config.spatial_bins)
 
 
 class _Scene(NamedTuple):
@@ -263,7 +265,7 @@ def _view(s: _State, live: int) -> _View:
                  take(s.ref_node, slot, 2 * refs), slot)
 
 
-def _level(scene: _Scene, s: _State, *, bins: int, slots: int, live: int) -> _State:
+def _level(scene: _Scene, s: _State, *, bins: int, spatial_bins: int, slots: int, live: int) -> _State:
     """Build one level: every open node becomes a leaf or is split, its children open.
 
     ``slots``: F, at least the number of open nodes (static: the size of the per-node
@@ -287,12 +289,12 @@ def _level(scene: _Scene, s: _State, *, bins: int, slots: int, live: int) -> _St
     obj, bin3 = splits.object_split(view.lo, view.hi, seg, slots, scene.scale, bins)
     found = obj.cost < jnp.inf
     tried = is_open & found & (count > 1) & (splits.overlap_area(obj, scene.scale) > scene.threshold)
-    node_bins = rules.spatial_bins(count, bins)  # [F] fewer spatial bins for few references
+    node_bins = rules.spatial_bins(count, spatial_bins)  # [F] fewer spatial bins for few references
     empty_bins = splits.Bins(jnp.zeros((m, 3), jnp.int32), jnp.zeros((m, 3), jnp.int32))
     spatial, ref_bins = jax.lax.cond(
         jnp.any(tried),
         lambda: splits.spatial_split(scene.columns, view.prim, view.lo, view.hi, seg, node_lo, node_hi, tried,
-                                     node_bins, count, slots, scene.scale, bins),
+                                     node_bins, count, slots, scene.scale, spatial_bins),
         lambda: (_no_spatial(slots, dt), empty_bins))
     tol = jnp.asarray(1 + TIE_TOLERANCE, dt)
     use_spatial = tried & (spatial.cost * tol < obj.cost)
@@ -309,7 +311,7 @@ def _level(scene: _Scene, s: _State, *, bins: int, slots: int, live: int) -> _St
 
     def sides():
         return splits.spatial_sides(scene.columns, view.prim, view.lo, view.hi, seg, node_lo, node_hi, spatial,
-                                    ref_bins, node_bins, slots, scene.scale, bins)
+                                    ref_bins, node_bins, slots, scene.scale, spatial_bins)
 
     def no_sides():
         none = jnp.zeros(m, bool)
@@ -380,12 +382,13 @@ def _tree(s: _State) -> BVH:
                prim_index=jnp.where(s.ref_node[order] < nodes, s.ref_prim[order], -1), root=jnp.int32(0))
 
 
-def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int) -> SBVHBuild:
+def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int, spatial_bins: int) -> SBVHBuild:
     """The level-synchronous SBVH on prepared inputs (:func:`build_sbvh` makes them).
 
     ``tri`` [R, 3, 3]: the triangles in their first ``n`` rows, R the reference slots;
     ``max_leaf`` int32; ``ct``, ``ci``, ``scale``, ``threshold``: scalars in ``tri``'s
-    dtype; ``bins`` static. Returns an :class:`SBVHBuild`.
+    dtype; ``bins`` and ``spatial_bins`` (the object split's bins, the spatial split's
+    most) static. Returns an :class:`SBVHBuild`.
 
     Driven from the host in runs of levels (:func:`_levels`), one run a group of level
     programs (:func:`program_groups`): the narrow programs' levels in one compiled loop,
@@ -403,7 +406,7 @@ def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int) -> SBVHBuil
             return _finish(state)
         group = next(g for g, programs in enumerate(groups)
                      if any(_fitting(open_nodes, in_level, programs)))
-        state = _levels(scene, state, bins=bins, group=group)
+        state = _levels(scene, state, bins=bins, spatial_bins=spatial_bins, group=group)
     raise RuntimeError(f"SBVH engine: levels still open after {2 * tri.shape[0] + 1} runs (a bug: please report)")
 
 
@@ -448,14 +451,15 @@ def _fits(s: _State, programs) -> Any:
     return jnp.stack(_fitting(*_size(s), programs))
 
 
-@partial(jax.jit, static_argnames=("bins", "group"))
-def _levels(scene: _Scene, state: _State, *, bins: int, group: int) -> _State:
+@partial(jax.jit, static_argnames=("bins", "spatial_bins", "group"))
+def _levels(scene: _Scene, state: _State, *, bins: int, spatial_bins: int, group: int) -> _State:
     """Levels from ``state`` on, while the tree is not finished and each level's first
     fitting program is in group ``group`` of :func:`program_groups`; each level in
     that program (a ``lax.switch`` among the group's, which runs only the chosen one)."""
     groups = program_groups(level_programs(scene.tri.shape[0]))
     programs, cheaper = groups[group], [p for g in groups[:group] for p in g]
-    levels = [partial(_level, scene, bins=bins, slots=slots, live=live) for slots, live in programs]
+    levels = [partial(_level, scene, bins=bins, spatial_bins=spatial_bins, slots=slots, live=live)
+              for slots, live in programs]
 
     def level(s: _State) -> _State:
         if len(levels) == 1:

@@ -245,7 +245,7 @@ def build(triangles, config, capacity: int | None = None) -> ReferenceBuild:
         count = len(refs.prim)
         obj = _object_split(refs, scale, bins) if count > 1 else None
         spatial = None
-        spatial_bins = int(rules.spatial_bins(count, bins))  # fewer for a node of few references
+        spatial_bins = int(rules.spatial_bins(count, config.spatial_bins))  # fewer for a node of few references
         if obj is not None:
             left = obj[3]
             overlap = _overlap_area(*_union(refs.lo[left], refs.hi[left]),

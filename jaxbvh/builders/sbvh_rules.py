@@ -8,13 +8,17 @@ into ``B`` equal slabs; plane ``j`` (``0 .. B``) sits at ``lo + (ext * j) / B`` 
 bin of a coordinate ``x`` is ``floor((x - lo) * B / ext)`` clipped to ``[0, B - 1]`` (the
 same formula as the binned object split's, :mod:`jaxbvh.builders.topdown`).
 
-Spatial bins of a node (:func:`spatial_bins`): ``B`` (the configured ``bins``) for a node
-of at least ``B`` references, one per reference below that, and never fewer than
+Spatial bins of a node (:func:`spatial_bins`): ``B`` (``SBVHConfig.spatial_bins``) for a
+node of at least ``B`` references, one per reference below that, and never fewer than
 ``SPATIAL_MIN_BINS`` (or ``B`` if smaller). Deep in the tree a node holds a few
 references that span most of its box: with ``B`` bins each is cut into nearly ``B``
 pieces per axis, and the spatial search works per piece (legocar, depth 12: 28 pieces
 per reference with 16 bins, 16 with this rule); a plane per reference is as many
-candidates as the references can tell apart. The object split keeps ``B`` bins.
+candidates as the references can tell apart. The object split has its own bins
+(``SBVHConfig.bins``, those of ``method="binned"``). At the default ``B`` = 4 (twelfth
+round; tinybvh's ``BuildHQ`` uses 8) every node gets 4: the engine's per-node cells and
+sweeps are sized by ``B``, and 16 spatial bins cost legocar 1.7x the build time of 4
+for an SAH 0.6% higher (fandisk and rocker-arm: 1.9% and 2.1% lower; docs/spatial-splits.md).
 
 Progress (:func:`separates`, seventh round). A spatial plane is a candidate only if each
 side gets fewer references than the node has (``N_L < N``, ``N_R < N``, counts before
@@ -70,7 +74,8 @@ def _full(xp, divisor, like):
 
 def spatial_bins(count, bins: int):
     """Spatial bins of a node of ``count`` references (int, or an int array [...]): the
-    configured ``bins`` at most, fewer for few references (see the module docstring)."""
+    configured ``bins`` (``SBVHConfig.spatial_bins``) at most, fewer for few references
+    (see the module docstring)."""
     xp = _xp(count)
     return xp.clip(xp.asarray(count) // SPATIAL_REFS_PER_BIN, min(SPATIAL_MIN_BINS, bins), bins).astype(xp.int32)
 

@@ -67,10 +67,11 @@ def long_thin_scene():
 
 @settings(max_examples=examples(15))  # the twin costs ~1 s a soup
 @given(tri=triangle_soups(max_size=24), alpha=st.sampled_from([0.0, 1e-5]), max_leaf=st.sampled_from([1, 3]),
-       bins=st.sampled_from([4, 8]))
+       bins=st.sampled_from([(4, 8), (8, 4)]))
 def test_jax_sbvh_equals_reference(tri, alpha, max_leaf, bins):
+    """``bins``: (object split's bins, spatial split's most), each read where it belongs."""
     tri = local_triangles(tri)
-    config = SBVHConfig(alpha=alpha, max_leaf=max_leaf, bins=bins)
+    config = SBVHConfig(alpha=alpha, max_leaf=max_leaf, bins=bins[0], spatial_bins=bins[1])
     got = build_sbvh(tri, config, capacity=SLOTS)
     want = reference.build(tri, config, capacity=SLOTS)
     assert canonical(got.tree) == canonical(want.tree)
@@ -244,6 +245,7 @@ def test_build_takes_sbvh_by_name_and_config():
     (lambda lo, hi, tri: build_sbvh(tri, capacity=5), "below the 12 triangles"),
     (lambda lo, hi, tri: SBVHConfig(alpha=-1.0), "alpha"),
     (lambda lo, hi, tri: SBVHConfig(reference_capacity=0.5), "reference_capacity"),
+    (lambda lo, hi, tri: SBVHConfig(spatial_bins=1), "spatial_bins"),
 ])
 def test_bad_input_is_a_one_line_error(call, message):
     tri = long_thin_scene()
