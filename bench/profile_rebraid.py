@@ -97,11 +97,15 @@ def profile(name, slots, args):
                      estimate=False)
     state = brefs_level.initial(f, placed, n, jnp.int32(slots), cap=cap)
     rows = []
-    while bool(jnp.any(state.segs.live)):
+    for _ in range(cap + 1):  # the engine's own bound: a top level of C slots has at most C + 1 levels
+        if not bool(jnp.any(state.segs.live)):
+            break
         row = level_counts(state, cap)
         row["wall"], row["cpu"] = best_of(lambda s=state: level(f, placed, s, *knobs), args.repeat)
         rows.append(row)
         state = level(f, placed, state, *knobs)
+    else:
+        raise RuntimeError(f"top level still open after {cap + 1} levels")
     e_wall, e_cpu = best_of(engine, args.repeat)
     top = []
     for _ in range(args.repeat + 1):  # the first compiles
