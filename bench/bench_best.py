@@ -14,7 +14,8 @@ Per input (the meshes and the drone scene of :data:`bench.bench_quality.INPUTS`)
 * rays: ``jaxbvh trace`` (closest hit, random and bounce rays) on our best tree and on
   both of tinybvh's: box and primitive tests per ray.
 
-SAH: Ct = Ci = 1, normalised by the root's area (the harness's figure). Writes
+Each input runs in its own child process (:func:`in_child`). SAH: Ct = Ci = 1,
+normalised by the root's area (the harness's figure). Writes
 ``bench/results/best.json`` and ``best.md``. Times are not the point here (see
 ``bench_sbvh.py`` and ``bench_quality.py``); the pipeline's budget is.
 """
@@ -147,6 +148,20 @@ def markdown(rows: list[dict], args) -> str:
     return "\n".join(lines) + "\n"
 
 
+def in_child(name: str, args) -> dict:
+    """``one_input(name)`` in a child process: one process over all eight inputs ran out of
+    LLVM section memory on the eighth (every input compiles its own programs, and the
+    process's memory maps run out), so each input gets a fresh process."""
+    done = subprocess.run([sys.executable, __file__, "--row", "--inputs", name, "--budget", str(args.budget),
+                           "--max-leaf", str(args.max_leaf), "--rays", str(args.rays)],
+                          capture_output=True, text=True)
+    lines = [line for line in done.stdout.splitlines() if line.startswith('{"input"')]
+    if done.returncode != 0 or not lines:
+        raise RuntimeError(f"bench_best on {name} failed (exit {done.returncode}): {done.stderr.strip()[-2000:]}")
+    print(lines[-1], flush=True)
+    return json.loads(lines[-1])
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--inputs", nargs="*", choices=list(INPUTS), default=list(INPUTS))
@@ -155,17 +170,20 @@ def main(argv=None) -> int:
     parser.add_argument("--rays", type=int, default=20_000)
     parser.add_argument("--tag", default="", help="suffix of the result files (best_<tag>.*)")
     parser.add_argument("--rewrite", action="store_true", help="run nothing: rewrite best.md from best.json")
+    parser.add_argument("--row", action="store_true", help=argparse.SUPPRESS)  # in_child's: one input, print its row
     args = parser.parse_args(argv)
+    if args.row and len(args.inputs) != 1:
+        parser.error("--row takes exactly one input")
     if args.rewrite:
         stem = RESULTS / ("best" + (f"_{args.tag}" if args.tag else ""))
         saved = json.loads(stem.with_suffix(".json").read_text())
         stem.with_suffix(".md").write_text(markdown(saved["rows"], argparse.Namespace(**saved["args"])))
         return 0
-    rows = []
-    with tempfile.TemporaryDirectory() as tmp:
-        for name in args.inputs:
-            rows.append(one_input(name, args, Path(tmp)))
-            print(json.dumps(rows[-1]), flush=True)
+    if args.row:  # one input in this process: its row as one JSON line, nothing written
+        with tempfile.TemporaryDirectory() as tmp:
+            print(json.dumps(one_input(args.inputs[0], args, Path(tmp))), flush=True)
+        return 0
+    rows = [in_child(name, args) for name in args.inputs]
     RESULTS.mkdir(parents=True, exist_ok=True)
     stem = RESULTS / ("best" + (f"_{args.tag}" if args.tag else ""))
     stem.with_suffix(".json").write_text(json.dumps({"machine": platform.machine(), "args": vars(args),
