@@ -16,7 +16,8 @@ here against ``build_from``'s SAH). Three parts, per scene and slot count:
    repeatedly open the BRef of the current cut whose opening lowers the SAH of the
    flattened tree most, the plain top level (the twin at ``threshold = inf``) rebuilt over
    the cut for every trial; only the ``--greedy-candidates`` largest-area BRefs of the cut
-   are tried per step, and the search stops at ``--greedy-seconds``.
+   are tried per step; the best cut met on the way counts, and the search stops at
+   ``--greedy-seconds``.
 3. **Lower bounds** that no opening order and no top level over <= ``slots`` BRefs can beat
    (module comment "Lower bounds" below).
 
@@ -218,28 +219,32 @@ def cut_sah(cut, costs, forest, instances, root_area):
 
 def greedy(cut, slots, costs, forest, instances, root_area, candidates, seconds):
     """Open, one BRef at a time, the one of the ``candidates`` largest-area interior BRefs
-    of the cut whose opening lowers :func:`cut_sah` most, until ``slots`` BRefs, no
-    opening lowers it, or ``seconds`` pass. Returns ``(sah, cut, trials, finished)``."""
+    of the cut whose opening gives the lowest :func:`cut_sah` (even where it rises: one
+    opening of an object spanning the scene mostly does, the next ones pay it back),
+    until ``slots`` BRefs, no interior BRef is left, or ``seconds`` pass. Returns
+    ``(sah, cut, trials, finished)`` of the best cut met on the way."""
     cut = list(cut)
-    best = cut_sah(cut, costs, forest, instances, root_area)
+    best_sah, best_cut = cut_sah(cut, costs, forest, instances, root_area), cut
     start, trials = time.perf_counter(), 0
     while len(cut) < slots:
         if time.perf_counter() - start > seconds:
-            return best, cut, trials, False
+            return best_sah, best_cut, trials, False
         inner = [k for k, (n, i) in enumerate(cut) if costs.left[n] >= 0]
         inner.sort(key=lambda k: -costs.area[cut[k][1]][cut[k][0]])
-        step_best, step_cut = math.inf, None
+        step_sah, step_cut = math.inf, None
         for k in inner[:candidates]:
             n, i = cut[k]
             trial = cut[:k] + [(int(costs.left[n]), i)] + cut[k + 1:] + [(int(costs.right[n]), i)]
             value = cut_sah(trial, costs, forest, instances, root_area)
             trials += 1
-            if value < step_best:
-                step_best, step_cut = value, trial
-        if step_cut is None or step_best >= best:
+            if value < step_sah:
+                step_sah, step_cut = value, trial
+        if step_cut is None:
             break
-        best, cut = step_best, step_cut
-    return best, cut, trials, True
+        cut = step_cut
+        if step_sah < best_sah:
+            best_sah, best_cut = step_sah, step_cut
+    return best_sah, best_cut, trials, True
 
 
 # ----------------------------------------------------------------------------------
@@ -397,11 +402,11 @@ def main(argv=None):
     parser.add_argument("--greedy-candidates", type=int, default=None,
                         help="largest-area BRefs tried per greedy step (default 8, quick 4)")
     parser.add_argument("--greedy-seconds", type=float, default=None,
-                        help="time cap of one greedy search (default 300, quick 20; 0: none run)")
+                        help="time cap of one greedy search (default 150, quick 20; 0: none run)")
     args = parser.parse_args(argv)
     args.greedy_slots = args.greedy_slots or (32 if args.quick else 256)
     args.greedy_candidates = args.greedy_candidates or (4 if args.quick else 8)
-    args.greedy_seconds = (20.0 if args.quick else 300.0) if args.greedy_seconds is None else args.greedy_seconds
+    args.greedy_seconds = (20.0 if args.quick else 150.0) if args.greedy_seconds is None else args.greedy_seconds
     from bench.bench_rebraid import machine
 
     results = {"machine": machine(), "load": " ".join(os.getloadavg().__repr__().strip("()").split(", ")),
