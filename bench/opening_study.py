@@ -191,7 +191,6 @@ def top_of_cut(cut, forest, instances):
     """The plain top level (the twin at ``threshold = inf``) over the BRefs ``cut``
     [(node, instance)]: ``(top, brefs)`` as ``ref.build_top_level``."""
     f = jaxbvh.to_numpy(forest)
-    dtype = np.asarray(f.lo).dtype
 
     def cut_brefs(f, instances, n_refs, slots, dtype):
         refs = ref._BRefArray(node=np.full(slots, -1, np.int64), inst=np.full(slots, -1, np.int64),
@@ -398,13 +397,13 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="the cow by material at its default slots only")
     parser.add_argument("--greedy-slots", type=int, default=None,
-                        help="greedy search only up to this many slots (default 256, quick 32)")
+                        help="greedy search only up to this many slots (default 256, quick 90)")
     parser.add_argument("--greedy-candidates", type=int, default=None,
                         help="largest-area BRefs tried per greedy step (default 8, quick 4)")
     parser.add_argument("--greedy-seconds", type=float, default=None,
                         help="time cap of one greedy search (default 150, quick 20; 0: none run)")
     args = parser.parse_args(argv)
-    args.greedy_slots = args.greedy_slots or (32 if args.quick else 256)
+    args.greedy_slots = args.greedy_slots or (90 if args.quick else 256)
     args.greedy_candidates = args.greedy_candidates or (4 if args.quick else 8)
     args.greedy_seconds = (20.0 if args.quick else 150.0) if args.greedy_seconds is None else args.greedy_seconds
     from bench.bench_rebraid import machine
