@@ -206,14 +206,19 @@ def top_of_cut(cut, forest, instances):
         return ref.build_top_level(f, instances, len(cut), threshold=math.inf, slots=len(cut))
 
 
-def cut_sah(cut, costs, forest, instances, root_area):
-    """Flattened world SAH of the plain top level over ``cut`` plus the cut's subtrees."""
-    top, _ = top_of_cut(cut, forest, instances)
+def parts(top, cut, costs, root_area):
+    """``(top level, below)`` of the flattened SAH (normalised by ``root_area``): the top
+    level's interior half-areas (its root on ``root_area``) and the cut's subtree costs S."""
     inner = np.asarray(top.left) >= 0
     areas = _half_area(np.asarray(top.lo)[inner], np.asarray(top.hi)[inner])
     is_root = np.flatnonzero(inner) == int(top.root)
-    top_area = float(areas[~is_root].sum()) + root_area
-    return (top_area + sum(costs.cost[i][n] for n, i in cut)) / root_area
+    return ((float(areas[~is_root].sum()) + root_area) / root_area,
+            float(sum(costs.cost[i][n] for n, i in cut)) / root_area)
+
+
+def cut_sah(cut, costs, forest, instances, root_area):
+    """Flattened world SAH of the plain top level over ``cut`` plus the cut's subtrees."""
+    return sum(parts(top_of_cut(cut, forest, instances)[0], cut, costs, root_area))
 
 
 def greedy(cut, slots, costs, forest, instances, root_area, candidates, seconds):
@@ -333,7 +338,9 @@ def study_scene(name, mesh, slot_counts, args):
             tl = as_two_level(top_r, br, forest, instances, n, root_lo, root_hi)
             value = twolevel.sah(tl)
             used = int((br["node"] >= 0).sum())
-            entry["orders"].append({"order": order, "sah": value, "brefs": used,
+            cut = [(int(v), int(i)) for v, i in zip(br["node"], br["instance"]) if v >= 0]
+            top_part, below = parts(top_r, cut, costs, root_area)
+            entry["orders"].append({"order": order, "sah": value, "brefs": used, "top": top_part, "below": below,
                                     "seconds": time.perf_counter() - start})
             print(f"  {label} {order:30s} SAH {value:8.3f}  x two-level {value / two_level:.3f}  "
                   f"x single {value / single:.3f}  BRefs {used}", flush=True)
@@ -342,6 +349,7 @@ def study_scene(name, mesh, slot_counts, args):
             print(f"  note: twin widest {library:.4f} != build_from {entry['engine_sah']:.4f} "
                   "(build_from kept the plain top level?)", flush=True)
         entry["lower_bound_root_only"], entry["lower_bound"] = lower_bounds(costs, roots, slots, root_area)
+        entry["least_below"] = entry["lower_bound_root_only"] - 1.0  # LB1 less the root's own area
         print(f"  {label} lower bounds: {entry['lower_bound_root_only']:.3f} (x two-level "
               f"{entry['lower_bound_root_only'] * root_area / root_area / two_level:.3f}), "
               f"{entry['lower_bound']:.3f} (x two-level {entry['lower_bound'] / two_level:.3f}, "
@@ -375,20 +383,28 @@ def markdown(results) -> str:
                   f"{s['triangles']:,} triangles, {s['instances']} instances; two-level SAH "
                   f"{s['two_level']:.3f}, single BVH {s['single']:.3f} (two-level / single "
                   f"{s['two_level'] / s['single']:.3f}); default slots {s['default_slots']}.", "",
-                  "| slots | order | SAH | x two-level | x single | BRefs used |", "|---|---|---|---|---|---|"]
+                  "*top* and *below*: the SAH's two parts, x two-level (the top level's interior nodes; the "
+                  "subtrees of the cut's BRefs). *least below*: no cut of at most that many BRefs has a "
+                  "smaller *below* (LB1 less the root), so a top level over it may cost at most "
+                  "0.7 x two-level - least below for the 0.7 target.", "",
+                  "| slots | order | SAH | x two-level | x single | BRefs used | top | below |",
+                  "|---|---|---|---|---|---|---|---|"]
         for e in s["settings"]:
             for o in e["orders"]:
                 lines.append(f"| {e['label']} | {o['order']} | {o['sah']:.3f} | {o['sah'] / s['two_level']:.3f} | "
-                             f"{o['sah'] / s['single']:.3f} | {o['brefs']} |")
+                             f"{o['sah'] / s['single']:.3f} | {o['brefs']} | {o['top'] / s['two_level']:.3f} | "
+                             f"{o['below'] / s['two_level']:.3f} |")
             if "greedy" in e:
                 g = e["greedy"]
                 lines.append(f"| {e['label']} | greedy cut search ({g['trials']} trials, "
                              f"{'finished' if g['finished'] else 'time cap'}) | {g['sah']:.3f} | "
-                             f"{g['sah'] / s['two_level']:.3f} | {g['sah'] / s['single']:.3f} | {g['brefs']} |")
+                             f"{g['sah'] / s['two_level']:.3f} | {g['sah'] / s['single']:.3f} | {g['brefs']} | | |")
             for key, what in (("lower_bound_root_only", "lower bound LB1"), ("lower_bound", "lower bound LB2")):
                 v = e[key]
                 lines.append(f"| {e['label']} | {what} | {v:.3f} | {v / s['two_level']:.3f} | "
-                             f"{v / s['single']:.3f} | <= {e['slots']} |")
+                             f"{v / s['single']:.3f} | <= {e['slots']} | | "
+                             + (f"least {e['least_below'] / s['two_level']:.3f} |" if key == "lower_bound_root_only"
+                                else "|"))
         lines.append("")
     return "\n".join(lines) + "\n"
 
