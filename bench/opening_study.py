@@ -45,6 +45,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 import jaxbvh  # noqa: E402
+from bench.bench_rebraid import machine  # noqa: E402
 from jaxbvh import scenes, twolevel  # noqa: E402
 from jaxbvh.io import bundled_mesh_path, load_mesh  # noqa: E402
 from jaxbvh.twolevel import brefs_reference as ref  # noqa: E402
@@ -422,9 +423,7 @@ def main(argv=None):
     args.greedy_slots = args.greedy_slots or (90 if args.quick else 256)
     args.greedy_candidates = args.greedy_candidates or (4 if args.quick else 8)
     args.greedy_seconds = (20.0 if args.quick else 150.0) if args.greedy_seconds is None else args.greedy_seconds
-    from bench.bench_rebraid import machine
-
-    results = {"machine": machine(), "load": " ".join(os.getloadavg().__repr__().strip("()").split(", ")),
+    results = {"machine": machine(), "load": " ".join(f"{x:.2f}" for x in os.getloadavg()),
                "jax": jax.__version__, "quick": args.quick, "scenes": []}
     for name, mesh, slot_counts in scene_list(args):
         results["scenes"].append(study_scene(name, mesh, slot_counts, args))
