@@ -26,9 +26,13 @@ package            what it holds
 
 ``numerics`` holds the rules every algorithm shares (ties, margins, area scale) and
 ``draws`` the random numbers an algorithm and its twin both consume.
+
+Importing jaxbvh turns on JAX's persistent compilation cache in a per-user folder, unless
+you configured JAX's cache yourself or set ``JAXBVH_CACHE=off``
+(:mod:`jaxbvh.compile_cache`): compiled programs then serve every later process.
 """
 
-from jaxbvh import batch, io, optimize, rays, scenes, twolevel
+from jaxbvh import batch, compile_cache, io, optimize, rays, scenes, twolevel
 from jaxbvh.builders import insertion, lbvh, morton, ploc
 from jaxbvh.builders.dispatch import BUILDERS, build
 from jaxbvh.io import load_mesh
@@ -43,10 +47,12 @@ from jaxbvh.wide import collapse
 
 __version__ = "0.1.0"
 
+compile_cache.enable_default()
+
 __all__ = [
     "BVH", "WideBVH", "Frame", "InvalidTreeError", "BUILDERS",
     "build", "check", "validate", "sah", "node_costs", "ng_trifonov_cost", "goldsmith_salmon_cost",
     "all_costs", "save", "load", "to_interchange", "from_interchange", "to_numpy", "to_jax",
-    "capacity_bucket", "load_mesh", "batch", "io", "optimize", "rays", "scenes", "twolevel", "insertion", "lbvh",
+    "capacity_bucket", "compile_cache", "load_mesh", "batch", "io", "optimize", "rays", "scenes", "twolevel", "insertion", "lbvh",
     "morton", "ploc", "reinsert", "rotate", "treelet", "evolve", "grasp", "collapse",
 ]

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import gc
 import os
+import shutil
+import tempfile
+from pathlib import Path
 
 import pytest
 from helpers import UNOPTIMIZED_XLA
@@ -35,9 +38,33 @@ pytest_plugins = ["jaxbvh.testing.plugin"]
 # HYPOTHESIS_PROFILE=dev python -m pytest tests/builders/test_build.py
 
 
+# One persistent compilation cache for the whole run, in a temporary folder shared by the
+# xdist workers (they inherit the controller's environment): a program compiled by one
+# worker is loaded, not compiled again, by the other and by every later module
+# (:func:`_release_compiled_programs` drops the in-memory programs between modules), and
+# subprocesses (CLI runs, notebook kernels, fake-device runs) read the same folder through
+# JAXBVH_CACHE_DIR. JAX reads and writes its entries under a file lock
+# (jaxbvh.compile_cache), so the workers never see an entry half written. Tests never
+# write to ~.
+_RUN_CACHE_VARIABLE = "JAXBVH_TEST_RUN_CACHE"
+if not os.environ.get(_RUN_CACHE_VARIABLE):
+    os.environ[_RUN_CACHE_VARIABLE] = tempfile.mkdtemp(prefix="jaxbvh-test-cache-")
+    _MADE_RUN_CACHE = True
+else:
+    _MADE_RUN_CACHE = False
+os.environ["JAXBVH_CACHE_DIR"] = os.environ[_RUN_CACHE_VARIABLE]
+for _name in ("JAXBVH_CACHE", "JAX_COMPILATION_CACHE_DIR"):  # the library's rules, not the shell's
+    os.environ.pop(_name, None)
+
+
 def pytest_configure(config):
-    """After the plugin registered the profiles, before any test module is collected."""
+    """After the plugin registered the profiles, before any test module is collected:
+    the hypothesis profile, and the run's compilation cache (above) in force before
+    anything compiles."""
+    from jaxbvh import compile_cache
+
     settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
+    compile_cache.enable(os.environ[_RUN_CACHE_VARIABLE])
 
 
 # Tests that xdist hands out one by one, and first, not with the rest of their module: the
@@ -69,35 +96,23 @@ def pytest_xdist_make_scheduler(config, log):
     return ModulesAndOwnUnits(config, log)
 
 
+def pytest_unconfigure(config):
+    """The run's cache goes with the run (the process that made it removes it)."""
+    if _MADE_RUN_CACHE and not os.environ.get("PYTEST_XDIST_WORKER"):
+        shutil.rmtree(os.environ[_RUN_CACHE_VARIABLE], ignore_errors=True)
+
+
 @pytest.fixture(autouse=True, scope="session")
-def _compilation_cache_out_of_home(tmp_path_factory):
-    """One persistent compilation cache for this test process, in a temporary folder.
+def _compilation_cache_out_of_home():
+    """The run's shared compilation cache (above), in force in this process since
+    :func:`pytest_configure`: the package's import had pointed JAX at the per-user folder
+    before this conftest set the environment (pytest loads the kit's plugin, which
+    imports jaxbvh, first), and a test may have changed it."""
+    from jaxbvh import compile_cache
 
-    The CLI's cache (``JAXBVH_CACHE_DIR``) points here, so tests never write to ~, and so
-    does JAX's own cache for the library calls of the tests: a program compiled in one
-    module is loaded, not compiled again, in the next (:func:`_release_compiled_programs`
-    drops the in-memory programs between modules), and subprocesses (CLI runs, notebook
-    kernels, fake-device runs) read the same folder through the environment. Each xdist
-    worker has its own folder: JAX writes cache files without a lock.
-    """
-    import jax
-    from jax.experimental.compilation_cache import compilation_cache
-
-    path = tmp_path_factory.mktemp("jax-cache")
-    settings = {"jax_compilation_cache_dir": str(path),
-                "jax_persistent_cache_min_compile_time_secs": 0.0,
-                "jax_persistent_cache_min_entry_size_bytes": 0}
-    before = {name: getattr(jax.config, name) for name in settings}
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setenv("JAXBVH_CACHE_DIR", str(path))
-        for name, value in settings.items():
-            patch.setenv(name.upper(), str(value))
-            jax.config.update(name, value)
-        compilation_cache.reset_cache()
-        yield path
-    for name, value in before.items():
-        jax.config.update(name, value)
-    compilation_cache.reset_cache()
+    path = Path(os.environ[_RUN_CACHE_VARIABLE])
+    assert compile_cache.enable(path) == path
+    yield path
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -11,9 +11,11 @@ range, whether argparse or the command finds them), after one line ``jaxbvh: err
 ...`` on stderr (no usage block: :class:`Parser`). Warnings are one line each too,
 ``jaxbvh: warning: ...`` (:func:`one_line_warnings`).
 
-JAX's persistent compilation cache is on: compiled programs are reused across runs.
-It lives in ``~/.cache/jaxbvh/jax`` unless ``JAXBVH_CACHE_DIR`` names another folder;
-parsed meshes are kept in its ``meshes/`` folder (:func:`jaxbvh.io.meshes.use_mesh_cache`).
+JAX's persistent compilation cache is on, as for every library user
+(:mod:`jaxbvh.compile_cache`): compiled programs are reused across runs. It lives in
+``~/.cache/jaxbvh/jax`` unless ``JAXBVH_CACHE_DIR`` names another folder
+(``JAXBVH_CACHE=off``: no cache); parsed meshes are kept in its ``meshes/`` folder
+(:func:`jaxbvh.io.meshes.use_mesh_cache`).
 """
 
 from __future__ import annotations
@@ -21,17 +23,15 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib
-import os
 import pkgutil
 import sys
 import warnings
 from pathlib import Path
 
-from jaxbvh import __version__
+from jaxbvh import __version__, compile_cache
 from jaxbvh.cli import command_kit, commands
 from jaxbvh.io import MeshError, use_mesh_cache
 from jaxbvh.io import meshes as io
-from jaxbvh.optimize import driver
 from jaxbvh.tree.validate import InvalidTreeError
 
 # the order commands are listed in ``--help``; modules of ``jaxbvh.cli.commands`` not named
@@ -53,35 +53,18 @@ EXIT_USAGE = 2
 
 
 def cache_dir() -> Path:
-    """Folder of JAX's persistent compilation cache for the CLI."""
-    env = os.environ.get("JAXBVH_CACHE_DIR")
-    if env:
-        return Path(env).expanduser()
-    return Path.home() / ".cache" / "jaxbvh" / "jax"
-
-
-_CACHE_OPTIONS = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs",
-                  "jax_persistent_cache_min_entry_size_bytes")
+    """Folder of the compilation cache (:func:`jaxbvh.compile_cache.cache_dir`)."""
+    return compile_cache.cache_dir()
 
 
 def enable_compilation_cache() -> Path | None:
-    """Point JAX's persistent compilation cache at :func:`cache_dir` (None if unusable)."""
-    import jax
-    from jax.experimental.compilation_cache import compilation_cache
-
-    path = cache_dir()
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError:
-        return None  # read-only home: run without the cache rather than fail
-    jax.config.update("jax_compilation_cache_dir", str(path))
-    # our builders compile in well under a second on small meshes; cache them anyway
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    compilation_cache.reset_cache()  # JAX opens its cache once: make it open this folder
-    # parsed meshes too: parsing (and importing trimesh) costs more than the arrays
-
-    use_mesh_cache(path / "meshes")
+    """Turn on the caches a command uses: JAX's compilation cache by the library's rules
+    (:func:`jaxbvh.compile_cache.enable_default`: never over a cache configured in JAX,
+    off with ``JAXBVH_CACHE=off``) and, with it, the parsed-mesh cache in its
+    ``meshes/`` folder. Returns the compilation cache's folder, None when it is off."""
+    path = compile_cache.enable_default()
+    if path is not None:
+        use_mesh_cache(compile_cache.mesh_cache_dir())
     return path
 
 
@@ -89,21 +72,14 @@ def enable_compilation_cache() -> Path | None:
 def compilation_cache_on():
     """The tool's caches (:func:`enable_compilation_cache`) for the duration of one command.
 
-    On exit JAX's cache options, its cache object and the mesh cache are put back as they
-    were, so calling :func:`main` from Python (tests, notebooks) leaves no process-wide
-    cache behind.
+    The mesh cache is put back as it was on exit; JAX's compilation cache stays as
+    ``import jaxbvh`` leaves it (on by default), so calling :func:`main` from Python
+    changes nothing a library user would not have had anyway.
     """
-    import jax
-    from jax.experimental.compilation_cache import compilation_cache
-
-    before = {name: getattr(jax.config, name) for name in _CACHE_OPTIONS}
     meshes_before = io.mesh_cache_folder()
     try:
         yield enable_compilation_cache()
     finally:
-        for name, value in before.items():
-            jax.config.update(name, value)
-        compilation_cache.reset_cache()
         io.use_mesh_cache(meshes_before)
 
 
@@ -189,13 +165,6 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     command_kit.print_result(result, as_json=getattr(args, "json", False))
     status = EXIT_INVALID if result.get("valid") is False else 0
-    if argv is None and driver.compiling():
-        # a run whose time budget ran out while compiling left a worker in XLA: the
-        # result is out, so end now (the interpreter's shutdown would abort under it, and
-        # waiting for it would break the budget); only as the process's own entry point
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(status)
     return status
 
 

@@ -10,18 +10,20 @@ host reads the progress after each chunk, calls ``on_step`` once per step with a
 the result: the state carries everything, so one call to the limit and many short ones
 give the same tree (tested).
 
-Time budget. ``time_budget`` (seconds) is wall time counted from the call to
-:func:`run`, as a user reading a clock counts it: ``init`` and compiling are spent from
-it. The programs (the loop of steps and ``result``) are compiled ahead of time in a
-worker thread while the caller waits at most the budget; when compiling alone outruns
-it, :func:`run` returns the start tree unchanged (``steps`` 0, not converged) with a
-``UserWarning`` saying so, and the worker finishes in the background (its programs then
-serve later runs in this process; the command line does not wait for it, so there a
-budget must exceed the compile time once, after which the persistent cache serves).
-Otherwise the run stops at the end of the chunk that crosses the budget (chunks grow
-only while short, so the overshoot stays small) and returns the state it reached: the
-best tree so far for every optimizer (all of them only lower the SAH, except annealing,
-which keeps its best). No host callback runs inside a compiled program, so every
+Time budget. ``time_budget`` (seconds) bounds the *search*: :func:`run` first makes the
+start state (``init``) and compiles the loop of steps and ``result`` (or loads them from
+the persistent cache, :mod:`jaxbvh.compile_cache`; nothing when this process compiled
+them already), then starts the budget's clock. The search runs in chunks and stops at
+the end of the chunk that crosses the budget (chunks grow only while short, so the
+overshoot stays small), returning the state it reached: the best tree so far for every
+optimizer (all of them only lower the SAH, except annealing, which keeps its best). So a
+budget always buys its search: the first step always runs, however small the budget,
+and a budget shorter than compiling no longer returns the start tree untouched. The
+seconds spent before the clock started (init and compiling) are reported apart, as the
+result's ``compile_seconds``; they are paid once per program and machine, since the
+compiled programs are cached in memory and on disk. Nothing runs in a background
+thread, so nothing is left compiling when the call returns, and a script exits as soon
+as its last line is done. No host callback runs inside a compiled program, so every
 compiled piece is cached.
 
 Batches. :func:`init_batch` starts any optimizer on a batch of trees (one capacity,
@@ -33,10 +35,7 @@ so each tree gets exactly its own single-tree result) and ``result`` vmapped.
 
 from __future__ import annotations
 
-import atexit
-import threading
 import time
-import warnings
 from functools import partial
 from typing import Callable
 
@@ -46,8 +45,6 @@ import numpy as np
 
 from jaxbvh.optimize.protocol import OptimizeResult, OptimizerState, StepInfo
 from jaxbvh.tree.batching import unstack_trees
-from jaxbvh.tree.cost import sah
-from jaxbvh.tree.layout import to_numpy
 
 #: a chunk of steps grows (doubling, up to this many) while one takes under CHUNK_SECONDS
 MAX_CHUNK = 256
@@ -115,93 +112,36 @@ def run(optimizer, tree, config=None, *, key=None, time_budget: float | None = N
     key for randomized methods (annealing). ``time_budget``: seconds (module docstring).
     ``on_step(info)``: called on the host after every step with a ``StepInfo``.
     ``state``: start from this state instead of ``init(tree, config, key)``.
-    The result's ``trace`` lists every step's ``StepInfo`` when the run went in chunks.
+    The result's ``trace`` lists every step's ``StepInfo`` when the run went in chunks,
+    and its ``compile_seconds`` the seconds before the search began (``init`` and
+    compiling or loading the programs; about 0 once this process has them).
     """
     if on_step is not None and not callable(on_step):
         raise ValueError(f"on_step must be a function on_step(info), got {on_step!r}")
     budget = TimeBudget(time_budget)
-    budget.start()  # wall time from here: init and compiling count
     clock = time.perf_counter()
     trace = []
-    if time_budget is not None:
-        ready = prepare_within(optimizer, tree, config, key, state, budget)
-        if ready is None:
-            return unchanged_result(optimizer, tree, config)
-        state, step_loop, result = ready
-        state = drive(optimizer, state, budget=budget, on_step=on_step, trace=trace, clock=clock,
-                      advance_fn=lambda _step, s, stop: step_loop(s, stop))
-        return jax.device_get(result(state)).replace(trace=tuple(trace))
     if state is None:
         state = optimizer.init(tree, config, key)
-    if on_step is None:
+    compile_loop(optimizer, state)
+    compile_seconds = time.perf_counter() - clock
+    budget.start()  # the search's clock: init and compiling are reported apart
+    if on_step is None and time_budget is None:  # one call to the end
         state = advance(optimizer.step, state, jnp.int32(np.iinfo(np.int32).max))
     else:
         state = drive(optimizer, state, budget=budget, on_step=on_step, trace=trace, clock=clock)
     out = jax.device_get(finish(optimizer.result, state))
-    return out.replace(trace=tuple(trace))
+    return out.replace(trace=tuple(trace), compile_seconds=compile_seconds)
 
 
-#: workers still compiling after their budget ran out (:func:`compiling`)
-_workers: list[threading.Thread] = []
-
-
-def compiling() -> bool:
-    """True while a worker of a run whose budget ran out is still compiling.
-
-    A process must not end under it: the interpreter's shutdown would stop the thread
-    inside XLA and abort the process. :func:`_join_workers` (at exit) waits for it; a
-    command line tool that has printed its result may end at once with ``os._exit``.
-    """
-    return any(w.is_alive() for w in _workers)
-
-
-@atexit.register
-def _join_workers() -> None:
-    for worker in _workers:
-        worker.join()
-
-
-def prepare_within(optimizer, tree, config, key, state, budget: TimeBudget):
-    """``(state, step_loop, result)``: ``init`` (unless ``state`` is given), the loop of
-    steps (``step_loop(state, stop)``) and ``result``, compiled ahead of time, all in a
-    worker thread the caller waits for at most the budget; None when the budget runs
-    out first (module docstring), with a ``UserWarning``."""
-    done: dict = {}
-
-    def work():
-        try:
-            start = optimizer.init(tree, config, key) if state is None else state
-            stop = jnp.int32(0)
-            done["ready"] = (start, advance.lower(optimizer.step, start, stop).compile(),
-                             finish.lower(optimizer.result, start).compile())
-        except BaseException as exc:  # handed to the caller's thread
-            done["error"] = exc
-
-    worker = threading.Thread(target=work, name=f"compile-{optimizer.name}", daemon=True)
-    worker.start()
-    worker.join(timeout=max(budget.left(), 0.0))
-    if "error" in done:
-        raise done["error"]
-    if worker.is_alive() or budget.spent():
-        _workers.append(worker)
-        warnings.warn(f"time budget of {budget.seconds:g} s ran out while {optimizer.name} was being "
-                      "prepared and compiled: returning the start tree unchanged; a budget above the "
-                      "compile time compiles once, and a compilation cache (the command line's "
-                      "persists) makes later runs start sooner", stacklevel=3)
-        return None
-    return done["ready"]
-
-
-def unchanged_result(optimizer, tree, config):
-    """The result of a run that took no step: ``tree`` as given (NumPy), its SAH, no moves,
-    not converged, an empty history."""
-    config = optimizer.Config() if config is None else config
-    ct, ci = getattr(config, "ct", 1.0), getattr(config, "ci", 1.0)
-    tree = to_numpy(tree)
-    start = np.asarray(jax.device_get(sah(tree, ct, ci)))
-    return OptimizeResult(tree=tree, sah=start, sah_start=start, steps=np.int32(0), moves=np.int32(0),
-                          converged=np.bool_(False), history=np.full(1, np.nan, start.dtype),
-                          history_moves=np.zeros(1, np.int32), history_stage=np.zeros(1, np.int32))
+def compile_loop(optimizer, state: OptimizerState) -> float:
+    """Compile (or load from the caches) the loop of steps and ``result`` for ``state``'s
+    shapes and settings, by running zero steps of them; returns the seconds it took,
+    ``init`` excluded (about 0 when this process has compiled them already)."""
+    started = time.perf_counter()
+    jax.block_until_ready(advance(optimizer.step, state, jnp.int32(0)))
+    jax.block_until_ready(finish(optimizer.result, state))
+    return time.perf_counter() - started
 
 
 def drive(optimizer, state: OptimizerState, *, budget: TimeBudget, on_step: Callable | None = None,

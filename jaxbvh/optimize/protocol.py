@@ -130,6 +130,10 @@ class OptimizeResult:
     ``chain_sah`` [K]: for annealing with K chains, every chain's final SAH (the other
     fields describe the best chain); None otherwise. ``trace``: the driver's
     :class:`StepInfo` of every step, on the host (empty from ``result`` alone).
+    ``compile_seconds``: wall seconds the driver spent before the search began (``init``
+    and compiling the programs, or loading them from the persistent cache; about 0 when
+    this process had them already); a time budget counts the search only. None from
+    ``result`` alone.
     Arrays are JAX arrays from ``result``, NumPy from :func:`jaxbvh.optimize.optimize`.
     """
 
@@ -144,6 +148,7 @@ class OptimizeResult:
     history_stage: Any
     chain_sah: Any = None
     trace: tuple = dataclasses.field(default=(), metadata=dict(static=True))
+    compile_seconds: float | None = dataclasses.field(default=None, metadata=dict(static=True))
 
     def replace(self, **changes) -> "OptimizeResult":
         """A copy with the given fields replaced."""

@@ -63,23 +63,25 @@ def test_usage_errors_exit_2(capsys):
 
 
 def test_compilation_cache_dir(cache_dir, monkeypatch, capsys):
-    """The tool's caches are on for one command and put back after it: calling the CLI
-    from Python leaves JAX's configuration as it was."""
+    """A command uses the library's compilation cache (the suite's run folder here) and the
+    mesh cache beside it; the mesh cache is put back after the command."""
     import jax
 
     from jaxbvh import io
 
-    before = (jax.config.jax_compilation_cache_dir, io.mesh_cache_folder())
+    meshes_before = io.mesh_cache_folder()
     assert cli.cache_dir() == cache_dir
     with cli.compilation_cache_on() as path:
         assert path == cache_dir
         assert jax.config.jax_compilation_cache_dir == str(cache_dir)
         assert io.mesh_cache_folder() == cache_dir / "meshes"
-    assert (jax.config.jax_compilation_cache_dir, io.mesh_cache_folder()) == before
+    assert io.mesh_cache_folder() == meshes_before
     assert cli.main(["build", "--json"]) == 0
-    assert (jax.config.jax_compilation_cache_dir, io.mesh_cache_folder()) == before
+    assert io.mesh_cache_folder() == meshes_before
+    assert jax.config.jax_compilation_cache_dir == str(cache_dir)
     assert any((cache_dir / "meshes").iterdir())  # the command did use the caches
     monkeypatch.delenv("JAXBVH_CACHE_DIR")
+    monkeypatch.delenv("XDG_CACHE_HOME", raising=False)
     assert cli.cache_dir() == Path.home() / ".cache" / "jaxbvh" / "jax"
 
 

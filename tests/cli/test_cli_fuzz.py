@@ -174,13 +174,13 @@ def test_trace_warns_when_depth_makes_traversal_explode(capsys, tmp_path):
     assert status == 0 and "warning" not in err
 
 
-def test_a_time_budget_that_compiling_outruns_returns_the_start_tree(capsys, tmp_path):
+def test_a_time_budget_shorter_than_compiling_still_makes_a_pass(capsys, tmp_path):
     mesh, arrays = three_triangle_files(tmp_path)
     tree = tmp_path / "three.npz"
     np.savez(tree, **arrays)
     status, out, err = run_cli(capsys, "optimize", tree, "--method", "reinsert", "--time-budget", "1e-6", "--json")
     assert status == 0, err
-    assert "time budget of 1e-06 s ran out while reinsert was being prepared and compiled" in err
+    assert "warning" not in err
     result = json.loads(out)
-    assert result["passes"] == 0 and result["moves"] == 0 and result["valid"] is True
-    assert result["after"] == result["before"] and result["seconds"] < 5
+    assert result["passes"] == 1 and result["valid"] is True
+    assert 0 <= result["compile_seconds"] <= result["seconds"]

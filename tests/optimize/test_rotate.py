@@ -194,10 +194,9 @@ def test_progress_reports_every_pass_and_chunks_change_nothing(monkeypatch):
 def test_time_budget_stops_early_with_a_valid_tree():
     tree, plo, phi = random_tree(12, 60, 1)
     full = rotate.anneal(jax.random.key(1), tree, steps=400, period=20)
-    with pytest.warns(UserWarning, match="ran out while"):  # compiling counts: the start tree
-        short = rotate.anneal(jax.random.key(1), tree, steps=400, period=20, time_budget=1e-9)
-    check_result(short, plo, phi)
-    assert int(short.steps) == 0 < int(full.steps)
+    short = rotate.anneal(jax.random.key(1), tree, steps=400, period=20, time_budget=1e-9)
+    check_result(short, plo, phi)  # compiling comes before the budget: the first chunk runs
+    assert int(short.steps) == 1 < int(full.steps) and short.compile_seconds >= 0
     assert float(short.sah) <= float(short.sah_start) * (1 + 1e-6)  # keep_best: never worse
     hc = rotate.hill_climb(tree, time_budget=60.0)  # a budget it does not reach: the same tree
     assert_same_tree(hc.tree, rotate.hill_climb(tree).tree)
