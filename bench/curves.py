@@ -6,11 +6,11 @@ on one input: once to compile (:func:`warm_up`), then timed with an ``on_step`` 
 began), and draw one panel per input with a step curve per method (:func:`draw_curves`).
 
 The warm-up runs under a time budget, as the timed run does, and is stopped from the
-host after its first chunk: a budgeted run compiles its loop of steps *and* ``result``
-ahead of time (``jaxbvh.optimize.driver.prepare_within``), and both are then cached in
-the process. A warm-up without a budget, cut after its first step, never compiled
-``result``: the timed run then compiled it inside its own clock (2 – 3 s of the
-pipeline's "time to quality" on legocar in the first round of issue 19's bench).
+host after its first chunk: every run compiles its loop of steps *and* ``result`` before
+its search (``jaxbvh.optimize.driver.compile_loop``), and both are then cached in the
+process. (Before that was so, a warm-up cut after its first step never compiled
+``result``: the timed run then compiled it inside its own clock, 2 – 3 s of the
+pipeline's "time to quality" on legocar in the first round of issue 19's bench.)
 """
 
 from __future__ import annotations
