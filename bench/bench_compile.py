@@ -58,11 +58,13 @@ Run (2 shared cores: the full run takes tens of minutes)::
     python bench/bench_compile.py --only build:sbvh,readme
     python bench/bench_compile.py --mesh ../shared/data/meshes/fandisk.obj
     python bench/bench_compile.py --baseline bench/results/bench_compile_before.json
+    python bench/bench_compile.py --repeat 3           # medians of 3 cold + warm pairs
+    python bench/bench_compile.py --render bench/results/bench_compile.json --baseline OLD.json
 
 Results: ``bench/results/bench_compile.json`` and ``.md`` (``--out`` to change; ``--quick``
 and ``--only`` write ``bench_compile_partial.*`` unless ``--out`` is given).
 ``--baseline FILE.json`` puts that run's figures beside this run's in the markdown
-("before → after") and in the JSON (``baseline``).
+("before → after"); ``--render`` only rewrites a results file's markdown and in the JSON (``baseline``).
 """
 
 from __future__ import annotations
@@ -187,6 +189,16 @@ exec(compile(spec["call"], "<call>", "exec"), scope)
 jax.effects_barrier()
 wall = time.perf_counter() - w2
 call_cpu = cpu() - c2 - walk_cpu[0]
+# an optimize whose time budget ran out returns while its worker still compiles, and the
+# process waits for that worker at exit: measured apart, as the "tail"
+phase[0] = "tail"
+walk_call = walk_cpu[0]
+c3, w3 = cpu(), time.perf_counter()
+compiling = getattr(getattr(jaxbvh.optimize, "driver", None), "compiling", None)
+while compiling is not None and compiling():
+    time.sleep(0.02)
+tail_wall = time.perf_counter() - w3
+tail_cpu = cpu() - c3 - (walk_cpu[0] - walk_call)
 phase[0] = "done"
 
 def union(intervals):
@@ -216,7 +228,8 @@ def stats(p):
             "ops_compiled": sum(g["ops"] or 0 for g in done) if counting else None}
 
 out = {"cpu": call_cpu, "wall": wall, "import_jax_cpu": c_jax, "import_jaxbvh_cpu": c_jaxbvh,
-       "process_cpu": cpu() - walk_cpu[0], "setup": stats("setup"), **stats("call"),
+       "process_cpu": cpu() - walk_cpu[0], "setup": stats("setup"),
+       "tail": dict(stats("tail"), cpu=tail_cpu, wall=tail_wall), **stats("call"),
        "programs": [{k: g[k] for k in ("name", "ops", "seconds", "hit")}
                     for g in programs if g["phase"] == "call"],
        "jax": jax.__version__}
@@ -336,6 +349,21 @@ def run_child(spec: dict, env: dict, timeout: float) -> dict:
     return result
 
 
+def median_run(runs: list[dict]) -> dict:
+    """One child's figures from ``runs`` of the same child: the median of every number
+    (nested dicts too); the first run's program list and other values."""
+    def merge(values):
+        first = values[0]
+        if isinstance(first, dict):
+            return {k: merge([v[k] for v in values]) for k in first}
+        if isinstance(first, (int, float)) and not isinstance(first, bool) and all(
+                isinstance(v, (int, float)) for v in values):
+            m = statistics.median(values)
+            return int(m) if isinstance(first, int) and m == int(m) else m
+        return first
+    return merge(runs)
+
+
 def machine() -> str:
     """CPU model and core count."""
     model = platform.processor() or platform.machine()
@@ -360,7 +388,7 @@ COLUMNS = [
     ("cold CPU s", lambda r: r["cold"]["cpu"], "{:.2f}"),
     ("warm CPU s", lambda r: r["warm"]["cpu"], "{:.2f}"),
     ("cold wall s", lambda r: r["cold"]["wall"], "{:.2f}"),
-    ("programs", lambda r: r["cold"]["compiled"], "{:d}"),
+    ("programs", None, None),
     ("warm compiled / hits", None, None),
     ("trace s", lambda r: r["cold"]["trace_s"], "{:.2f}"),
     ("lower s", lambda r: r["cold"]["lower_s"], "{:.2f}"),
@@ -382,16 +410,26 @@ def _get(getter, row):
         return None
 
 
+def _programs(row) -> str:
+    """Programs compiled cold, and ``+ N again`` for those the cold process sent to XLA
+    twice (the second time a persistent-cache hit: the in-memory jit cache missed)."""
+    hits = row["cold"]["hits"]
+    return f"{row['cold']['compiled']}" + (f" + {hits} again" if hits else "")
+
+
 def markdown(results: dict, baseline: dict | None) -> str:
     before = {r["name"]: r for r in baseline["rows"]} if baseline else {}
     lines = ["# Compile cost of every entry point (issue: a first run that works)", "",
              f"`{results['command']}`; {results['date']}; machine: {results['machine']}; JAX {results['jax']} "
              f"on CPU; load average at start {results['load_start']}, at end {results['load_end']} "
-             "(2 cores shared with other jobs: CPU seconds are the figure to read, wall seconds are noisy).", "",
+             "(the cores are shared with other jobs: CPU seconds are the figure to read, wall seconds are "
+             "noisy; each row's load average is in the JSON)"
+             + (f"; every figure is the median of {results['repeat']} cold + warm pairs"
+                if results.get("repeat", 1) > 1 else "; one cold + warm pair per entry") + ".", "",
              "Each entry runs in a fresh process with an empty persistent compilation cache (cold), then in "
              "a second fresh process that loads every program from that cache (warm); no XLA_FLAGS. "
              "CPU s: `getrusage` user + sys of the call alone (setup excluded), all threads. programs: "
-             "programs XLA compiled in the cold call; warm compiled / hits: compiled again / loaded from the "
+             "programs XLA compiled in the cold call (+ N again: sent to XLA a second time in that process and found in the persistent cache, i.e. the in-memory jit cache missed); warm compiled / hits: compiled again / loaded from the "
              "cache in the warm call. trace s: union of jaxpr tracing intervals; lower s: jaxpr -> MLIR; "
              "compile s: XLA backend compile (all cold). ops: StableHLO operations of the lowered programs "
              "the call sent to XLA (before XLA's optimizations). See the script's docstring.", ""]
@@ -407,21 +445,35 @@ def markdown(results: dict, baseline: dict | None) -> str:
             line += (f" (before: {statistics.median(r['cold']['import_jax_cpu'] for r in baseline['rows']):.2f}, "
                      f"{statistics.median(r['cold']['import_jaxbvh_cpu'] for r in baseline['rows']):.2f})")
         lines += [line + ".", ""]
+    if results["rows"]:
+        total = sum(r["cold"]["cpu"] for r in results["rows"])
+        line = f"Sum over the {len(results['rows'])} entries of the cold call's CPU s: {total:.1f}"
+        common = [r for r in results["rows"] if r["name"] in before]
+        if common:
+            line += (f"; over the {len(common)} entries also in the baseline: "
+                     f"{sum(before[r['name']]['cold']['cpu'] for r in common):.1f} → "
+                     f"{sum(r['cold']['cpu'] for r in common):.1f} (programs "
+                     f"{sum(before[r['name']]['cold']['compiled'] for r in common)} → "
+                     f"{sum(r['cold']['compiled'] for r in common)})")
+        lines += [line + ".", ""]
     groups = list(dict.fromkeys(r["group"] for r in results["rows"]))
     for group in groups:
-        lines += [f"## {group}", "", "| entry | " + " | ".join(c[0] for c in COLUMNS) + " |",
-                  "|---|" + "---:|" * len(COLUMNS)]
+        lines += [f"## {group}", "", "| entry | " + " | ".join(c[0] for c in COLUMNS) + " | load |",
+                  "|---|" + "---:|" * (len(COLUMNS) + 1)]
         for r in (r for r in results["rows"] if r["group"] == group):
             b = before.get(r["name"])
             cells = [r["name"]]
             for header, getter, fmt in COLUMNS:
-                if getter is None:  # warm compiled / hits
+                if header == "programs":  # + cache hits in the cold process: a program compiled twice
+                    now, was = _programs(r), (_programs(b) if b else None)
+                elif getter is None:  # warm compiled / hits
                     now = f"{r['warm']['compiled']} / {r['warm']['hits']}"
                     was = f"{b['warm']['compiled']} / {b['warm']['hits']}" if b else None
                 else:
                     now = _fmt(fmt, _get(getter, r))
                     was = _fmt(fmt, _get(getter, b)) if b else None
                 cells.append(f"{was} → {now}" if b else now)
+            cells.append(r["load"].split()[0])  # 1-minute load average when the entry started
             lines.append("| " + " | ".join(cells) + " |")
         lines.append("")
     scripts = [r for r in results["rows"] if r["group"] == "scripts"]
@@ -431,15 +483,27 @@ def markdown(results: dict, baseline: dict | None) -> str:
             names = sorted({p["name"] for p in r["cold"]["programs"] if not p["hit"]})
             b = before.get(r["name"])
             was = f" (before: {b['cold']['compiled']})" if b else ""
-            lines += [f"- `{r['name']}`: {r['cold']['compiled']} programs compiled{was}, "
+            tail = r["cold"].get("tail") or {}
+            late = (f" (+ {tail['compiled']} more, {tail['cpu']:.1f} CPU s, compiled after the call returned, "
+                    "by an optimize whose time budget ran out; the process waits for them at exit)"
+                    if tail.get("compiled") else "")
+            lines += [f"- `{r['name']}`: {r['cold']['compiled']} programs compiled{late}{was}, "
                       f"{len(names)} distinct names, process CPU {r['cold']['process_cpu']:.2f} s cold / "
                       f"{r['warm']['process_cpu']:.2f} s warm: " + ", ".join(f"`{n}`" for n in names)]
         lines.append("")
-    lines += ["## Largest programs (cold, by ops)", "", "| entry | program | ops | compile s |", "|---|---|---:|---:|"]
-    biggest = sorted(((p["ops"] or 0, r["name"], p) for r in results["rows"] for p in r["cold"]["programs"]
-                      if not p["hit"]), key=lambda t: -t[0])[:15]
-    for ops, name, p in biggest:
-        lines.append(f"| {name} | `{p['name']}` | {ops:,d} | {p['seconds']:.2f} |")
+    # the same program (name and size) compiled by several entries is listed once
+    seen = {}
+    for r in results["rows"]:
+        for p in r["cold"]["programs"]:
+            if not p["hit"] and p["ops"]:
+                seen.setdefault((p["name"], p["ops"]), {"seconds": [], "entries": []})
+                seen[(p["name"], p["ops"])]["seconds"].append(p["seconds"])
+                seen[(p["name"], p["ops"])]["entries"].append(r["name"])
+    lines += ["## Largest programs (cold, by ops)", "",
+              "| program | ops | compile s (median over entries) | entries |", "|---|---:|---:|---|"]
+    for (name, ops), v in sorted(seen.items(), key=lambda kv: -kv[0][1])[:20]:
+        lines.append(f"| `{name}` | {ops:,d} | {statistics.median(v['seconds']):.2f} | "
+                     f"{', '.join(dict.fromkeys(v['entries']))} |")
     return "\n".join(lines) + "\n"
 
 
@@ -471,8 +535,22 @@ def main(argv=None) -> None:
     parser.add_argument("--out", default=None, help="results path without suffix (default: "
                         "bench/results/bench_compile, or bench_compile_partial for --quick / --only)")
     parser.add_argument("--timeout", type=float, default=1800, help="seconds per child process")
+    parser.add_argument("--repeat", type=int, default=1,
+                        help="cold + warm pairs per entry (each with a new cache); the tables show medians")
     parser.add_argument("--list", action="store_true", help="print the entry names and exit")
+    parser.add_argument("--render", default=None, metavar="FILE.json",
+                        help="measure nothing: write FILE.md from FILE.json (with --baseline if given)")
     args = parser.parse_args(argv)
+    baseline = json.loads(Path(args.baseline).read_text()) if args.baseline else None
+    if args.render:
+        path = Path(args.render)
+        results = json.loads(path.read_text())
+        if baseline:
+            results["baseline"] = {"date": baseline.get("date"), "commit": baseline.get("commit"),
+                                   "path": str(args.baseline)}
+        write(path.with_suffix(""), results, baseline)
+        print(f"wrote {path.with_suffix('.md')}")
+        return
 
     from jaxbvh.io import bundled_mesh_path
 
@@ -495,13 +573,14 @@ def main(argv=None) -> None:
         parser.error(f"unknown entries {', '.join(unknown)}; --list shows them")
     out = Path(args.out) if args.out else RESULTS / ("bench_compile_partial" if (args.quick or args.only)
                                                      else "bench_compile")
-    baseline = json.loads(Path(args.baseline).read_text()) if args.baseline else None
 
     work = Path(tempfile.mkdtemp(prefix="jaxbvh-bench-compile-"))
     env = child_env(str(ROOT))
     prepared = {}
     for tag, path in meshes:
-        if not any(table[n]["mesh"] == path for n in names):
+        # the sweep tree and the rays, for the entries that read them (a build reads neither)
+        sources = [table[n]["setup"] + table[n]["call"] for n in names if table[n]["mesh"] == path]
+        if not any('spec["tree"]' in src or 'spec["rays"]' in src for src in sources):
             continue
         spec = {"mesh": path, "tree": str(work / f"{tag}-sweep.npz"), "rays": str(work / f"{tag}-rays.npz"),
                 "rays_n": RAYS}
@@ -515,25 +594,33 @@ def main(argv=None) -> None:
     results = {"command": "python bench/bench_compile.py" + "".join(f" {a}" for a in (argv or sys.argv[1:])),
                "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
                "commit": commit(), "machine": machine(), "python": platform.python_version(),
-               "load_start": load(), "load_end": None, "jax": None, "rays": RAYS, "first_pass": FIRST_PASS,
+               "load_start": load(), "load_end": None, "repeat": args.repeat, "jax": None, "rays": RAYS,
+               "first_pass": FIRST_PASS,
                "meshes": {tag: {"path": path, "triangles": prepared.get(path, {}).get("triangles")}
                           for tag, path in meshes},
                "rows": []}
     try:
         for name in names:
             e = table[name]
-            cache = work / name.replace(":", "_").replace("@", "_") / "cache"
-            workdir = cache.parent / "cwd"
-            workdir.mkdir(parents=True)
-            spec = {"setup": e["setup"], "call": e["call"], "cache_dir": str(cache), "workdir": str(workdir),
-                    "mesh": e["mesh"], "tree": prepared[e["mesh"]]["tree"], "rays": prepared[e["mesh"]]["rays"]}
             load_before = load()
-            cold = run_child(spec, env, args.timeout)
-            warm = run_child(spec, env, args.timeout)
+            colds, warms = [], []
+            for k in range(args.repeat):  # each pair with its own new cache folder
+                cache = work / name.replace(":", "_").replace("@", "_") / f"{k}" / "cache"
+                workdir = cache.parent / "cwd"
+                workdir.mkdir(parents=True)
+                spec = {"setup": e["setup"], "call": e["call"], "cache_dir": str(cache),
+                        "workdir": str(workdir), "mesh": e["mesh"], "tree": prepared.get(e["mesh"], {}).get("tree"),
+                        "rays": prepared.get(e["mesh"], {}).get("rays")}
+                colds.append(run_child(spec, env, args.timeout))
+                warms.append(run_child(spec, env, args.timeout))
+            cold, warm = median_run(colds), median_run(warms)
             results["jax"] = cold.pop("jax")
             warm.pop("jax")
             row = {"name": name, "group": e["group"], "mesh": e["mesh_tag"], "load": load_before,
                    "call": e["call"].strip(), "cold": cold, "warm": warm}
+            if args.repeat > 1:
+                row["cold_cpu_runs"] = [c["cpu"] for c in colds]
+                row["warm_cpu_runs"] = [w["cpu"] for w in warms]
             results["rows"].append(row)
             print(f"{name:26s} cold {cold['cpu']:7.2f} CPU s ({cold['compiled']:3d} compiled, trace "
                   f"{cold['trace_s']:.2f} lower {cold['lower_s']:.2f} compile {cold['compile_s']:.2f}, "
