@@ -430,9 +430,12 @@ def markdown(results: dict, baseline: dict | None) -> str:
              "Each entry runs in a fresh process with an empty persistent compilation cache (cold), then in "
              "a second fresh process that loads every program from that cache (warm); no XLA_FLAGS. "
              "CPU s: `getrusage` user + sys of the call alone (setup excluded), all threads. programs: "
-             "programs XLA compiled in the cold call (+ N again: sent to XLA a second time in that process and found in the persistent cache, i.e. the in-memory jit cache missed); warm compiled / hits: compiled again / loaded from the "
-             "cache in the warm call. trace s: union of jaxpr tracing intervals; lower s: jaxpr -> MLIR; "
-             "compile s: XLA backend compile (all cold); these three are wall seconds as JAX reports them (XLA compiles on several threads when cores are free, so compile s can be below the CPU s it costs). ops: StableHLO operations of the lowered programs "
+             "programs XLA compiled in the cold call (+ N again: sent to XLA a second time in that process "
+             "and found in the persistent cache, i.e. the in-memory jit cache missed); warm compiled / hits: "
+             "compiled again / loaded from the cache in the warm call. trace s: union of jaxpr tracing "
+             "intervals; lower s: jaxpr -> MLIR; compile s: XLA backend compile (all cold); these three are "
+             "wall seconds as JAX reports them (XLA compiles on several threads when cores are free, so "
+             "compile s can be below the CPU s it costs). ops: StableHLO operations of the lowered programs "
              "the call sent to XLA (before XLA's optimizations). See the script's docstring.", ""]
     if baseline:
         lines += [f"Baseline (`before → after`): {baseline.get('date', '?')}, commit "
