@@ -16,6 +16,7 @@ import numpy as np
 import jaxbvh
 from jaxbvh.builders.configs import ALL_BUILDERS, DEFAULT_BUILDER, TRIANGLE_BUILDERS, BuilderConfig
 from jaxbvh.cli import options as config_options
+from jaxbvh.cli.front import int_option
 from jaxbvh.configs import INT_MAX, SAHCosts
 from jaxbvh.io import Mesh, TreeFile, bundled_mesh_path, load_any, load_mesh
 from jaxbvh.tree import layout as tree_mod
@@ -115,22 +116,6 @@ def seed_key(seed: int):
     for word in words[1:] + [len(words), int(seed < 0)]:
         key = jax.random.fold_in(key, word)
     return key
-
-
-def int_option(minimum: int, maximum: int = INT_MAX):
-    """argparse ``type`` accepting integers in ``[minimum, maximum]`` (default: int32's
-    largest, the arrays' id and counter type)."""
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-        if not minimum <= value <= maximum:
-            raise argparse.ArgumentTypeError(f"expected an integer in [{minimum}, {maximum}], got {value}")
-        return value
-
-    return parse
 
 
 #: the old name of :func:`int_option`
