@@ -261,20 +261,67 @@ def _node_boxes(scene: _Scene, s: _State, runs: _Runs):
     return jnp.where(s.frontier[:, None], box_lo, s.lo), jnp.where(s.frontier[:, None], box_hi, s.hi)
 
 
-def _segmented_box_scan(lo, hi, starts):
-    """Inclusive running box along axis 1 of [S, P, 3] boxes, restarting where ``starts``.
+_SCAN_BLOCK = 32  # positions per block of the segmented box scan (compile and run time alike from 16 to 64)
 
-    ``starts``: [S, P] bool. One scan serves many sequences at once (all axes, forward
-    and backward), which keeps the compiled program small.
+
+def _segmented_box_scan(lo, hi, offset, longest):
+    """Inclusive running box along axis 1 of [S, P, 3] boxes, each run restarting.
+
+    ``offset``: [S, P] int32, each position's distance from the first of its run;
+    ``longest``: int32, no run is longer. One scan serves many sequences at once (all
+    axes, forward and backward).
+
+    ``lax.associative_scan`` unrolls ``2 log2 P`` levels of slices, which was most of
+    the engine's compile time; this scan has a fixed small program instead: the
+    positions in blocks of ``_SCAN_BLOCK``, a sequential ``lax.scan`` within every block
+    at once, a doubling (Hillis-Steele) ``while_loop`` over the block ends that stops
+    once the longest run is covered, and a pass that gives each position whose run began
+    before its block the previous block's end. Min and max are exact, so the boxes are
+    the same in any order.
     """
+    seqs, cap, _ = lo.shape
+    block = _SCAN_BLOCK
+    pad = -cap % block
+    if pad:  # padding positions are runs of their own (offset 0), cut off at the end
+        lo, hi = (jnp.pad(x, ((0, 0), (0, pad), (0, 0))) for x in (lo, hi))
+        offset = jnp.pad(offset, ((0, 0), (0, pad)))
+    blocks = (cap + pad) // block
+    offset = offset.reshape(seqs, blocks, block)
 
-    def combine(a, b):
-        fa, la, ha = a
-        fb, lb, hb = b
-        return (fa | fb, jnp.where(fb[..., None], lb, jnp.minimum(la, lb)),
-                jnp.where(fb[..., None], hb, jnp.maximum(ha, hb)))
+    def by_column(x):  # [S, blocks * block, 3] -> [block, S, blocks, 3]
+        return jnp.moveaxis(x.reshape(seqs, blocks, block, 3), 2, 0)
 
-    _, run_lo, run_hi = jax.lax.associative_scan(combine, (starts, lo, hi), axis=1)
+    def within(carry, column):  # one position of every block; the carry: the one before it
+        before_lo, before_hi = carry
+        column_lo, column_hi, take = column
+        column_lo = jnp.where(take, jnp.minimum(before_lo, column_lo), column_lo)
+        column_hi = jnp.where(take, jnp.maximum(before_hi, column_hi), column_hi)
+        return (column_lo, column_hi), (column_lo, column_hi)
+
+    lo_c, hi_c = by_column(lo), by_column(hi)
+    take = jnp.moveaxis(offset >= 1, 2, 0)[..., None]  # column 0 takes only from itself
+    _, (lo_c, hi_c) = jax.lax.scan(within, (lo_c[0], hi_c[0]), (lo_c, hi_c, take))
+    lo_b, hi_b = jnp.moveaxis(lo_c, 0, 2), jnp.moveaxis(hi_c, 0, 2)  # [S, blocks, block, 3]
+
+    end_offset = offset[:, :, -1]
+
+    def shifted(x, d):  # x[:, j - d], wrapping round (only read where the run reaches back)
+        return jax.lax.dynamic_slice_in_dim(jnp.concatenate([x, x], axis=1), blocks - d, blocks, axis=1)
+
+    def over_blocks(state):
+        # before: each block end holds the box of its run within the last d blocks; after: 2 d
+        d, end_lo, end_hi = state
+        reach = (end_offset >= d * block)[..., None]
+        end_lo = jnp.where(reach, jnp.minimum(shifted(end_lo, d), end_lo), end_lo)
+        end_hi = jnp.where(reach, jnp.maximum(shifted(end_hi, d), end_hi), end_hi)
+        return 2 * d, end_lo, end_hi
+
+    _, end_lo, end_hi = jax.lax.while_loop(lambda s: s[0] * block < longest, over_blocks,
+                                           (jnp.int32(1), lo_b[:, :, -1], hi_b[:, :, -1]))
+    before = (offset > jnp.arange(block, dtype=offset.dtype))[..., None]  # the run began before the block
+    prev_lo, prev_hi = shifted(end_lo, 1)[:, :, None], shifted(end_hi, 1)[:, :, None]
+    run_lo = jnp.where(before, jnp.minimum(prev_lo, lo_b), lo_b).reshape(seqs, cap + pad, 3)[:, :cap]
+    run_hi = jnp.where(before, jnp.maximum(prev_hi, hi_b), hi_b).reshape(seqs, cap + pad, 3)[:, :cap]
     return run_lo, run_hi
 
 
@@ -288,9 +335,10 @@ def _split_costs(scene: _Scene, orders, runs: _Runs):
     # forward sweeps (left sides) and backward sweeps (right sides) in one scan
     seq_lo = jnp.concatenate([lo_pos, lo_pos[:, ::-1]])
     seq_hi = jnp.concatenate([hi_pos, hi_pos[:, ::-1]])
-    starts = jnp.concatenate([jnp.broadcast_to(runs.first, (axes,) + runs.first.shape),
-                              jnp.broadcast_to(runs.last[::-1], (axes,) + runs.last.shape)])
-    run_lo, run_hi = _segmented_box_scan(seq_lo, seq_hi, starts)
+    from_end = runs.count - 1 - runs.offset  # a position's offset in the backward sweep
+    offset = jnp.concatenate([jnp.broadcast_to(runs.offset, (axes,) + runs.offset.shape),
+                              jnp.broadcast_to(from_end[::-1], (axes,) + from_end.shape)])
+    run_lo, run_hi = _segmented_box_scan(seq_lo, seq_hi, offset, jnp.max(jnp.where(runs.active, runs.count, 0)))
     fwd_lo, fwd_hi = run_lo[:axes], run_hi[:axes]
     # the right side of a split after p is the backward run starting at p + 1
     empty = jnp.full((axes, 1, 3), jnp.inf, lo_pos.dtype)
