@@ -205,7 +205,7 @@ def _greedy_state(scene: _Scene, n) -> _State:
     dtype = scene.lo.dtype
     is_prim = jnp.arange(cap, dtype=jnp.int32) < n
     # one permutation per axis, each run sorted by centre (stable: equal centres by id)
-    orders = jnp.stack([jnp.argsort(scene.centre[:, a], stable=True).astype(jnp.int32) for a in range(3)])
+    orders = jnp.argsort(scene.centre.T, axis=1, stable=True).astype(jnp.int32)  # one sort op for all axes
     int_nodes = jnp.full(nodes, -1, jnp.int32)
     return _State(
         orders=orders, pos_node=jnp.where(is_prim, 0, nodes).astype(jnp.int32),
@@ -373,7 +373,7 @@ def _binned_candidates(scene: _Scene, s: _State, runs: _Runs, bins: int):
     cmax = jax.ops.segment_max(c_pos, runs.seg, num_segments=nodes + 1)[:nodes]
     span = (cmax - cmin).at[s.pos_node].get(mode="fill", fill_value=0).T  # [3, P]
     low = cmin.at[s.pos_node].get(mode="fill", fill_value=0).T
-    c_sorted = jnp.stack([scene.centre[s.orders[a], a] for a in range(3)])
+    c_sorted = jnp.take_along_axis(scene.centre.T, s.orders, axis=1)
     binsf = jnp.asarray(bins, dtype)
     raw = jnp.floor((c_sorted - low) * binsf / jnp.where(span > 0, span, 1))
     bin_sorted = jnp.where(runs.active & (span > 0), jnp.clip(raw, 0, binsf - 1), 0).astype(jnp.int32)
@@ -512,19 +512,19 @@ def _partition(s: _State, runs: _Runs, split, split_axis, n_left, left_id, right
     prim_at = jnp.take_along_axis(s.orders, axis_p[None, :], axis=0)[0]
     goes_left = runs.offset < n_left_at
     left_prim = jnp.zeros(cap, bool).at[jnp.where(pos_split, prim_at, cap)].set(goes_left, mode="drop")
-    rows = []
-    for a in range(3):
-        flag = left_prim[s.orders[a]] & pos_split
-        before = jnp.cumsum(flag.astype(jnp.int32)) - flag
-        rank_left = before - before.at[runs.start].get(mode="fill", fill_value=0)
-        rank_right = runs.offset - rank_left
-        target = jnp.where(flag, runs.start + rank_left, runs.start + n_left_at + rank_right)
-        target = jnp.where(pos_split, target, pos)
-        rows.append(jnp.zeros(cap, jnp.int32).at[target].set(s.orders[a]))
+    # all axes at once, [3, P] (one cumsum and one scatter in the program, not three)
+    flag = left_prim[s.orders] & pos_split
+    before = jnp.cumsum(flag.astype(jnp.int32), axis=1) - flag
+    rank_left = before - before.at[:, runs.start].get(mode="fill", fill_value=0)
+    rank_right = runs.offset - rank_left
+    target = jnp.where(flag, runs.start + rank_left, runs.start + n_left_at + rank_right)
+    target = jnp.where(pos_split, target, pos)
+    rows = jnp.arange(3, dtype=jnp.int32)[:, None]
+    orders = jnp.zeros_like(s.orders).at[jnp.broadcast_to(rows, target.shape), target].set(s.orders)
     # a primitive's new node follows from its new position
     child_of_pos = jnp.where(runs.offset < n_left_at, left_id.at[s.pos_node].get(mode="fill", fill_value=none),
                              right_id.at[s.pos_node].get(mode="fill", fill_value=none))
-    return jnp.stack(rows), jnp.where(pos_split, child_of_pos, s.pos_node)
+    return orders, jnp.where(pos_split, child_of_pos, s.pos_node)
 
 
 def _level(scene: _Scene, s: _State, *, method, bins, rcl, splits) -> _State:
