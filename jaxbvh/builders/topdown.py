@@ -244,9 +244,10 @@ def _runs(s: _State) -> _Runs:
     cap = s.pos_node.shape[0]
     none = s.count.shape[0]
     pos = jnp.arange(cap, dtype=jnp.int32)
-    active = s.frontier.at[s.pos_node].get(mode="fill", fill_value=False)
-    start = s.start.at[s.pos_node].get(mode="fill", fill_value=0)
-    count = s.count.at[s.pos_node].get(mode="fill", fill_value=0)
+    # one gather of the node's (open, start, count); padding and done positions read 0s
+    at = jnp.stack([s.frontier.astype(jnp.int32), s.start, s.count], axis=1).at[s.pos_node].get(
+        mode="fill", fill_value=0)
+    active, start, count = at[:, 0] == 1, at[:, 1], at[:, 2]
     offset = pos - start
     return _Runs(active=active, seg=jnp.where(active, s.pos_node, none), start=start, count=count,
                  offset=offset, first=offset == 0, last=offset == count - 1)
@@ -255,10 +256,18 @@ def _runs(s: _State) -> _Runs:
 def _node_boxes(scene: _Scene, s: _State, runs: _Runs):
     """Boxes [nodes, 3] of the nodes on this level (others keep theirs)."""
     nodes = s.count.shape[0]
-    prim0 = s.orders[0]
-    box_lo = jax.ops.segment_min(scene.lo[prim0], runs.seg, num_segments=nodes + 1)[:nodes]
-    box_hi = jax.ops.segment_max(scene.hi[prim0], runs.seg, num_segments=nodes + 1)[:nodes]
+    box_lo, box_hi = _segment_bounds(scene.lo[s.orders[0]], scene.hi[s.orders[0]], runs.seg, nodes)
     return jnp.where(s.frontier[:, None], box_lo, s.lo), jnp.where(s.frontier[:, None], box_hi, s.hi)
+
+
+def _segment_bounds(lo, hi, seg, nodes):
+    """Per-segment min of ``lo`` and max of ``hi`` ([P, 3] each) as [nodes, 3] each.
+
+    One scatter-min of ``(lo, -hi)`` (negation is exact), not a min and a max: every
+    scatter is a separately compiled loop on CPU.
+    """
+    both = jax.ops.segment_min(jnp.concatenate([lo, -hi], axis=1), seg, num_segments=nodes + 1)[:nodes]
+    return both[:, :3], -both[:, 3:]
 
 
 _SCAN_BLOCK = 32  # positions per block of the segmented box scan (compile and run time alike from 16 to 64)
@@ -369,8 +378,7 @@ def _binned_candidates(scene: _Scene, s: _State, runs: _Runs, bins: int):
     nodes = s.count.shape[0]
     dtype = scene.lo.dtype
     c_pos = scene.centre[s.orders[0]]
-    cmin = jax.ops.segment_min(c_pos, runs.seg, num_segments=nodes + 1)[:nodes]
-    cmax = jax.ops.segment_max(c_pos, runs.seg, num_segments=nodes + 1)[:nodes]
+    cmin, cmax = _segment_bounds(c_pos, c_pos, runs.seg, nodes)
     span = (cmax - cmin).at[s.pos_node].get(mode="fill", fill_value=0).T  # [3, P]
     low = cmin.at[s.pos_node].get(mode="fill", fill_value=0).T
     c_sorted = jnp.take_along_axis(scene.centre.T, s.orders, axis=1)
@@ -503,11 +511,13 @@ def _partition(s: _State, runs: _Runs, split, split_axis, n_left, left_id, right
     """Move the primitives of split nodes into their children's runs, stably in every
     axis order: ``(orders, pos_node)`` of the next level."""
     cap = s.pos_node.shape[0]
-    none = s.count.shape[0]
     pos = jnp.arange(cap, dtype=jnp.int32)
-    pos_split = runs.active & split.at[s.pos_node].get(mode="fill", fill_value=False)
-    axis_p = split_axis.at[s.pos_node].get(mode="fill", fill_value=0)
-    n_left_at = n_left.at[s.pos_node].get(mode="fill", fill_value=0)
+    # one gather of the node's split, axis, N_L and children; padding and done positions read
+    # 0s (only positions of split nodes use the children)
+    at = jnp.stack([split.astype(jnp.int32), split_axis, n_left, left_id, right_id], axis=1).at[s.pos_node].get(
+        mode="fill", fill_value=0)
+    pos_split = runs.active & (at[:, 0] == 1)
+    axis_p, n_left_at = at[:, 1], at[:, 2]
     # which primitives go left: the first N_L of the run in the split axis' order
     prim_at = jnp.take_along_axis(s.orders, axis_p[None, :], axis=0)[0]
     goes_left = runs.offset < n_left_at
@@ -522,8 +532,7 @@ def _partition(s: _State, runs: _Runs, split, split_axis, n_left, left_id, right
     rows = jnp.arange(3, dtype=jnp.int32)[:, None]
     orders = jnp.zeros_like(s.orders).at[jnp.broadcast_to(rows, target.shape), target].set(s.orders)
     # a primitive's new node follows from its new position
-    child_of_pos = jnp.where(runs.offset < n_left_at, left_id.at[s.pos_node].get(mode="fill", fill_value=none),
-                             right_id.at[s.pos_node].get(mode="fill", fill_value=none))
+    child_of_pos = jnp.where(runs.offset < n_left_at, at[:, 3], at[:, 4])
     return orders, jnp.where(pos_split, child_of_pos, s.pos_node)
 
 
@@ -545,16 +554,22 @@ def _level(scene: _Scene, s: _State, *, method, bins, rcl, splits) -> _State:
     n_left = jnp.where(split, n_left, 0)
     orders, pos_node = _partition(s, runs, split, split_axis, n_left, left_id, right_id)
 
-    def to_children(values, left_value, right_value):
-        return values.at[left_id].set(left_value, mode="drop").at[right_id].set(right_value, mode="drop")
-
-    tree_of = None if s.tree_of is None else to_children(s.tree_of, s.tree_of, s.tree_of)  # the parent's tree
+    # the children's start, count, parent, open flag (and tree), written by one scatter:
+    # rows [nodes, k] of the values now, of the left children and of the right ones
+    ones = jnp.ones(nodes, jnp.int32)
+    now = [s.start, count, s.parent, jnp.zeros(nodes, jnp.int32)]
+    to_left = [s.start, n_left, node_ids, ones]
+    to_right = [s.start + n_left, count - n_left, node_ids, ones]
+    if s.tree_of is not None:  # a child is in its parent's tree
+        now, to_left, to_right = now + [s.tree_of], to_left + [s.tree_of], to_right + [s.tree_of]
+    written = jnp.stack(now, axis=1).at[jnp.concatenate([left_id, right_id])].set(
+        jnp.concatenate([jnp.stack(to_left, axis=1), jnp.stack(to_right, axis=1)]), mode="drop")
+    tree_of = None if s.tree_of is None else written[:, 4]
     return _State(
         orders=orders, pos_node=pos_node,
-        start=to_children(s.start, s.start, s.start + n_left), count=to_children(count, n_left, count - n_left),
-        frontier=to_children(jnp.zeros(nodes, bool), True, True),
+        start=written[:, 0], count=written[:, 1], frontier=written[:, 3] == 1,
         left=jnp.where(split, left_id, s.left), right=jnp.where(split, right_id, s.right),
-        parent=to_children(s.parent, node_ids, node_ids), axis=jnp.where(split, split_axis, s.axis),
+        parent=written[:, 2], axis=jnp.where(split, split_axis, s.axis),
         prim_start=jnp.where(leaf, s.start, s.prim_start), prim_count=jnp.where(leaf, count, s.prim_count),
         lo=node_lo, hi=node_hi, next_free=s.next_free + 2 * jnp.sum(split, dtype=jnp.int32), tree_of=tree_of)
 
