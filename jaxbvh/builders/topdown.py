@@ -270,7 +270,7 @@ def _segment_bounds(lo, hi, seg, nodes):
     return both[:, :3], -both[:, 3:]
 
 
-_SCAN_BLOCK = 32  # positions per block of the segmented box scan (compile and run time alike from 16 to 64)
+_SCAN_BLOCK = 32  # positions per block of the segmented box scan (run time measured alike for 16 to 64)
 
 
 def _segmented_box_scan(lo, hi, offset, longest):
