@@ -174,16 +174,18 @@ def run(args) -> dict:
             if tree is None:
                 continue
             row = rows[i]
+            stage = "validate"
             try:
                 lo, hi = boxes[i]
                 jaxbvh.validate(tree, lo, hi)
                 tree = compact(tree)
+                stage = "write"  # atomic: a failed write leaves no file behind
                 jaxbvh.save(row["output"], tree, frame=meshes[i].frame)
                 row["sah_built"] = float(sah_built[k])
                 row["sah"] = float(figures.sah[k]) if figures is not None else float(sah_built[k])
                 row["seconds"] = float(seconds[k])
             except Exception as exc:  # noqa: BLE001 (a tree that fails its checks is that mesh's row)
-                row["error"] = f"validate: {_one_line(exc)}"
+                row["error"] = f"{stage}: {_one_line(exc)}"
             bar.update(1)
     bar.close()
     for row in rows:
