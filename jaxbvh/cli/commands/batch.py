@@ -4,7 +4,10 @@ INPUT is mesh files, globs (quoted, so the shell leaves them) or folders (their 
 files, not recursive). Every mesh is loaded, then all are built together
 (:func:`jaxbvh.batch.build`) and, for ``optimize``, optimized together
 (:func:`jaxbvh.batch.optimize`); each tree is validated against its mesh and written to
-``OUTDIR/<name>.npz`` (interchange, with its scene frame). The summary has one row per
+``OUTDIR/<name>.npz`` (interchange, with its scene frame), ``<name>`` the input's path below
+the folder all inputs share, suffix kept (``a.obj.npz``, ``sub/a.ply.npz``: unique by
+construction); an output file already there is an error before any work, unless
+``--overwrite``. The summary has one row per
 mesh (triangles, SAH after the build and after the optimizer, seconds: the mesh's share
 of its compiled calls) and the totals. On a CPU the batch runs on every core: JAX's CPU
 is split into one device per core (``--cpu-devices``; :func:`jaxbvh.batch.use_cpu_cores`). A mesh that fails to load, build or validate
@@ -44,7 +47,11 @@ def add_parser(subparsers):
     parser.add_argument("action", choices=ACTIONS, help="build the trees, or build and optimize them")
     parser.add_argument("inputs", metavar="INPUT", nargs="+", help="mesh files, globs or folders of meshes")
     parser.add_argument("-o", "--output", metavar="OUTDIR", default=None,
-                        help="folder for the trees (OUTDIR/<name>.npz; made if missing; required)")
+                        help="folder for the trees (OUTDIR/<input's path below the inputs' common folder>.npz, "
+                             "e.g. OUTDIR/a.obj.npz; made if missing; required)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace tree files already in OUTDIR (default: such a file is an error, "
+                             "before any work)")
     parser.add_argument("--method", choices=tuple(OPTIMIZERS), default=DEFAULT_METHOD,
                         help=f"optimizer of 'batch optimize' (default: {DEFAULT_METHOD})")
     parser.add_argument("--cpu-devices", type=int, metavar="N", default=None,
@@ -79,17 +86,39 @@ def expand(inputs) -> list[Path]:
             out.append(path)
         else:
             raise ValueError(f"{text}: no such file or folder")
-    return list(dict.fromkeys(out))
+    unique: dict[str, Path] = {}
+    for p in out:  # each file once, however it was named (a.obj, ./a.obj, its absolute path)
+        unique.setdefault(os.path.abspath(p), p)
+    return list(unique.values())
 
 
 def output_names(paths) -> list[str]:
-    """``<stem>.npz`` per path; a stem seen before gets ``-2``, ``-3``, ..."""
-    seen: dict[str, int] = {}
-    names = []
-    for p in paths:
-        seen[p.stem] = seen.get(p.stem, 0) + 1
-        names.append(p.stem + ("" if seen[p.stem] == 1 else f"-{seen[p.stem]}") + ".npz")
+    """The output name of each path: the path relative to the folder all the inputs share,
+    its suffix kept, then ``.npz`` (``a.obj`` -> ``a.obj.npz``, ``sub/a.ply`` ->
+    ``sub/a.ply.npz``). Distinct files get distinct names by construction (stems alone
+    would not: ``a.obj`` and ``a.ply``); ``ValueError`` if two names still clash."""
+    absolute = [os.path.abspath(p) for p in paths]
+    root = os.path.commonpath([os.path.dirname(a) for a in absolute]) if absolute else ""
+    names = [Path(os.path.relpath(a, root)).as_posix() + ".npz" for a in absolute]
+    first: dict[str, Path] = {}
+    for path, name in zip(paths, names):
+        if name in first:
+            raise ValueError(f"{first[name]} and {path} would both be written to {name}")
+        first[name] = path
     return names
+
+
+def check_outputs(out_dir: Path, names, overwrite: bool) -> None:
+    """``ValueError`` before any work when an output is in the way: a folder, or (unless
+    ``overwrite``) a file a run would replace."""
+    in_the_way = [out_dir / n for n in names if (out_dir / n).exists() or (out_dir / n).is_symlink()]
+    folders = [p for p in in_the_way if p.is_dir()]
+    if folders:
+        raise ValueError(f"{folders[0]} is a folder, where the tree of a mesh would be written")
+    if in_the_way and not overwrite:
+        more = f" (and {len(in_the_way) - 1} more)" if len(in_the_way) > 1 else ""
+        raise ValueError(f"{in_the_way[0]} exists{more}: pass --overwrite to replace the trees in "
+                         f"{out_dir}, or choose another -o")
 
 
 def _one_line(exc: BaseException) -> str:
@@ -131,7 +160,9 @@ def run(args) -> dict:
         raise ValueError(f"--output {out_dir} is a file, not a folder")
     paths = expand(args.inputs)
     names = output_names(paths)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    check_outputs(out_dir, names, args.overwrite)
+    for name in dict.fromkeys(os.path.dirname(n) for n in names):
+        (out_dir / name).mkdir(parents=True, exist_ok=True)
 
     started = time.perf_counter()
     rows = [{"mesh": str(p), "output": str(out_dir / n)} for p, n in zip(paths, names)]
