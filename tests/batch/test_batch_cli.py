@@ -134,3 +134,18 @@ def test_one_file_named_twice_is_built_once(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     result = run_json(capsys, "batch", "build", "a.obj", "./a.obj", tmp_path / "a.obj", "-o", "out")
     assert result["meshes"] == 1 and result["written"] == 1
+
+
+def test_batch_build_and_optimize_with_sbvh_write_valid_trees_with_references(tmp_path, capsys):
+    grid_obj(tmp_path / "a.obj", 3, 0)
+    grid_obj(tmp_path / "b.obj", 3, 1)
+    for action, extra in (("build", []), ("optimize", ["--method", "hc"])):
+        out = tmp_path / action
+        result = run_json(capsys, "batch", action, tmp_path / "*.obj", "-o", out, "--builder", "sbvh",
+                          "--alpha", "0", "--bins", "4", *extra)
+        assert result["builder"] == "sbvh" and result["written"] == 2 and result["valid"] is True, result
+        for name in ("a", "b"):
+            tree, _ = jaxbvh.load(out / f"{name}.obj.npz")
+            mesh = jaxbvh.load_mesh(tmp_path / f"{name}.obj")
+            tri = mesh.local_triangles()
+            jaxbvh.validate(tree, tri.min(1), tri.max(1), references=True, triangles=tri)

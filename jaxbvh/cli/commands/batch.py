@@ -28,6 +28,7 @@ import numpy as np
 
 import jaxbvh
 from jaxbvh.batch import BatchConfig, build, costs, optimize, use_cpu_cores
+from jaxbvh.builders.configs import TRIANGLE_BUILDERS
 from jaxbvh.cli import command_kit
 from jaxbvh.cli.commands.optimize import OPTIONS as OPTIMIZER_OPTIONS
 from jaxbvh.cli.options import add_config_options
@@ -184,7 +185,10 @@ def run(args) -> dict:
         bar.reset(total=len(loaded))
         bar.set_description("build")
         clock = Clock(bar, len(loaded))
-        built = build([boxes[i] for i in loaded], builder, batch=batch_config, errors="keep", on_chunk=clock)
+        # a builder that needs the triangles (sbvh) gets them in the boxes' frame
+        triangles = [meshes[i].local_triangles() for i in loaded] if builder.method in TRIANGLE_BUILDERS else None
+        built = build([boxes[i] for i in loaded], builder, batch=batch_config, errors="keep", on_chunk=clock,
+                      triangles=triangles)
         for k, message in built.errors.items():
             rows[loaded[k]]["error"] = f"build: {message.replace(f'mesh {k}', 'mesh')}"
         seconds = clock.seconds
@@ -208,7 +212,10 @@ def run(args) -> dict:
             stage = "validate"
             try:
                 lo, hi = boxes[i]
-                jaxbvh.validate(tree, lo, hi)
+                if triangles is None:
+                    jaxbvh.validate(tree, lo, hi)
+                else:  # a triangle may sit in several leaves: each leaf box holds a piece of it
+                    jaxbvh.validate(tree, lo, hi, references=True, triangles=triangles[k])
                 tree = compact(tree)
                 stage = "write"  # atomic: a failed write leaves no file behind
                 jaxbvh.save(row["output"], tree, frame=meshes[i].frame)
