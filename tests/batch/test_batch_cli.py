@@ -149,3 +149,27 @@ def test_batch_build_and_optimize_with_sbvh_write_valid_trees_with_references(tm
             mesh = jaxbvh.load_mesh(tmp_path / f"{name}.obj")
             tri = mesh.local_triangles()
             jaxbvh.validate(tree, tri.min(1), tri.max(1), references=True, triangles=tri)
+
+
+def test_an_interrupted_batch_exits_130_and_leaves_no_output(tmp_path, capsys, monkeypatch):
+    """Ctrl-C while the trees are written (the second one here): exit 130, one line, none
+    of the batch's outputs, and an output it would have replaced (--overwrite) as it was."""
+    grid_obj(tmp_path / "a.obj", 2, 0)
+    grid_obj(tmp_path / "b.obj", 2, 1)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "b.obj.npz").write_bytes(b"yesterday's tree")
+    real_save, calls = jaxbvh.save, []
+
+    def save(*args, **kwargs):
+        calls.append(args[0])
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real_save(*args, **kwargs)
+
+    monkeypatch.setattr(jaxbvh, "save", save)
+    status, stdout, err = run_cli(capsys, "batch", "build", tmp_path / "*.obj", "-o", out, "--overwrite")
+    assert status == 130 and err.strip() == "jaxbvh: interrupted" and stdout == ""
+    assert len(calls) == 2  # the first tree was written (staged) before the interrupt
+    assert sorted(p.name for p in out.iterdir()) == ["b.obj.npz"]
+    assert (out / "b.obj.npz").read_bytes() == b"yesterday's tree"

@@ -12,11 +12,13 @@ mesh (triangles, SAH after the build and after the optimizer, seconds: the mesh'
 of its compiled calls) and the totals. On a CPU the batch runs on every core: JAX's CPU
 is split into one device per core (``--cpu-devices``; :func:`jaxbvh.batch.use_cpu_cores`). A mesh that fails to load, build or validate
 gets its own one-line error in its row, the others are still written, and the exit
-status is 1. Every option is checked before any mesh is read.
+status is 1. Every option is checked before any mesh is read. The trees are renamed into
+place together at the end, so an interrupted batch leaves none of its outputs.
 """
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import os
 import sys
@@ -122,6 +124,12 @@ def check_outputs(out_dir: Path, names, overwrite: bool) -> None:
                          f"{out_dir}, or choose another -o")
 
 
+def staged_name(output: str) -> str:
+    """Where ``output`` is written before the batch renames it into place: beside it, hidden."""
+    folder, name = os.path.split(output)
+    return os.path.join(folder, f".{name}.{os.getpid()}.staged")
+
+
 def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
 
@@ -204,27 +212,44 @@ def run(args) -> dict:
             trees = figures.trees
         bar.reset(total=len(loaded))
         bar.set_description("save")
-        for k, tree in enumerate(trees.unstack()):
-            i = loaded[k]
-            if tree is None:
-                continue
-            row = rows[i]
-            stage = "validate"
-            try:
-                lo, hi = boxes[i]
-                if triangles is None:
-                    jaxbvh.validate(tree, lo, hi)
-                else:  # a triangle may sit in several leaves: each leaf box holds a piece of it
-                    jaxbvh.validate(tree, lo, hi, references=True, triangles=triangles[k])
-                tree = compact(tree)
-                stage = "write"  # atomic: a failed write leaves no file behind
-                jaxbvh.save(row["output"], tree, frame=meshes[i].frame)
-                row["sah_built"] = float(sah_built[k])
-                row["sah"] = float(figures.sah[k]) if figures is not None else float(sah_built[k])
-                row["seconds"] = float(seconds[k])
-            except Exception as exc:  # noqa: BLE001 (a tree that fails its checks is that mesh's row)
-                row["error"] = f"{stage}: {_one_line(exc)}"
-            bar.update(1)
+        # every tree is written beside its output first and all are renamed into place at
+        # the end: an interrupted batch (Ctrl-C) leaves none of its outputs, and no
+        # output it would have replaced is lost
+        staged = []
+        try:
+            for k, tree in enumerate(trees.unstack()):
+                i = loaded[k]
+                if tree is None:
+                    continue
+                row = rows[i]
+                stage = "validate"
+                try:
+                    lo, hi = boxes[i]
+                    if triangles is None:
+                        jaxbvh.validate(tree, lo, hi)
+                    else:  # a triangle may sit in several leaves: each leaf box holds a piece of it
+                        jaxbvh.validate(tree, lo, hi, references=True, triangles=triangles[k])
+                    tree = compact(tree)
+                    stage = "write"  # atomic: a failed write leaves no file behind
+                    temporary = staged_name(row["output"])
+                    try:
+                        jaxbvh.save(temporary, tree, frame=meshes[i].frame)
+                    except OSError as exc:  # named by its output, not the staging name
+                        raise OSError(exc.errno, exc.strerror, row["output"]) from None
+                    staged.append((temporary, row["output"]))
+                    row["sah_built"] = float(sah_built[k])
+                    row["sah"] = float(figures.sah[k]) if figures is not None else float(sah_built[k])
+                    row["seconds"] = float(seconds[k])
+                except Exception as exc:  # noqa: BLE001 (a tree that fails its checks is that mesh's row)
+                    row["error"] = f"{stage}: {_one_line(exc)}"
+                bar.update(1)
+            for temporary, output in staged:
+                os.replace(temporary, output)
+        except BaseException:
+            for temporary, _ in staged:
+                with contextlib.suppress(OSError):
+                    os.unlink(temporary)
+            raise
     bar.close()
     for row in rows:
         if "error" in row:
