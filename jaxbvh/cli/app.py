@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib
+import os
 import pkgutil
 import sys
 import warnings
@@ -50,6 +51,20 @@ def command_names() -> list[str]:
 # an invalid tree (``"valid": false`` in its result, e.g. ``jaxbvh stats``); 2 bad input or
 # options, reported in one line on stderr
 EXIT_INVALID = 1
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report a command ended by Ctrl-C
+
+
+def exit_now(status: int) -> None:
+    """End the process with ``status`` at once, without the interpreter's shutdown.
+
+    After Ctrl-C inside a compile or a compiled call, XLA's threads may still be running,
+    and finalizing the interpreter under them crashed (SIGSEGV, exit 139, after the
+    ``interrupted`` line: one of four interrupted cold batches in our trials, issue 39).
+    Every file the tool writes is complete or absent at any moment (atomic writes), so
+    nothing is left to flush but stdout and stderr."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
 
 
 def cache_dir() -> Path:
@@ -151,7 +166,9 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     except KeyboardInterrupt:
         print("jaxbvh: interrupted", file=sys.stderr)
-        return 130
+        if argv is None:  # the process's own command line (the console script): end it now
+            exit_now(EXIT_INTERRUPTED)
+        return EXIT_INTERRUPTED
     command_kit.print_result(result, as_json=getattr(args, "json", False))
     status = EXIT_INVALID if result.get("valid") is False else 0
     return status
