@@ -115,6 +115,44 @@ def test_site_builds_strictly(tmp_path):
         assert (site / "bench" / plot.name).is_file() and f"bench/{plot.name}" in html, f"{plot.name} is on no page"
 
 
+def docs_hook():
+    """docs/hooks/generate.py, the site's hook, as a module (it needs no docs tools)."""
+    spec = importlib.util.spec_from_file_location("docs_generate", DOCS / "hooks" / "generate.py")
+    hook = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(hook)
+    return hook
+
+
+def test_committed_generated_parts_are_current():
+    """Every part committed between ``<!-- gen: ... -->`` and ``<!-- end gen -->`` (the
+    command-line reference's synopsis and ``--help`` texts) is what the code gives now:
+    ``python docs/hooks/generate.py`` rewrites them."""
+    hook = docs_hook()
+    stale = [str(page.relative_to(REPO)) for page in sorted(DOCS.rglob("*.md"))
+             if hook.BLOCK.search(page.read_text()) and hook.refresh(page.read_text()) != page.read_text()]
+    assert not stale, f"generated parts out of date in {stale}: run python docs/hooks/generate.py {' '.join(stale)}"
+
+
+def test_cli_reference_reads_whole_as_a_file():
+    """docs/cli.md holds its generated text (no marker left for the build to fill), a
+    ``--help`` section for every command, ``batch`` included, and every exit status the
+    command line returns in its table."""
+    from jaxbvh.cli import app, command_names, front
+
+    hook = docs_hook()
+    page = (DOCS / "cli.md").read_text()
+    unfilled = [m.group(0) for m in hook.MARK.finditer(hook.BLOCK.sub("", page))]
+    assert not unfilled, f"docs/cli.md has parts only the site build fills: {unfilled}"
+    helps = {m.group("args").strip() for m in hook.BLOCK.finditer(page) if m.group("kind") == "help"}
+    assert set(command_names()) <= helps, f"commands without their --help in docs/cli.md: {set(command_names()) - helps}"
+    assert "batch" in helps
+    table = page[page.index("## Exit status"):]
+    table = table[:table.index("\n\n", table.index("| status"))]
+    listed = {int(code) for code in re.findall(r"^\| (\d+) \|", table, flags=re.M)}
+    codes = {0, front.EXIT_USAGE, app.EXIT_INVALID, app.EXIT_INTERRUPTED}
+    assert listed == codes, f"exit statuses in docs/cli.md {sorted(listed)}, the command line's {sorted(codes)}"
+
+
 def readme_python_blocks() -> list[str]:
     return re.findall(r"```python\n(.*?)```", (REPO / "README.md").read_text(), flags=re.S)
 

@@ -26,6 +26,15 @@ an admonition), and an unknown kind fails the build:
                                      (where a page explains what the code documents once)
 ===================================  ===============================================
 
+A part may also be *committed*: the same comment, then the generated text, then
+``<!-- end gen -->`` on a line of its own (same indent), so the page reads whole as a file
+(``docs/cli.md``). The build regenerates the text between the markers (the site never
+shows a stale copy), and :func:`refresh` rewrites it in the file:
+``python docs/hooks/generate.py [PAGE ...]`` (default ``docs/cli.md``);
+``tests/test_docs.py`` fails when a committed part differs from what the code gives now.
+This module imports the docs tools only where the site needs them (``on_files``, the
+docstring converter), so the tests and the script run without them.
+
 It also publishes the benchmark plots (``bench/results/*.png``) at ``bench/NAME.png``,
 so a page links to ``bench/optimize.png`` and the picture is the one the bench wrote;
 and it gives every public package of ``jaxbvh`` an API page in the nav's "API reference"
@@ -46,13 +55,12 @@ import sys
 from contextlib import contextmanager
 from pathlib import Path
 
-from mkdocs.structure.files import File
-
-sys.path.insert(0, str(Path(__file__).parent))  # the sibling griffe extension, for its converter
-from rest_docstrings import markdown_of  # noqa: E402
-
 REPO = Path(__file__).resolve().parents[2]
 MARK = re.compile(r"^(?P<indent>[ \t]*)<!-- gen: (?P<kind>\S+)(?P<args>.*?) -->$", re.M)
+END = "<!-- end gen -->"
+# a committed part: the marker, the text the code made (any lines), the end marker
+BLOCK = re.compile(r"^(?P<indent>[ \t]*)<!-- gen: (?P<kind>\S+)(?P<args>.*?) -->\n(?P<body>.*?)^(?P=indent)"
+                   + re.escape(END) + r"$", re.M | re.S)
 WIDTH = 100  # columns of generated --help text (as the synopsis)
 
 
@@ -209,6 +217,9 @@ def api_blocks(modules: list[str]) -> str:
 def docstring_of(module: str) -> str:
     import inspect
 
+    sys.path.insert(0, str(Path(__file__).parent))  # the sibling griffe extension, for its converter
+    from rest_docstrings import markdown_of
+
     return markdown_of(inspect.getdoc(importlib.import_module(module)) or "")
 
 
@@ -240,13 +251,34 @@ def _level(markdown: str, at: int) -> int:
     return len(heads[-1]) if heads else 0
 
 
+def _part(markdown: str, match: re.Match, docs_dir: Path) -> str:
+    """The text of the generated part ``match`` asks for, indented as its marker."""
+    indent = match.group("indent")
+    text = _make(markdown, match.group("kind"), match.group("args").split(), match, docs_dir)
+    return "\n".join(indent + line if line else line for line in text.split("\n"))
+
+
 def expand(markdown: str, docs_dir: Path = REPO / "docs") -> str:
-    """``markdown`` with every ``<!-- gen: ... -->`` line replaced (module docstring)."""
+    """``markdown`` with every generated part made afresh, markers removed (module
+    docstring): a committed part's text is replaced, a marker line is filled."""
+    markdown = BLOCK.sub(lambda m: _part(markdown, m, docs_dir), markdown)
+    return MARK.sub(lambda m: _part(markdown, m, docs_dir), markdown)
+
+
+def refresh(markdown: str, docs_dir: Path = REPO / "docs") -> str:
+    """``markdown`` with the text of every committed part (marker ... ``END``) made
+    afresh, markers kept: what the file should hold. Marker lines without an end are
+    left to the build."""
     def one(match: re.Match) -> str:
         indent = match.group("indent")
-        text = part(match.group("kind"), match.group("args").split(), match)
-        return "\n".join(indent + line if line else line for line in text.split("\n"))
+        head = f"{indent}<!-- gen: {match.group('kind')}{match.group('args')} -->"
+        return f"{head}\n\n{_part(markdown, match, docs_dir)}\n\n{indent}{END}"
 
+    return BLOCK.sub(one, markdown)
+
+
+def _make(markdown: str, kind: str, args: list[str], match: re.Match, docs_dir: Path) -> str:
+    """The generated part ``kind ARGS`` (module docstring's table)."""
     def part(kind: str, args: list[str], match: re.Match) -> str:
         if kind == "knobs" and (args[1:] in ([], ["new"])):
             return knob_table(args[0], new=args[1:] == ["new"])
@@ -266,9 +298,9 @@ def expand(markdown: str, docs_dir: Path = REPO / "docs") -> str:
             return other_results(docs_dir)
         if kind == "twins" and not args:
             return api_blocks(public_modules("jaxbvh", twins=True))
-        raise ValueError(f"unknown generated part: {match.group(0)}")
+        raise ValueError(f"unknown generated part: {match.group(0).splitlines()[0]}")
 
-    return MARK.sub(one, markdown)
+    return part(kind, args, match)
 
 
 # ----------------------------------------------------------------------------------
@@ -290,6 +322,8 @@ def public_packages() -> list[str]:
 
 
 def on_files(files, config):
+    from mkdocs.structure.files import File
+
     for png in sorted((REPO / "bench" / "results").glob("*.png")):
         files.append(File.generated(config, f"bench/{png.name}", abs_src_path=str(png)))
     # runs before the nav is built from config["nav"]: a package without a page gets one
@@ -304,3 +338,18 @@ def on_files(files, config):
             section.insert(at, {f"jaxbvh.{name}": uri})
             listed.insert(at, uri)
     return files
+
+
+if __name__ == "__main__":
+    # python docs/hooks/generate.py [PAGE ...]: rewrite the committed parts of the pages
+    sys.path.insert(0, str(REPO))
+    from jaxbvh.files import atomic_write
+
+    for name in sys.argv[1:] or ["docs/cli.md"]:
+        page = Path(name)
+        old = page.read_text()
+        new = refresh(old)
+        if new != old:
+            with atomic_write(page, "w") as f:
+                f.write(new)
+        print(f"{page}: {'rewritten' if new != old else 'current'}")
