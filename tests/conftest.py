@@ -68,9 +68,10 @@ def pytest_configure(config):
 
 
 # Tests that xdist hands out one by one, and first, not with the rest of their module: the
-# notebooks (about four minutes in all). As one module they went to one worker late in the
-# run, and the other worker waited for it at the end.
-UNITS_OF_THEIR_OWN = ("tests/test_notebooks.py::test_notebook_runs[",)
+# notebooks (about four minutes in all) and the docs pages' examples (a process per page).
+# As one module they went to one worker late in the run, and the other worker waited for
+# it at the end.
+UNITS_OF_THEIR_OWN = ("tests/test_notebooks.py::test_notebook_runs[", "tests/test_docs_examples.py::test_page_examples_run[")
 
 
 def pytest_xdist_make_scheduler(config, log):
