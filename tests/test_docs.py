@@ -3,8 +3,10 @@ benchmark result on it, every public name has a docstring, and the README is a f
 
 The strict build (``mkdocs build --strict``) fails on a broken link or anchor, a missing
 page, a docstring mkdocstrings cannot render and a generated part the hook cannot make
-(``docs/hooks/generate.py``), so the docs cannot rot. It needs the docs tools (in the
-``test`` and ``docs`` extras) and no network.
+(``docs/hooks/generate.py``), so the docs cannot rot. It needs the docs tools
+(``pip install -e ".[docs]"``; skipped without them) and no network. The generated parts
+committed in the pages (docs/cli.md) are checked against the code without those tools;
+every page's examples run in tests/test_docs_examples.py.
 """
 
 from __future__ import annotations
