@@ -217,7 +217,9 @@ def api_blocks(modules: list[str]) -> str:
 def docstring_of(module: str) -> str:
     import inspect
 
-    sys.path.insert(0, str(Path(__file__).parent))  # the sibling griffe extension, for its converter
+    here = str(Path(__file__).parent)  # the sibling griffe extension, for its converter
+    if here not in sys.path:
+        sys.path.insert(0, here)
     from rest_docstrings import markdown_of
 
     return markdown_of(inspect.getdoc(importlib.import_module(module)) or "")
