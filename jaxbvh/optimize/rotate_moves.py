@@ -47,6 +47,12 @@ _N_LEFT = (_RL, _RR, _L2, _L3, _L4, _L5)
 _N_RIGHT = (_R0, _R1, _LL, _LR, _R4, _R5)
 _NEW_LEFT = (_L, _L, _L2, _L3, _L4, _L5)
 _NEW_RIGHT = (_R0, _R1, _R, _R, _R4, _R5)
+# every per-move setting the application reads, one row per move (read with one gather)
+_A_NODE, _B_NODE, _A_SIDE, _B_SIDE, _A_PART, _B_PART, _NEW_L, _NEW_R, _CHANGE_L, _CHANGE_R = range(10)
+_MOVE_TABLE = tuple(zip((a for a, _ in _SLOT_A), (b for b, _ in _SLOT_B), (side for _, side in _SLOT_A),
+                        (side for _, side in _SLOT_B), (_PART_OF_SLOT[slot] for slot in _SLOT_A),
+                        (_PART_OF_SLOT[slot] for slot in _SLOT_B), _NEW_LEFT, _NEW_RIGHT,
+                        map(int, _CHANGES_L), map(int, _CHANGES_R)))
 
 
 class State(NamedTuple):
@@ -219,25 +225,18 @@ def _choose(s: Scores, nodes, min_gain, temperature, draws, annealing):
     return choice, s._replace(cur=cur, cand=cand)
 
 
-def _table(values, m):
-    """``values[m]`` for a static tuple ``values`` and moves ``m`` [W]."""
-    return jnp.asarray(values)[m]
-
-
-def _swap_slots(st, s: Scores, nodes, m, moved):
-    """The links after each moved node's two slots swapped contents: ``(child, parent)``."""
+def _swap_slots(st, s: Scores, nodes, row, moved):
+    """The links after each moved node's two slots swapped contents: ``(child, parent)``.
+    ``row`` [W, 10]: each node's row of :data:`_MOVE_TABLE`."""
     cap = st.child.shape[0]
     family = jnp.stack([nodes, s.left, s.right], axis=1)  # node codes 0 = n, 1 = L, 2 = R
-    a_node = _pick(family, _table([a for a, _ in _SLOT_A], m))
-    b_node = _pick(family, _table([b for b, _ in _SLOT_B], m))
-    a_side = _table([side for _, side in _SLOT_A], m)
-    b_side = _table([side for _, side in _SLOT_B], m)
-    a_node = jnp.where(moved, a_node, cap)
-    b_node = jnp.where(moved, b_node, cap)
+    a_node = jnp.where(moved, _pick(family, row[:, _A_NODE]), cap)
+    b_node = jnp.where(moved, _pick(family, row[:, _B_NODE]), cap)
+    a_side, b_side = row[:, _A_SIDE], row[:, _B_SIDE]
     # the slots' contents are ids the scoring already gathered; reading child again here
     # (or through a flat view) makes XLA copy the whole array for every window
-    a_val = jnp.where(moved, _pick(s.ids, _table([_PART_OF_SLOT[slot] for slot in _SLOT_A], m)), -1)
-    b_val = jnp.where(moved, _pick(s.ids, _table([_PART_OF_SLOT[slot] for slot in _SLOT_B], m)), -1)
+    a_val = jnp.where(moved, _pick(s.ids, row[:, _A_PART]), -1)
+    b_val = jnp.where(moved, _pick(s.ids, row[:, _B_PART]), -1)
     child = (st.child.at[a_node, a_side].set(b_val, mode="drop")
              .at[b_node, b_side].set(a_val, mode="drop"))
     parent = st.parent.at[jnp.where(moved, b_val, cap)].set(a_node, mode="drop")
@@ -245,8 +244,9 @@ def _swap_slots(st, s: Scores, nodes, m, moved):
     return child, parent
 
 
-def _update_parts(st, s: Scores, nodes, m, moved):
-    """New boxes, costs and heights of the changed children and of ``n``.
+def _update_parts(st, s: Scores, nodes, m, row, moved):
+    """New boxes, costs and heights of the changed children and of ``n`` (``row``: as
+    :func:`_swap_slots`).
 
     Returns ``(lo, hi, cost, height, l_at, r_at)``: the state's arrays updated, and the
     changed left and right children ([W] int32, ``N`` where unchanged).
@@ -254,16 +254,18 @@ def _update_parts(st, s: Scores, nodes, m, moved):
     cap = st.child.shape[0]
     oob = jnp.full_like(nodes, cap)
     interior_nodes = jnp.where(s.interior, nodes, cap)
-    new_l = _Part(*(_pick(x, _table(_NEW_LEFT, m)) for x in s.parts))
-    new_r = _Part(*(_pick(x, _table(_NEW_RIGHT, m)) for x in s.parts))
-    l_changes = moved & _table(_CHANGES_L, m)
-    r_changes = moved & _table(_CHANGES_R, m)
-    l_at = jnp.where(l_changes, s.left, oob)
-    r_at = jnp.where(r_changes, s.right, oob)
-    lo = st.lo.at[l_at].set(new_l.lo, mode="drop").at[r_at].set(new_r.lo, mode="drop")
-    hi = st.hi.at[l_at].set(new_l.hi, mode="drop").at[r_at].set(new_r.hi, mode="drop")
+    new_l = _Part(*(_pick(x, row[:, _NEW_L]) for x in s.parts))
+    new_r = _Part(*(_pick(x, row[:, _NEW_R]) for x in s.parts))
+    l_at = jnp.where(moved & (row[:, _CHANGE_L] > 0), s.left, oob)
+    r_at = jnp.where(moved & (row[:, _CHANGE_R] > 0), s.right, oob)
     n_cost = jnp.where(moved, _pick(s.cand, m), s.cur)
     n_height = jnp.where(moved, _pick(s.n_height, m), s.cur_height)
+    # materialise what the scatters write once: XLA would otherwise fuse its computation
+    # into each scatter (compile time)
+    new_l, new_r, l_at, r_at, n_cost, n_height = jax.lax.optimization_barrier(
+        (new_l, new_r, l_at, r_at, n_cost, n_height))
+    lo = st.lo.at[l_at].set(new_l.lo, mode="drop").at[r_at].set(new_r.lo, mode="drop")
+    hi = st.hi.at[l_at].set(new_l.hi, mode="drop").at[r_at].set(new_r.hi, mode="drop")
     cost = (st.cost.at[l_at].set(new_l.cost, mode="drop").at[r_at].set(new_r.cost, mode="drop")
             .at[interior_nodes].set(n_cost, mode="drop"))
     height = (st.height.at[l_at].set(new_l.height, mode="drop")
@@ -293,8 +295,9 @@ def process_window(st, nodes, scale, ct, min_gain, temperature, draws, annealing
     choice, s = _choose(score(st, nodes, scale, ct), nodes, min_gain, temperature, draws, annealing)
     moved = choice >= 0
     m = jnp.maximum(choice, 0)
-    child, parent = _swap_slots(st, s, nodes, m, moved)
-    lo, hi, cost, height, l_at, r_at = _update_parts(st, s, nodes, m, moved)
+    row = jax.lax.optimization_barrier(jnp.asarray(_MOVE_TABLE, jnp.int32)[m])  # [W, 10], gathered once
+    child, parent = _swap_slots(st, s, nodes, row, moved)
+    lo, hi, cost, height, l_at, r_at = _update_parts(st, s, nodes, m, row, moved)
     new = st._replace(child=child, parent=parent, lo=lo, hi=hi, cost=cost, height=height)
     changed = jnp.stack([jnp.where(moved, nodes, cap), l_at, r_at], axis=1)
     return new, _moves_per_chain(nodes, moved, cap, chains), changed
