@@ -206,6 +206,13 @@ def _choose_annealing(cand, cur, legal, tol, temperature, draws):
     return choice
 
 
+def _materialise(x):
+    """``x`` [W], computed once: XLA's CPU fusion copies a cheap producer into every
+    consumer kernel (an ``optimization_barrier`` does not stop it), but no consumer
+    takes in a scatter (compile time only: the same values)."""
+    return jnp.zeros_like(x).at[jnp.arange(x.shape[0])].set(x, unique_indices=True)
+
+
 def _choose(s: Scores, nodes, min_gain, temperature, draws, annealing):
     """The move of each node ([W] int32, -1: none) by hill climbing or annealing, and
     the scores with ``cur`` and ``cand`` materialised (what the application reads)."""
@@ -221,7 +228,7 @@ def _choose(s: Scores, nodes, min_gain, temperature, draws, annealing):
         choice = _choose_greedy(cand, cur, legal, tol)
     # materialise the choice once: it feeds every scatter below, and XLA would otherwise
     # recompute the whole choice inside several of them
-    choice = jax.lax.optimization_barrier(jnp.where(s.interior, choice, -1))
+    choice = _materialise(jnp.where(s.interior, choice, -1))
     return choice, s._replace(cur=cur, cand=cand)
 
 
