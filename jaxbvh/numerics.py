@@ -40,6 +40,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxbvh import compile_cache
+
+# the package's JAX code passes here before it compiles anything: the persistent
+# compilation cache is on from then (idempotent; jaxbvh.compile_cache says when not)
+compile_cache.enable_default()
+
 #: relative tolerance within which two split costs count as a tie (builders)
 TIE_TOLERANCE = 2.0 ** -20
 

@@ -183,3 +183,14 @@ def broken_tree_file(tmp_path, kind):
     path = tmp_path / f"{kind}.npz"
     np.savez(path, **broken_arrays(arrays, **BROKEN[kind]))
     return mesh, path
+
+
+def crossing_slivers(rows: int = 6, offset: float = 0.0) -> np.ndarray:
+    """[2 rows, 3, 3] float32: long slivers along x and along y crossing on a grid in one
+    slab, object splits overlap and spatial splits pay (an SBVH of them has references)."""
+    tri = []
+    for i in range(rows):
+        y = i / rows + offset
+        tri.append([[0, y, 0], [1, y + 0.01, 0.01], [1, y, 0.02]])  # along x
+        tri.append([[y, 0, 0.01], [y + 0.01, 1, 0.0], [y, 1, 0.02]])  # along y, in the same slab
+    return np.asarray(tri, np.float32)

@@ -10,6 +10,9 @@ scene scale), padded to the chunk's capacity instead of the mesh's own bucket; a
 padded primitive is inert, so every tree equals, node for node, :func:`jaxbvh.build` of
 its mesh alone (:meth:`jaxbvh.batch.TreeBatch.unstack`; tested for every builder).
 
+SBVH (``"sbvh"``, which needs the triangles) has no batched core: each mesh is built by
+the single-mesh builder and the trees are grouped by reference slots (:func:`sbvh_groups`).
+
 Bad input. A mesh whose boxes fail the builder's checks (no primitives, NaN or
 infinite coordinates, ``lo > hi``) is refused before any compiling with a
 ``ValueError`` naming its position (``errors="raise"``), or left out with its own
@@ -31,8 +34,8 @@ from jaxbvh.batch.layout import Group, TreeBatch
 from jaxbvh.batch.plan import BYTES_PER_SLOT, BatchConfig, chunks
 from jaxbvh.batch.rows import each_row
 from jaxbvh.builders import lbvh, morton, ploc, topdown
-from jaxbvh.builders.configs import DEFAULT_BUILDER, BuilderConfig, make_config
-from jaxbvh.builders.dispatch import BUILDERS
+from jaxbvh.builders import dispatch
+from jaxbvh.builders.configs import ALL_BUILDERS, DEFAULT_BUILDER, TRIANGLE_BUILDERS, BuilderConfig, make_config
 from jaxbvh.builders.inputs import check_prim_boxes, prepare
 
 
@@ -87,7 +90,7 @@ def builder_config(config: BuilderConfig | str | None = None, method: str | None
         return make_config(DEFAULT_BUILDER if method is None else method, **options)
     if method is not None or options:
         raise TypeError("give a builder Config or method and keyword options, not both")
-    if not isinstance(config, BuilderConfig) or config.method not in BUILDERS:
+    if not isinstance(config, BuilderConfig) or config.method not in ALL_BUILDERS:
         raise TypeError(f"config must be a builder Config, got {type(config).__name__}")
     return config
 
@@ -206,7 +209,7 @@ class BuildResult:
 
 def build(meshes, config: BuilderConfig | str | None = None, *, method: str | None = None,
           batch: BatchConfig | None = None, devices=None, errors: str = "raise", on_chunk=None,
-          **options) -> BuildResult:
+          triangles=None, **options) -> BuildResult:
     """Build a binary BVH for every mesh, in a few compiled calls (module docstring).
 
     Args:
@@ -220,16 +223,75 @@ def build(meshes, config: BuilderConfig | str | None = None, *, method: str | No
       errors: ``"raise"`` or ``"keep"`` (module docstring).
       on_chunk: called as ``on_chunk(index)`` after every compiled call, ``index`` the
         input positions of the meshes it built.
+      triangles: for a builder that needs them (``"sbvh"``, :data:`TRIANGLE_BUILDERS`):
+        a list of [n, 3, 3] triangles, one per mesh, in the frame of its boxes (None:
+        each mesh's ``local_triangles()``, so :class:`jaxbvh.io.Mesh` inputs need none).
+        Ignored by the other builders.
 
     Returns:
       :class:`BuildResult`; ``result.trees.unstack()`` gives every built mesh's tree, in
       input order (a mesh left out is not in the batch: ``result.trees.size`` counts all).
+
+    SBVH. Spatial splits have no batched core: each mesh is built by the single-mesh
+    builder (:func:`jaxbvh.build` with its triangles, one compiled program per reference
+    capacity), and the trees are grouped by their reference slots (:func:`sbvh_groups`).
+    A mesh whose triangles are refused is an error like a bad mesh (``errors``).
     """
     config = builder_config(config, method, **options)
     batch = BatchConfig() if batch is None else batch
     devs = batch_devices.resolve(devices)
+    meshes = list(meshes)
     inputs = check_inputs(meshes, errors)
+    if config.method in TRIANGLE_BUILDERS:
+        return sbvh_groups(meshes, inputs, config, triangles, errors, on_chunk)
     return BuildResult(build_checked(inputs, config, batch, devs, config.dtype, on_chunk), inputs.errors)
+
+
+def mesh_triangles(mesh, given, i: int) -> np.ndarray:
+    """The triangles of mesh ``i`` for a builder that needs them: ``given[i]`` when a list
+    is given, else the mesh's ``local_triangles()`` (``ValueError`` for a box pair)."""
+    if given is not None:
+        return np.asarray(given[i])
+    if hasattr(mesh, "local_triangles"):
+        return mesh.local_triangles()
+    raise ValueError(f"mesh {i}: method 'sbvh' needs the triangles: pass jaxbvh.io.Mesh inputs "
+                     "or triangles=[tri, ...], one [n, 3, 3] array per mesh")
+
+
+def sbvh_groups(meshes, inputs: Inputs, config: BuilderConfig, triangles, errors: str, on_chunk) -> BuildResult:
+    """:func:`build` for a builder that needs the triangles (module docstring of
+    :func:`build`, SBVH): each checked mesh built alone, the trees stacked in groups of
+    equal reference slots.
+
+    A tree with references has its reference slots as its capacity, which is not the
+    capacity bucket of its triangle count, so a group's ``prims`` hold each tree's
+    reference slots (:meth:`~jaxbvh.batch.TreeBatch.unstack` then keeps every tree as
+    the single build gives it)."""
+    if triangles is not None and len(triangles) != len(meshes):
+        raise ValueError(f"batch: {len(meshes)} meshes but {len(triangles)} triangle arrays")
+    bad = dict(inputs.errors)
+    groups: dict[int, list] = {}
+    for i in sorted(inputs.boxes):
+        lo, hi = inputs.boxes[i]
+        try:
+            tri = mesh_triangles(meshes[i], triangles, i)
+            tree = dispatch.build(lo, hi, config, triangles=tri)
+        except ValueError as err:
+            if errors == "raise":
+                raise ValueError(f"mesh {i}: {err}") from None
+            bad[i] = f"mesh {i}: {err}"
+            continue
+        tree = jax.tree_util.tree_map(np.asarray, jax.device_get(tree))
+        slots = int(tree.prim_index.shape[0])
+        groups.setdefault(slots, []).append((tree, i))
+        if on_chunk is not None:
+            on_chunk(np.array([i], np.int64))
+    made = []
+    for slots, parts in sorted(groups.items()):
+        stacked = jax.tree_util.tree_map(lambda *a: np.stack(a), *[t for t, _ in parts])
+        index = np.array([i for _, i in parts], np.int64)
+        made.append(Group(stacked, index, np.full(index.size, slots, np.int64)))
+    return BuildResult(TreeBatch(tuple(made), len(meshes)), bad)
 
 
 def build_checked(inputs: Inputs, config: BuilderConfig, batch: BatchConfig, devs: tuple, dtype,
@@ -260,5 +322,5 @@ def _join(parts) -> Group:
     return Group(trees, np.concatenate([p[1] for p in parts]), np.concatenate([p[2] for p in parts]))
 
 
-__all__ = ["build", "BuildResult", "check_inputs", "mesh_boxes", "builder_config", "stack_inputs",
-           "build_rows", "quantization_rows"]
+__all__ = ["build", "BuildResult", "check_inputs", "mesh_boxes", "mesh_triangles", "builder_config",
+           "stack_inputs", "build_rows", "quantization_rows", "sbvh_groups"]

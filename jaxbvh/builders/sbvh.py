@@ -71,25 +71,25 @@ version 20-40x slower than the binned build). Nodes are numbered level by level,
 0; the loop ends when a level opens no node (at most ``2 R`` levels: every level adds
 nodes, and there are fewer than ``2 R``). The per-node arrays of a level have F slots,
 F at least its open nodes, and its per-reference arrays M slots, M at least its
-references: the level is compiled for a few (F, M) (:func:`level_programs`) and each
-level runs in the cheapest that holds it (a ``lax.switch`` in the loop body), so
-neither the narrow top levels nor the dwindling deep ones pay for the widest level's
-arrays. F grows by ``STAGE_GROWTH`` (64, 256, 1,024), then doubles (2,048, 4,096, ...; by 8 before the
-sixth round, when rocker-arm's levels of 4-7k open nodes ran on 32,768 node slots).
-Every program but the last first compacts the level's references (a cumsum of the
-live slots and a scatter, no sort) into M < R per-reference slots (:func:`live_slots`;
-the last, which takes any level, works on all R): the references of finished leaves
-and the free slots (R is a capacity bucket of twice the triangles, the builds use
-1.1-1.3 times) then cost nothing in the object split, the spatial search and the
-bookkeeping. The *tail* program, small F and M (``TAIL_SLOTS``; legocar: 512 nodes,
-1,024 references), takes the deep levels (~25 ms to 3-6 ms a level on legocar).
-Compile time grows with the programs (each compiles the level once), so the *wide*
-ones (past ``FINE_STAGE`` node slots, and the last) are compiled only when a level needs
-one: the engine runs the levels from the host in runs, the narrow programs' in one
-compiled loop and a level that fits none of them in the cheapest wide program that
-holds it, each compiled on its first use (:func:`engine`; legocar at ``max_leaf`` 16
-needs none). The level is kept cheap to compile (one loop body for the pieces, scans for the sweeps; not ~70-100 s
-with unrolled sweeps and a switch over six piece-buffer sizes, docs/spatial-splits.md).
+references. No result depends on F or M (padding slots hold no reference and no open
+node; sums, minima and maxima are exact in any order), so which program a level runs in
+changes its time, never the tree. The level is compiled for at most two (F, M)
+(:func:`level_programs`), and each level runs in the first that holds it: the *narrow*
+program compacts the level's references (a cumsum of the live slots and a scatter, no
+sort) into M = :func:`live_slots` < R slots and has F = M / ``NARROW_NODE_DIVISOR``
+node slots, so the references of finished leaves and the free slots (R is a capacity
+bucket of twice the triangles, the builds use 1.1-1.3 times) cost nothing; the *wide*
+one works on all R slots and takes any level. Inputs of at most ``SMALL_STAGE``
+reference slots have the wide one only. Compile time, not run time, decides how many:
+each program compiles the whole level once, and before the thirteenth round the level
+was compiled for a tail and six stages of F (64, 256, 1,024, 2,048, 4,096, ...), about
+62 CPU-s of a cold build of spot whose levels then run in 0.2 s; with one program they
+run in about 0.4 s (``bench/profile_sbvh_compile.py``). The engine runs the levels from
+the host in runs, one run a compiled loop over the levels of one program, each program
+compiled on its first use (:func:`engine`): a build whose levels all fit the narrow
+program compiles no other. The level is kept cheap to compile (one loop body for the
+pieces, scans for the sweeps; not ~70-100 s with unrolled sweeps and a switch over six
+piece-buffer sizes, docs/spatial-splits.md).
 """
 
 from __future__ import annotations
@@ -390,23 +390,20 @@ def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int, spatial_bin
     dtype; ``bins`` and ``spatial_bins`` (the object split's bins, the spatial split's
     most) static. Returns an :class:`SBVHBuild`.
 
-    Driven from the host in runs of levels (:func:`_levels`), one run a group of level
-    programs (:func:`program_groups`): the narrow programs' levels in one compiled loop,
-    and a level that fits none of them in the cheapest wide program that holds it, its
-    own loop, compiled on that first need (ninth round: ``lax.switch`` compiles every
-    branch, so every build paid for every wide program's compile, which legocar at
-    ``max_leaf`` 16 never runs). Each level runs in the program one loop over all
-    programs would choose (the first that fits), so the trees are the same.
+    Driven from the host in runs of levels (:func:`_levels`), one run a loop over the
+    levels whose first fitting program (:func:`level_programs`) is one program, each
+    program compiled on its first need (a build whose levels all fit the narrow one
+    compiles no other). Each level runs in the first program that holds it, so the
+    trees do not depend on how the levels are grouped into runs.
     """
     scene, state = _start(tri, n, max_leaf, ct, ci, scale, threshold)
-    groups = program_groups(level_programs(tri.shape[0]))
+    programs = level_programs(tri.shape[0])
     for _ in range(2 * tri.shape[0] + 1):  # a run takes at least one level; a tree of R slots has fewer
         open_nodes, in_level = (int(x) for x in _size(state))  # waits for the run before
         if open_nodes == 0:
             return _finish(state)
-        group = next(g for g, programs in enumerate(groups)
-                     if any(_fitting(open_nodes, in_level, programs)))
-        state = _levels(scene, state, bins=bins, spatial_bins=spatial_bins, group=group)
+        program = _fitting(open_nodes, in_level, programs).index(True)
+        state = _levels(scene, state, bins=bins, spatial_bins=spatial_bins, program=program)
     raise RuntimeError(f"SBVH engine: levels still open after {2 * tri.shape[0] + 1} runs (a bug: please report)")
 
 
@@ -428,17 +425,6 @@ def _finish(s: _State) -> SBVHBuild:
     return SBVHBuild(_tree(s), s.n_refs, s.spatial, s.short)
 
 
-def program_groups(programs: list[tuple[int, int]]) -> list[list[tuple[int, int]]]:
-    """The level programs (:func:`level_programs`, cheapest first) in groups compiled
-    together: the narrow ones (at most ``FINE_STAGE`` node slots, all but the last)
-    first, then each wider one alone; a single program is one group. The groups keep
-    the order of ``programs``."""
-    if len(programs) == 1:
-        return [programs]
-    narrow = [p for p in programs[:-1] if p[0] <= FINE_STAGE]
-    return [narrow] + [[p] for p in programs[len(narrow):]]
-
-
 def _fitting(open_nodes, in_level, programs) -> list:
     """Per program of ``programs``, whether it holds a level of ``open_nodes`` open nodes
     and ``in_level`` references (the one rule for the host, on ints, and the loop, on
@@ -451,45 +437,26 @@ def _fits(s: _State, programs) -> Any:
     return jnp.stack(_fitting(*_size(s), programs))
 
 
-@partial(jax.jit, static_argnames=("bins", "spatial_bins", "group"))
-def _levels(scene: _Scene, state: _State, *, bins: int, spatial_bins: int, group: int) -> _State:
-    """Levels from ``state`` on, while the tree is not finished and each level's first
-    fitting program is in group ``group`` of :func:`program_groups`; each level in
-    that program (a ``lax.switch`` among the group's, which runs only the chosen one)."""
-    groups = program_groups(level_programs(scene.tri.shape[0]))
-    programs, cheaper = groups[group], [p for g in groups[:group] for p in g]
-    levels = [partial(_level, scene, bins=bins, spatial_bins=spatial_bins, slots=slots, live=live)
-              for slots, live in programs]
-
-    def level(s: _State) -> _State:
-        if len(levels) == 1:
-            return levels[0](s)
-        return jax.lax.switch(jnp.argmax(_fits(s, programs)), levels, s)
+@partial(jax.jit, static_argnames=("bins", "spatial_bins", "program"))
+def _levels(scene: _Scene, state: _State, *, bins: int, spatial_bins: int, program: int) -> _State:
+    """Levels from ``state`` on, in program ``program`` of :func:`level_programs`, while
+    the tree is not finished and that program is the first that holds the level."""
+    programs = level_programs(scene.tri.shape[0])
+    slots, live = programs[program]
+    cheaper = programs[:program]
 
     def more(s: _State):
-        here = (s.next_free > s.level_start) & jnp.any(_fits(s, programs))
+        here = (s.next_free > s.level_start) & _fits(s, [(slots, live)])[0]
         return here & ~jnp.any(_fits(s, cheaper)) if cheaper else here
 
+    level = partial(_level, scene, bins=bins, spatial_bins=spatial_bins, slots=slots, live=live)
     return jax.lax.while_loop(more, level, state)
 
 
-#: growth of the per-level node slots F from one level program to the next (:func:`stage_slots`) ...
-STAGE_GROWTH = 4
-#: ... up to DOUBLING_STAGE node slots; past it F doubles (seventh round, from 4,096:
-#: legocar's levels of 4.5-5.8k open nodes at max_leaf 1 ran on all R slots, ~4x the time
-#: of a 4,096 level; eleventh round, from 1,024: its levels of 1.4-1.6k open nodes at
-#: max_leaf 16 ran on 4,096 slots, 13-15 ms a level more than on 2,048)
-DOUBLING_STAGE = 1024
-#: the level programs of at most FINE_STAGE node slots are compiled together (:func:`program_groups`)
-FINE_STAGE = 4096
-#: reference slots up to which the engine compiles one level program
+#: reference slots up to which the engine compiles one level program (all R slots)
 SMALL_STAGE = 512
-
-
-#: the deep levels' program: at most TAIL_SLOTS open nodes ...
-TAIL_SLOTS = 512
-#: ... and at most live_slots / TAIL_LIVE_DIVISOR references
-TAIL_LIVE_DIVISOR = 16
+#: the narrow level program has live_slots / NARROW_NODE_DIVISOR node slots (:func:`level_programs`)
+NARROW_NODE_DIVISOR = 2
 
 
 def live_slots(refs: int) -> int:
@@ -501,34 +468,22 @@ def live_slots(refs: int) -> int:
     return refs if refs <= SMALL_STAGE else min(refs, capacity_bucket(-(-2 * refs // 3)))
 
 
-def stage_slots(refs: int) -> list[int]:
-    """Slot counts F of the engine's level programs for ``refs`` reference slots: 64,
-    64 x ``STAGE_GROWTH``, ... up to ``DOUBLING_STAGE``, then doubling, none past half of
-    ``refs``; then ``refs`` (only ``refs`` up to ``SMALL_STAGE`` slots). The open nodes
-    of a level are at most ``refs``, so the last takes any level. Each program compiles
-    the level once more, and saves the work of per-node arrays sized for the widest
-    level on every narrower one."""
-    if refs <= SMALL_STAGE:  # small inputs: one stage (one compiled level) is cheap enough
-        return [refs]
-    out, f = [], 64
-    while 2 * f <= refs:  # one of more than half the slots would save little over the last
-        out.append(f)
-        f *= STAGE_GROWTH if f < DOUBLING_STAGE else 2
-    return out + [refs]
-
-
 def level_programs(refs: int) -> list[tuple[int, int]]:
     """The (F, M) of the engine's compiled levels for ``refs`` reference slots, cheapest
-    first: the tail (``TAIL_SLOTS`` nodes, ``live_slots / TAIL_LIVE_DIVISOR``
-    references), then F from :func:`stage_slots` on ``live_slots`` compacted
-    references, last all ``refs`` slots uncompacted (any level fits it). Each level runs
-    in the first that holds its open nodes and references, so a level never pays for
-    per-node arrays much wider than it needs, whether above or below the widest level
-    (small inputs: one program)."""
-    slots = stage_slots(refs)
-    if len(slots) == 1:
+    first: up to ``SMALL_STAGE`` slots one, ``(refs, refs)``; past it two, the *narrow*
+    one (``live_slots / NARROW_NODE_DIVISOR`` node slots on ``live_slots`` compacted
+    references) and the *wide* one (all ``refs`` slots uncompacted: any level fits it).
+
+    Two programs, not one per level size: each compiles the whole level (some 3,600
+    StableHLO ops, ~10 CPU-s of XLA on spot), and compiling was most of a cold build
+    (thirteenth round: seven stage programs of 64 .. 4,096 node slots and a tail cost
+    spot ~62 CPU-s cold for a 0.2 s build). The narrow program holds every level of the
+    builds measured at ``max_leaf`` 4 (open nodes at most about half the references),
+    so they compile one level; the wide one is compiled only for a level that does not
+    fit (more references than ``live_slots``, or more open nodes than its node slots).
+    The price: the top levels and the deep ones run on per-node arrays sized for the
+    widest level (spot: 0.2 s to 0.38 s a build)."""
+    if refs <= SMALL_STAGE:
         return [(refs, refs)]
     live = live_slots(refs)
-    tail = (TAIL_SLOTS, max(TAIL_SLOTS, live // TAIL_LIVE_DIVISOR))
-    grow = [(f, live) for f in slots[:-1] if not (f <= tail[0] and live <= tail[1])]
-    return [tail] + grow + [(refs, refs)]
+    return [(max(1, live // NARROW_NODE_DIVISOR), live), (refs, refs)]

@@ -205,7 +205,7 @@ def _greedy_state(scene: _Scene, n) -> _State:
     dtype = scene.lo.dtype
     is_prim = jnp.arange(cap, dtype=jnp.int32) < n
     # one permutation per axis, each run sorted by centre (stable: equal centres by id)
-    orders = jnp.stack([jnp.argsort(scene.centre[:, a], stable=True).astype(jnp.int32) for a in range(3)])
+    orders = jnp.argsort(scene.centre.T, axis=1, stable=True).astype(jnp.int32)  # one sort op for all axes
     int_nodes = jnp.full(nodes, -1, jnp.int32)
     return _State(
         orders=orders, pos_node=jnp.where(is_prim, 0, nodes).astype(jnp.int32),
@@ -244,9 +244,10 @@ def _runs(s: _State) -> _Runs:
     cap = s.pos_node.shape[0]
     none = s.count.shape[0]
     pos = jnp.arange(cap, dtype=jnp.int32)
-    active = s.frontier.at[s.pos_node].get(mode="fill", fill_value=False)
-    start = s.start.at[s.pos_node].get(mode="fill", fill_value=0)
-    count = s.count.at[s.pos_node].get(mode="fill", fill_value=0)
+    # one gather of the node's (open, start, count); padding and done positions read 0s
+    at = jnp.stack([s.frontier.astype(jnp.int32), s.start, s.count], axis=1).at[s.pos_node].get(
+        mode="fill", fill_value=0)
+    active, start, count = at[:, 0] == 1, at[:, 1], at[:, 2]
     offset = pos - start
     return _Runs(active=active, seg=jnp.where(active, s.pos_node, none), start=start, count=count,
                  offset=offset, first=offset == 0, last=offset == count - 1)
@@ -255,26 +256,81 @@ def _runs(s: _State) -> _Runs:
 def _node_boxes(scene: _Scene, s: _State, runs: _Runs):
     """Boxes [nodes, 3] of the nodes on this level (others keep theirs)."""
     nodes = s.count.shape[0]
-    prim0 = s.orders[0]
-    box_lo = jax.ops.segment_min(scene.lo[prim0], runs.seg, num_segments=nodes + 1)[:nodes]
-    box_hi = jax.ops.segment_max(scene.hi[prim0], runs.seg, num_segments=nodes + 1)[:nodes]
+    box_lo, box_hi = _segment_bounds(scene.lo[s.orders[0]], scene.hi[s.orders[0]], runs.seg, nodes)
     return jnp.where(s.frontier[:, None], box_lo, s.lo), jnp.where(s.frontier[:, None], box_hi, s.hi)
 
 
-def _segmented_box_scan(lo, hi, starts):
-    """Inclusive running box along axis 1 of [S, P, 3] boxes, restarting where ``starts``.
+def _segment_bounds(lo, hi, seg, nodes):
+    """Per-segment min of ``lo`` and max of ``hi`` ([P, 3] each) as [nodes, 3] each.
 
-    ``starts``: [S, P] bool. One scan serves many sequences at once (all axes, forward
-    and backward), which keeps the compiled program small.
+    One scatter-min of ``(lo, -hi)`` (negation is exact), not a min and a max: every
+    scatter is a separately compiled loop on CPU.
     """
+    both = jax.ops.segment_min(jnp.concatenate([lo, -hi], axis=1), seg, num_segments=nodes + 1)[:nodes]
+    return both[:, :3], -both[:, 3:]
 
-    def combine(a, b):
-        fa, la, ha = a
-        fb, lb, hb = b
-        return (fa | fb, jnp.where(fb[..., None], lb, jnp.minimum(la, lb)),
-                jnp.where(fb[..., None], hb, jnp.maximum(ha, hb)))
 
-    _, run_lo, run_hi = jax.lax.associative_scan(combine, (starts, lo, hi), axis=1)
+_SCAN_BLOCK = 32  # positions per block of the segmented box scan (run time measured alike for 16 to 64)
+
+
+def _segmented_box_scan(lo, hi, offset, longest):
+    """Inclusive running box along axis 1 of [S, P, 3] boxes, each run restarting.
+
+    ``offset``: [S, P] int32, each position's distance from the first of its run;
+    ``longest``: int32, no run is longer. One scan serves many sequences at once (all
+    axes, forward and backward).
+
+    ``lax.associative_scan`` unrolls ``2 log2 P`` levels of slices, which was most of
+    the engine's compile time; this scan has a fixed small program instead: the
+    positions in blocks of ``_SCAN_BLOCK``, a sequential ``lax.scan`` within every block
+    at once, a doubling (Hillis-Steele) ``while_loop`` over the block ends that stops
+    once the longest run is covered, and a pass that gives each position whose run began
+    before its block the previous block's end. Min and max are exact, so the boxes are
+    the same in any order.
+    """
+    seqs, cap, _ = lo.shape
+    block = _SCAN_BLOCK
+    pad = -cap % block
+    if pad:  # padding positions are runs of their own (offset 0), cut off at the end
+        lo, hi = (jnp.pad(x, ((0, 0), (0, pad), (0, 0))) for x in (lo, hi))
+        offset = jnp.pad(offset, ((0, 0), (0, pad)))
+    blocks = (cap + pad) // block
+    offset = offset.reshape(seqs, blocks, block)
+
+    def by_column(x):  # [S, blocks * block, 3] -> [block, S, blocks, 3]
+        return jnp.moveaxis(x.reshape(seqs, blocks, block, 3), 2, 0)
+
+    def within(carry, column):  # one position of every block; the carry: the one before it
+        before_lo, before_hi = carry
+        column_lo, column_hi, take = column
+        column_lo = jnp.where(take, jnp.minimum(before_lo, column_lo), column_lo)
+        column_hi = jnp.where(take, jnp.maximum(before_hi, column_hi), column_hi)
+        return (column_lo, column_hi), (column_lo, column_hi)
+
+    lo_c, hi_c = by_column(lo), by_column(hi)
+    take = jnp.moveaxis(offset >= 1, 2, 0)[..., None]  # column 0 takes only from itself
+    _, (lo_c, hi_c) = jax.lax.scan(within, (lo_c[0], hi_c[0]), (lo_c, hi_c, take))
+    lo_b, hi_b = jnp.moveaxis(lo_c, 0, 2), jnp.moveaxis(hi_c, 0, 2)  # [S, blocks, block, 3]
+
+    end_offset = offset[:, :, -1]
+
+    def shifted(x, d):  # x[:, j - d], wrapping round (only read where the run reaches back)
+        return jax.lax.dynamic_slice_in_dim(jnp.concatenate([x, x], axis=1), blocks - d, blocks, axis=1)
+
+    def over_blocks(state):
+        # before: each block end holds the box of its run within the last d blocks; after: 2 d
+        d, end_lo, end_hi = state
+        reach = (end_offset >= d * block)[..., None]
+        end_lo = jnp.where(reach, jnp.minimum(shifted(end_lo, d), end_lo), end_lo)
+        end_hi = jnp.where(reach, jnp.maximum(shifted(end_hi, d), end_hi), end_hi)
+        return 2 * d, end_lo, end_hi
+
+    _, end_lo, end_hi = jax.lax.while_loop(lambda s: s[0] * block < longest, over_blocks,
+                                           (jnp.int32(1), lo_b[:, :, -1], hi_b[:, :, -1]))
+    before = (offset > jnp.arange(block, dtype=offset.dtype))[..., None]  # the run began before the block
+    prev_lo, prev_hi = shifted(end_lo, 1)[:, :, None], shifted(end_hi, 1)[:, :, None]
+    run_lo = jnp.where(before, jnp.minimum(prev_lo, lo_b), lo_b).reshape(seqs, cap + pad, 3)[:, :cap]
+    run_hi = jnp.where(before, jnp.maximum(prev_hi, hi_b), hi_b).reshape(seqs, cap + pad, 3)[:, :cap]
     return run_lo, run_hi
 
 
@@ -288,9 +344,10 @@ def _split_costs(scene: _Scene, orders, runs: _Runs):
     # forward sweeps (left sides) and backward sweeps (right sides) in one scan
     seq_lo = jnp.concatenate([lo_pos, lo_pos[:, ::-1]])
     seq_hi = jnp.concatenate([hi_pos, hi_pos[:, ::-1]])
-    starts = jnp.concatenate([jnp.broadcast_to(runs.first, (axes,) + runs.first.shape),
-                              jnp.broadcast_to(runs.last[::-1], (axes,) + runs.last.shape)])
-    run_lo, run_hi = _segmented_box_scan(seq_lo, seq_hi, starts)
+    from_end = runs.count - 1 - runs.offset  # a position's offset in the backward sweep
+    offset = jnp.concatenate([jnp.broadcast_to(runs.offset, (axes,) + runs.offset.shape),
+                              jnp.broadcast_to(from_end[::-1], (axes,) + from_end.shape)])
+    run_lo, run_hi = _segmented_box_scan(seq_lo, seq_hi, offset, jnp.max(jnp.where(runs.active, runs.count, 0)))
     fwd_lo, fwd_hi = run_lo[:axes], run_hi[:axes]
     # the right side of a split after p is the backward run starting at p + 1
     empty = jnp.full((axes, 1, 3), jnp.inf, lo_pos.dtype)
@@ -321,11 +378,10 @@ def _binned_candidates(scene: _Scene, s: _State, runs: _Runs, bins: int):
     nodes = s.count.shape[0]
     dtype = scene.lo.dtype
     c_pos = scene.centre[s.orders[0]]
-    cmin = jax.ops.segment_min(c_pos, runs.seg, num_segments=nodes + 1)[:nodes]
-    cmax = jax.ops.segment_max(c_pos, runs.seg, num_segments=nodes + 1)[:nodes]
+    cmin, cmax = _segment_bounds(c_pos, c_pos, runs.seg, nodes)
     span = (cmax - cmin).at[s.pos_node].get(mode="fill", fill_value=0).T  # [3, P]
     low = cmin.at[s.pos_node].get(mode="fill", fill_value=0).T
-    c_sorted = jnp.stack([scene.centre[s.orders[a], a] for a in range(3)])
+    c_sorted = jnp.take_along_axis(scene.centre.T, s.orders, axis=1)
     binsf = jnp.asarray(bins, dtype)
     raw = jnp.floor((c_sorted - low) * binsf / jnp.where(span > 0, span, 1))
     bin_sorted = jnp.where(runs.active & (span > 0), jnp.clip(raw, 0, binsf - 1), 0).astype(jnp.int32)
@@ -455,28 +511,29 @@ def _partition(s: _State, runs: _Runs, split, split_axis, n_left, left_id, right
     """Move the primitives of split nodes into their children's runs, stably in every
     axis order: ``(orders, pos_node)`` of the next level."""
     cap = s.pos_node.shape[0]
-    none = s.count.shape[0]
     pos = jnp.arange(cap, dtype=jnp.int32)
-    pos_split = runs.active & split.at[s.pos_node].get(mode="fill", fill_value=False)
-    axis_p = split_axis.at[s.pos_node].get(mode="fill", fill_value=0)
-    n_left_at = n_left.at[s.pos_node].get(mode="fill", fill_value=0)
+    # one gather of the node's split, axis, N_L and children; padding and done positions read
+    # 0s (only positions of split nodes use the children)
+    at = jnp.stack([split.astype(jnp.int32), split_axis, n_left, left_id, right_id], axis=1).at[s.pos_node].get(
+        mode="fill", fill_value=0)
+    pos_split = runs.active & (at[:, 0] == 1)
+    axis_p, n_left_at = at[:, 1], at[:, 2]
     # which primitives go left: the first N_L of the run in the split axis' order
     prim_at = jnp.take_along_axis(s.orders, axis_p[None, :], axis=0)[0]
     goes_left = runs.offset < n_left_at
     left_prim = jnp.zeros(cap, bool).at[jnp.where(pos_split, prim_at, cap)].set(goes_left, mode="drop")
-    rows = []
-    for a in range(3):
-        flag = left_prim[s.orders[a]] & pos_split
-        before = jnp.cumsum(flag.astype(jnp.int32)) - flag
-        rank_left = before - before.at[runs.start].get(mode="fill", fill_value=0)
-        rank_right = runs.offset - rank_left
-        target = jnp.where(flag, runs.start + rank_left, runs.start + n_left_at + rank_right)
-        target = jnp.where(pos_split, target, pos)
-        rows.append(jnp.zeros(cap, jnp.int32).at[target].set(s.orders[a]))
+    # all axes at once, [3, P] (one cumsum and one scatter in the program, not three)
+    flag = left_prim[s.orders] & pos_split
+    before = jnp.cumsum(flag.astype(jnp.int32), axis=1) - flag
+    rank_left = before - before.at[:, runs.start].get(mode="fill", fill_value=0)
+    rank_right = runs.offset - rank_left
+    target = jnp.where(flag, runs.start + rank_left, runs.start + n_left_at + rank_right)
+    target = jnp.where(pos_split, target, pos)
+    rows = jnp.arange(3, dtype=jnp.int32)[:, None]
+    orders = jnp.zeros_like(s.orders).at[jnp.broadcast_to(rows, target.shape), target].set(s.orders)
     # a primitive's new node follows from its new position
-    child_of_pos = jnp.where(runs.offset < n_left_at, left_id.at[s.pos_node].get(mode="fill", fill_value=none),
-                             right_id.at[s.pos_node].get(mode="fill", fill_value=none))
-    return jnp.stack(rows), jnp.where(pos_split, child_of_pos, s.pos_node)
+    child_of_pos = jnp.where(runs.offset < n_left_at, at[:, 3], at[:, 4])
+    return orders, jnp.where(pos_split, child_of_pos, s.pos_node)
 
 
 def _level(scene: _Scene, s: _State, *, method, bins, rcl, splits) -> _State:
@@ -497,16 +554,22 @@ def _level(scene: _Scene, s: _State, *, method, bins, rcl, splits) -> _State:
     n_left = jnp.where(split, n_left, 0)
     orders, pos_node = _partition(s, runs, split, split_axis, n_left, left_id, right_id)
 
-    def to_children(values, left_value, right_value):
-        return values.at[left_id].set(left_value, mode="drop").at[right_id].set(right_value, mode="drop")
-
-    tree_of = None if s.tree_of is None else to_children(s.tree_of, s.tree_of, s.tree_of)  # the parent's tree
+    # the children's start, count, parent, open flag (and tree), written by one scatter:
+    # rows [nodes, k] of the values now, of the left children and of the right ones
+    ones = jnp.ones(nodes, jnp.int32)
+    now = [s.start, count, s.parent, jnp.zeros(nodes, jnp.int32)]
+    to_left = [s.start, n_left, node_ids, ones]
+    to_right = [s.start + n_left, count - n_left, node_ids, ones]
+    if s.tree_of is not None:  # a child is in its parent's tree
+        now, to_left, to_right = now + [s.tree_of], to_left + [s.tree_of], to_right + [s.tree_of]
+    written = jnp.stack(now, axis=1).at[jnp.concatenate([left_id, right_id])].set(
+        jnp.concatenate([jnp.stack(to_left, axis=1), jnp.stack(to_right, axis=1)]), mode="drop")
+    tree_of = None if s.tree_of is None else written[:, 4]
     return _State(
         orders=orders, pos_node=pos_node,
-        start=to_children(s.start, s.start, s.start + n_left), count=to_children(count, n_left, count - n_left),
-        frontier=to_children(jnp.zeros(nodes, bool), True, True),
+        start=written[:, 0], count=written[:, 1], frontier=written[:, 3] == 1,
         left=jnp.where(split, left_id, s.left), right=jnp.where(split, right_id, s.right),
-        parent=to_children(s.parent, node_ids, node_ids), axis=jnp.where(split, split_axis, s.axis),
+        parent=written[:, 2], axis=jnp.where(split, split_axis, s.axis),
         prim_start=jnp.where(leaf, s.start, s.prim_start), prim_count=jnp.where(leaf, count, s.prim_count),
         lo=node_lo, hi=node_hi, next_free=s.next_free + 2 * jnp.sum(split, dtype=jnp.int32), tree_of=tree_of)
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib
+import os
 import pkgutil
 import sys
 import warnings
@@ -30,6 +31,7 @@ from pathlib import Path
 
 from jaxbvh import __version__, compile_cache
 from jaxbvh.cli import command_kit, commands
+from jaxbvh.cli.front import EXIT_USAGE, Parser
 from jaxbvh.io import MeshError, use_mesh_cache
 from jaxbvh.io import meshes as io
 from jaxbvh.tree.validate import InvalidTreeError
@@ -49,7 +51,20 @@ def command_names() -> list[str]:
 # an invalid tree (``"valid": false`` in its result, e.g. ``jaxbvh stats``); 2 bad input or
 # options, reported in one line on stderr
 EXIT_INVALID = 1
-EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report a command ended by Ctrl-C
+
+
+def exit_now(status: int) -> None:
+    """End the process with ``status`` at once, without the interpreter's shutdown.
+
+    After Ctrl-C inside a compile or a compiled call, XLA's threads may still be running,
+    and finalizing the interpreter under them crashed (SIGSEGV, exit 139, after the
+    ``interrupted`` line: one of four interrupted cold batches in our trials, issue 39).
+    Every file the tool writes is complete or absent at any moment (atomic writes), so
+    nothing is left to flush but stdout and stderr."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
 
 
 def cache_dir() -> Path:
@@ -87,25 +102,14 @@ def _load_commands() -> dict:
     return {name: importlib.import_module(f"jaxbvh.cli.commands.{name}") for name in command_names()}
 
 
-class Parser(argparse.ArgumentParser):
-    """argparse's parser with usage errors in the tool's one-line form:
-    ``jaxbvh: error: COMMAND: MESSAGE (see jaxbvh COMMAND --help)``, exit status 2,
-    like every other bad input (argparse would print the usage block first)."""
-
-    def error(self, message):
-        """Print ``message`` as one ``jaxbvh: error:`` line and exit with status 2."""
-        command = self.prog.split(" ", 1)[1] + ": " if " " in self.prog else ""
-        text = " ".join(f"{command}{message} (see {self.prog} --help)".split())
-        self.exit(EXIT_USAGE, f"jaxbvh: error: {text}\n")
-
-
 def make_parser() -> tuple[argparse.ArgumentParser, dict]:
     """The ``jaxbvh`` parser with one subparser per command, and ``{command: module}`` (each
     module has ``add_parser`` and ``run``)."""
     parser = Parser(
         prog="jaxbvh",
         description="Build, inspect and optimize BVHs for ray tracing (JAX).",
-        epilog=f"JAX compilation cache: {cache_dir()} (set JAXBVH_CACHE_DIR to move it).")
+        epilog="JAX compilation cache: ~/.cache/jaxbvh/jax (JAXBVH_CACHE_DIR moves it, "
+               "JAXBVH_CACHE=off turns it off).")
     parser.add_argument("--version", action="version", version=f"jaxbvh {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     subparsers.required = True
@@ -162,7 +166,9 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     except KeyboardInterrupt:
         print("jaxbvh: interrupted", file=sys.stderr)
-        return 130
+        if argv is None:  # the process's own command line (the console script): end it now
+            exit_now(EXIT_INTERRUPTED)
+        return EXIT_INTERRUPTED
     command_kit.print_result(result, as_json=getattr(args, "json", False))
     status = EXIT_INVALID if result.get("valid") is False else 0
     return status

@@ -16,6 +16,7 @@ import numpy as np
 import jaxbvh
 from jaxbvh.builders.configs import ALL_BUILDERS, DEFAULT_BUILDER, TRIANGLE_BUILDERS, BuilderConfig
 from jaxbvh.cli import options as config_options
+from jaxbvh.cli.front import int_option
 from jaxbvh.configs import INT_MAX, SAHCosts
 from jaxbvh.io import Mesh, TreeFile, bundled_mesh_path, load_any, load_mesh
 from jaxbvh.tree import layout as tree_mod
@@ -59,27 +60,31 @@ DEFAULT_SEED = 0
 BUILDER_EXCLUDE = ("pad", "dtype")
 
 
-def builder_options(default: BuilderConfig | None = None) -> config_options.ConfigOptions:
-    """The builder options; ``default``: a Config whose values are its builder's defaults
-    (None: every builder's class defaults)."""
-    configs = dict(ALL_BUILDERS)
+def builder_options(default: BuilderConfig | None = None, methods=ALL_BUILDERS) -> config_options.ConfigOptions:
+    """The builder options of the builders ``methods`` (names); ``default``: a Config whose
+    values are its builder's defaults (None: every builder's class defaults)."""
+    configs = {m: ALL_BUILDERS[m] for m in methods}
     if default is not None:
         configs[default.method] = default
     return config_options.ConfigOptions(configs, exclude=BUILDER_EXCLUDE, method_flag="--builder",
-                                        families=dict.fromkeys(ALL_BUILDERS, "builders"),
+                                        families=dict.fromkeys(configs, "builders"),
                                         check_while_parsing=True)
 
 
-def add_builder_args(parser, *, default: BuilderConfig | None = None) -> None:
+def add_builder_args(parser, *, default: BuilderConfig | None = None, methods=ALL_BUILDERS) -> None:
     """``--builder`` and the builders' knobs (:mod:`jaxbvh.builders.configs`); ``default``:
     the builder (its method and values) when no option says otherwise (None:
-    :data:`~jaxbvh.builders.configs.DEFAULT_BUILDER` with its class defaults)."""
+    :data:`~jaxbvh.builders.configs.DEFAULT_BUILDER` with its class defaults);
+    ``methods``: the builders a command offers (a command that builds from boxes alone
+    leaves out :data:`~jaxbvh.builders.configs.TRIANGLE_BUILDERS`)."""
     method = DEFAULT_BUILDER if default is None else default.method
-    parser.add_argument("--builder", choices=list(ALL_BUILDERS), default=method,
+    triangles = any(m in TRIANGLE_BUILDERS for m in methods)
+    parser.add_argument("--builder", choices=list(methods), default=method,
                         help="sweep, binned or median (top-down SAH engine), lbvh or ploc (bottom-up "
-                             "from Morton order: much faster on big inputs), sbvh (spatial splits: "
-                             "triangles in several leaves) (default: %(default)s)")
-    options = builder_options(default)
+                             "from Morton order: much faster on big inputs)"
+                             + (", sbvh (spatial splits: triangles in several leaves)" if triangles else "")
+                             + " (default: %(default)s)")
+    options = builder_options(default, methods)
     options.add_to(parser, "builder options (knobs of each builder's Config)")
     parser.set_defaults(builder_options=options)
 
@@ -115,22 +120,6 @@ def seed_key(seed: int):
     for word in words[1:] + [len(words), int(seed < 0)]:
         key = jax.random.fold_in(key, word)
     return key
-
-
-def int_option(minimum: int, maximum: int = INT_MAX):
-    """argparse ``type`` accepting integers in ``[minimum, maximum]`` (default: int32's
-    largest, the arrays' id and counter type)."""
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-        if not minimum <= value <= maximum:
-            raise argparse.ArgumentTypeError(f"expected an integer in [{minimum}, {maximum}], got {value}")
-        return value
-
-    return parse
 
 
 #: the old name of :func:`int_option`

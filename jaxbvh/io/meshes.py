@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxbvh.files import atomic_write
 from jaxbvh.tree.frame import Frame
 from jaxbvh.tree.interchange import load
 from jaxbvh.tree.validate import few_ids
@@ -372,10 +373,8 @@ def _write_cached(entry: Path, mesh: "Mesh") -> None:
         arrays[f"object{i}_vertices"], arrays[f"object{i}_faces"] = vertices, faces
     try:
         entry.parent.mkdir(parents=True, exist_ok=True)
-        tmp = entry.with_suffix(f".{os.getpid()}.tmp")
-        with open(tmp, "wb") as f:
+        with atomic_write(entry) as f:  # a reader in another process sees all or nothing
             np.savez(f, **arrays)
-        os.replace(tmp, entry)
     except OSError:
         pass  # a read-only cache folder: parse every time
 

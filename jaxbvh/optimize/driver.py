@@ -145,20 +145,17 @@ def compile_loop(optimizer, state: OptimizerState) -> float:
 
 
 def drive(optimizer, state: OptimizerState, *, budget: TimeBudget, on_step: Callable | None = None,
-          trace: list | None = None, clock: float | None = None, advance_fn: Callable = None) -> OptimizerState:
+          trace: list | None = None, clock: float | None = None) -> OptimizerState:
     """Chunks of steps until the state is done or the budget is spent (module docstring).
 
     Reports every step to ``on_step`` and appends its ``StepInfo`` to ``trace``.
-    ``advance_fn(step, state, stop)``: the loop of steps (default :data:`advance`; a
-    program compiled ahead of time under a budget).
     """
     clock = time.perf_counter() if clock is None else clock
-    advance_fn = advance if advance_fn is None else advance_fn
     budget.start()  # no-op when the caller started it
     done_steps, chunk = int(state.progress.step), 1
     while True:
         started = time.perf_counter()
-        state = advance_fn(optimizer.step, state, jnp.int32(done_steps + chunk))
+        state = advance(optimizer.step, state, jnp.int32(done_steps + chunk))
         # whole (small) arrays to the host: slicing on the device would compile a program
         # per slice shape
         progress = jax.device_get(state.progress)

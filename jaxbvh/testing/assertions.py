@@ -1,7 +1,8 @@
 """Assertions about trees that say what is wrong in one line (each raises ``AssertionError``).
 
 * :func:`assert_valid_tree` -- the invariants of :mod:`jaxbvh.tree.validate` (structure,
-  primitives, boxes containing children and primitives exactly).
+  primitives, boxes containing children and primitives exactly; ``references=True``,
+  ``triangles=`` for trees with references, an SBVH's).
 * :func:`assert_same_tree` -- two trees node for node, up to node numbering.
 * :func:`assert_costs_close` -- two SAH costs (of trees, or numbers) within ``rtol``.
 
@@ -26,13 +27,19 @@ def _is_tree(tree, name: str = "tree"):
         raise TypeError(f"{name}: expected a BVH or WideBVH, got {type(tree).__name__}{hint}")
 
 
-def assert_valid_tree(tree, lo=None, hi=None, n_prims: int | None = None) -> None:
+def assert_valid_tree(tree, lo=None, hi=None, n_prims: int | None = None, *, references: bool = False,
+                      triangles=None) -> None:
     """Fail unless ``tree`` is a valid BVH over primitive boxes ``lo``, ``hi`` [n, 3]
     (given in the tree's frame; optional: without them only ``n_prims`` primitives, or
     as many as the leaves reference, are expected, and primitive containment is not
-    checked). The message names the first broken invariant and counts the others."""
+    checked). The message names the first broken invariant and counts the others.
+
+    ``references``: the tree may name a primitive in several leaves (an SBVH's spatial
+    splits: each leaf box then holds a piece of the primitive, not all of it);
+    ``triangles`` [n, 3, 3] (the tree's frame) adds the check that a triangle's leaf
+    boxes together cover it. Both as :func:`jaxbvh.check`, which does the checking."""
     _is_tree(tree)
-    problems = check(tree, lo, hi, n_prims)
+    problems = check(tree, lo, hi, n_prims, references=references, triangles=triangles)
     if problems:
         more = f" (and {len(problems) - 1} more: {'; '.join(problems[1:3])})" if len(problems) > 1 else ""
         raise AssertionError(f"invalid BVH: {problems[0]}{more}")
@@ -102,15 +109,17 @@ def _first_difference(a, b, path: str):
     return None
 
 
-def assert_same_tree(a, b, *, boxes: bool = True, child_order: bool = True) -> None:
+def assert_same_tree(a, b, *, boxes: bool = True, child_order: bool = True, references: bool = False) -> None:
     """Fail unless trees ``a`` and ``b`` are the same node for node, up to node numbering
     (and the order of primitives inside a leaf): same shape from the root, same
     primitives in each leaf, and with ``boxes`` bit-equal boxes. ``child_order=False``
-    also ignores the order of each node's children. The message gives the path from the
-    root (``root.1.0``: the root's second child's first child) and what each tree has."""
+    also ignores the order of each node's children; ``references``: the trees may name a
+    primitive in several leaves (SBVH; :func:`assert_valid_tree`). The message gives the
+    path from the root (``root.1.0``: the root's second child's first child) and what
+    each tree has."""
     for name, tree in (("first", a), ("second", b)):
         _is_tree(tree, f"{name} tree")
-        problems = check(tree)
+        problems = check(tree, references=references)
         if problems:
             raise AssertionError(f"{name} tree is invalid: {problems[0]}")
     found = _first_difference(canonical(a, boxes=boxes, child_order=child_order),

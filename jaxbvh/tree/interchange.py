@@ -33,6 +33,7 @@ import zipfile
 
 import numpy as np
 
+from jaxbvh.files import atomic_write
 from jaxbvh.numerics import scale_for_extent
 from jaxbvh.tree.frame import Frame
 from jaxbvh.tree.layout import BVH, WideBVH, capacity_bucket, concat_ranges, pad_rows, real_nodes, to_numpy
@@ -281,12 +282,15 @@ def save(path: str | os.PathLike, tree, frame: Frame | None = None) -> None:
     """Write ``tree`` to ``path`` as an interchange ``.npz`` (padding removed).
 
     ``frame``, if given and not the identity, is stored as ``origin`` and ``scale``.
+    The file is replaced only once it is complete (:func:`jaxbvh.files.atomic_write`):
+    a write that fails leaves the old file as it was, and raises ``OSError`` naming
+    ``path``.
     """
     arrays = to_interchange(tree)
     if frame is not None and not frame.is_identity:
         arrays["origin"] = np.asarray(frame.origin, np.float64)
         arrays["scale"] = np.float64(frame.scale)
-    with open(path, "wb") as f:
+    with atomic_write(path) as f:
         np.savez(f, **arrays)
 
 

@@ -51,6 +51,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxbvh import compile_cache
+
+# the package's JAX code passes here before it compiles anything: the persistent
+# compilation cache is on from then (idempotent; jaxbvh.compile_cache says when not)
+compile_cache.enable_default()
+
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)

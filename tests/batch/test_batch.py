@@ -12,7 +12,7 @@ import textwrap
 import jax
 import numpy as np
 import pytest
-from helpers import REPO, assert_same_costs, local_boxes
+from helpers import REPO, assert_same_costs, crossing_slivers, local_boxes
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from strategies import triangle_soups
@@ -203,6 +203,43 @@ def test_bad_meshes_fail_alone():
     assert_same_arrays(trees[4], jaxbvh.build(*good))
     with pytest.raises(ValueError, match="mesh 1"):
         batch.build(meshes)
+
+
+def test_batched_sbvh_equals_single_sbvh_builds_and_optimizes():
+    """SBVH needs the triangles: each mesh is built by the single builder, the trees
+    grouped by reference slots (24 and 12 here), and every tree is the single build's;
+    the batch optimizer takes trees with references."""
+    tris = [crossing_slivers(rows, offset=0.01 * rows) for rows in (5, 6, 3, 5)]  # 10, 12, 6, 10 triangles
+    tris[3] = tris[3][:9]
+    meshes = [(t.min(1), t.max(1)) for t in tris]
+    knobs = dict(alpha=0.0, bins=8, max_leaf=1)  # alpha 0: spatial splits tried everywhere
+    result = batch.build(meshes, method="sbvh", triangles=tris, **knobs)
+    assert result.errors == {} and sorted(result.trees.capacities) == [12, 24]
+    out = batch.optimize(result.trees, "hc")
+    references = 0
+    for i, (t, (lo, hi), tree, optimized) in enumerate(zip(tris, meshes, result.trees.unstack(),
+                                                          out.trees.unstack())):
+        single = jaxbvh.build(lo, hi, method="sbvh", triangles=t, **knobs)
+        assert_same_arrays(tree, single, f"mesh {i}")
+        jaxbvh.validate(tree, lo, hi, references=True, triangles=t)
+        references += int(np.asarray(tree.prim_count).sum()) - t.shape[0]
+        assert_same_arrays(optimized, jaxbvh.optimize.optimize(single, "hc").tree, f"mesh {i} optimized")
+    assert references > 0  # the trees do have triangles in several leaves
+
+
+def test_batched_sbvh_needs_the_triangles_and_refuses_a_bad_mesh_alone():
+    tris = [crossing_slivers(5), crossing_slivers(5, offset=0.02)[:9]]
+    meshes = [(t.min(1), t.max(1)) for t in tris]
+    with pytest.raises(ValueError, match="mesh 0: method 'sbvh' needs the triangles"):
+        batch.build(meshes, method="sbvh")
+    with pytest.raises(ValueError, match="2 meshes but 1 triangle arrays"):
+        batch.build(meshes, method="sbvh", triangles=tris[:1])
+    # mesh 0's triangles do not match its boxes: its own error, mesh 1 built
+    kept = batch.build(meshes, method="sbvh", triangles=[tris[0][:3], tris[1]], errors="keep", bins=8)
+    assert list(kept.errors) == [0] and "mesh 0" in kept.errors[0]
+    trees = kept.trees.unstack()
+    assert trees[0] is None
+    assert_same_arrays(trees[1], jaxbvh.build(*meshes[1], method="sbvh", triangles=tris[1], bins=8))
 
 
 # ----------------------------------------------------------------------------------

@@ -20,7 +20,7 @@ from jaxbvh.testing.plugin import examples
 from jaxbvh.tree.frame import Frame
 
 SLOTS = 96  # one reference capacity for every soup (one compiled program per bins value)
-BIG_SLOTS = 640  # past jaxbvh.builders.sbvh.SMALL_STAGE: stages, compacted references
+BIG_SLOTS = 640  # past jaxbvh.builders.sbvh.SMALL_STAGE: two level programs, compacted references
 
 
 def local_triangles(tri, dtype=np.float32):
@@ -88,7 +88,7 @@ def test_jax_sbvh_equals_reference_where_spatial_splits_and_unsplitting_happen(s
     size = np.where(rng.random((n, 1, 1)) < 0.2, 1.0, 0.1)
     tri = (rng.uniform(-1, 1, (n, 1, 3)) + rng.normal(size=(n, 3, 3)) * size).astype(np.float32)
     config = SBVHConfig(alpha=0.0, max_leaf=2, bins=8)
-    # past SMALL_STAGE slots: the engine runs in stages and compacts each level's references
+    # past SMALL_STAGE slots: the engine's narrow program compacts each level's references
     got = build_sbvh(tri, config, capacity=BIG_SLOTS)
     want = reference.build(tri, config, capacity=BIG_SLOTS)
     assert want.spatial_splits > 0
@@ -199,10 +199,10 @@ def test_levels_no_narrow_program_holds_run_in_the_wide_ones():
     """520 references at 640 slots: the top levels hold more than the narrow program's 512
     and run in the wide one (compiled only then, :func:`jaxbvh.builders.sbvh.engine`),
     the deeper ones back in the narrow one; the tree is the binned builder's all the same."""
-    narrow, *wide = sbvh.program_groups(sbvh.level_programs(BIG_SLOTS))
+    (_, narrow_live), *wide = sbvh.level_programs(BIG_SLOTS)
     rng = np.random.default_rng(7)
     tri = (rng.random((520, 1, 3)) + 0.02 * rng.random((520, 3, 3))).astype(np.float32)
-    assert wide and max(live for _, live in narrow) < tri.shape[0] <= BIG_SLOTS
+    assert wide and narrow_live < tri.shape[0] <= BIG_SLOTS
     tri = local_triangles(tri)
     lo, hi = boxes(tri)
     got = build_sbvh(tri, SBVHConfig(alpha=1e30, max_leaf=1, bins=8), capacity=BIG_SLOTS)

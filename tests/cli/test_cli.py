@@ -462,3 +462,42 @@ def test_second_run_compiles_nothing(tmp_path, cache_dir):
     second_compiles, second_hits = run()
     assert second_compiles == 0
     assert second_hits >= first_compiles + first_hits > 10  # every program, from the cache
+
+
+_INTERRUPTED = """
+import atexit, sys
+from jaxbvh import cli
+from jaxbvh.cli.commands import build
+
+def interrupted(args):
+    raise KeyboardInterrupt
+
+build.run = interrupted
+atexit.register(lambda: print("interpreter shut down", flush=True))
+sys.argv = ["jaxbvh", "build"]
+sys.exit(cli.main())
+"""
+
+
+def test_ctrl_c_exits_130_at_once_in_the_console_script(capsys, monkeypatch):
+    """Ctrl-C (KeyboardInterrupt) in a command: one line, exit 130; run as the console
+    script (``main()`` reads the process's arguments) the process ends at once, without
+    the interpreter's shutdown that crashed under XLA's running threads (issue 39:
+    SIGSEGV after the line); called with arguments (in-process, as here) it returns 130."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.run([sys.executable, "-c", _INTERRUPTED], env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 130, proc.stderr[-2000:]
+    assert proc.stderr.strip() == "jaxbvh: interrupted"
+    assert "interpreter shut down" not in proc.stdout  # atexit never ran: no finalization
+    from jaxbvh.cli.commands import build
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(build, "run", interrupted)
+    assert run_cli(capsys, "build") == (130, "", "jaxbvh: interrupted\n")

@@ -154,6 +154,8 @@ def test_method_choices_default_to_the_library():
         assert action.default == DEFAULT_BUILDER and list(action.choices) == list(ALL_BUILDERS)
     action = next(a for a in SUBPARSERS["rebraid"]._actions if a.dest == "builder")
     assert action.default == two_level_objects.DEFAULT_BUILDER.method == "binned"
+    # two-level BVHs are built from boxes: only the builders that need no triangles are offered
+    assert list(action.choices) == list(BUILDERS) and "sbvh" not in action.help
     action = next(a for a in SUBPARSERS["optimize"]._actions if a.dest == "method")
     assert action.default == DEFAULT_METHOD == "pipeline" and list(action.choices) == list(OPTIMIZERS)
     assert inspect.signature(optimize).parameters["method"].default == DEFAULT_METHOD

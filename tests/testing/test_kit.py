@@ -17,6 +17,8 @@ from hypothesis import strategies as st
 
 import jaxbvh
 from jaxbvh.builders import configs, topdown_reference
+from helpers import crossing_slivers
+
 from jaxbvh.testing import (
     DEFECTS,
     assert_costs_close,
@@ -285,3 +287,26 @@ def test_kit_imports_without_pytest_or_hypothesis():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "needs hypothesis"
+
+
+def test_assertions_take_trees_with_references():
+    """An SBVH of a small mesh names triangles in several leaves: valid for
+    ``jaxbvh.check(..., references=True, triangles=tri)`` and so for the kit when told
+    (``references=``, ``triangles=``); refused as before when not told, and a leaf that
+    loses a piece of a triangle is refused even with references."""
+    from jaxbvh.builders import sbvh_reference
+
+    tri = crossing_slivers()  # long, crossing triangles: spatial splits pay
+    built = sbvh_reference.build(tri, configs.SBVHConfig(alpha=0.0, bins=8, max_leaf=1))
+    tree, lo, hi = built.tree, tri.min(1), tri.max(1)
+    assert built.references > tri.shape[0]  # a tree with references
+    assert jaxbvh.check(tree, lo, hi, references=True, triangles=tri) == []
+    assert_valid_tree(tree, lo, hi, references=True, triangles=tri)
+    assert_same_tree(tree, tree, references=True)
+    assert "more than once" in one_line_failure(assert_valid_tree, tree, lo, hi)
+    # a leaf box shrunk to nothing: its piece of the triangle is no longer covered
+    t = jaxbvh.to_numpy(tree)
+    leaf = int(np.flatnonzero(np.asarray(t.prim_count) > 0)[0])
+    t.lo[leaf] = t.hi[leaf]
+    message = one_line_failure(assert_valid_tree, t, lo, hi, references=True, triangles=tri)
+    assert message.startswith("invalid BVH: ")

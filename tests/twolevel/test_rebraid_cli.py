@@ -105,3 +105,13 @@ def test_bad_scenes_are_one_line_errors(capsys, tmp_path):
     empty.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n")
     assert_one_line_error(*run_cli(capsys, "rebraid", empty), "no faces")
     assert_one_line_error(*run_cli(capsys, "rebraid", tmp_path / "missing.gltf"), "missing.gltf")
+
+
+def test_sbvh_is_not_offered_and_refused_in_one_line(capsys, tmp_path):
+    """Two-level BVHs are built from boxes: --builder sbvh (and its knobs) is not a choice,
+    a usage error before any work rather than the library's refusal after loading."""
+    status, out, _ = run_cli(capsys, "rebraid", "--help")
+    assert status == 0 and "sbvh" not in out and "--alpha" not in out
+    mesh = grid_obj(tmp_path / "g.obj", 2, 0)
+    assert_one_line_error(*run_cli(capsys, "rebraid", mesh, "--builder", "sbvh"), "--builder", "sbvh")
+    assert_one_line_error(*run_cli(capsys, "rebraid", mesh, "--alpha", "0"), "--alpha")

@@ -4,16 +4,21 @@ INPUT is mesh files, globs (quoted, so the shell leaves them) or folders (their 
 files, not recursive). Every mesh is loaded, then all are built together
 (:func:`jaxbvh.batch.build`) and, for ``optimize``, optimized together
 (:func:`jaxbvh.batch.optimize`); each tree is validated against its mesh and written to
-``OUTDIR/<name>.npz`` (interchange, with its scene frame). The summary has one row per
+``OUTDIR/<name>.npz`` (interchange, with its scene frame), ``<name>`` the input's path below
+the folder all inputs share, suffix kept (``a.obj.npz``, ``sub/a.ply.npz``: unique by
+construction); an output file already there is an error before any work, unless
+``--overwrite``. The summary has one row per
 mesh (triangles, SAH after the build and after the optimizer, seconds: the mesh's share
 of its compiled calls) and the totals. On a CPU the batch runs on every core: JAX's CPU
 is split into one device per core (``--cpu-devices``; :func:`jaxbvh.batch.use_cpu_cores`). A mesh that fails to load, build or validate
 gets its own one-line error in its row, the others are still written, and the exit
-status is 1. Every option is checked before any mesh is read.
+status is 1. Every option is checked before any mesh is read. The trees are renamed into
+place together at the end, so an interrupted batch leaves none of its outputs.
 """
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import os
 import sys
@@ -25,6 +30,7 @@ import numpy as np
 
 import jaxbvh
 from jaxbvh.batch import BatchConfig, build, costs, optimize, use_cpu_cores
+from jaxbvh.builders.configs import TRIANGLE_BUILDERS
 from jaxbvh.cli import command_kit
 from jaxbvh.cli.commands.optimize import OPTIONS as OPTIMIZER_OPTIONS
 from jaxbvh.cli.options import add_config_options
@@ -44,7 +50,11 @@ def add_parser(subparsers):
     parser.add_argument("action", choices=ACTIONS, help="build the trees, or build and optimize them")
     parser.add_argument("inputs", metavar="INPUT", nargs="+", help="mesh files, globs or folders of meshes")
     parser.add_argument("-o", "--output", metavar="OUTDIR", default=None,
-                        help="folder for the trees (OUTDIR/<name>.npz; made if missing; required)")
+                        help="folder for the trees (OUTDIR/<input's path below the inputs' common folder>.npz, "
+                             "e.g. OUTDIR/a.obj.npz; made if missing; required)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace tree files already in OUTDIR (default: such a file is an error, "
+                             "before any work)")
     parser.add_argument("--method", choices=tuple(OPTIMIZERS), default=DEFAULT_METHOD,
                         help=f"optimizer of 'batch optimize' (default: {DEFAULT_METHOD})")
     parser.add_argument("--cpu-devices", type=int, metavar="N", default=None,
@@ -79,17 +89,45 @@ def expand(inputs) -> list[Path]:
             out.append(path)
         else:
             raise ValueError(f"{text}: no such file or folder")
-    return list(dict.fromkeys(out))
+    unique: dict[str, Path] = {}
+    for p in out:  # each file once, however it was named (a.obj, ./a.obj, its absolute path)
+        unique.setdefault(os.path.abspath(p), p)
+    return list(unique.values())
 
 
 def output_names(paths) -> list[str]:
-    """``<stem>.npz`` per path; a stem seen before gets ``-2``, ``-3``, ..."""
-    seen: dict[str, int] = {}
-    names = []
-    for p in paths:
-        seen[p.stem] = seen.get(p.stem, 0) + 1
-        names.append(p.stem + ("" if seen[p.stem] == 1 else f"-{seen[p.stem]}") + ".npz")
+    """The output name of each path: the path relative to the folder all the inputs share,
+    its suffix kept, then ``.npz`` (``a.obj`` -> ``a.obj.npz``, ``sub/a.ply`` ->
+    ``sub/a.ply.npz``). Distinct files get distinct names by construction (stems alone
+    would not: ``a.obj`` and ``a.ply``); ``ValueError`` if two names still clash."""
+    absolute = [os.path.abspath(p) for p in paths]
+    root = os.path.commonpath([os.path.dirname(a) for a in absolute]) if absolute else ""
+    names = [Path(os.path.relpath(a, root)).as_posix() + ".npz" for a in absolute]
+    first: dict[str, Path] = {}
+    for path, name in zip(paths, names):
+        if name in first:
+            raise ValueError(f"{first[name]} and {path} would both be written to {name}")
+        first[name] = path
     return names
+
+
+def check_outputs(out_dir: Path, names, overwrite: bool) -> None:
+    """``ValueError`` before any work when an output is in the way: a folder, or (unless
+    ``overwrite``) a file a run would replace."""
+    in_the_way = [out_dir / n for n in names if (out_dir / n).exists() or (out_dir / n).is_symlink()]
+    folders = [p for p in in_the_way if p.is_dir()]
+    if folders:
+        raise ValueError(f"{folders[0]} is a folder, where the tree of a mesh would be written")
+    if in_the_way and not overwrite:
+        more = f" (and {len(in_the_way) - 1} more)" if len(in_the_way) > 1 else ""
+        raise ValueError(f"{in_the_way[0]} exists{more}: pass --overwrite to replace the trees in "
+                         f"{out_dir}, or choose another -o")
+
+
+def staged_name(output: str) -> str:
+    """Where ``output`` is written before the batch renames it into place: beside it, hidden."""
+    folder, name = os.path.split(output)
+    return os.path.join(folder, f".{name}.{os.getpid()}.staged")
 
 
 def _one_line(exc: BaseException) -> str:
@@ -131,7 +169,9 @@ def run(args) -> dict:
         raise ValueError(f"--output {out_dir} is a file, not a folder")
     paths = expand(args.inputs)
     names = output_names(paths)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    check_outputs(out_dir, names, args.overwrite)
+    for name in dict.fromkeys(os.path.dirname(n) for n in names):
+        (out_dir / name).mkdir(parents=True, exist_ok=True)
 
     started = time.perf_counter()
     rows = [{"mesh": str(p), "output": str(out_dir / n)} for p, n in zip(paths, names)]
@@ -153,7 +193,10 @@ def run(args) -> dict:
         bar.reset(total=len(loaded))
         bar.set_description("build")
         clock = Clock(bar, len(loaded))
-        built = build([boxes[i] for i in loaded], builder, batch=batch_config, errors="keep", on_chunk=clock)
+        # a builder that needs the triangles (sbvh) gets them in the boxes' frame
+        triangles = [meshes[i].local_triangles() for i in loaded] if builder.method in TRIANGLE_BUILDERS else None
+        built = build([boxes[i] for i in loaded], builder, batch=batch_config, errors="keep", on_chunk=clock,
+                      triangles=triangles)
         for k, message in built.errors.items():
             rows[loaded[k]]["error"] = f"build: {message.replace(f'mesh {k}', 'mesh')}"
         seconds = clock.seconds
@@ -169,22 +212,44 @@ def run(args) -> dict:
             trees = figures.trees
         bar.reset(total=len(loaded))
         bar.set_description("save")
-        for k, tree in enumerate(trees.unstack()):
-            i = loaded[k]
-            if tree is None:
-                continue
-            row = rows[i]
-            try:
-                lo, hi = boxes[i]
-                jaxbvh.validate(tree, lo, hi)
-                tree = compact(tree)
-                jaxbvh.save(row["output"], tree, frame=meshes[i].frame)
-                row["sah_built"] = float(sah_built[k])
-                row["sah"] = float(figures.sah[k]) if figures is not None else float(sah_built[k])
-                row["seconds"] = float(seconds[k])
-            except Exception as exc:  # noqa: BLE001 (a tree that fails its checks is that mesh's row)
-                row["error"] = f"validate: {_one_line(exc)}"
-            bar.update(1)
+        # every tree is written beside its output first and all are renamed into place at
+        # the end: an interrupted batch (Ctrl-C) leaves none of its outputs, and no
+        # output it would have replaced is lost
+        staged = []
+        try:
+            for k, tree in enumerate(trees.unstack()):
+                i = loaded[k]
+                if tree is None:
+                    continue
+                row = rows[i]
+                stage = "validate"
+                try:
+                    lo, hi = boxes[i]
+                    if triangles is None:
+                        jaxbvh.validate(tree, lo, hi)
+                    else:  # a triangle may sit in several leaves: each leaf box holds a piece of it
+                        jaxbvh.validate(tree, lo, hi, references=True, triangles=triangles[k])
+                    tree = compact(tree)
+                    stage = "write"  # atomic: a failed write leaves no file behind
+                    temporary = staged_name(row["output"])
+                    try:
+                        jaxbvh.save(temporary, tree, frame=meshes[i].frame)
+                    except OSError as exc:  # named by its output, not the staging name
+                        raise OSError(exc.errno, exc.strerror, row["output"]) from None
+                    staged.append((temporary, row["output"]))
+                    row["sah_built"] = float(sah_built[k])
+                    row["sah"] = float(figures.sah[k]) if figures is not None else float(sah_built[k])
+                    row["seconds"] = float(seconds[k])
+                except Exception as exc:  # noqa: BLE001 (a tree that fails its checks is that mesh's row)
+                    row["error"] = f"{stage}: {_one_line(exc)}"
+                bar.update(1)
+            for temporary, output in staged:
+                os.replace(temporary, output)
+        except BaseException:
+            for temporary, _ in staged:
+                with contextlib.suppress(OSError):
+                    os.unlink(temporary)
+            raise
     bar.close()
     for row in rows:
         if "error" in row:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import inspect
 import math
+import os
 import warnings
 
 import numpy as np
@@ -13,6 +14,7 @@ from jaxbvh import rays
 from jaxbvh.cli import command_kit
 from jaxbvh.cli import options as config_options
 from jaxbvh.configs import SAHCosts
+from jaxbvh.files import atomic_write
 from jaxbvh.io import load_mesh
 from jaxbvh.rays import traversal as traverse
 from jaxbvh.rays.measure import KINDS, MODES
@@ -124,11 +126,14 @@ def run(args) -> dict:
         result.update(summary)
         with stages("write"):
             if args.save:
-                np.savez(args.save, origin=frame.to_world(origin), direction=direction.astype(np.float64),
-                         t=np.where(hits.prim >= 0, hits.t.astype(np.float64) * frame.scale, np.inf),
-                         prim=hits.prim, box_tests=hits.box_tests, prim_tests=hits.prim_tests,
-                         nodes_visited=hits.nodes_visited)
-                result["saved"] = args.save
+                # np.savez's rule for a name without the suffix (it adds .npz)
+                saved = args.save if args.save.endswith(".npz") else args.save + ".npz"
+                with atomic_write(saved) as f:
+                    np.savez(f, origin=frame.to_world(origin), direction=direction.astype(np.float64),
+                             t=np.where(hits.prim >= 0, hits.t.astype(np.float64) * frame.scale, np.inf),
+                             prim=hits.prim, box_tests=hits.box_tests, prim_tests=hits.prim_tests,
+                             nodes_visited=hits.nodes_visited)
+                result["saved"] = saved
             if args.image:
                 if args.kind == "camera":
                     image_hits, image_dir, size = hits, direction, rays.camera_size(args.rays)
@@ -180,5 +185,9 @@ def render(path, hits, triangles, direction, width: int, height: int, note: str 
         ax.set_axis_off()
     if note:
         fig.suptitle(note)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    try:
+        # a file object has no name to infer the format from: the suffix's (.png by default)
+        with atomic_write(path) as f:
+            fig.savefig(f, dpi=100, format=os.path.splitext(path)[1][1:].lower() or "png")
+    finally:
+        plt.close(fig)

@@ -1,0 +1,54 @@
+"""Writing files so that a failed write loses nothing: :func:`atomic_write`.
+
+Every file the library and the ``jaxbvh`` tool write (trees, hits, images, batch
+outputs, cached meshes) goes through :func:`atomic_write`: the bytes go to a temporary
+file in the target's folder, which is renamed over the target only once it is complete.
+A write that fails part-way (a full disk, a file size limit, an exception in the code
+producing the bytes) leaves the old file byte-for-byte as it was and no temporary
+behind. (A module of its own, below :mod:`jaxbvh.tree` and :mod:`jaxbvh.io`, because
+both write files and :mod:`jaxbvh.io` imports :mod:`jaxbvh.tree`.)
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import secrets
+import stat
+
+
+@contextlib.contextmanager
+def atomic_write(path: str | os.PathLike, mode: str = "wb"):
+    """A file object to write ``path``'s new contents to; ``path`` is replaced when the
+    ``with`` block ends without an exception, and left as it was otherwise.
+
+    The temporary file sits in ``path``'s folder (``.<name>.<pid>.<random>.tmp``), so the
+    final :func:`os.replace` is a rename within one file system: readers see the old file
+    or the new one, never a part. The contents are flushed to disk (``fsync``) before the
+    rename, so errors the file system reports late (a full disk) still leave the old
+    file. An existing target keeps its permission bits; a symbolic link keeps pointing
+    where it did (the file it points to is replaced).
+
+    Raises the block's exception after removing the temporary file; an ``OSError``
+    (from the block or from the write itself) is raised again naming ``path``, as
+    ``OSError(errno, strerror, path)``.
+    """
+    path = os.fspath(path)
+    target = os.path.realpath(path)  # write through a link, as open(path, "w") would
+    folder, name = os.path.split(target)
+    tmp = os.path.join(folder, f".{name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+    try:
+        # "x": never over another file; the umask applies, as for any new file
+        with open(tmp, mode.replace("w", "x")) as f:
+            yield f
+            f.flush()
+            os.fsync(f.fileno())
+        with contextlib.suppress(FileNotFoundError):
+            os.chmod(tmp, stat.S_IMODE(os.stat(target).st_mode))
+        os.replace(tmp, target)
+    except BaseException as exc:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        if isinstance(exc, OSError) and exc.filename != path:
+            raise OSError(exc.errno, exc.strerror or str(exc), path) from exc
+        raise
