@@ -46,6 +46,7 @@ from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxbvh.configs import Checked, ci_knob, config_of, ct_knob, integer, knob, optional, real, split_axes_knob
 from jaxbvh.optimize import reinsert, treelet
@@ -244,7 +245,7 @@ def init(tree, config: Config | None = None, key=None) -> OptimizerState:
     tree = to_jax(tree)
     dtype = float_dtype(tree)
     # one SAH for the three progress records (each stage's config has the pipeline's ct, ci)
-    sah_start = sah_of(tree, config.ct, config.ci)
+    sah_start = reinsert.start_sah(tree, config.ct, config.ci)
     treelets = treelet.init(tree, config.treelet, sah_start=sah_start)
     if config.first_treelet_passes is not None:
         # the first round's own pass limit (traced: the same program as later rounds')
@@ -252,7 +253,7 @@ def init(tree, config: Config | None = None, key=None) -> OptimizerState:
         treelets = treelets.replace(progress=treelets.progress._replace(
             limit=jnp.int32(first), done=treelets.progress.done | (first <= 0)))
     reinsertion = reinsert.init(tree, config.reinsert, sah_start=sah_start)  # its params and settings; restarted later
-    nodes = int(jnp.sum(tree.parent >= 0))
+    nodes = int(np.count_nonzero(np.asarray(tree.parent) >= 0))  # on the host: no program
     params = Params(ct=jnp.asarray(config.ct, dtype), ci=jnp.asarray(config.ci, dtype),
                     round_gain=jnp.asarray(config.round_gain, dtype), max_rounds=jnp.int32(config.max_rounds),
                     need_first=reinsertion.params.need, need_later=jnp.int32(candidates_needed(1.0, nodes)),

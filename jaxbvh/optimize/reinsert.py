@@ -135,6 +135,7 @@ from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxbvh.configs import Checked, ci_knob, ct_knob, integer, knob, min_gain_knob, optional, real, split_axes_knob
 from jaxbvh.numerics import min_gain as default_min_gain
@@ -275,7 +276,8 @@ def init(tree, config: Config | None = None, key=None, *, sah_start=None) -> Opt
     min_gain = default_min_gain(dtype) if config.min_gain is None else config.min_gain
     # the node count never changes while optimizing: the first candidates' count is
     # taken here, on the host (reinsert_rules)
-    nodes = int(jnp.sum(tree.parent >= 0))
+    # on the host: an eager jnp sum would compile two small programs
+    nodes = int(np.count_nonzero(np.asarray(tree.parent) >= 0))
     escalate = escalate_for(nodes, config.escalate)
     params = Params(*(jnp.asarray(x, dtype) for x in (config.ct, config.ci, min_gain, escalate)),
                     max_steps=jnp.int32(config.max_steps),
@@ -284,6 +286,11 @@ def init(tree, config: Config | None = None, key=None, *, sah_start=None) -> Opt
                     widen_until=jnp.int32(widening_stop(config.widen_until, nodes)))
     limit = config.max_iterations if config.ct > 0 else 0  # with Ct = 0 no move changes the SAH
     return restart(params, tree, limit, sah_start)
+
+
+#: ``sah_of(tree, ct, ci)`` as one compiled program (called eagerly, its indexing of the
+#: node costs would compile five more small ones); what the optimizers' ``init`` use
+start_sah = jax.jit(sah_of)
 
 
 @jax.jit
@@ -297,7 +304,7 @@ def restart(params: Params, tree, limit: int, sah_start=None) -> OptimizerState:
     """The state of a fresh run on ``tree`` (a JAX BVH) with these settings (traceable:
     the pipeline starts each reinsertion stage with it). ``limit``: most iterations.
     ``sah_start``: the tree's SAH with ``params.ct``, ``params.ci`` (None: computed here)."""
-    sah_start = sah_of(tree, params.ct, params.ci) if sah_start is None else sah_start
+    sah_start = start_sah(tree, params.ct, params.ci) if sah_start is None else sah_start
     progress = new_progress(sah_start, limit, float_dtype(tree))
     # every setting is traced (no static part): one compiled program for every config
     return OptimizerState(tree, progress, params, _start(tree, params.need), None)

@@ -19,11 +19,40 @@ from jaxbvh.numerics import half_area, take
 #: the six moves, in the fixed order of the choice rules (names: the two slots swapped)
 MOVES = ("L<->RL", "L<->RR", "R<->LL", "R<->LR", "LL<->RL", "LL<->RR")
 
-# The two slots each move swaps, as (which node, which side). Node codes: 0 = n, 1 = L, 2 = R.
+# The six moves as index tables over an axis of moves (and one of parts): the scoring and
+# the application are written once, vectorised over the moves, instead of once per move
+# in Python (which XLA compiled into a kernel per move and field: compile time only,
+# the same arithmetic on every value).
+#
+# The parts of a node n, in this order along the part axis: its children and grandchildren
+_L, _R, _LL, _LR, _RL, _RR = range(6)
+# The two slots each move swaps, as (which node, which side); node codes 0 = n, 1 = L,
+# 2 = R; _PART_OF_SLOT: the part each slot holds
 _SLOT_A = ((0, 0), (0, 0), (0, 1), (0, 1), (1, 0), (1, 0))
 _SLOT_B = ((2, 0), (2, 1), (1, 0), (1, 1), (2, 0), (2, 1))
+_PART_OF_SLOT = {(0, 0): _L, (0, 1): _R, (1, 0): _LL, (1, 1): _LR, (2, 0): _RL, (2, 1): _RR}
 _CHANGES_L = (False, False, True, True, True, True)
 _CHANGES_R = (True, True, False, False, True, True)
+# The eight new children the moves make, each the union of two parts (a, b), in this
+# order after the six parts (entries 6 .. 13 of the "extended" part axis):
+#   r0 = (L, RR), r1 = (RL, L), l2 = (R, LR), l3 = (LL, R), l4 = (RL, LR), r4 = (LL, RR),
+#   l5 = (RR, LR), r5 = (RL, LL)
+_COMBINED_A = (_L, _RL, _R, _LL, _RL, _LL, _RR, _RL)
+_COMBINED_B = (_RR, _L, _LR, _R, _LR, _RR, _LR, _LL)
+_R0, _R1, _L2, _L3, _L4, _R4, _L5, _R5 = range(6, 14)
+# n's children after each move (extended part indices): C(n) after move m is the cost of
+# n over (_N_LEFT[m], _N_RIGHT[m]); _NEW_LEFT / _NEW_RIGHT: what L's / R's slot holds
+# after the move (read only where the move changes that slot, _CHANGES_L / _CHANGES_R)
+_N_LEFT = (_RL, _RR, _L2, _L3, _L4, _L5)
+_N_RIGHT = (_R0, _R1, _LL, _LR, _R4, _R5)
+_NEW_LEFT = (_L, _L, _L2, _L3, _L4, _L5)
+_NEW_RIGHT = (_R0, _R1, _R, _R, _R4, _R5)
+# every per-move setting the application reads, one row per move (read with one gather)
+_A_NODE, _B_NODE, _A_SIDE, _B_SIDE, _A_PART, _B_PART, _NEW_L, _NEW_R, _CHANGE_L, _CHANGE_R = range(10)
+_MOVE_TABLE = tuple(zip((a for a, _ in _SLOT_A), (b for b, _ in _SLOT_B), (side for _, side in _SLOT_A),
+                        (side for _, side in _SLOT_B), (_PART_OF_SLOT[slot] for slot in _SLOT_A),
+                        (_PART_OF_SLOT[slot] for slot in _SLOT_B), _NEW_LEFT, _NEW_RIGHT,
+                        map(int, _CHANGES_L), map(int, _CHANGES_R)))
 
 
 class State(NamedTuple):
@@ -44,13 +73,10 @@ class State(NamedTuple):
 # ----------------------------------------------------------------------------------
 
 
-def _select(choice, options):
-    """``options[choice]`` elementwise: ``options`` a list of 6 arrays [W, ...]."""
-    out = options[0]
-    c = choice.reshape(choice.shape + (1,) * (out.ndim - 1))
-    for k in range(1, len(options)):
-        out = jnp.where(c == k, options[k], out)
-    return out
+def _pick(values, index):
+    """``values[w, index[w]]`` along axis 1: ``values`` [W, K, ...], ``index`` [W] int."""
+    at = index.reshape(index.shape + (1,) * (values.ndim - 1))
+    return jnp.take_along_axis(values, at, axis=1)[:, 0]
 
 
 def node_cost(parent_area, area_a, cost_a, area_b, cost_b, ct):
@@ -66,17 +92,19 @@ def node_cost(parent_area, area_a, cost_a, area_b, cost_b, ct):
 
 
 class _Part(NamedTuple):
-    lo: Any
-    hi: Any
-    area: Any
-    cost: Any
-    height: Any
+    """Boxes and figures of nodes, with any leading shape ([W, K] for K parts per node)."""
+
+    lo: Any      # [..., 3]
+    hi: Any      # [..., 3]
+    area: Any    # [...] scaled half-area
+    cost: Any    # [...] C
+    height: Any  # [...] int32
 
 
-def _gather_part(st, ids, scale):
-    lo = take(st.lo, ids, jnp.inf)
-    hi = take(st.hi, ids, -jnp.inf)
-    return _Part(lo, hi, half_area(lo, hi, scale), take(st.cost, ids, 0), take(st.height, ids, 0))
+def _parts_at(part: _Part, index) -> _Part:
+    """The parts at ``index`` (a static tuple) along axis 1."""
+    index = jnp.asarray(index, jnp.int32)
+    return _Part(*(x[:, index] for x in part))
 
 
 def _combine(a: _Part, b: _Part, scale, ct) -> _Part:
@@ -90,17 +118,22 @@ def _combine(a: _Part, b: _Part, scale, ct) -> _Part:
 class Scores(NamedTuple):
     """The six moves of a set of nodes ``n`` [W], scored (:func:`score`)."""
 
-    left: Any        # [W] int32: L (N: none)
-    right: Any       # [W] int32: R
-    grand: Any       # (LL, LR, RL, RR): [W] int32 each (N: none)
+    ids: Any         # [W, 6] int32: L, R, LL, LR, RL, RR (N: none)
     interior: Any    # [W] bool: n is a real interior node
     cur: Any         # [W]: C(n) now
     cand: Any        # [W, 6]: C(n) after each move
-    n_height: Any    # list of 6 [W] int32: height of n after each move
+    n_height: Any    # [W, 6] int32: height of n after each move
     cur_height: Any  # [W] int32: height of n now
     legal: Any       # [W, 6] bool: the move exists at n
-    new_left: Any    # list of 6 _Part: L's slot after each move (box, area, cost, height)
-    new_right: Any   # list of 6 _Part: R's slot after each move
+    parts: Any       # _Part [W, 14, ...]: the six parts, then the eight unions the moves make
+
+    @property
+    def left(self):
+        return self.ids[:, _L]
+
+    @property
+    def right(self):
+        return self.ids[:, _R]
 
 
 def score(st, nodes, scale, ct) -> Scores:
@@ -113,41 +146,28 @@ def score(st, nodes, scale, ct) -> Scores:
     left, right = kids[:, 0], kids[:, 1]
     lk = take(st.child, left, -1)
     rk = take(st.child, right, -1)
-    ll, lr, rl, rr = lk[:, 0], lk[:, 1], rk[:, 0], rk[:, 1]
+    ids = jnp.stack([left, right, lk[:, 0], lk[:, 1], rk[:, 0], rk[:, 1]], axis=1)  # [W, 6]
     n_area = half_area(take(st.lo, nodes, jnp.inf), take(st.hi, nodes, -jnp.inf), scale)
-    parts = tuple(_gather_part(st, i, scale) for i in (left, right, ll, lr, rl, rr))
-    L, R, LL, LR, RL, RR = jax.lax.optimization_barrier(parts)  # gathered once (compile time)
+    lo = take(st.lo, ids, jnp.inf)
+    hi = take(st.hi, ids, -jnp.inf)
+    part = _Part(lo, hi, half_area(lo, hi, scale), take(st.cost, ids, 0), take(st.height, ids, 0))
+    part = jax.lax.optimization_barrier(part)  # gathered once (compile time)
 
-    cur = node_cost(n_area, L.area, L.cost, R.area, R.cost, ct)
-
-    def cost_n(a, b):
-        return node_cost(n_area, a.area, a.cost, b.area, b.cost, ct), 1 + jnp.maximum(a.height, b.height)
-
-    r0 = _combine(L, RR, scale, ct)   # 0: L <-> RL, R = (L, RR)
-    r1 = _combine(RL, L, scale, ct)   # 1: L <-> RR, R = (RL, L)
-    l2 = _combine(R, LR, scale, ct)   # 2: R <-> LL, L = (R, LR)
-    l3 = _combine(LL, R, scale, ct)   # 3: R <-> LR, L = (LL, R)
-    l4 = _combine(RL, LR, scale, ct)  # 4: LL <-> RL, L = (RL, LR), R = (LL, RR)
-    r4 = _combine(LL, RR, scale, ct)
-    l5 = _combine(RR, LR, scale, ct)  # 5: LL <-> RR, L = (RR, LR), R = (RL, LL)
-    r5 = _combine(RL, LL, scale, ct)
-    n_after = [cost_n(RL, r0), cost_n(RR, r1), cost_n(l2, LL), cost_n(l3, LR), cost_n(l4, r4),
-               cost_n(l5, r5)]
-    new_left = [L, L, l2, l3, l4, l5]
-    new_right = [r0, r1, R, R, r4, r5]
+    cur = node_cost(n_area, part.area[:, _L], part.cost[:, _L], part.area[:, _R], part.cost[:, _R], ct)
+    combined = _combine(_parts_at(part, _COMBINED_A), _parts_at(part, _COMBINED_B), scale, ct)
+    ext = _Part(*(jnp.concatenate([a, b], axis=1) for a, b in zip(part, combined)))  # [W, 14, ...]
+    a, b = _parts_at(ext, _N_LEFT), _parts_at(ext, _N_RIGHT)
+    cand = node_cost(n_area[:, None], a.area, a.cost, b.area, b.cost, ct)
+    n_height = 1 + jnp.maximum(a.height, b.height)
 
     real = nodes < cap
-    l_in, r_in = ll >= 0, rl >= 0
+    l_in, r_in = ids[:, _LL] >= 0, ids[:, _RL] >= 0
     interior = real & (left >= 0)
     legal = jnp.stack([r_in, r_in, l_in, l_in, l_in & r_in, l_in & r_in], axis=1) & interior[:, None]
 
-    return Scores(
-        left=left, right=right, grand=(ll, lr, rl, rr), interior=interior, cur=cur,
-        cand=jnp.stack([c for c, _ in n_after], axis=1),
-        n_height=[h for _, h in n_after],
-        cur_height=1 + jnp.maximum(L.height, R.height),
-        legal=legal, new_left=new_left, new_right=new_right,
-    )
+    return Scores(ids=ids, interior=interior, cur=cur, cand=cand, n_height=n_height,
+                  cur_height=1 + jnp.maximum(part.height[:, _L], part.height[:, _R]),
+                  legal=legal, parts=ext)
 
 
 # ----------------------------------------------------------------------------------
@@ -186,6 +206,13 @@ def _choose_annealing(cand, cur, legal, tol, temperature, draws):
     return choice
 
 
+def _materialise(x):
+    """``x`` [W], computed once: XLA's CPU fusion copies a cheap producer into every
+    consumer kernel (an ``optimization_barrier`` does not stop it), but no consumer
+    takes in a scatter (compile time only: the same values)."""
+    return jnp.zeros_like(x).at[jnp.arange(x.shape[0])].set(x, unique_indices=True)
+
+
 def _choose(s: Scores, nodes, min_gain, temperature, draws, annealing):
     """The move of each node ([W] int32, -1: none) by hill climbing or annealing, and
     the scores with ``cur`` and ``cand`` materialised (what the application reads)."""
@@ -201,27 +228,22 @@ def _choose(s: Scores, nodes, min_gain, temperature, draws, annealing):
         choice = _choose_greedy(cand, cur, legal, tol)
     # materialise the choice once: it feeds every scatter below, and XLA would otherwise
     # recompute the whole choice inside several of them
-    choice = jax.lax.optimization_barrier(jnp.where(s.interior, choice, -1))
+    choice = _materialise(jnp.where(s.interior, choice, -1))
     return choice, s._replace(cur=cur, cand=cand)
 
 
-def _swap_slots(st, s: Scores, nodes, m, moved):
-    """The links after each moved node's two slots swapped contents: ``(child, parent)``."""
+def _swap_slots(st, s: Scores, nodes, row, moved):
+    """The links after each moved node's two slots swapped contents: ``(child, parent)``.
+    ``row`` [W, 10]: each node's row of :data:`_MOVE_TABLE`."""
     cap = st.child.shape[0]
-    left, right = s.left, s.right
-    family = (nodes, left, right)
-    a_node = _select(m, [family[a] for a, _ in _SLOT_A])
-    b_node = _select(m, [family[b] for b, _ in _SLOT_B])
-    a_side = _select(m, [jnp.int32(side) for _, side in _SLOT_A])
-    b_side = _select(m, [jnp.int32(side) for _, side in _SLOT_B])
-    a_node = jnp.where(moved, a_node, cap)
-    b_node = jnp.where(moved, b_node, cap)
+    family = jnp.stack([nodes, s.left, s.right], axis=1)  # node codes 0 = n, 1 = L, 2 = R
+    a_node = jnp.where(moved, _pick(family, row[:, _A_NODE]), cap)
+    b_node = jnp.where(moved, _pick(family, row[:, _B_NODE]), cap)
+    a_side, b_side = row[:, _A_SIDE], row[:, _B_SIDE]
     # the slots' contents are ids the scoring already gathered; reading child again here
     # (or through a flat view) makes XLA copy the whole array for every window
-    ll, lr, rl, rr = s.grand
-    content = {(0, 0): left, (0, 1): right, (1, 0): ll, (1, 1): lr, (2, 0): rl, (2, 1): rr}
-    a_val = jnp.where(moved, _select(m, [content[slot] for slot in _SLOT_A]), -1)
-    b_val = jnp.where(moved, _select(m, [content[slot] for slot in _SLOT_B]), -1)
+    a_val = jnp.where(moved, _pick(s.ids, row[:, _A_PART]), -1)
+    b_val = jnp.where(moved, _pick(s.ids, row[:, _B_PART]), -1)
     child = (st.child.at[a_node, a_side].set(b_val, mode="drop")
              .at[b_node, b_side].set(a_val, mode="drop"))
     parent = st.parent.at[jnp.where(moved, b_val, cap)].set(a_node, mode="drop")
@@ -229,8 +251,9 @@ def _swap_slots(st, s: Scores, nodes, m, moved):
     return child, parent
 
 
-def _update_parts(st, s: Scores, nodes, m, moved):
-    """New boxes, costs and heights of the changed children and of ``n``.
+def _update_parts(st, s: Scores, nodes, m, row, moved):
+    """New boxes, costs and heights of the changed children and of ``n`` (``row``: as
+    :func:`_swap_slots`).
 
     Returns ``(lo, hi, cost, height, l_at, r_at)``: the state's arrays updated, and the
     changed left and right children ([W] int32, ``N`` where unchanged).
@@ -238,19 +261,18 @@ def _update_parts(st, s: Scores, nodes, m, moved):
     cap = st.child.shape[0]
     oob = jnp.full_like(nodes, cap)
     interior_nodes = jnp.where(s.interior, nodes, cap)
-
-    def pick(parts):
-        return _Part(*(_select(m, list(f)) for f in zip(*parts)))
-
-    new_l, new_r = pick(s.new_left), pick(s.new_right)
-    l_changes = moved & _select(m, [jnp.bool_(x) for x in _CHANGES_L])
-    r_changes = moved & _select(m, [jnp.bool_(x) for x in _CHANGES_R])
-    l_at = jnp.where(l_changes, s.left, oob)
-    r_at = jnp.where(r_changes, s.right, oob)
+    new_l = _Part(*(_pick(x, row[:, _NEW_L]) for x in s.parts))
+    new_r = _Part(*(_pick(x, row[:, _NEW_R]) for x in s.parts))
+    l_at = jnp.where(moved & (row[:, _CHANGE_L] > 0), s.left, oob)
+    r_at = jnp.where(moved & (row[:, _CHANGE_R] > 0), s.right, oob)
+    n_cost = jnp.where(moved, _pick(s.cand, m), s.cur)
+    n_height = jnp.where(moved, _pick(s.n_height, m), s.cur_height)
+    # materialise what the scatters write once: XLA would otherwise fuse its computation
+    # into each scatter (compile time)
+    new_l, new_r, l_at, r_at, n_cost, n_height = jax.lax.optimization_barrier(
+        (new_l, new_r, l_at, r_at, n_cost, n_height))
     lo = st.lo.at[l_at].set(new_l.lo, mode="drop").at[r_at].set(new_r.lo, mode="drop")
     hi = st.hi.at[l_at].set(new_l.hi, mode="drop").at[r_at].set(new_r.hi, mode="drop")
-    n_cost = jnp.where(moved, _select(m, [s.cand[:, k] for k in range(6)]), s.cur)
-    n_height = jnp.where(moved, _select(m, s.n_height), s.cur_height)
     cost = (st.cost.at[l_at].set(new_l.cost, mode="drop").at[r_at].set(new_r.cost, mode="drop")
             .at[interior_nodes].set(n_cost, mode="drop"))
     height = (st.height.at[l_at].set(new_l.height, mode="drop")
@@ -280,8 +302,9 @@ def process_window(st, nodes, scale, ct, min_gain, temperature, draws, annealing
     choice, s = _choose(score(st, nodes, scale, ct), nodes, min_gain, temperature, draws, annealing)
     moved = choice >= 0
     m = jnp.maximum(choice, 0)
-    child, parent = _swap_slots(st, s, nodes, m, moved)
-    lo, hi, cost, height, l_at, r_at = _update_parts(st, s, nodes, m, moved)
+    row = jax.lax.optimization_barrier(jnp.asarray(_MOVE_TABLE, jnp.int32)[m])  # [W, 10], gathered once
+    child, parent = _swap_slots(st, s, nodes, row, moved)
+    lo, hi, cost, height, l_at, r_at = _update_parts(st, s, nodes, m, row, moved)
     new = st._replace(child=child, parent=parent, lo=lo, hi=hi, cost=cost, height=height)
     changed = jnp.stack([jnp.where(moved, nodes, cap), l_at, r_at], axis=1)
     return new, _moves_per_chain(nodes, moved, cap, chains), changed

@@ -77,6 +77,7 @@ from jaxbvh.optimize.protocol import (
     new_progress,
     record,
 )
+from jaxbvh.optimize.reinsert import start_sah
 from jaxbvh.tree.cost import sah as sah_of
 from jaxbvh.tree.layout import to_jax
 from jaxbvh.tree.refit import refit_boxes
@@ -460,7 +461,7 @@ def init(tree, config: Config | None = None, key=None, *, sah_start=None) -> Opt
                     split_axes=jnp.bool_(config.split_axes))
     inner = _prepare(tree, params.ct, params.ci)
     limit = config.max_passes if config.leaves > 2 else 0  # two-leaf treelets cannot change
-    sah_start = sah_of(tree, config.ct, config.ci) if sah_start is None else sah_start
+    sah_start = start_sah(tree, config.ct, config.ci) if sah_start is None else sah_start
     progress = new_progress(sah_start, limit, dtype)
     return OptimizerState(tree, progress, params, inner,
                           Static(int(config.leaves), window_sizes(tree.left.shape[0], config.windows)))
