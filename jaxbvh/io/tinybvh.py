@@ -106,23 +106,26 @@ def _outward32(x: np.ndarray, down: bool) -> np.ndarray:
 
 
 def _depth_first(left: np.ndarray, right: np.ndarray, root: int):
-    """Nodes in ``BVH::Compact``'s order: ``(order, slot, level)``: ``order`` lists our
-    node ids by file slot (slot 1, the unused node: -1), ``slot[i]`` is node i's slot,
-    ``level`` [slots] each slot's depth (root 0; -1 for slot 1)."""
+    """Nodes in ``BVH::Compact``'s order: ``(order, slot, level, visits)``: ``order`` lists
+    our node ids by file slot (slot 1, the unused node: -1), ``slot[i]`` is node i's slot,
+    ``level`` [slots] each slot's depth (root 0; -1 for slot 1), ``visits`` our node ids
+    in depth-first visiting order, left first (the order of the leaves' runs in primIdx:
+    a sibling pair gets its slots when its parent is visited, so slot order is not it)."""
     capacity = left.shape[0]
-    order, level = [root, -1], [0, -1]
+    order, level, visits = [root, -1], [0, -1], []
     slot = np.full(capacity, -1, np.int64)
     slot[root] = 0
     stack = [(root, 0)]
     while stack:  # each pop places a node's two children: at most one pass per node
         n, d = stack.pop()
+        visits.append(n)
         if left[n] < 0:
             continue
         slot[left[n]], slot[right[n]] = len(order), len(order) + 1
         order += [int(left[n]), int(right[n])]
         level += [d + 1, d + 1]
         stack += [(int(right[n]), d + 1), (int(left[n]), d + 1)]  # left first
-    return np.asarray(order, np.int64), slot, np.asarray(level, np.int64)
+    return np.asarray(order, np.int64), slot, np.asarray(level, np.int64), np.asarray(visits, np.int64)
 
 
 def _tolerance(frame: Frame, local: np.ndarray, world: np.ndarray) -> np.ndarray:
@@ -178,12 +181,12 @@ def tinybvh_arrays(tree, triangles, frame: Frame | None = None, *, references: b
     count, start = np.asarray(t.prim_count, np.int64), np.asarray(t.prim_start, np.int64)
     prim_index = np.asarray(t.prim_index, np.int64)
     root = int(t.root)
-    order, slot, level = _depth_first(left, right, root)
+    order, slot, level, visits = _depth_first(left, right, root)
     placed = order[order >= 0]  # our node ids in file order (slot 1 left out)
     level = level[order >= 0]
 
     # primIdx: leaves in depth-first order, so every subtree's run is contiguous
-    leaves = placed[count[placed] > 0]
+    leaves = visits[count[visits] > 0]
     runs = concat_ranges(start[leaves], count[leaves])
     prims = prim_index[runs]
     if prims.size and (prims.min() < 0 or prims.max() >= n):
@@ -209,8 +212,9 @@ def tinybvh_arrays(tree, triangles, frame: Frame | None = None, *, references: b
 
     # each leaf must hold its triangles (or, with references, meet them), up to the
     # rounding between the tree's frame and float32 world space
-    leaf_rows = np.flatnonzero(count[placed] > 0)
-    ref_leaf = np.repeat(leaf_rows, count[placed][leaf_rows])  # row (in placed) of each reference
+    row_of = np.full(count.shape[0], -1, np.int64)  # our node id -> its row in `placed`
+    row_of[placed] = np.arange(placed.size)
+    ref_leaf = np.repeat(row_of[leaves], count[leaves])  # the row of each entry of `prims`
     tol_lo = _tolerance(frame, lo_local, lo_w)[ref_leaf]
     tol_hi = _tolerance(frame, hi_local, hi_w)[ref_leaf]
     if references:
@@ -251,8 +255,6 @@ def tinybvh_arrays(tree, triangles, frame: Frame | None = None, *, references: b
         raise ValueError(f"the tree's boxes do not fit float32 in world space (|coordinates| up to {_F32.max:.3g})")
 
     # interior nodes hold their children: level by level, from the deepest
-    row_of = np.full(count.shape[0], -1, np.int64)
-    row_of[placed] = np.arange(placed.size)
     interior = count[placed] == 0
     for d in range(int(level.max()) - 1, -1, -1):
         rows = np.flatnonzero(interior & (level == d))
