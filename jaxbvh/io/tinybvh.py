@@ -278,7 +278,8 @@ def export_tinybvh(path: str | os.PathLike, tree, triangles, frame: Frame | None
     Arguments as :func:`tinybvh_arrays` (``frame``: the frame the tree's boxes are in, a
     :class:`~jaxbvh.io.Mesh`'s ``frame`` for a tree built from its ``local_boxes``). The
     file is replaced only once it is complete (:func:`jaxbvh.files.atomic_write`). Returns
-    ``{"nodes", "references", "triangles", "flags", "bytes"}`` of what was written.
+    ``{"nodes", "primitive_ids", "triangles", "flags", "bytes"}`` of what was written
+    (``primitive_ids``: entries of ``primIdx``, more than ``triangles`` with references).
     """
     nodes, prims, tri32, flags = tinybvh_arrays(tree, triangles, frame, references=references)
     header = np.array([nodes.size, prims.size, tri32.shape[0], flags], "<u4")
@@ -288,7 +289,7 @@ def export_tinybvh(path: str | os.PathLike, tree, triangles, frame: Frame | None
         f.write(nodes.tobytes())
         f.write(prims.astype("<u4").tobytes())
         f.write(tri32.astype("<f4").tobytes())
-    return {"nodes": int(nodes.size), "references": int(prims.size), "triangles": int(tri32.shape[0]),
+    return {"nodes": int(nodes.size), "primitive_ids": int(prims.size), "triangles": int(tri32.shape[0]),
             "flags": int(flags), "bytes": _HEADER + nodes.nbytes + 4 * prims.size + tri32.nbytes}
 
 

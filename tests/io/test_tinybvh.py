@@ -235,7 +235,7 @@ def test_spatial_splits_are_flagged_by_themselves(tmp_path):
                                  capacity=640)
     assert built.spatial_splits > 0
     written = export_tinybvh(tmp_path / "t.bin", built.tree, tri, frame)  # references=None: found
-    assert written["flags"] == FLAG_REFERENCES and written["references"] > tri.shape[0]
+    assert written["flags"] == FLAG_REFERENCES and written["primitive_ids"] > tri.shape[0]
     assert_file_promises(tmp_path / "t.bin", tri)
 
 

@@ -67,6 +67,6 @@ def run(args) -> dict:
             written = export_tinybvh(args.output, loaded.tree, mesh.triangles, loaded.frame)
     return {"command": "export", "tree": loaded.path, "mesh": str(mesh.path), "format": args.format,
             "output": args.output, "triangles": written["triangles"], "nodes": written["nodes"],
-            "primitive_ids": written["references"],
+            "primitive_ids": written["primitive_ids"],
             "spatial_splits": bool(written["flags"] & FLAG_REFERENCES), "bytes": written["bytes"],
             "checked_in": checked.precision}
