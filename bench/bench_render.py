@@ -187,7 +187,7 @@ def markdown(report: dict) -> str:
         f"{m['cpu']}, {m['cores']} cores, shared (load {report['load_start']} at the start, "
         f"{report['load_end']} at the end); tinybvh v1.6.7 kernels, one thread; "
         f"{report['res']}² rays per set, min of {report['repeats']} rounds of thread CPU time; "
-        f"{report['utc']} UTC. Ours: `jaxbvh optimize MESH` (the default build, then the default "
+        f"from {report['utc']} UTC, one tracer run per mesh. Ours: `jaxbvh optimize MESH` (the default build, then the default "
         "optimizer) and `jaxbvh optimize MESH --builder sbvh`, written by `jaxbvh export --format "
         "tinybvh`; tinybvh's: `Build`, `Build` + `Optimize(200, extreme)`, `BuildHQ`, built by the tracer. "
         "Mrays/s are geometric means over the primary, random and bounce rays.",
@@ -216,7 +216,7 @@ def markdown(report: dict) -> str:
                        f"| {t['depth']} | {fmt(t['refs_per_tri'], 3)} | " + " | ".join(cells) + " |")
         ours = "; ".join(f"{k}: {v['builder']} → {v['method']}, SAH {fmt(v['sah_before'], 3)} → {fmt(v['sah_after'], 3)}"
                          f" (jaxbvh's figure, tree frame, before rounding to world float32)" for k, v in r["ours"].items())
-        out += ["", f"Ours: {ours}. Load {r['started']['load']} → {r['finished_load']}."]
+        out += ["", f"Ours: {ours}. Run at {r['started']['utc']} UTC, load {r['started']['load']} → {r['finished_load']}."]
         skipped = {n: t["skipped"] for n, t in s["trees"].items() if t["skipped"]}
         if skipped:
             out.append(f"Not traced: {json.dumps(skipped)}.")
