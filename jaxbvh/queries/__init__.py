@@ -1,6 +1,7 @@
 """Queries against a BVH: rays, closest point, box overlap, radius, with gradients.
 
-``search``: :func:`closest_point`, :func:`overlap`, :func:`within`, jitted functions of
+``search``: :func:`closest_point`, :func:`overlap`, :func:`within` and :func:`raycast`
+(closest or any hit, inside jit), jitted functions of
 the tree and primitives, for use inside your own ``jit`` / ``vmap`` / ``grad`` (twin:
 ``search_reference``); ``parent_walk``: the stackless walk they share (state independent
 of the tree's depth); ``geometry``: the per-primitive tests, differentiable (also
@@ -12,8 +13,8 @@ of the tree's depth); ``geometry``: the per-primitive tests, differentiable (als
 from jaxbvh.queries.geometry import FEATURES, closest_on_triangle
 from jaxbvh.queries.normals import pseudonormals
 from jaxbvh.queries.rays import ray_hit
-from jaxbvh.queries.search import Listed, PointHit, closest_point, overlap, within
+from jaxbvh.queries.search import Listed, PointHit, RayHit, closest_point, overlap, raycast, within
 from jaxbvh.rays import Hits, any_hit, closest_hit
 
-__all__ = ["FEATURES", "Hits", "Listed", "PointHit", "any_hit", "closest_hit", "closest_on_triangle",
-           "closest_point", "overlap", "pseudonormals", "ray_hit", "within"]
+__all__ = ["FEATURES", "Hits", "Listed", "PointHit", "RayHit", "any_hit", "closest_hit", "closest_on_triangle",
+           "closest_point", "overlap", "pseudonormals", "ray_hit", "raycast", "within"]

@@ -37,6 +37,7 @@ import jax.numpy as jnp
 
 from jaxbvh.queries import geometry
 from jaxbvh.queries.parent_walk import Hooks, walk
+from jaxbvh.rays.traversal import inverse_direction, moller_trumbore, slab
 
 I32 = jnp.int32
 
@@ -61,6 +62,25 @@ class PointHit(NamedTuple):
     v: Any
     point: Any
     feature: Any
+    box_tests: Any
+    prim_tests: Any
+    nodes_visited: Any
+    leaves_visited: Any
+    step_limit: Any
+
+
+class RayHit(NamedTuple):
+    """Result of :func:`raycast`, every array of the rays' shape ``[...]``.
+
+    ``t`` float: hit distance in units of ``|direction|`` (``inf``: a miss); ``prim``
+    int32 (-1: a miss); ``u``, ``v`` float: barycentrics of the hit (0 for a miss);
+    counters and ``step_limit`` as :class:`PointHit`.
+    """
+
+    t: Any
+    prim: Any
+    u: Any
+    v: Any
     box_tests: Any
     prim_tests: Any
     nodes_visited: Any
@@ -260,3 +280,63 @@ def within(tree, prims, points, radius, *, capacity: int) -> Listed:
     """
     one = partial(_within_one, tree, prims, capacity)
     return _batched(one, (1, 0), jnp.asarray(points), jnp.asarray(radius))
+
+
+# ----------------------------------------------------------------------------------
+# Rays, inside jit
+# ----------------------------------------------------------------------------------
+
+
+def _raycast_one(tree, triangles, first, origin, direction, t_min, t_max):
+    dtype = tree.lo.dtype
+    origin, direction, triangles = origin.astype(dtype), direction.astype(dtype), triangles.astype(dtype)
+    t_min, t_max = jnp.asarray(t_min, dtype), jnp.asarray(t_max, dtype)
+    o, d, lo_t, hi_t, tris = _frozen((origin, direction, t_min, t_max, triangles))
+    inv_dir = inverse_direction(d)
+
+    def boxes(lo, hi, found):
+        # the order key, the entry distance, does not depend on the hit found so far
+        hit, entry = slab(lo, hi, o, inv_dir[None, :], lo_t, found[0])
+        return entry, hit
+
+    def primitive(found, prim, active):
+        best, best_prim = found
+        tri = tris[jnp.maximum(prim, 0)]
+        t = moller_trumbore(tri[0], tri[1], tri[2], o, d)[0]
+        valid = active & (t > lo_t) & (t < hi_t)
+        if first:
+            take = valid & (best_prim < 0)
+        else:
+            take = valid & ((t < best) | ((t == best) & ((best_prim < 0) | (prim < best_prim))))
+        return jnp.where(take, t, best), jnp.where(take, prim, best_prim)
+
+    stop = (lambda found: found[1] >= 0) if first else None
+    (_, prim), c, limit = walk(_frozen(tree), Hooks(boxes, primitive, stop), (hi_t, I32(-1)))
+    hit = prim >= 0
+    tri = triangles[jnp.maximum(prim, 0)]
+    t, u, v = geometry.ray_triangle(origin, direction, tri[0], tri[1], tri[2])
+    zero = jnp.zeros((), dtype)
+    return RayHit(t=jnp.where(hit, t, jnp.inf), prim=prim, u=jnp.where(hit, u, zero), v=jnp.where(hit, v, zero),
+                  box_tests=c.box_tests, prim_tests=c.prim_tests, nodes_visited=c.nodes_visited,
+                  leaves_visited=c.leaves_visited, step_limit=limit)
+
+
+@partial(jax.jit, static_argnames=("first",))
+def raycast(tree, triangles, origin, direction, t_min=0.0, t_max=jnp.inf, *, first: bool = False) -> RayHit:
+    """Closest hit (or, with ``first=True``, any hit: shadow rays) of rays ``origin``,
+    ``direction`` [..., 3] against ``triangles`` [T, 3, 3] through ``tree``, inside jit;
+    differentiable.
+
+    The in-program sibling of :func:`jaxbvh.rays.closest_hit` / :func:`jaxbvh.rays.any_hit`
+    (those are host drivers that batch NumPy rays): the same tests (robust slab,
+    two-sided Möller–Trumbore), the same hit rules (open interval ``(t_min, t_max)``,
+    scalars or [...]; equal ``t`` to the lower id), walked by
+    :func:`jaxbvh.queries.parent_walk.walk` (children nearest entry first; no stack, so
+    the tree's depth does not matter). ``t``, ``u``, ``v`` are recomputed on the chosen
+    triangle by :func:`jaxbvh.queries.geometry.ray_triangle`, so ``jax.grad`` / ``jax.jvp``
+    reach the origin, the direction and the corners; a miss has zero gradient. Returns
+    :class:`RayHit`.
+    """
+    one = partial(_raycast_one, tree, triangles, first)
+    return _batched(one, (1, 1, 0, 0), jnp.asarray(origin), jnp.asarray(direction), jnp.asarray(t_min),
+                    jnp.asarray(t_max))

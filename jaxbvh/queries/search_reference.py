@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from jaxbvh.numerics import INV_BIG, robust_factor
 from jaxbvh.tree.layout import BVH, to_numpy
 
 
@@ -55,10 +56,11 @@ def box_distance2(p, lo, hi):
     return _dot(gap, gap)
 
 
-def walk(tree, boxes, primitive, found):
+def walk(tree, boxes, primitive, found, stop=None):
     """One stackless walk of ``tree`` (NumPy). ``boxes(lo, hi, found) -> (key, keep)`` for
-    one child box; ``primitive(found, prim) -> found``. Returns ``(found, counts, step_limit)``
-    with ``counts`` a dict of the four counters."""
+    one child box; ``primitive(found, prim) -> found``; ``stop(found)``: the query is
+    answered (optional). Returns ``(found, counts, step_limit)`` with ``counts`` a dict of
+    the four counters."""
     t = to_numpy(tree)
     child = np.stack([t.left, t.right], axis=1) if isinstance(t, BVH) else t.child
     root = int(t.root)
@@ -78,6 +80,8 @@ def walk(tree, boxes, primitive, found):
             found = primitive(found, int(t.prim_index[pending.pop(0)]))
             counts["prim_tests"] += 1
             steps += 1
+            if stop is not None and stop(found):
+                return found, counts, False
             continue
         if up and node == root:
             return found, counts, False
@@ -173,3 +177,54 @@ def within(tree, prims, point, radius, capacity):
         return key, key <= r2
 
     return _listing(tree, test, boxes, capacity)
+
+
+def moller_trumbore(a, b, c, origin, direction):
+    """``t`` of the two-sided Möller–Trumbore test (``inf``: the line misses), NumPy scalars."""
+    e1, e2 = b - a, c - a
+    p = _cross(direction, e2)
+    det = _dot(e1, p)
+    if det == 0:
+        return np.inf
+    inv = 1 / det
+    s = origin - a
+    u = _dot(s, p) * inv
+    q = _cross(s, e1)
+    v = _dot(direction, q) * inv
+    if u < 0 or u > 1 or v < 0 or u + v > 1:
+        return np.inf
+    return _dot(e2, q) * inv
+
+
+def raycast(tree, triangles, origin, direction, t_min=0.0, t_max=np.inf, first=False):
+    """Closest (``first``: first found) hit of one ray: ``(prim, t, counts, step_limit)``;
+    robust slab test (exit scaled by ``robust_factor``), children by entry distance."""
+    dtype = np.asarray(to_numpy(tree).lo).dtype
+    tri = np.asarray(triangles, dtype)
+    o, d = np.asarray(origin, dtype), np.asarray(direction, dtype)
+    lo_t, hi_t = dtype.type(t_min), dtype.type(t_max)
+    big = dtype.type(INV_BIG)
+    with np.errstate(divide="ignore"):
+        inv = np.where(d == 0, np.copysign(big, d), 1 / np.where(d == 0, 1, d)).astype(dtype)
+    factor = dtype.type(robust_factor(dtype))
+
+    def boxes(lo, hi, found):
+        t0, t1 = (lo - o) * inv, (hi - o) * inv
+        near = np.max(np.minimum(t0, t1))
+        far = np.min(np.maximum(t0, t1)) * factor
+        entry = max(near, lo_t)
+        return entry, entry <= min(far, found[0])
+
+    def primitive(found, prim):
+        t = moller_trumbore(*tri[prim], o, d)
+        if not (lo_t < t < hi_t):
+            return found
+        if first:
+            return found if found[1] >= 0 else (t, prim)
+        if t < found[0] or (t == found[0] and (found[1] < 0 or prim < found[1])):
+            return t, prim
+        return found
+
+    (t, prim), counts, limit = walk(tree, boxes, primitive, (hi_t, -1),
+                                    (lambda found: found[1] >= 0) if first else None)
+    return prim, (t if prim >= 0 else np.inf), counts, limit

@@ -375,3 +375,48 @@ def test_ray_hit_gradients_match_finite_differences():
                         a[which] = x
                         return float(f(*a))
                     assert_gradient(g, central_difference(moved, args[which]))
+
+
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 40), kind=st.sampled_from(["binned", "wide", "chain"]),
+       first=st.booleans())
+def test_raycast_equals_brute_force_and_twin(seed, n, kind, first):
+    rng = np.random.default_rng(seed)
+    tri = random_triangles(rng, n)
+    tree = make_tree(tri, kind)
+    origin = rng.uniform(-1.5, 1.5, (16, 3)).astype(np.float32)
+    target = np.einsum("rc,rcx->rx", rng.dirichlet([1, 1, 1], 16), tri[rng.integers(0, n, 16)])
+    direction = np.where(rng.random((16, 1)) < 0.5, target - origin, rng.normal(size=(16, 3))).astype(np.float32)
+    direction[0] = [0, 0, 1]  # zero components: the slab's huge inverse
+    got = jax.tree_util.tree_map(np.asarray, queries.raycast(tree, padded(tri), origin, direction, first=first))
+    assert not got.step_limit.any()
+    closest = queries.closest_hit(tree, padded(tri), origin, direction)  # jaxbvh.rays' own driver
+    for i in range(16):
+        prim, t, counts, limit = ref.raycast(tree, tri, origin[i], direction[i], first=first)
+        assert prim == got.prim[i] and not limit
+        assert_twin_counts(got, i, counts)
+        if first:
+            assert (got.prim[i] >= 0) == (closest.prim[i] >= 0)
+        else:
+            assert got.prim[i] == closest.prim[i]
+            assert np.isclose(got.t[i], closest.t[i], rtol=1e-5) or got.t[i] == closest.t[i]
+
+
+def test_raycast_gradients_match_finite_differences():
+    """raycast inside jit, differentiated w.r.t. origin and direction (float64)."""
+    rng = np.random.default_rng(9)
+    with jax.enable_x64(True):
+        tri = random_triangles(rng, 16).astype(np.float64)
+        tree = make_tree(tri.astype(np.float32), "wide")
+        tree = tree.replace(lo=np.asarray(tree.lo, np.float64), hi=np.asarray(tree.hi, np.float64))
+        tri_p = padded(tri)
+        target = np.einsum("rc,rcx->rx", rng.dirichlet([2, 2, 2], 4), tri[rng.integers(0, 16, 4)])
+        origin = rng.uniform(-2, 2, (4, 3))
+        for r in range(4):
+            d = target[r] - origin[r]
+            assert int(queries.raycast(tree, tri_p, origin[r], d).prim) >= 0
+            for out in ("t", "u", "v"):
+                def f(o, dd, out=out):
+                    return getattr(queries.raycast(tree, tri_p, o, dd), out)
+                g_o, g_d = jax.jit(jax.grad(f, argnums=(0, 1)))(origin[r], d)
+                assert_gradient(g_o, central_difference(lambda x: float(f(x, d)), origin[r]))
+                assert_gradient(g_d, central_difference(lambda x: float(f(origin[r], x)), d))
