@@ -39,6 +39,7 @@ def dot(a, b):
 
 
 def cross(a, b):
+    """``a x b`` over the last axis [..., 3]."""
     return jnp.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
                       a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
                       a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)

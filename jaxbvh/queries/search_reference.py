@@ -52,6 +52,7 @@ def closest_on_triangle(p, a, b, c):
 
 
 def box_distance2(p, lo, hi):
+    """Squared distance from ``p`` [3] to the box ``lo``, ``hi`` [3] (0 inside)."""
     gap = np.maximum(np.maximum(lo - p, p - hi), 0)
     return _dot(gap, gap)
 
