@@ -420,3 +420,29 @@ def test_raycast_gradients_match_finite_differences():
                 g_o, g_d = jax.jit(jax.grad(f, argnums=(0, 1)))(origin[r], d)
                 assert_gradient(g_o, central_difference(lambda x: float(f(x, d)), origin[r]))
                 assert_gradient(g_d, central_difference(lambda x: float(f(origin[r], x)), d))
+
+
+def test_lists_name_a_referenced_triangle_once():
+    """Spatial splits (SBVH) put one triangle in several leaves: the lists still name it once,
+    the counts equal brute force, the closest point is brute force's."""
+    rng = np.random.default_rng(12)
+    tri = []
+    for i in range(6):  # long slivers crossing on a grid: spatial splits pay (tests/builders/test_sbvh.py)
+        y = i / 6.0
+        tri.append([[0, y, 0], [1, y + 0.01, 0.01], [1, y, 0.02]])
+        tri.append([[y, 0, 0.01], [y + 0.01, 1, 0.0], [y, 1, 0.02]])
+    tri = np.asarray(tri, np.float32)
+    lo, hi = tri.min(axis=1), tri.max(axis=1)
+    tree = jaxbvh.build(lo, hi, method="sbvh", triangles=tri, bins=8, capacity=PRIMS)
+    tree = pad_to(tree, NODES, PRIMS)
+    validate(tree, lo, hi, len(tri), references=True)
+    assert int(np.asarray(tree.prim_count).sum()) > len(tri), "the example should have references"
+    centre = rng.uniform(0, 1, (8, 3)).astype(np.float32)
+    got = jax.tree_util.tree_map(np.asarray, queries.within(tree, padded(tri), centre, 0.3, capacity=64))
+    near = jax.tree_util.tree_map(np.asarray, queries.closest_point(tree, padded(tri), centre))
+    for i, p in enumerate(centre):
+        d2 = brute_closest(tri, p)
+        truth = np.flatnonzero(d2 <= np.float32(0.3) * np.float32(0.3))
+        listed = got.prims[i][got.prims[i] >= 0]
+        assert got.count[i] == truth.size and sorted(listed.tolist()) == truth.tolist()
+        assert near.prim[i] == np.flatnonzero(d2 == d2.min())[0]
