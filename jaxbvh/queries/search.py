@@ -47,7 +47,9 @@ class PointHit(NamedTuple):
 
     ``distance`` float: to the closest point on the mesh, in the tree frame's units;
     negative inside when signed; ``inf`` when nothing lies within ``max_distance``.
-    ``prim`` int32: the closest triangle (-1: none); equal distances go to the lower id.
+    ``prim`` int32: the closest triangle (-1: none); equal distances go to the lower id
+    (distances equal but for rounding, a point nearest to an edge two triangles share, may
+    go to either).
     ``u``, ``v`` float: barycentrics of the closest point,
     ``point = a + u (b - a) + v (c - a)`` (0 when none). ``point`` float [..., 3]: the
     closest point (NaN when none). ``feature`` int32: the triangle's feature it lies on

@@ -446,3 +446,28 @@ def test_lists_name_a_referenced_triangle_once():
         listed = got.prims[i][got.prims[i] >= 0]
         assert got.count[i] == truth.size and sorted(listed.tolist()) == truth.tolist()
         assert near.prim[i] == np.flatnonzero(d2 == d2.min())[0]
+
+
+def test_two_level_trees_answer_through_their_flattened_tree():
+    """A two-level (re-braided) tree answers the queries through ``twolevel.flatten`` (world
+    triangle ids, the scene frame of ``Mesh.local_triangles``): equal to brute force."""
+    from jaxbvh import scenes, twolevel
+
+    trees = [scenes.tree_mesh(jax.random.key(k), levels=1, branches=2, sides=3, leaves=1) for k in (1, 2)]
+    mesh = scenes.instanced_scene(jax.random.key(3), trees, 5, spread=0.5, upright=False)
+    tl = twolevel.build(mesh, method="binned")
+    flat = twolevel.flatten(tl)
+    tri = mesh.local_triangles()
+    lo, hi = tri.reshape(-1, 3).min(0), tri.reshape(-1, 3).max(0)
+    points = np.random.default_rng(0).uniform(lo, hi, (12, 3)).astype(np.float32)
+    got = jax.tree_util.tree_map(np.asarray, queries.closest_point(flat, tri, points))
+    ball = jax.tree_util.tree_map(np.asarray, queries.within(flat, tri, points, 0.1 * float(np.max(hi - lo)),
+                                                             capacity=256))
+    r2 = np.float32(0.1 * float(np.max(hi - lo))) ** 2
+    for i, p in enumerate(points):
+        d2 = brute_closest(tri, p)
+        # the instances' triangles share edges: a point closest to a shared edge is at the
+        # same distance from both, up to the rounding of two formulas (XLA's and NumPy's)
+        assert d2[got.prim[i]] <= d2.min() * (1 + 1e-6)
+        truth = np.flatnonzero(d2 <= r2)
+        assert ball.count[i] == truth.size and sorted(ball.prims[i][: truth.size].tolist()) == truth.tolist()
