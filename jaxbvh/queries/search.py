@@ -193,7 +193,7 @@ def closest_point(tree, triangles, points, pseudonormals=None, max_distance=jnp.
 # ----------------------------------------------------------------------------------
 
 
-def _list(tree, test, boxes, capacity, dtype) -> Listed:
+def _list(tree, test, boxes, capacity) -> Listed:
     """Walk with a list of ``capacity`` slots: ``test(prim) -> bool`` for a primitive,
     ``boxes(lo, hi) -> (key, keep)`` for children."""
 
@@ -231,7 +231,7 @@ def _overlap_one(tree, prims, capacity, q_lo, q_hi):
     def boxes(lo, hi):
         return jnp.zeros(lo.shape[0], dtype), geometry.boxes_overlap(lo, hi, q_lo, q_hi)
 
-    return _list(tree, test, boxes, capacity, dtype)
+    return _list(tree, test, boxes, capacity)
 
 
 @partial(jax.jit, static_argnames=("capacity",))
@@ -267,7 +267,7 @@ def _within_one(tree, prims, capacity, point, radius):
         key = geometry.box_distance2(point, lo, hi)
         return key, key <= r2
 
-    return _list(tree, test, boxes, capacity, dtype)
+    return _list(tree, test, boxes, capacity)
 
 
 @partial(jax.jit, static_argnames=("capacity",))
