@@ -18,6 +18,8 @@ package            what it holds
 ``stochastic``     GRASP and the genetic algorithm (Ng & Trifonov)
 ``twolevel``       two-level BVHs and partial re-braiding (Benthin et al.)
 ``rays``           ray generation, traversal, measured costs
+``queries``        closest point, box overlap, radius queries and differentiable ray hits
+                   inside your own jit / vmap / grad
 ``io``             meshes and scenes from files
 ``batch``          many meshes at once: trees stacked in capacity groups, every method
                    vmapped, the batch axis sharded over devices
@@ -44,7 +46,7 @@ __version__ = "0.1.0"
 #: public name -> (module, attribute in it; None: the module itself)
 _LAZY = {
     "batch": ("jaxbvh.batch", None), "compile_cache": ("jaxbvh.compile_cache", None), "io": ("jaxbvh.io", None),
-    "optimize": ("jaxbvh.optimize", None), "rays": ("jaxbvh.rays", None), "scenes": ("jaxbvh.scenes", None),
+    "optimize": ("jaxbvh.optimize", None), "queries": ("jaxbvh.queries", None), "rays": ("jaxbvh.rays", None), "scenes": ("jaxbvh.scenes", None),
     "twolevel": ("jaxbvh.twolevel", None), "insertion": ("jaxbvh.builders.insertion", None),
     "lbvh": ("jaxbvh.builders.lbvh", None), "morton": ("jaxbvh.builders.morton", None),
     "ploc": ("jaxbvh.builders.ploc", None), "BUILDERS": ("jaxbvh.builders.dispatch", "BUILDERS"),
@@ -68,7 +70,7 @@ __all__ = [
     "BVH", "WideBVH", "Frame", "InvalidTreeError", "BUILDERS",
     "build", "check", "validate", "sah", "node_costs", "ng_trifonov_cost", "goldsmith_salmon_cost",
     "all_costs", "save", "load", "to_interchange", "from_interchange", "to_numpy", "to_jax",
-    "capacity_bucket", "compile_cache", "load_mesh", "batch", "io", "optimize", "rays", "scenes", "twolevel",
+    "capacity_bucket", "compile_cache", "load_mesh", "batch", "io", "optimize", "queries", "rays", "scenes", "twolevel",
     "insertion", "lbvh", "morton", "ploc", "reinsert", "rotate", "treelet", "evolve", "grasp", "collapse",
 ]
 
