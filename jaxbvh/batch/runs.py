@@ -22,7 +22,8 @@ Nothing lost, nothing twice. Every output is written atomically (a temporary fil
 the output folder, then a rename). The run keeps a manifest, ``OUT/`` :data:`MANIFEST`:
 per file its input path and content hash (SHA-256), the options' hash, its output and
 the output's hash, seconds, worker and error; it is rewritten atomically as chunks
-finish (at most every :data:`MANIFEST_EVERY_S` seconds, and at the end). With
+finish (at most every :data:`MANIFEST_EVERY_S` seconds, less often when it is big, and at
+the end). With
 ``resume=True`` a file whose manifest row has no error, the same options, the same
 input hash and an output whose hash still matches is skipped; every other file is
 (re)done. A worker that dies mid-chunk (killed, out of memory) loses only its chunk:
@@ -55,8 +56,12 @@ import numpy as np
 #: the manifest's file name in the output folder
 MANIFEST = "jaxbvh-manifest.json"
 #: the manifest is rewritten at most this often while a run goes on (seconds): a run
-#: stopped hard loses at most that much of its record (those files are redone on resume)
+#: stopped hard loses at most that much of its record (those files are redone on resume).
+#: A big manifest takes long to write; the wait is then at least
+#: :data:`MANIFEST_WAIT_RATIO` times the last write, so writing it costs the driver at most
+#: about a tenth of its time however many files the run has
 MANIFEST_EVERY_S = 1.0
+MANIFEST_WAIT_RATIO = 10.0
 #: files per chunk (one task): enough for a compiled call to pay for itself, few enough
 #: that a lost worker costs little and the workers stay evenly loaded
 DEFAULT_CHUNK_FILES = 32
@@ -440,7 +445,7 @@ def run_files(paths, out, *, action: str = "build", builder=None, method: str | 
                          "or choose another output folder")
     skipped = len(rows)
     counts = {"done": skipped, "failed": 0}
-    last_write = [time.perf_counter()]
+    last_write = [time.perf_counter(), 0.0]  # when the manifest was last written, and how long that took
 
     def take(chunk_rows) -> None:
         for row in chunk_rows:
@@ -452,9 +457,9 @@ def run_files(paths, out, *, action: str = "build", builder=None, method: str | 
             files[name] = row
             counts["failed" if row.get("error") else "done"] += 1
         now = time.perf_counter()
-        if now - last_write[0] >= MANIFEST_EVERY_S:
+        if now - last_write[0] >= max(MANIFEST_EVERY_S, MANIFEST_WAIT_RATIO * last_write[1]):
             write_manifest(out_dir, options, options_sha, files)
-            last_write[0] = now
+            last_write[:] = [time.perf_counter(), time.perf_counter() - now]
         if on_progress is not None:
             on_progress(counts["done"], counts["failed"], len(paths) - len(rows), now - started)
 

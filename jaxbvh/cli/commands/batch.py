@@ -14,6 +14,14 @@ is split into one device per core (``--cpu-devices``; :func:`jaxbvh.batch.use_cp
 gets its own one-line error in its row, the others are still written, and the exit
 status is 1. Every option is checked before any mesh is read. The trees are renamed into
 place together at the end, so an interrupted batch leaves none of its outputs.
+
+With ``--scheduler ADDRESS`` (a Dask scheduler, or ``local:N`` worker processes) or
+``--resume`` the files run in chunks (:func:`jaxbvh.batch.runs.run_files`,
+``docs/cluster.md``): each tree is written as soon as its chunk is done, a manifest in
+OUTDIR records every file, and ``--resume`` redoes only what is missing or stale.
+``--report PATH`` writes a row per file (CSV or JSON) either way. Annealing's key per
+mesh comes from its output name (:func:`jaxbvh.batch.runs.mesh_key`), so every engine
+gives the same trees.
 """
 
 from __future__ import annotations
