@@ -51,7 +51,20 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
+import jax
 import numpy as np
+
+import jaxbvh
+from jaxbvh.batch.build import build, builder_config
+from jaxbvh.batch.measure import costs
+from jaxbvh.batch.optimize import optimize
+from jaxbvh.batch.plan import BatchConfig
+from jaxbvh.builders.configs import TRIANGLE_BUILDERS
+from jaxbvh.cli.command_kit import seed_key  # any integer seed, as the command line takes it
+from jaxbvh.files import atomic_write
+from jaxbvh.io import load_mesh
+from jaxbvh.optimize import DEFAULT_METHOD, make_config
+from jaxbvh.tree.interchange import compact
 
 #: the manifest's file name in the output folder
 MANIFEST = "jaxbvh-manifest.json"
@@ -75,9 +88,7 @@ REPORT_FIELDS = ("mesh", "output", "triangles", "builder", "optimizer", "sah_bui
 def mesh_key(seed: int, name: str):
     """The ``jax.random`` key of the mesh whose output name is ``name`` (module docstring):
     ``fold_in(seed_key(seed), h)``, ``h`` the first 31 bits of SHA-256 of ``name``."""
-    import jax
 
-    from jaxbvh.cli.command_kit import seed_key  # any integer seed, as the command line takes it
 
     h = int.from_bytes(hashlib.sha256(name.encode("utf-8")).digest()[:4], "little") & 0x7FFFFFFF
     return jax.random.fold_in(seed_key(seed), h)
@@ -128,7 +139,6 @@ class Settings:
 
     def options(self) -> dict:
         """The settings as plain JSON values (the manifest's ``options``)."""
-        import jaxbvh
 
         def plain(config):
             return None if config is None else {"type": type(config).__name__, **dataclasses.asdict(config)}
@@ -162,10 +172,6 @@ def trees_of(meshes, names, settings: Settings, on_chunk=None) -> tuple[list, li
     ``"validate: ..."``). ``on_chunk(index)``: as :func:`jaxbvh.batch.build`'s, ``index``
     positions in ``meshes``. Keys: :func:`mesh_key` of ``names``.
     """
-    import jaxbvh
-    from jaxbvh.batch import build, costs, optimize
-    from jaxbvh.builders.configs import TRIANGLE_BUILDERS
-    from jaxbvh.tree.interchange import compact
 
     loaded = [i for i, m in enumerate(meshes) if m is not None]
     trees: list = [None] * len(meshes)
@@ -210,8 +216,6 @@ def process_chunk(items, settings: Settings, out_dir: str) -> list[dict]:
     """One task: the files ``items`` (``[(path, name), ...]``) to trees in ``out_dir``
     (``out_dir/name``, written atomically); returns a report row per file (module
     docstring). Runs on a worker (or in this process); raises nothing for a bad mesh."""
-    import jaxbvh
-    from jaxbvh.io import load_mesh
 
     worker = worker_name()
     rows, meshes, seconds = [], [], np.zeros(len(items))
@@ -305,7 +309,6 @@ def up_to_date(row: dict | None, path, out_dir, options_sha: str, name: str) -> 
 
 def write_manifest(out_dir, settings_options: dict, options_sha: str, files: dict) -> None:
     """Write the manifest atomically (:func:`jaxbvh.files.atomic_write`)."""
-    from jaxbvh.files import atomic_write
 
     text = json.dumps({"options_sha256": options_sha, "options": settings_options, "files": files},
                       indent=1, sort_keys=True, default=str)
@@ -316,7 +319,6 @@ def write_manifest(out_dir, settings_options: dict, options_sha: str, files: dic
 def write_report(rows, path) -> None:
     """The per-file report, ``path`` ending ``.csv`` (the columns :data:`REPORT_FIELDS`) or
     anything else (JSON: a list of rows), written atomically."""
-    from jaxbvh.files import atomic_write
 
     if str(path).lower().endswith(".csv"):
         buffer = io.StringIO()
@@ -401,9 +403,6 @@ def run_files(paths, out, *, action: str = "build", builder=None, method: str | 
     Returns:
       :class:`RunResult`.
     """
-    from jaxbvh.batch.plan import BatchConfig
-    from jaxbvh.batch.build import builder_config
-    from jaxbvh.optimize import DEFAULT_METHOD, make_config
 
     if action not in ("build", "optimize"):
         raise ValueError(f"action must be 'build' or 'optimize', got {action!r}")
