@@ -88,8 +88,6 @@ REPORT_FIELDS = ("mesh", "output", "triangles", "builder", "optimizer", "sah_bui
 def mesh_key(seed: int, name: str):
     """The ``jax.random`` key of the mesh whose output name is ``name`` (module docstring):
     ``fold_in(seed_key(seed), h)``, ``h`` the first 31 bits of SHA-256 of ``name``."""
-
-
     h = int.from_bytes(hashlib.sha256(name.encode("utf-8")).digest()[:4], "little") & 0x7FFFFFFF
     return jax.random.fold_in(seed_key(seed), h)
 
@@ -129,7 +127,6 @@ class Settings:
     """What every chunk of a run does: ``action`` (``"build"`` or ``"optimize"``), the
     ``builder`` Config, the optimizer ``method`` and its Config ``optimizer`` (None for
     ``"build"``), the ``seed`` of :func:`mesh_key`, the ``batch`` Config."""
-
     action: str
     builder: Any
     method: str | None
@@ -172,7 +169,6 @@ def trees_of(meshes, names, settings: Settings, on_chunk=None) -> tuple[list, li
     ``"validate: ..."``). ``on_chunk(index)``: as :func:`jaxbvh.batch.build`'s, ``index``
     positions in ``meshes``. Keys: :func:`mesh_key` of ``names``.
     """
-
     loaded = [i for i, m in enumerate(meshes) if m is not None]
     trees: list = [None] * len(meshes)
     rows: list[dict] = [{} for _ in meshes]
@@ -216,7 +212,6 @@ def process_chunk(items, settings: Settings, out_dir: str) -> list[dict]:
     """One task: the files ``items`` (``[(path, name), ...]``) to trees in ``out_dir``
     (``out_dir/name``, written atomically); returns a report row per file (module
     docstring). Runs on a worker (or in this process); raises nothing for a bad mesh."""
-
     worker = worker_name()
     rows, meshes, seconds = [], [], np.zeros(len(items))
     for path, name in items:
@@ -309,7 +304,6 @@ def up_to_date(row: dict | None, path, out_dir, options_sha: str, name: str) -> 
 
 def write_manifest(out_dir, settings_options: dict, options_sha: str, files: dict) -> None:
     """Write the manifest atomically (:func:`jaxbvh.files.atomic_write`)."""
-
     text = json.dumps({"options_sha256": options_sha, "options": settings_options, "files": files},
                       indent=1, sort_keys=True, default=str)
     with atomic_write(Path(out_dir) / MANIFEST, "w") as f:
@@ -319,7 +313,6 @@ def write_manifest(out_dir, settings_options: dict, options_sha: str, files: dic
 def write_report(rows, path) -> None:
     """The per-file report, ``path`` ending ``.csv`` (the columns :data:`REPORT_FIELDS`) or
     anything else (JSON: a list of rows), written atomically."""
-
     if str(path).lower().endswith(".csv"):
         buffer = io.StringIO()
         writer = csv.DictWriter(buffer, REPORT_FIELDS, extrasaction="ignore")
@@ -360,7 +353,6 @@ class RunResult:
     """What :func:`run_files` returns: ``rows`` (a report row per file, input order),
     ``done`` (written this run), ``skipped`` (up to date, ``resume``), ``failed``,
     ``seconds`` (wall) and ``workers`` (the workers that ran chunks)."""
-
     rows: list
     done: int
     skipped: int
@@ -403,7 +395,6 @@ def run_files(paths, out, *, action: str = "build", builder=None, method: str | 
     Returns:
       :class:`RunResult`.
     """
-
     if action not in ("build", "optimize"):
         raise ValueError(f"action must be 'build' or 'optimize', got {action!r}")
     builder = builder_config(builder)
