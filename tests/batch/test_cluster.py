@@ -122,7 +122,7 @@ def test_a_worker_killed_mid_run_loses_no_file_and_delivers_none_twice(tmp_path,
             os.kill(pids[busy[0]], signal.SIGKILL)  # no goodbye: its chunk goes to the other worker
             killed.append(busy[0])
 
-    made = runs.run_files(sorted(folder.iterdir()), tmp_path / "out", client=client, chunk_files=2,
+    made = runs.run_files(sorted(folder.iterdir()), tmp_path / "out", client=client, chunk_files=4,
                           on_progress=kill_a_busy_worker)
     assert killed, "no worker was busy to kill"
     names = sorted(os.path.basename(r["mesh"]) for r in made.rows)
