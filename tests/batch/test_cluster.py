@@ -88,11 +88,10 @@ def test_annealing_keys_come_from_the_file_name_not_its_place(tmp_path, capsys, 
         seen.append([np.asarray(jax.random.key_data(key)).tolist() for key in keys])
         raise Keys
 
-    import jaxbvh.batch
     from jaxbvh.cli.commands import batch as batch_command
 
     monkeypatch.setattr(batch_command, "optimize", spy)
-    monkeypatch.setattr(jaxbvh.batch, "optimize", spy)
+    monkeypatch.setattr(runs, "optimize", spy)
     # single process: every good mesh in one batch, in folder order
     names = runs.output_names(sorted(folder.iterdir()))
     with pytest.raises(Keys):
