@@ -15,10 +15,11 @@ one device leaves the other cores idle. :func:`use_cpu_cores`, called before JAX
 first operation, splits the CPU into one JAX device per core; the batch axis is then
 split over them like over several GPUs (``jaxbvh batch`` does it by default).
 
-Several hosts: start every process with :func:`jax.distributed.initialize` first; then
-``jax.devices()`` lists the devices of all hosts and the same code shards over them,
-every process getting the whole batch back (``process_allgather``; not tested here: one
-host only; ``docs/batches.md``).
+Several hosts: a batch of files runs on a Dask cluster (:mod:`jaxbvh.batch.runs`,
+``docs/cluster.md``), each worker with its own devices. Under :func:`jax.distributed.initialize`
+``jax.devices()`` would list every host's devices and :func:`on_devices` gathers the
+results on every process (``process_allgather``), but that SPMD mode is not tested here
+and not documented as a recipe.
 """
 
 from __future__ import annotations

@@ -14,6 +14,14 @@ is split into one device per core (``--cpu-devices``; :func:`jaxbvh.batch.use_cp
 gets its own one-line error in its row, the others are still written, and the exit
 status is 1. Every option is checked before any mesh is read. The trees are renamed into
 place together at the end, so an interrupted batch leaves none of its outputs.
+
+With ``--scheduler ADDRESS`` (a Dask scheduler, or ``local:N`` worker processes) or
+``--resume`` the files run in chunks (:func:`jaxbvh.batch.runs.run_files`,
+``docs/cluster.md``): each tree is written as soon as its chunk is done, a manifest in
+OUTDIR records every file, and ``--resume`` redoes only what is missing or stale.
+``--report PATH`` writes a row per file (CSV or JSON) either way. Annealing's key per
+mesh comes from its output name (:func:`jaxbvh.batch.runs.mesh_key`), so every engine
+gives the same trees.
 """
 
 from __future__ import annotations
@@ -29,7 +37,7 @@ import jax
 import numpy as np
 
 import jaxbvh
-from jaxbvh.batch import BatchConfig, build, costs, optimize, use_cpu_cores
+from jaxbvh.batch import BatchConfig, build, costs, optimize, runs, use_cpu_cores
 from jaxbvh.builders.configs import TRIANGLE_BUILDERS
 from jaxbvh.cli import command_kit
 from jaxbvh.cli.commands.optimize import OPTIONS as OPTIMIZER_OPTIONS
@@ -60,7 +68,19 @@ def add_parser(subparsers):
     parser.add_argument("--cpu-devices", type=int, metavar="N", default=None,
                         help="split the CPU into N JAX devices, the batch over them (default: one per core; "
                              "no effect where JAX runs on a GPU)")
-    command_kit.add_seed(parser, "random seed for annealing (mesh i gets fold_in(key(seed), i))")
+    command_kit.add_seed(parser, "random seed for annealing (each mesh's key: the seed's folded with a hash of "
+                                 "its output name, so a tree does not depend on where it ran)")
+    cluster = parser.add_argument_group("runs on a Dask cluster, resumable runs (docs/cluster.md)")
+    cluster.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                         help="run the files in chunks on a Dask scheduler: tcp://host:8786, or local:N for N "
+                              "worker processes on this machine (needs jaxbvh[cluster]); writes a manifest")
+    cluster.add_argument("--resume", action="store_true",
+                         help="skip the files whose output the manifest in OUTDIR says is up to date (same input, "
+                              "options and output hash); redo the rest")
+    cluster.add_argument("--report", metavar="PATH", default=None,
+                         help="write a report row per file to PATH (.csv, else JSON)")
+    cluster.add_argument("--chunk-files", type=int, metavar="N", default=runs.DEFAULT_CHUNK_FILES,
+                         help=f"files per task with --scheduler or --resume (default: {runs.DEFAULT_CHUNK_FILES})")
     parser.set_defaults(batch_options=add_config_options(parser, BatchConfig, title="batch options"))
     OPTIMIZER_OPTIONS.add_to(parser, "optimizer options of 'batch optimize' (fields of each method's Config)")
     command_kit.add_builder_args(parser)
@@ -95,20 +115,7 @@ def expand(inputs) -> list[Path]:
     return list(unique.values())
 
 
-def output_names(paths) -> list[str]:
-    """The output name of each path: the path relative to the folder all the inputs share,
-    its suffix kept, then ``.npz`` (``a.obj`` -> ``a.obj.npz``, ``sub/a.ply`` ->
-    ``sub/a.ply.npz``). Distinct files get distinct names by construction (stems alone
-    would not: ``a.obj`` and ``a.ply``); ``ValueError`` if two names still clash."""
-    absolute = [os.path.abspath(p) for p in paths]
-    root = os.path.commonpath([os.path.dirname(a) for a in absolute]) if absolute else ""
-    names = [Path(os.path.relpath(a, root)).as_posix() + ".npz" for a in absolute]
-    first: dict[str, Path] = {}
-    for path, name in zip(paths, names):
-        if name in first:
-            raise ValueError(f"{first[name]} and {path} would both be written to {name}")
-        first[name] = path
-    return names
+output_names = runs.output_names  # the library's rule (jaxbvh.batch.runs)
 
 
 def check_outputs(out_dir: Path, names, overwrite: bool) -> None:
@@ -167,8 +174,12 @@ def run(args) -> dict:
     out_dir = Path(args.output)
     if out_dir.exists() and not out_dir.is_dir():
         raise ValueError(f"--output {out_dir} is a file, not a folder")
+    if args.chunk_files < 1:
+        raise ValueError(f"--chunk-files must be >= 1, got {args.chunk_files}")
     paths = expand(args.inputs)
     names = output_names(paths)
+    if args.scheduler is not None or args.resume:
+        return run_chunks(args, paths, builder, optimizer, batch_config, out_dir)
     check_outputs(out_dir, names, args.overwrite)
     for name in dict.fromkeys(os.path.dirname(n) for n in names):
         (out_dir / name).mkdir(parents=True, exist_ok=True)
@@ -207,7 +218,7 @@ def run(args) -> dict:
             bar.reset(total=sum(len(g) for g in trees.groups))
             bar.set_description(args.method)
             clock.last = time.perf_counter()
-            keys = [jax.random.fold_in(jax.random.key(args.seed), i) for i in loaded]
+            keys = [runs.mesh_key(args.seed, names[i]) for i in loaded]  # the file's identity, not its place
             figures = optimize(trees, args.method, optimizer, keys=keys, batch=batch_config, on_chunk=clock)
             trees = figures.trees
         bar.reset(total=len(loaded))
@@ -261,8 +272,42 @@ def run(args) -> dict:
               "triangles": int(sum(r.get("triangles", 0) for r in rows)),
               "seconds": time.perf_counter() - started, "devices": jax.device_count(), "output_dir": str(out_dir),
               "valid": failed == 0, "rows": rows}
+    if args.report is not None:
+        runs.write_report([dict(r, builder=builder.method, optimizer=result["method"]) for r in rows], args.report)
     if not getattr(args, "json", False):
         # people get the rows as a table here, and the totals below it
+        print(table(rows, optimizer is not None), file=sys.stdout)
+        del result["rows"]
+    return result
+
+
+def run_chunks(args, paths, builder, optimizer, batch_config, out_dir: Path) -> dict:
+    """``--scheduler`` / ``--resume``: the files in chunks, on Dask workers or here, with a
+    manifest (:func:`jaxbvh.batch.runs.run_files`); one progress bar for the run."""
+    bar = command_kit.progress(args, total=len(paths), desc=f"batch {args.action}")
+
+    def on_progress(done, failed, left, seconds):
+        bar.n = done + failed
+        bar.set_postfix_str(f"done {done}, failed {failed}, left {left}, "
+                            f"{(done + failed) / max(seconds, 1e-9):.1f} trees/s", refresh=False)
+        bar.refresh()
+
+    try:
+        made = runs.run_files(paths, out_dir, action=args.action, builder=builder,
+                              method=args.method if optimizer is not None else None, optimizer=optimizer,
+                              seed=args.seed, batch=batch_config, client=args.scheduler, resume=args.resume,
+                              overwrite=args.overwrite, chunk_files=args.chunk_files, on_progress=on_progress,
+                              report=args.report)
+    finally:
+        bar.close()
+    rows = made.rows
+    result = {"command": "batch", "action": args.action, "builder": builder.method,
+              "method": args.method if optimizer is not None else None, "meshes": len(rows),
+              "written": made.done, "skipped": made.skipped, "failed": made.failed,
+              "triangles": int(sum(r.get("triangles") or 0 for r in rows)), "seconds": made.seconds,
+              "workers": made.workers, "scheduler": args.scheduler, "output_dir": str(out_dir),
+              "manifest": str(out_dir / runs.MANIFEST), "valid": made.ok, "rows": rows}
+    if not getattr(args, "json", False):
         print(table(rows, optimizer is not None), file=sys.stdout)
         del result["rows"]
     return result
