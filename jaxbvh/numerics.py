@@ -24,6 +24,17 @@ float32 overflow at 1e30, no underflow at 1e-30, and scaling by a power of two i
 :func:`scene_scale` (host, NumPy) and :func:`extent_scale` (traceable) give the same
 power; :func:`half_area` applies it.
 
+Narrowing and subnormals
+========================
+:func:`round_down` and :func:`round_up` narrow coordinates to a float type with directed
+rounding, so that a box narrowed ``lo`` down, ``hi`` up contains the given one
+(:func:`jaxbvh.builders.inputs.narrow_outward`). Both also move subnormal results outward
+to 0 or the smallest normal number: XLA on CPU flushes subnormals to zero in every
+operation (min, max and compares included), so a subnormal coordinate reads as 0 inside
+a compiled program. For the same reason :func:`scene_scale` is at most the largest
+power of two finite in the boxes' dtype (an extent that is a difference of tiny normal
+numbers can be subnormal).
+
 Array steps
 ===========
 Gathers with a fill value and prefix sums in the form XLA runs fast on CPU. The obvious
@@ -86,9 +97,42 @@ def scale_for_extent(m) -> float:
 
 def scene_scale(lo, hi) -> float:
     """Power of two that brings the largest extent of the box of all ``lo``, ``hi``
-    [n, 3] into [0.5, 1) (host, NumPy, the extent in float64; 1.0 for a point)."""
+    [n, 3] into [0.5, 1) (host, NumPy, the extent in float64; 1.0 for a point), at most
+    the largest power of two finite in their float dtype (module docstring)."""
     lo, hi = np.asarray(lo), np.asarray(hi)
-    return scale_for_extent(np.max(hi.max(0).astype(np.float64) - lo.min(0).astype(np.float64)))
+    scale = scale_for_extent(np.max(hi.max(0).astype(np.float64) - lo.min(0).astype(np.float64)))
+    if np.issubdtype(lo.dtype, np.floating):
+        scale = min(scale, float(np.ldexp(1.0, np.finfo(lo.dtype).maxexp - 1)))
+    return scale
+
+
+def _directed(x, dtype, down: bool):
+    x = np.asarray(x)
+    if not np.issubdtype(x.dtype, np.floating):
+        x = x.astype(np.float64)
+    dtype = np.dtype(dtype)
+    with np.errstate(over="ignore"):
+        y = x.astype(dtype)
+    # the comparison runs in the wider type, where every value of ``dtype`` is exact
+    y = np.where(y > x, np.nextafter(y, dtype.type(-np.inf)), y) if down else \
+        np.where(y < x, np.nextafter(y, dtype.type(np.inf)), y)
+    tiny = np.finfo(dtype).tiny
+    positive, negative = (y > 0) & (y < tiny), (y < 0) & (y > -tiny)
+    return np.where(positive, dtype.type(0 if down else tiny),
+                    np.where(negative, dtype.type(-tiny if down else 0), y)).astype(dtype)
+
+
+def round_down(x, dtype) -> np.ndarray:
+    """The largest value of ``dtype`` (a float type) that is at most ``x`` (NumPy, any
+    float or integer array), a subnormal one replaced by 0 (positive) or minus the
+    smallest normal number (negative); ``-inf`` below the range (module docstring)."""
+    return _directed(x, dtype, down=True)
+
+
+def round_up(x, dtype) -> np.ndarray:
+    """The smallest value of ``dtype`` at least ``x``; a subnormal one replaced by the
+    smallest normal number (positive) or 0 (negative); ``inf`` above the range."""
+    return _directed(x, dtype, down=False)
 
 
 def box_scale(lo, hi):

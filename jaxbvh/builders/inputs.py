@@ -1,12 +1,30 @@
-"""Primitive boxes as every builder takes them: checked on the host, cast to the working
-dtype, padded to a capacity with empty boxes (inert: ``+inf`` lo, ``-inf`` hi)."""
+"""Primitive boxes as every builder takes them: checked on the host, narrowed to the
+working dtype with outward rounding, padded to a capacity with empty boxes (inert:
+``+inf`` lo, ``-inf`` hi).
+
+Narrowing (issue 39). A builder's leaf box is the min/max of its primitives' boxes as the
+builder received them, so those boxes must contain the boxes as given: float64 boxes
+rounded to the *nearest* float32 could end inside their primitives (an object of extent
+1 at offset 1e7 missed by 0.5, at scale 1e30 by 3.8e22). :func:`narrow_outward` rounds
+``lo`` down and ``hi`` up instead, and also replaces subnormal coordinates, outward, by 0
+or the smallest normal number: XLA on CPU flushes subnormals to zero in every operation
+(a min or max included), which at 1e-40 broke every builder (boxes that missed their
+primitives, child ids out of range). Every builder's tree therefore contains the boxes
+as given, at any offset and scale the working dtype can represent; coordinates beyond
+its range are refused. Where rounding grows the boxes by a visible part of the scene
+(far from the origin, or below the normal range) the tree is valid but coarse, and
+:func:`narrow_outward` warns once, saying what to do: pass scene-relative coordinates
+(:meth:`jaxbvh.io.Mesh.local_boxes`) or build in float64.
+"""
 
 from __future__ import annotations
+
+import warnings
 
 import jax.numpy as jnp
 import numpy as np
 
-from jaxbvh.numerics import scene_scale, working_dtype
+from jaxbvh.numerics import round_down, round_up, scene_scale, working_dtype
 from jaxbvh.tree.layout import capacity_bucket
 from jaxbvh.tree.validate import few_ids
 
@@ -37,6 +55,37 @@ def check_prim_boxes(prim_lo, prim_hi, what: str = "primitive boxes"):
     return lo, hi
 
 
+#: :func:`narrow_outward` warns when rounding grows a box by more than this part of the scene's extent
+COARSE_FRACTION = 2.0 ** -10
+
+
+def narrow_outward(lo, hi, dtype, what: str = "primitive boxes"):
+    """``lo``, ``hi`` [..., 3] (any float type) as ``dtype`` [..., 3], rounded outward:
+    ``lo`` down, ``hi`` up, subnormals to 0 or the smallest normal number (module
+    docstring), so each new box contains the given one. Exact (no change) for boxes
+    already in ``dtype`` with normal or zero coordinates.
+
+    ``ValueError`` when a coordinate is beyond ``dtype``'s range; a ``UserWarning`` when
+    a box grows by more than :data:`COARSE_FRACTION` of the scene's extent.
+    """
+    dtype = np.dtype(dtype)
+    lo, hi = np.asarray(lo), np.asarray(hi)
+    new_lo, new_hi = round_down(lo, dtype), round_up(hi, dtype)
+    if not (np.isfinite(new_lo).all() and np.isfinite(new_hi).all()):
+        big = float(np.finfo(dtype).max)
+        raise ValueError(f"{what}: coordinates beyond {dtype.name}'s range (+-{big:.3g}); scale the scene "
+                         f"down or build in float64 (jax.config.update('jax_enable_x64', True))")
+    if lo.size and (new_lo.dtype != lo.dtype or (new_lo != lo).any() or (new_hi != hi).any()):
+        grown = max(float(np.max(lo.astype(np.float64) - new_lo)), float(np.max(new_hi - hi.astype(np.float64))))
+        extent = float(np.max(hi.max(0).astype(np.float64) - lo.min(0).astype(np.float64)))
+        if grown > COARSE_FRACTION * extent:
+            warnings.warn(f"{what}: rounding to {dtype.name} grew boxes by up to {grown:.3g} in a scene of "
+                          f"extent {extent:.3g}; the tree holds every primitive but is coarse. Pass "
+                          f"scene-relative coordinates (jaxbvh.io.Mesh.local_boxes(), or subtract the "
+                          f"scene's centre and scale it near 1) or build in float64 (x64)", stacklevel=4)
+    return new_lo, new_hi
+
+
 def prepare(prim_lo, prim_hi, *, pad: bool = True, capacity: int | None = None, dtype=None):
     """Checked, cast and padded builder inputs ``(lo, hi, n, scale)``.
 
@@ -44,11 +93,12 @@ def prepare(prim_lo, prim_hi, *, pad: bool = True, capacity: int | None = None, 
     primitive count; ``scale``: the scene's power-of-two area scale. The capacity is
     ``capacity`` if given (>= n; one compile for inputs of many sizes), else the capacity
     bucket of ``n`` (``pad=True``) or ``n``. ``dtype``: float32 (None) or float64 (needs
-    x64). Errors: :func:`check_prim_boxes`, and a capacity below ``n``.
+    x64); the boxes are narrowed to it outward (:func:`narrow_outward`). Errors:
+    :func:`check_prim_boxes`, :func:`narrow_outward`, and a capacity below ``n``.
     """
     lo, hi = check_prim_boxes(prim_lo, prim_hi)
     dt = working_dtype(dtype, lo.dtype)
-    lo, hi = lo.astype(dt), hi.astype(dt)
+    lo, hi = narrow_outward(lo, hi, dt)
     n = lo.shape[0]
     cap = int(capacity) if capacity is not None else (capacity_bucket(n) if pad else n)
     if cap < n:
