@@ -89,10 +89,14 @@ def working_dtype(dtype, given) -> np.dtype:
     return dtype
 
 
-def scale_for_extent(m) -> float:
-    """Power of two that brings an extent ``m > 0`` into [0.5, 1); 1.0 when ``m <= 0`` (host)."""
+def scale_for_extent(m, dtype=np.float64) -> float:
+    """Power of two that brings an extent ``m > 0`` into [0.5, 1); 1.0 when ``m <= 0``
+    (host); at most the largest power of two finite in ``dtype``."""
     m = float(m)
-    return float(np.ldexp(1.0, -int(np.frexp(m)[1]))) if m > 0 else 1.0
+    if not m > 0:
+        return 1.0
+    exponent = min(-int(np.frexp(m)[1]), np.finfo(dtype).maxexp - 1, np.finfo(np.float64).maxexp - 1)
+    return float(np.ldexp(1.0, exponent))
 
 
 def scene_scale(lo, hi) -> float:
@@ -100,10 +104,8 @@ def scene_scale(lo, hi) -> float:
     [n, 3] into [0.5, 1) (host, NumPy, the extent in float64; 1.0 for a point), at most
     the largest power of two finite in their float dtype (module docstring)."""
     lo, hi = np.asarray(lo), np.asarray(hi)
-    scale = scale_for_extent(np.max(hi.max(0).astype(np.float64) - lo.min(0).astype(np.float64)))
-    if np.issubdtype(lo.dtype, np.floating):
-        scale = min(scale, float(np.ldexp(1.0, np.finfo(lo.dtype).maxexp - 1)))
-    return scale
+    dtype = lo.dtype if np.issubdtype(lo.dtype, np.floating) else np.float64
+    return scale_for_extent(np.max(hi.max(0).astype(np.float64) - lo.min(0).astype(np.float64)), dtype)
 
 
 def _directed(x, dtype, down: bool):

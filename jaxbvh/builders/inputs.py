@@ -19,7 +19,9 @@ its range are refused. Where rounding grows the boxes by a visible part of the s
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
+from typing import NamedTuple
 
 import jax.numpy as jnp
 import numpy as np
@@ -55,6 +57,8 @@ def check_prim_boxes(prim_lo, prim_hi, what: str = "primitive boxes"):
     return lo, hi
 
 
+_OR_FLOAT64 = {True: " or build in float64 (x64)", False: ""}
+
 #: :func:`narrow_outward` warns when rounding grows a box by more than this part of the scene's extent
 COARSE_FRACTION = 2.0 ** -10
 
@@ -82,7 +86,7 @@ def narrow_outward(lo, hi, dtype, what: str = "primitive boxes"):
             warnings.warn(f"{what}: rounding to {dtype.name} grew boxes by up to {grown:.3g} in a scene of "
                           f"extent {extent:.3g}; the tree holds every primitive but is coarse. Pass "
                           f"scene-relative coordinates (jaxbvh.io.Mesh.local_boxes(), or subtract the "
-                          f"scene's centre and scale it near 1) or build in float64 (x64)", stacklevel=4)
+                          f"scene's centre and scale it near 1){_OR_FLOAT64[dtype == np.float32]}", stacklevel=4)
     return new_lo, new_hi
 
 
@@ -107,3 +111,69 @@ def prepare(prim_lo, prim_hi, *, pad: bool = True, capacity: int | None = None, 
     hi_p = np.full((cap, 3), -np.inf, dt)
     lo_p[:n], hi_p[:n] = lo, hi
     return jnp.asarray(lo_p), jnp.asarray(hi_p), jnp.int32(n), jnp.asarray(scene_scale(lo, hi), dt)
+
+
+class TriangleFrame(NamedTuple):
+    """Triangles as the SBVH engine takes them (:func:`narrow_triangles`)."""
+
+    triangles: np.ndarray  # [n, 3, 3] in the working dtype: the given ones times ``unit``, rounded to nearest
+    unit: float            # power of two the coordinates were multiplied by (exact)
+    slack: float           # largest rounding error of a coordinate, in the scaled frame (float64; 0: exact)
+
+
+def narrow_triangles(tri, dtype, what: str = "triangles") -> TriangleFrame:
+    """The SBVH's inputs: ``tri`` [n, 3, 3] (checked, any float type) multiplied by the
+    power of two ``unit`` that brings the scene's extent near 1 (exact: clipping then
+    neither overflows at 1e30 nor flushes its margins to zero at 1e-37), rounded to
+    nearest in ``dtype`` with subnormals set to 0 (XLA flushes them), and the largest
+    rounding error ``slack``. Clipping needs the triangles themselves, which cannot be
+    rounded outward; :func:`widen_back` therefore grows the tree's boxes by ``slack``:
+    a point of a given triangle lies within ``slack`` (per coordinate) of the point of
+    the rounded triangle with the same barycentric coordinates, which the engine's
+    boxes cover. ``ValueError`` beyond ``dtype``'s range; the warning of
+    :func:`narrow_outward` when ``slack`` makes the tree coarse.
+    """
+    dtype = np.dtype(dtype)
+    tri = np.asarray(tri)
+    wide = np.result_type(tri.dtype, np.float64)
+    exact = tri.astype(wide)
+    unit = scene_scale(exact.min(1), exact.max(1))
+    scaled = exact * wide.type(unit)  # a power of two: exact in float64 and wider
+    with np.errstate(over="ignore"):
+        near = scaled.astype(dtype)
+    if not np.isfinite(near).all():
+        raise ValueError(f"{what}: the scene's coordinates are too far from the origin for {dtype.name} "
+                         f"(beyond {float(np.finfo(dtype).max):.3g} times its extent); pass scene-relative "
+                         f"coordinates (jaxbvh.io.Mesh.local_triangles())")
+    near = np.where(np.abs(near) < np.finfo(dtype).tiny, dtype.type(0), near)
+    slack = float(np.max(np.abs(scaled - near))) if tri.size else 0.0
+    extent = float(np.max(scaled.max((0, 1)) - scaled.min((0, 1)))) if tri.size else 0.0
+    if slack > COARSE_FRACTION * extent:
+        warnings.warn(f"{what}: rounding to {dtype.name} moved vertices by up to {slack / unit:.3g} in a scene of "
+                      f"extent {extent / unit:.3g}; the tree covers every triangle but is coarse. Pass "
+                      f"scene-relative coordinates (jaxbvh.io.Mesh.local_triangles())"
+                      f"{_OR_FLOAT64[dtype == np.float32]}",
+                      stacklevel=4)
+    return TriangleFrame(near, unit, slack)
+
+
+def widen_back(tree, frame: TriangleFrame):
+    """``tree`` (built on ``frame.triangles``) in the given triangles' frame: real boxes
+    divided by ``frame.unit`` and grown by ``frame.slack`` (:func:`narrow_triangles`),
+    rounded outward to the tree's dtype. Each box grows by the same amount, so parents
+    still contain their children. The tree unchanged when the frame is exact."""
+    if frame.unit == 1.0 and frame.slack == 0.0:
+        return tree
+    dtype = np.dtype(tree.lo.dtype)
+
+    def moved(x, down: bool):
+        x = np.asarray(x).astype(np.float64)
+        real = np.isfinite(x)  # the padding's infinite boxes stay as they are
+        y = np.where(real, x, 0.0)
+        y = y - frame.slack if down else y + frame.slack
+        if frame.slack:  # one float64 step past the subtraction's rounding
+            y = np.nextafter(y, -np.inf if down else np.inf)
+        y = (round_down if down else round_up)(y / frame.unit, dtype)  # the division is exact
+        return jnp.asarray(np.where(real, y, x).astype(dtype))
+
+    return dataclasses.replace(tree, lo=moved(tree.lo, True), hi=moved(tree.hi, False))
