@@ -63,6 +63,12 @@ _OR_FLOAT64 = {True: " or build in float64 (x64)", False: ""}
 COARSE_FRACTION = 2.0 ** -10
 
 
+def _beyond(what: str, dtype) -> str:
+    big = float(np.finfo(dtype).max)
+    return (f"{what}: coordinates beyond {np.dtype(dtype).name}'s range (+-{big:.3g}); scale the scene down"
+            + (" or build in float64 (jax.config.update('jax_enable_x64', True))" if dtype == np.float32 else ""))
+
+
 def narrow_outward(lo, hi, dtype, what: str = "primitive boxes"):
     """``lo``, ``hi`` [..., 3] (any float type) as ``dtype`` [..., 3], rounded outward:
     ``lo`` down, ``hi`` up, subnormals to 0 or the smallest normal number (module
@@ -76,9 +82,7 @@ def narrow_outward(lo, hi, dtype, what: str = "primitive boxes"):
     lo, hi = np.asarray(lo), np.asarray(hi)
     new_lo, new_hi = round_down(lo, dtype), round_up(hi, dtype)
     if not (np.isfinite(new_lo).all() and np.isfinite(new_hi).all()):
-        big = float(np.finfo(dtype).max)
-        raise ValueError(f"{what}: coordinates beyond {dtype.name}'s range (+-{big:.3g}); scale the scene "
-                         f"down or build in float64 (jax.config.update('jax_enable_x64', True))")
+        raise ValueError(_beyond(what, dtype))
     if lo.size and (new_lo.dtype != lo.dtype or (new_lo != lo).any() or (new_hi != hi).any()):
         grown = max(float(np.max(lo.astype(np.float64) - new_lo)), float(np.max(new_hi - hi.astype(np.float64))))
         extent = float(np.max(hi.max(0).astype(np.float64) - lo.min(0).astype(np.float64)))
@@ -137,6 +141,8 @@ def narrow_triangles(tri, dtype, what: str = "triangles") -> TriangleFrame:
     tri = np.asarray(tri)
     wide = np.result_type(tri.dtype, np.float64)
     exact = tri.astype(wide)
+    if tri.size and float(np.max(np.abs(exact))) > float(np.finfo(dtype).max):
+        raise ValueError(_beyond(what, dtype))
     unit = scene_scale(exact.min(1), exact.max(1))
     scaled = exact * wide.type(unit)  # a power of two: exact in float64 and wider
     with np.errstate(over="ignore"):
@@ -174,6 +180,8 @@ def widen_back(tree, frame: TriangleFrame):
         if frame.slack:  # one float64 step past the subtraction's rounding
             y = np.nextafter(y, -np.inf if down else np.inf)
         y = (round_down if down else round_up)(y / frame.unit, dtype)  # the division is exact
+        if not np.isfinite(y[real]).all():  # grown past the range by the slack
+            raise ValueError(_beyond("triangles", dtype))
         return jnp.asarray(np.where(real, y, x).astype(dtype))
 
     return dataclasses.replace(tree, lo=moved(tree.lo, True), hi=moved(tree.hi, False))
