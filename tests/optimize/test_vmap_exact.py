@@ -54,7 +54,7 @@ def test_vmap_of_step_is_step_leaf_for_leaf(name, tree):
 
 
 def test_ordered_sum_is_one_order_in_every_program():
-    x = np.random.default_rng(0).standard_normal((3, 1000)).astype(np.float32) * 10.0 ** np.arange(-3, 3, 0.006)
+    x = (np.random.default_rng(0).standard_normal((3, 1000)) * 10.0 ** np.arange(-3, 3, 0.006)).astype(np.float32)
     one = np.stack([np.asarray(jax.jit(ordered_sum)(row)) for row in x])
     many = np.asarray(jax.jit(jax.vmap(ordered_sum))(x))
     np.testing.assert_array_equal(one, many)
