@@ -129,13 +129,19 @@ def _directed(x, dtype, down: bool):
     if not np.issubdtype(x.dtype, np.floating):
         x = x.astype(np.float64)
     dtype = np.dtype(dtype)
-    with np.errstate(over="ignore"):
-        y = x.astype(dtype)
-    # the comparison runs in the wider type, where every value of ``dtype`` is exact
-    y = np.where(y > x, np.nextafter(y, dtype.type(-np.inf)), y) if down else \
-        np.where(y < x, np.nextafter(y, dtype.type(np.inf)), y)
+    if x.dtype == dtype:  # exact already (the usual case: float32 boxes to a float32 build)
+        y = x
+    else:
+        with np.errstate(over="ignore"):
+            y = x.astype(dtype)
+        # the comparison runs in the wider type, where every value of ``dtype`` is exact
+        y = np.where(y > x, np.nextafter(y, dtype.type(-np.inf)), y) if down else \
+            np.where(y < x, np.nextafter(y, dtype.type(np.inf)), y)
     tiny = np.finfo(dtype).tiny
-    positive, negative = (y > 0) & (y < tiny), (y < 0) & (y > -tiny)
+    subnormal = (y != 0) & (np.abs(y) < tiny)
+    if not subnormal.any():
+        return np.asarray(y, dtype)
+    positive, negative = subnormal & (y > 0), subnormal & (y < 0)
     return np.where(positive, dtype.type(0 if down else tiny),
                     np.where(negative, dtype.type(-tiny if down else 0), y)).astype(dtype)
 
