@@ -16,6 +16,22 @@ reproducible nor equal to its twin. Two rules keep decisions off the last bit:
   counts costs within it as tied (:mod:`jaxbvh.optimize.rotate`,
   :mod:`jaxbvh.wide.collapse`).
 
+Fused multiply-adds and sums under ``jax.vmap``
+===============================================
+The margins keep a decision off the last bit of one program's cost, but not off the
+difference between two programs: ``step`` and ``jax.vmap(step)`` are compiled apart,
+XLA fuses them differently, and where a product lands in one fusion with the add that
+consumes it, LLVM contracts the two into a multiply-add (rounded once), elsewhere not
+(tinybvh's legocar tree under annealing: 53 of 12,288 forest costs an ulp apart). A cost
+that feeds a decision is therefore computed so that every program rounds it alike:
+each product that feeds an add passes :func:`rounded` (rounded to its dtype on its
+own, never contracted), and sums over an array run in one fixed order
+(:func:`ordered_sum`: pairwise halving, not a reduction whose order XLA picks per
+program). :func:`half_area` does both for its products; the optimizers' costs
+(:mod:`jaxbvh.optimize.rotate_moves`, :mod:`jaxbvh.optimize.reinsert_moves`,
+:mod:`jaxbvh.optimize.reinsert_search`) use them, so a vmapped step equals the step,
+leaf for leaf (``tests/optimize/test_vmap_exact.py``).
+
 Area scale
 ==========
 Surface areas are computed from box extents multiplied by a power of two chosen from the
@@ -23,6 +39,17 @@ scene's (or the root's) largest extent, which brings that extent into [0.5, 1): 
 float32 overflow at 1e30, no underflow at 1e-30, and scaling by a power of two is exact.
 :func:`scene_scale` (host, NumPy) and :func:`extent_scale` (traceable) give the same
 power; :func:`half_area` applies it.
+
+Narrowing and subnormals
+========================
+:func:`round_down` and :func:`round_up` narrow coordinates to a float type with directed
+rounding, so that a box narrowed ``lo`` down, ``hi`` up contains the given one
+(:func:`jaxbvh.builders.inputs.narrow_outward`). Both also move subnormal results outward
+to 0 or the smallest normal number: XLA on CPU flushes subnormals to zero in every
+operation (min, max and compares included), so a subnormal coordinate reads as 0 inside
+a compiled program. For the same reason :func:`scene_scale` is at most the largest
+power of two finite in the boxes' dtype (an extent that is a difference of tiny normal
+numbers can be subnormal).
 
 Array steps
 ===========
@@ -78,17 +105,58 @@ def working_dtype(dtype, given) -> np.dtype:
     return dtype
 
 
-def scale_for_extent(m) -> float:
-    """Power of two that brings an extent ``m > 0`` into [0.5, 1); 1.0 when ``m <= 0`` (host)."""
+def scale_for_extent(m, dtype=np.float64) -> float:
+    """Power of two that brings an extent ``m > 0`` into [0.5, 1); 1.0 when ``m <= 0``
+    (host); at most the largest power of two finite in ``dtype``."""
     m = float(m)
-    return float(np.ldexp(1.0, -int(np.frexp(m)[1]))) if m > 0 else 1.0
+    if not m > 0:
+        return 1.0
+    exponent = min(-int(np.frexp(m)[1]), np.finfo(dtype).maxexp - 1, np.finfo(np.float64).maxexp - 1)
+    return float(np.ldexp(1.0, exponent))
 
 
 def scene_scale(lo, hi) -> float:
     """Power of two that brings the largest extent of the box of all ``lo``, ``hi``
-    [n, 3] into [0.5, 1) (host, NumPy, the extent in float64; 1.0 for a point)."""
+    [n, 3] into [0.5, 1) (host, NumPy, the extent in float64; 1.0 for a point), at most
+    the largest power of two finite in their float dtype (module docstring)."""
     lo, hi = np.asarray(lo), np.asarray(hi)
-    return scale_for_extent(np.max(hi.max(0).astype(np.float64) - lo.min(0).astype(np.float64)))
+    dtype = lo.dtype if np.issubdtype(lo.dtype, np.floating) else np.float64
+    return scale_for_extent(np.max(hi.max(0).astype(np.float64) - lo.min(0).astype(np.float64)), dtype)
+
+
+def _directed(x, dtype, down: bool):
+    x = np.asarray(x)
+    if not np.issubdtype(x.dtype, np.floating):
+        x = x.astype(np.float64)
+    dtype = np.dtype(dtype)
+    if x.dtype == dtype:  # exact already (the usual case: float32 boxes to a float32 build)
+        y = x
+    else:
+        with np.errstate(over="ignore"):
+            y = x.astype(dtype)
+        # the comparison runs in the wider type, where every value of ``dtype`` is exact
+        y = np.where(y > x, np.nextafter(y, dtype.type(-np.inf)), y) if down else \
+            np.where(y < x, np.nextafter(y, dtype.type(np.inf)), y)
+    tiny = np.finfo(dtype).tiny
+    subnormal = (y != 0) & (np.abs(y) < tiny)
+    if not subnormal.any():
+        return np.asarray(y, dtype)
+    positive, negative = subnormal & (y > 0), subnormal & (y < 0)
+    return np.where(positive, dtype.type(0 if down else tiny),
+                    np.where(negative, dtype.type(-tiny if down else 0), y)).astype(dtype)
+
+
+def round_down(x, dtype) -> np.ndarray:
+    """The largest value of ``dtype`` (a float type) that is at most ``x`` (NumPy, any
+    float or integer array), a subnormal one replaced by 0 (positive) or minus the
+    smallest normal number (negative); ``-inf`` below the range (module docstring)."""
+    return _directed(x, dtype, down=True)
+
+
+def round_up(x, dtype) -> np.ndarray:
+    """The smallest value of ``dtype`` at least ``x``; a subnormal one replaced by the
+    smallest normal number (positive) or 0 (negative); ``inf`` above the range."""
+    return _directed(x, dtype, down=False)
 
 
 def box_scale(lo, hi):
@@ -109,16 +177,41 @@ def extent_scale(lo, hi):
     return jnp.where(m > 0, jnp.ldexp(jnp.ones((), lo.dtype), -exponent), jnp.ones((), lo.dtype))
 
 
+def rounded(x):
+    """``x`` [...] as is, but rounded to its dtype where it is computed: a product passed
+    through it is never contracted into a multiply-add with the add that consumes it
+    (module docstring). A select on NaN (NaN stays NaN) that LLVM does not see through;
+    NumPy arrays pass unchanged (NumPy never contracts)."""
+    if isinstance(x, (np.ndarray, np.generic, float)):
+        return x
+    return jnp.where(jnp.isnan(x), jnp.asarray(jnp.nan, x.dtype), x)
+
+
+def ordered_sum(x):
+    """Sum of ``x`` [..., N] over its last axis in one fixed order, the same in every
+    program (module docstring): pairwise halving over the axis padded with zeros to a
+    power of two, ``log2 N`` elementwise adds. Traceable."""
+    n = x.shape[-1]
+    size = 1 << max(0, (n - 1).bit_length())
+    if size > n:
+        x = jnp.concatenate([x, jnp.zeros(x.shape[:-1] + (size - n,), x.dtype)], axis=-1)
+    while x.shape[-1] > 1:
+        half = x.shape[-1] // 2
+        x = x[..., :half] + x[..., half:]
+    return x[..., 0]
+
+
 def half_area(lo, hi, scale=1.0):
     """Half surface area of boxes [..., 3] after scaling extents by ``scale``.
 
     Empty boxes (``hi < lo``, the padding box) have area 0. Traceable; on NumPy arrays
-    it computes in NumPy (the twins use it so).
+    it computes in NumPy (the twins use it so). Each product is :func:`rounded`, so
+    every program (vmapped or not) and NumPy compute the same area.
     """
     xp = np if isinstance(lo, np.ndarray) and isinstance(hi, np.ndarray) else jnp
     d = xp.maximum((hi - lo) * scale, 0)
     dx, dy, dz = d[..., 0], d[..., 1], d[..., 2]
-    return dx * dy + dy * dz + dz * dx
+    return rounded(dx * dy) + rounded(dy * dz) + rounded(dz * dx)
 
 
 def take(values, index, fill):

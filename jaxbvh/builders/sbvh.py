@@ -104,6 +104,7 @@ import numpy as np
 from jaxbvh.builders import sbvh_rules as rules
 from jaxbvh.builders import sbvh_splits as splits
 from jaxbvh.builders.configs import SBVHConfig
+from jaxbvh.builders.inputs import narrow_triangles, widen_back
 from jaxbvh.numerics import TIE_TOLERANCE, half_area, scene_scale, take, working_dtype
 from jaxbvh.tree.layout import BVH, capacity_bucket
 from jaxbvh.tree.validate import few_ids
@@ -164,7 +165,10 @@ def build_sbvh(triangles, config: SBVHConfig | None = None, *, capacity: int | N
         raise TypeError(f"config must be an SBVHConfig, got {type(config).__name__}")
     tri = check_triangles(triangles)
     dt = working_dtype(config.dtype, tri.dtype)
-    tri = tri.astype(dt)
+    # built on the triangles scaled near extent 1 and rounded, the boxes then moved back
+    # and grown by the rounding: every leaf covers the triangles as given (issue 39)
+    frame = narrow_triangles(tri, dt)
+    tri = frame.triangles
     n = tri.shape[0]
     slots = reference_slots(n, config, capacity)
     lo, hi = tri.min(1), tri.max(1)
@@ -172,9 +176,10 @@ def build_sbvh(triangles, config: SBVHConfig | None = None, *, capacity: int | N
     threshold = dt.type(config.alpha) * half_area(lo.min(0), hi.max(0), scale)
     tri_p = np.zeros((slots, 3, 3), dt)  # padding triangles are never read: no reference names them
     tri_p[:n] = tri
-    return engine(jnp.asarray(tri_p), jnp.int32(n), jnp.int32(config.max_leaf), jnp.asarray(config.ct, dt),
-                  jnp.asarray(config.ci, dt), jnp.asarray(scale, dt), jnp.asarray(threshold, dt), bins=config.bins,
-                  spatial_bins=config.spatial_bins)
+    built = engine(jnp.asarray(tri_p), jnp.int32(n), jnp.int32(config.max_leaf), jnp.asarray(config.ct, dt),
+                   jnp.asarray(config.ci, dt), jnp.asarray(scale, dt), jnp.asarray(threshold, dt), bins=config.bins,
+                   spatial_bins=config.spatial_bins)
+    return built._replace(tree=widen_back(built.tree, frame))
 
 
 class _Scene(NamedTuple):

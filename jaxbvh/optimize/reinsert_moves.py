@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxbvh.numerics import half_area, none_to_oob, take_clipped
+from jaxbvh.numerics import half_area, none_to_oob, ordered_sum, rounded, take_clipped
 from jaxbvh.optimize.reinsert_rules import move_width
 from jaxbvh.optimize.reinsert_search import State, candidates, scale_of, search
 
@@ -62,9 +62,10 @@ def interior_sah(st: State, prim_count, ct, ci):
     leaf = prim_count > 0
     dtype = st.lo.dtype
     root_area = st.area[st.root]
-    weighted = (ct * jnp.sum(jnp.where(interior, st.area, 0))
-                + ci * jnp.sum(jnp.where(leaf, prim_count.astype(dtype) * st.area, 0)))
-    flat = ct * jnp.sum(interior).astype(dtype) + ci * jnp.sum(prim_count).astype(dtype)
+    # fixed-order sums of rounded products (numerics: a vmapped step decides alike)
+    weighted = (rounded(ct * ordered_sum(jnp.where(interior, st.area, 0)))
+                + rounded(ci * ordered_sum(jnp.where(leaf, rounded(prim_count.astype(dtype) * st.area), 0))))
+    flat = rounded(ct * jnp.sum(interior).astype(dtype)) + rounded(ci * jnp.sum(prim_count).astype(dtype))
     return jnp.where(root_area > 0, weighted / jnp.where(root_area > 0, root_area, 1), flat)
 
 
@@ -359,7 +360,7 @@ def iteration(st: State, prim_count, ct, ci, octaves, max_steps, min_gain, settl
         def run(_):
             m, taken, gains = _choose(st, found, width)
             new = apply(st, m, taken, scale_of(st))
-            total = jnp.sum(jnp.where(taken, gains, 0))
+            total = ordered_sum(jnp.where(taken, gains, 0))  # one order, vmapped or not
             return new, jnp.sum(taken, dtype=jnp.int32), total, touched(st, m, taken, new.parent)
         return run
 

@@ -15,7 +15,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxbvh.numerics import extent_scale, half_area, take_clipped
+from jaxbvh.numerics import extent_scale, half_area, rounded, take_clipped
 from jaxbvh.optimize.reinsert_rules import ALL_OCTAVES
 from jaxbvh.tree.refit import refit_boxes
 
@@ -148,7 +148,7 @@ def _step(t: _Tables, s: _Search, scale, min_gain, max_steps) -> _Search:
         return half_area(jnp.minimum(s.alo, lo_b), jnp.maximum(s.ahi, hi_b), scale)
 
     merged = merged_area(olo, ohi)
-    tol = min_gain * s.area_high
+    tol = rounded(min_gain * s.area_high)  # never contracted into best + tol (numerics.rounded)
 
     # going down: out is a candidate place; descend unless a leaf or pruned
     gain_d = s.area_p - merged + s.red

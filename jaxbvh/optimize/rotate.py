@@ -108,7 +108,7 @@ from jaxbvh.configs import (
     split_axes_knob,
 )
 from jaxbvh.draws import annealing_draws
-from jaxbvh.numerics import extent_scale
+from jaxbvh.numerics import extent_scale, rounded
 from jaxbvh.numerics import min_gain as default_min_gain
 from jaxbvh.optimize.driver import run
 from jaxbvh.optimize.protocol import (
@@ -452,7 +452,7 @@ def result(state: OptimizerState) -> OptimizeResult:
     # the first chain within the margin of the least: an ulp of noise in the costs (another
     # fusion, e.g. under vmap) must not pick another chain
     least = jnp.min(final_cost)
-    k = jnp.argmax(final_cost <= least + state.params.min_gain * jnp.abs(least)).astype(jnp.int32)
+    k = jnp.argmax(final_cost <= least + rounded(state.params.min_gain * jnp.abs(least))).astype(jnp.int32)
     out = to_tree(tree, chain_of(st, k, chains))
     if static.split_axes:
         out = apply_split_axes(out)

@@ -14,7 +14,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxbvh.numerics import half_area, take
+from jaxbvh.numerics import half_area, rounded, take
 
 #: the six moves, in the fixed order of the choice rules (names: the two slots swapped)
 MOVES = ("L<->RL", "L<->RR", "R<->LL", "R<->LR", "LL<->RL", "LL<->RR")
@@ -82,7 +82,8 @@ def _pick(values, index):
 def node_cost(parent_area, area_a, cost_a, area_b, cost_b, ct):
     """``C(n)`` of an interior node from its two children (formula of :mod:`jaxbvh.tree.cost`)."""
     positive = parent_area > 0
-    weighted = (area_a * cost_a + area_b * cost_b) / jnp.where(positive, parent_area, 1)
+    # products rounded alone (numerics.rounded): vmapped or not, one rounding
+    weighted = (rounded(area_a * cost_a) + rounded(area_b * cost_b)) / jnp.where(positive, parent_area, 1)
     return ct + jnp.where(positive, weighted, cost_a + cost_b)
 
 
@@ -217,7 +218,7 @@ def _choose(s: Scores, nodes, min_gain, temperature, draws, annealing):
     """The move of each node ([W] int32, -1: none) by hill climbing or annealing, and
     the scores with ``cur`` and ``cand`` materialised (what the application reads)."""
     cur, cand, legal = s.cur, s.cand, s.legal
-    tol = min_gain * jnp.abs(cur)
+    tol = rounded(min_gain * jnp.abs(cur))  # never contracted into cur - tol
     # materialise the scores once: otherwise XLA copies their computation into every
     # step of the choosers, and compile time triples
     cand, cur, tol = jax.lax.optimization_barrier((cand, cur, tol))

@@ -62,7 +62,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh.configs import Checked, ci_knob, ct_knob, integer, knob, min_gain_knob, optional, sizes, split_axes_knob
-from jaxbvh.numerics import extent_scale, half_area, take_clipped
+from jaxbvh.numerics import extent_scale, half_area, rounded, take_clipped
 from jaxbvh.numerics import min_gain as default_min_gain
 from jaxbvh.optimize.driver import run
 from jaxbvh.optimize.protocol import (
@@ -157,7 +157,7 @@ def _form(st: _State, root, n, min_gain):
         expandable = present & (take_clipped(st.child, leaves)[:, 0] >= 0)
         areas = jnp.where(expandable, take_clipped(st.area, leaves), -jnp.inf)
         largest = jnp.max(areas)
-        j = jnp.argmax(expandable & (areas >= largest - min_gain * jnp.abs(largest)))
+        j = jnp.argmax(expandable & (areas >= largest - rounded(min_gain * jnp.abs(largest))))
         grow = expandable[j]
         x = leaves[j]
         xk = take_clipped(st.child, x)
@@ -171,6 +171,7 @@ def _form(st: _State, root, n, min_gain):
 
 def _solve(st: _State, root, scale, ct, min_gain, n):
     """Form and solve the treelet of ``root``; returns what to write back."""
+    # products that feed an add pass numerics.rounded: one rounding in every program (vmapped too)
     members, popcount, single, sizes = tables(n)
     count = 1 << n
     leaves, inner, k = _form(st, root, n, min_gain)
@@ -187,15 +188,15 @@ def _solve(st: _State, root, scale, ct, min_gain, n):
     for sets, parts in sizes:
         total = cost[parts] + cost[sets[:, None] ^ parts]                # [m, splits]
         least = jnp.min(total, axis=1)
-        near = total <= (least + min_gain * jnp.abs(least))[:, None]
+        near = total <= (least + rounded(min_gain * jnp.abs(least)))[:, None]
         pick = jnp.argmax(near, axis=1)
-        cost = cost.at[sets].set(ct * set_area[sets] + least)
+        cost = cost.at[sets].set(rounded(ct * set_area[sets]) + least)
         part = part.at[sets].set(jnp.take_along_axis(jnp.asarray(parts), pick[:, None], axis=1)[:, 0])
     full = (jnp.int32(1) << k) - 1
     kids = take_clipped(st.child, root)
-    current = ct * take_clipped(st.area, root) + take_clipped(st.cost, kids[0]) + take_clipped(st.cost, kids[1])
+    current = rounded(ct * take_clipped(st.area, root)) + take_clipped(st.cost, kids[0]) + take_clipped(st.cost, kids[1])
     best = cost[full]
-    change = best < current - min_gain * jnp.abs(current)
+    change = best < current - rounded(min_gain * jnp.abs(current))
 
     # rebuild breadth first: queue position i holds the set of interior node inner[i]
     popcount = jnp.asarray(popcount)
@@ -284,7 +285,7 @@ def _costs(child, area, prim_count, ct, ci):
 
     def body(c):
         cost, _, i = c
-        new = jnp.where(interior, ct * area + take_clipped(cost, child[:, 0]) + take_clipped(cost, child[:, 1]), leaf)
+        new = jnp.where(interior, rounded(ct * area) + take_clipped(cost, child[:, 0]) + take_clipped(cost, child[:, 1]), leaf)
         return new, jnp.any(new != cost), i + 1
 
     cost, _, _ = jax.lax.while_loop(cond, body, (leaf, jnp.bool_(True), jnp.int32(0)))
@@ -433,7 +434,7 @@ def _sah(st: _State, root, prim_count, ct, ci):
     """SAH from the area-weighted cost of the root."""
     root_area = st.area[root]
     dtype = st.lo.dtype
-    flat = ct * jnp.sum(st.child[:, 0] >= 0).astype(dtype) + ci * jnp.sum(prim_count).astype(dtype)
+    flat = rounded(ct * jnp.sum(st.child[:, 0] >= 0).astype(dtype)) + rounded(ci * jnp.sum(prim_count).astype(dtype))
     return jnp.where(root_area > 0, st.cost[root] / jnp.where(root_area > 0, root_area, 1), flat)
 
 

@@ -180,19 +180,20 @@ def test_build_dispatch_keeps_dtype_padding_and_the_twin(method):
     """jaxbvh.build (checked, cast and padded by jaxbvh.builders.inputs.prepare) gives the twin's tree in every mode:
     float32 padded to the capacity bucket, unpadded (pad=False), float64 under x64."""
     from jaxbvh.builders import ploc_reference as reference_ploc
+    from jaxbvh.builders.inputs import narrow_outward
 
     rng = np.random.default_rng(11)
     c = np.round(rng.uniform(-1, 1, (37, 3)) * 4) / 4  # shared centres: ties and duplicate codes
     lo, hi = c - 0.1, c + rng.uniform(0.1, 0.3, (37, 3))
     twin = reference.build if method == "lbvh" else reference_ploc.build
     options = dict(morton_bits=63, max_leaf=2) if method == "lbvh" else dict(radius=3, max_leaf=2)
-    lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)
+    lo32, hi32 = narrow_outward(lo, hi, np.float32)  # float64 narrowed as every builder does: outward
     config = make_config(method, **options)
     want32 = canonical(twin(lo32, hi32, config))
     for pad, slots in ((True, 2 * jaxbvh.capacity_bucket(37)), (False, 2 * 37)):
         tree = jaxbvh.build(lo, hi, method=method, pad=pad, **options)  # float64 input, x64 off: float32
         assert tree.lo.dtype == np.float32 and tree.lo.shape == (slots, 3) and tree.left.shape == (slots,)
-        jaxbvh.validate(tree, lo32, hi32)
+        jaxbvh.validate(tree, lo, hi)  # the boxes as given
         assert canonical(tree) == want32
     with jax.enable_x64(True):
         tree = jaxbvh.build(lo, hi, method=method, **options)
