@@ -66,6 +66,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
+import warnings
 from typing import Any, Callable
 
 import jax
@@ -78,6 +80,7 @@ from jaxbvh.builders.inputs import prepare
 from jaxbvh.builders.topdown import RandomSplits, randomized_forest
 from jaxbvh.configs import Checked, integer, knob, one_of, optional, real
 from jaxbvh.draws import split_uniforms
+from jaxbvh.optimize.protocol import CompileClock, SearchResult, StepInfo, check_on_step
 from jaxbvh.tree.layout import capacity_bucket, concat_ranges, to_numpy
 
 OBJECTIVES = ("nt", "sah")
@@ -102,19 +105,25 @@ CHUNK_PRIMS = 1 << 19
 _DRAWS_PER_CALL = 1 << 22  # u0 draws per call when screening the greedy tree's nodes
 
 
-@dataclasses.dataclass(frozen=True)
-class GraspResult:
-    """What :func:`grasp` returns.
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class GraspResult(SearchResult):
+    """What :func:`grasp` returns: the fields of every search
+    (:class:`jaxbvh.optimize.protocol.SearchResult`) and GRASP's own.
 
-    ``tree``: the best trial's :class:`~jaxbvh.tree.layout.BVH` (JAX arrays, one primitive per
-    leaf); ``objective``: its objective; ``objectives``: float64 NumPy [trials], every
-    trial's objective in trial order; ``best_trial``: its trial number; ``base``: the
-    objective of the greedy sweep tree (``noise = 0``); ``noise``: the noise used;
-    ``rcl``: ``"axes"`` or ``k``; ``name``: the objective's name; ``rebuilt``: int64
+    Search fields: ``tree``: the best trial's :class:`~jaxbvh.tree.layout.BVH` (JAX
+    arrays, one primitive per leaf); ``cost`` = ``objective``; ``cost_start`` = ``base``;
+    ``cost_name`` = ``name``; ``steps``: trials run; ``history`` float64 [trials]: the
+    best objective of the first ``t + 1`` trials; ``stop``: ``"limit"`` (every trial
+    ran); ``trace``: every trial's :class:`~jaxbvh.optimize.protocol.StepInfo`;
+    ``seconds``, ``compile_seconds``: the run's wall seconds and those spent compiling.
+
+    GRASP's own: ``objective``: the best objective; ``objectives``: float64 NumPy
+    [trials], every trial's objective in trial order; ``best_trial``: its trial number;
+    ``base``: the objective of the greedy sweep tree (``noise = 0``); ``noise``: the noise
+    used; ``rcl``: ``"axes"`` or ``k``; ``name``: the objective's name; ``rebuilt``: int64
     [trials], primitives under each trial's rebuilt subtrees (the work it cost).
     """
 
-    tree: Any
     objective: float
     objectives: np.ndarray
     best_trial: int
@@ -437,6 +446,7 @@ def _rebuild(run: _Run, batch):
 
 
 def grasp(key, prim_lo, prim_hi, config: GraspConfig | None = None, *,
+          on_step: Callable[[StepInfo], None] | None = None,
           on_chunk: Callable[[int, float], None] | None = None, **options) -> GraspResult:
     """Best of ``config.trials`` randomized full-sweep builds (module docstring).
 
@@ -446,8 +456,14 @@ def grasp(key, prim_lo, prim_hi, config: GraspConfig | None = None, *,
       config: a :class:`GraspConfig` (its knobs and defaults); or None and
       options: its knobs as keywords (``trials``, ``noise`` or ``deviations``, ``rcl``,
         ``objective``, ``chunk_prims``, ``pad``, ``dtype``).
-      on_chunk: called after each forest call with (trials done, best objective among
-        them; ``base`` while none is done), and once at the end with (trials, best).
+      on_step: the optimizers' progress callback (:func:`jaxbvh.optimize.optimize`):
+        called as ``on_step(info)`` once per trial, in trial order, with a
+        :class:`~jaxbvh.optimize.protocol.StepInfo` (``step``: the trial, ``sah``: the
+        best objective so far, ``moves``: primitives the trial rebuilt, ``seconds``:
+        since the run started), as soon as the forest call that finishes it returns.
+      on_chunk: deprecated (use ``on_step``): called after each forest call with
+        (trials done, best objective among them; ``base`` while none is done), and once
+        at the end with (trials, best).
 
     Returns:
       A :class:`GraspResult`; its tree is the best trial's (lowest objective, then lowest
@@ -457,6 +473,20 @@ def grasp(key, prim_lo, prim_hi, config: GraspConfig | None = None, *,
         config = GraspConfig(**options)
     elif options:
         raise TypeError("give a GraspConfig or keyword options, not both (config.replace(...) changes one)")
+    check_on_step(on_step)
+    if on_chunk is not None:
+        warnings.warn("grasp(on_chunk=...) is deprecated: use on_step(info), the optimizers' callback",
+                      DeprecationWarning, stacklevel=2)
+    with CompileClock() as clock:
+        started = time.perf_counter()
+        result = _grasp(key, prim_lo, prim_hi, config, on_step, on_chunk, started)
+        jax.block_until_ready(result.tree)
+        seconds = time.perf_counter() - started
+    return result.replace(seconds=seconds, compile_seconds=clock.seconds)
+
+
+def _grasp(key, prim_lo, prim_hi, config: GraspConfig, on_step, on_chunk, started: float) -> GraspResult:
+    """:func:`grasp` without its clocks (``started``: when the run began, for ``StepInfo.seconds``)."""
     trials, objective, rcl, pad, dtype = config.trials, config.objective, config.rcl, config.pad, config.dtype
     mode, k = _mode(rcl)
     chunk_prims = CHUNK_PRIMS if config.chunk_prims is None else config.chunk_prims
@@ -474,16 +504,32 @@ def grasp(key, prim_lo, prim_hi, config: GraspConfig | None = None, *,
     run = _Run(key=key, lo=np.asarray(lo)[:n], hi=np.asarray(hi)[:n], scale=scale, base=lo.shape[0],
                capacity=capacity, pad=pad, noise=noise, k=k, mode=mode, objective=objective, greedy=greedy)
     batches = list(_batches(subs, greedy.count, chunk_prims))
+    trace: list[StepInfo] = []
+
+    def report(done: int) -> None:
+        """StepInfo of trials ``len(trace) .. done - 1`` (all finished) to ``on_step``."""
+        seconds = time.perf_counter() - started
+        best = np.minimum.accumulate(objectives[:done])
+        for t in range(len(trace), done):
+            info = StepInfo("grasp", "grasp", t, float(best[t]), int(rebuilt[t]), seconds)
+            trace.append(info)
+            if on_step is not None:
+                on_step(info)
+
     for number, batch in enumerate(batches):
         owner, change, counts = _rebuild(run, batch)
         np.add.at(objectives, owner, change)
         np.add.at(rebuilt, owner, counts)
+        done = batch[-1][0]  # trials before the batch's last one are finished
+        report(done)
         if on_chunk is not None and number < len(batches) - 1:
-            done = batch[-1][0]  # trials before the batch's last one are finished
             on_chunk(done, float(np.min(objectives[:done])) if done else greedy.base)
+    report(trials)
     best = int(np.argmin(objectives))
     if on_chunk is not None:
         on_chunk(trials, float(objectives[best]))
     tree = randomized_build(key, prim_lo, prim_hi, trial=best, noise=noise, rcl=rcl, pad=pad, dtype=dtype)
-    return GraspResult(tree=tree, objective=float(objectives[best]), objectives=objectives, best_trial=best,
-                       base=greedy.base, noise=noise, rcl=rcl, name=objective, rebuilt=rebuilt)
+    return GraspResult(tree=tree, cost=float(objectives[best]), cost_start=greedy.base, cost_name=objective,
+                       steps=trials, history=np.minimum.accumulate(objectives), converged=False, stop="limit",
+                       trace=tuple(trace), objective=float(objectives[best]), objectives=objectives,
+                       best_trial=best, base=greedy.base, noise=noise, rcl=rcl, name=objective, rebuilt=rebuilt)
