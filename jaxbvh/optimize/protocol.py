@@ -248,7 +248,8 @@ class SearchResult:
     ``history`` float64 [steps]: the cost of the result so far after each step (the
     best so far for GRASP and the GA; NaN where nothing is priced). ``converged`` and
     ``stop`` (one of :data:`STOP_REASONS`): why the run ended. ``trace``: the
-    :class:`StepInfo` of every step, as ``on_step`` got them. ``seconds``: wall seconds
+    :class:`StepInfo` of every step, as ``on_step`` got them (their ``sah`` holds the
+    search's cost, measured by ``cost_name``; NaN where it prices nothing). ``seconds``: wall seconds
     of the whole run; ``compile_seconds``: those of them spent tracing and compiling
     programs (loading them from the persistent cache is not counted; about 0 once this
     process has them).
