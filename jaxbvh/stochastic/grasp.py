@@ -509,9 +509,10 @@ def _grasp(key, prim_lo, prim_hi, config: GraspConfig, on_step, on_chunk, starte
     def report(done: int) -> None:
         """StepInfo of trials ``len(trace) .. done - 1`` (all finished) to ``on_step``."""
         seconds = time.perf_counter() - started
-        best = np.minimum.accumulate(objectives[:done])
+        best = trace[-1].sah if trace else math.inf
         for t in range(len(trace), done):
-            info = StepInfo("grasp", "grasp", t, float(best[t]), int(rebuilt[t]), seconds)
+            best = min(best, float(objectives[t]))
+            info = StepInfo("grasp", "grasp", t, best, int(rebuilt[t]), seconds)
             trace.append(info)
             if on_step is not None:
                 on_step(info)

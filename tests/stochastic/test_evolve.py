@@ -273,6 +273,7 @@ def test_cli_evolve_json_and_saved_tree(capsys, tmp_path):
     for key in ("initial_best", "best", "random_median", "generations", "population", "history", "seconds"):
         assert key in result
     assert result["population"] == P and result["generations"] == 3 and len(result["history"]) == 4
+    assert 0 <= result["compile_seconds"] <= result["seconds"] and result["stop"] == "limit"
     assert result["best"] <= result["initial_best"] and result["best"] == result["history"][-1]
     assert result["valid"] is True and result["tree"]["goldsmith_salmon"] == pytest.approx(result["best"])
     saved, frame = jaxbvh.load(out)

@@ -356,6 +356,7 @@ def test_cli_grasp(capsys, tmp_path):
     for key in ("base", "best", "best_of_10", "trials", "noise", "rcl", "sah", "seconds"):
         assert key in result, key
     assert result["trials"] == 12 and result["noise"] == 0.3 and result["rcl"] == 3
+    assert 0 <= result["compile_seconds"] <= result["seconds"] and result["stop"] == "limit"
     assert result["best"] <= result["best_of_10"] and result["valid"] is True
     assert result["deviations"] == pytest.approx(0.3 * 17)
     tree, frame = jaxbvh.load(out)
