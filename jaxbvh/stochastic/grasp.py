@@ -284,6 +284,7 @@ class _Greedy:
     count: np.ndarray
     contribution: np.ndarray  # [m] what the node's subtree adds to the objective
     weight: np.ndarray        # [m] its weight in the objective (sah: area ratios down to it)
+    depth: np.ndarray         # [m] its depth (root 0)
     base: float               # the objective
     root_area: float
 
@@ -297,7 +298,9 @@ def _greedy(tree, objective) -> _Greedy:
     start = np.zeros_like(count)
     weight = np.zeros(count.shape[0])
     weight[root] = 1.0
-    for ids in levels:
+    depth = np.zeros_like(count)
+    for level, ids in enumerate(levels):
+        depth[ids] = level
         inner = ids[t.left[ids] >= 0]
         a, b = t.left[inner], t.right[inner]
         start[a], start[b] = start[inner], start[inner] + count[a]
@@ -317,7 +320,8 @@ def _greedy(tree, objective) -> _Greedy:
     else:
         contribution, base, weight_inner = cost[inner], cost[root], weight[inner]
     return _Greedy(prim_index=np.asarray(t.prim_index), start=start[inner], count=count[inner],
-                   contribution=contribution, weight=weight_inner, base=float(base), root_area=float(area[root]))
+                   contribution=contribution, weight=weight_inner, depth=depth[inner], base=float(base),
+                   root_area=float(area[root]))
 
 
 @jax.jit
@@ -351,6 +355,21 @@ def _forest_values(forest, tree_of, groups, objective, root_area):
     return cost[:groups]
 
 
+def _run_capacity(greedy: _Greedy, trials: int, noise: float, base: int, chunk_prims: int) -> int:
+    """The forest capacity of a run: from the primitives its trials are *expected* to
+    rebuild, not the ones the key draws, so that every key of one scene and knobs gets
+    the same capacity (one compiled forest build, no retrace).
+
+    A node is a topmost deviating node with probability ``noise (1 - noise)^depth``, so
+    the trials rebuild ``E = trials sum(count noise (1 - noise)^depth)`` primitives on
+    average; the capacity holds ``1.25 E`` (a run above it makes one more call), at
+    least ``base`` (any one subtree fits) and at most ``chunk_prims`` rounded up to
+    ``base`` x a power of two.
+    """
+    expected = trials * float(np.sum(greedy.count * noise * (1.0 - noise) ** greedy.depth))
+    return _forest_capacity(max(1, min(math.ceil(1.25 * expected), chunk_prims)), base)
+
+
 def _forest_capacity(total: int, base: int) -> int:
     """Capacity of a forest of ``total`` primitives: ``base`` (the scene's) times a power of two.
 
@@ -369,7 +388,7 @@ class _Run:
     hi: np.ndarray    # [n, 3]
     scale: Any        # the scene's area scale (jaxbvh.builders.inputs.prepare)
     base: int         # the scene's capacity: a forest holds base x a power of two slots
-    capacity: int     # the run's least forest capacity (room for a full chunk: one compile)
+    capacity: int     # the run's forest capacity (_run_capacity: the same for every key)
     pad: bool         # pad forests to a capacity (else exactly their primitives)
     noise: float      # per-node deviation probability
     k: int            # list length of the cardinality RCL (0: rcl "axes")
@@ -498,12 +517,12 @@ def _grasp(key, prim_lo, prim_hi, config: GraspConfig, on_step, on_chunk, starte
     objectives = np.full(trials, greedy.base)
     rebuilt = np.zeros(trials, np.int64)
     subs = _deviating_subtrees(key, greedy, trials, noise, mode, k)
-    # one forest capacity for the whole run (one compile): room for a full chunk
-    sizes = greedy.count[[i for _, i in subs]] if subs else np.zeros(1, np.int64)
-    capacity = _forest_capacity(min(int(sizes.sum()), max(chunk_prims, int(sizes.max()))), lo.shape[0])
+    # one forest capacity for every run of this scene and knobs, whatever the key (one
+    # compile); padded forests are cut to fit it (a subtree alone always fits: <= base)
+    capacity = _run_capacity(greedy, trials, noise, lo.shape[0], chunk_prims)
     run = _Run(key=key, lo=np.asarray(lo)[:n], hi=np.asarray(hi)[:n], scale=scale, base=lo.shape[0],
                capacity=capacity, pad=pad, noise=noise, k=k, mode=mode, objective=objective, greedy=greedy)
-    batches = list(_batches(subs, greedy.count, chunk_prims))
+    batches = list(_batches(subs, greedy.count, min(chunk_prims, capacity) if pad else chunk_prims))
     trace: list[StepInfo] = []
 
     def report(done: int) -> None:
