@@ -89,6 +89,17 @@ def test_no_retrace_for_inputs_of_the_same_shapes(name):
     assert not np.array_equal(np.asarray(first.history), np.asarray(second.history))  # really other inputs
 
 
+def test_grasp_forest_capacity_does_not_follow_the_draws():
+    # at the default chunk a run's forest capacity once followed the primitives its key
+    # made it rebuild (seed 2: 53, capacity 96; seed 4: 34, capacity 48), so a new key
+    # compiled a new forest build; now it follows the shapes and knobs only
+    options = dict(trials=3, noise=0.3)
+    grasp.grasp(jax.random.key(2), *random_boxes(2), **options)
+    with CompileClock() as clock:
+        grasp.grasp(jax.random.key(4), *random_boxes(4), **options)
+    assert clock.traces == 0 and clock.seconds == 0.0, clock.events
+
+
 def test_grasp_forests_equal_each_trial_built_alone():
     # the batch: the trials' rebuilt subtrees, packed into forests; the loop: every
     # trial's whole tree built alone (randomized_build), priced by the library's cost
