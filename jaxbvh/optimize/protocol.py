@@ -219,3 +219,102 @@ def check_costs(ct, ci) -> None:
 def float_dtype(tree) -> np.dtype:
     """The tree's box dtype (float32 or float64)."""
     return np.dtype(tree.lo.dtype)
+
+
+# ----------------------------------------------------------------------------------
+# Searches that are not step functions over one tree (GRASP, the GA, re-braiding)
+# ----------------------------------------------------------------------------------
+#
+# GRASP (jaxbvh.stochastic.grasp), the genetic algorithm (jaxbvh.stochastic.evolve) and
+# re-braiding (jaxbvh.twolevel) build many trees or a two-level tree, not one tree step
+# by step, so they do not run under the driver; they report the way it does: one result
+# type with the driver's fields (SearchResult) and the driver's callback, on_step(info)
+# with a StepInfo after every step.
+
+#: why a run ended: ``"converged"`` (a step changed nothing), ``"limit"`` (its steps,
+#: trials or generations were all run), ``"budget"`` (its time budget was spent)
+STOP_REASONS = ("converged", "limit", "budget")
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class SearchResult:
+    """The fields every search reports, named and meant as :class:`OptimizeResult`'s.
+
+    ``tree``: the tree found. ``cost``: its cost, ``cost_start``: the start's (GRASP:
+    the greedy tree's, the GA: the best of generation 0), both measured by
+    ``cost_name`` (``"nt"``, ``"sah"``: :mod:`jaxbvh.tree.cost`; ``"gs"``: Goldsmith and
+    Salmon's; None where the run prices nothing, as re-braiding). ``steps``: steps run
+    (GRASP: trials; the GA: generations, generation 0 included; re-braiding: stages).
+    ``history`` float64 [steps]: the cost of the result so far after each step (the
+    best so far for GRASP and the GA; NaN where nothing is priced). ``converged`` and
+    ``stop`` (one of :data:`STOP_REASONS`): why the run ended. ``trace``: the
+    :class:`StepInfo` of every step, as ``on_step`` got them (their ``sah`` holds the
+    search's cost, measured by ``cost_name``; NaN where it prices nothing). ``seconds``: wall seconds
+    of the whole run; ``compile_seconds``: those of them spent tracing and compiling
+    programs (loading them from the persistent cache is not counted; about 0 once this
+    process has them).
+    """
+
+    tree: Any
+    cost: float | None
+    cost_start: float | None
+    cost_name: str | None
+    steps: int
+    history: np.ndarray
+    converged: bool = False
+    stop: str = "limit"
+    trace: tuple = ()
+    seconds: float | None = None
+    compile_seconds: float | None = None
+
+    def replace(self, **changes):
+        """A copy with the given fields replaced."""
+        return dataclasses.replace(self, **changes)
+
+
+def check_on_step(on_step) -> None:
+    """Raise ``ValueError`` unless ``on_step`` is None or a function ``on_step(info)``."""
+    if on_step is not None and not callable(on_step):
+        raise ValueError(f"on_step must be a function on_step(info), got {on_step!r}")
+
+
+#: the compile events jax.monitoring reports (tracing, lowering, compiling)
+COMPILE_EVENTS = ("/jax/core/compile/jaxpr_trace_duration", "/jax/core/compile/jaxpr_to_mlir_module_duration",
+                  "/jax/core/compile/backend_compile_duration")
+_clocks: list = []  # the open CompileClocks (one listener serves them all)
+_listening = False
+
+
+def _on_event(event: str, seconds: float, **_) -> None:
+    if event in COMPILE_EVENTS:
+        for clock in _clocks:
+            clock.seconds += seconds
+            clock.events[event] = clock.events.get(event, 0) + 1
+
+
+class CompileClock:
+    """Seconds JAX spends tracing and compiling while the ``with`` block runs (every
+    thread of the process counts), and how many of each :data:`COMPILE_EVENTS`.
+
+    ``with CompileClock() as clock: ...`` then ``clock.seconds``, ``clock.events``.
+    """
+
+    def __init__(self):
+        self.seconds = 0.0
+        self.events: dict = {}
+
+    def __enter__(self) -> "CompileClock":
+        global _listening
+        if not _listening:  # one listener for the process; never removed (it only adds)
+            jax.monitoring.register_event_duration_secs_listener(_on_event)
+            _listening = True
+        _clocks.append(self)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        _clocks.remove(self)
+
+    @property
+    def traces(self) -> int:
+        """Functions traced (a retrace counts again)."""
+        return self.events.get(COMPILE_EVENTS[0], 0)

@@ -60,6 +60,7 @@ import dataclasses
 import functools
 import math
 import time
+import warnings
 from functools import partial
 from typing import Any, Callable, NamedTuple
 
@@ -70,6 +71,7 @@ import numpy as np
 from jaxbvh.builders import insertion
 from jaxbvh.configs import Checked, integer, knob, real
 from jaxbvh.numerics import TIE_TOLERANCE
+from jaxbvh.optimize.protocol import CompileClock, SearchResult, StepInfo, check_on_step
 from jaxbvh.rays.measure import make_rays, stack_capacity, trace
 
 
@@ -122,28 +124,32 @@ class Draws(NamedTuple):
     swap_b: Any
 
 
-@dataclasses.dataclass(frozen=True)
-class EvolveResult:
-    """What :func:`evolve` returns (NumPy / Python values).
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class EvolveResult(SearchResult):
+    """What :func:`evolve` returns (NumPy / Python values): the fields of every search
+    (:class:`jaxbvh.optimize.protocol.SearchResult`) and the GA's own.
 
-    ``order`` [n]: the best order found; ``tree``: its tree (:class:`~jaxbvh.tree.layout.WideBVH`,
-    JAX arrays); ``best``: its cost; ``initial_best``: the best cost of generation 0;
-    ``random_median``: the median cost of generation 0 (P uniformly random orders);
-    ``history`` [G + 1]: the best cost of every generation (0 .. G);
-    ``population`` [P, n], ``costs`` [P]: the last generation; ``seconds``: wall time
-    of the whole run (compiling included); ``elites`` [G + 1, n]: the best order of
-    every generation (``keep_elites=True``), else None.
+    Search fields: ``tree``: the best order's tree (:class:`~jaxbvh.tree.layout.WideBVH`,
+    JAX arrays); ``cost`` = ``best``; ``cost_start`` = ``initial_best``; ``cost_name``:
+    ``"gs"`` (Goldsmith and Salmon's cost); ``steps``: generations run, generation 0
+    included (G + 1); ``history`` [G + 1]: the best cost of every generation (0 .. G);
+    ``stop``: ``"limit"``; ``trace``: every generation's
+    :class:`~jaxbvh.optimize.protocol.StepInfo`; ``seconds``: wall time of the whole run
+    (compiling included), ``compile_seconds``: the part spent compiling.
+
+    The GA's own: ``order`` [n]: the best order found; ``best``: its cost;
+    ``initial_best``: the best cost of generation 0; ``random_median``: the median cost
+    of generation 0 (P uniformly random orders); ``population`` [P, n], ``costs`` [P]:
+    the last generation; ``elites`` [G + 1, n]: the best order of every generation
+    (``keep_elites=True``), else None.
     """
 
     order: np.ndarray
-    tree: Any
     best: float
     initial_best: float
     random_median: float
-    history: np.ndarray
     population: np.ndarray
     costs: np.ndarray
-    seconds: float
     elites: np.ndarray | None = None
 
 
@@ -311,6 +317,7 @@ def population_costs(lo, hi, orders, n, scale, *, max_children: int, mesh=None):
 
 
 def evolve(key, prim_lo, prim_hi, config: EvolveConfig | None = None, *, devices=None,
+           on_step: Callable[[StepInfo], None] | None = None,
            on_generation: Callable[[int, float], None] | None = None,
            keep_elites: bool = False, **options) -> EvolveResult:
     """Search insertion orders of ``prim_lo``, ``prim_hi`` [n, 3] with the genetic algorithm.
@@ -322,8 +329,12 @@ def evolve(key, prim_lo, prim_hi, config: EvolveConfig | None = None, *, devices
       options: those knobs as keywords.
       devices: None (one device), a number of devices, or a list of devices to split
         the population over (P must be a multiple of their number).
-      on_generation: called as ``on_generation(g, best_cost)`` after each generation
-        (g = 0 .. G), e.g. for a progress bar.
+      on_step: the optimizers' progress callback (:func:`jaxbvh.optimize.optimize`):
+        called as ``on_step(info)`` after each generation (``info.step`` = g = 0 .. G)
+        with a :class:`~jaxbvh.optimize.protocol.StepInfo` (``sah``: the best G&S cost
+        of that generation, ``moves``: 0, ``seconds``: since the run started).
+      on_generation: deprecated (use ``on_step``): called as ``on_generation(g,
+        best_cost)`` after each generation.
       keep_elites: also return the best order of every generation (``elites``).
 
     Returns:
@@ -333,6 +344,18 @@ def evolve(key, prim_lo, prim_hi, config: EvolveConfig | None = None, *, devices
         config = EvolveConfig(**options)
     elif options:
         raise TypeError("give an EvolveConfig or keyword options, not both (config.replace(...) changes one)")
+    check_on_step(on_step)
+    if on_generation is not None:
+        warnings.warn("evolve(on_generation=...) is deprecated: use on_step(info), the optimizers' callback",
+                      DeprecationWarning, stacklevel=2)
+    with CompileClock() as clock:
+        result = _evolve(key, prim_lo, prim_hi, config, devices, on_step, on_generation, keep_elites)
+    return result.replace(compile_seconds=clock.seconds)
+
+
+def _evolve(key, prim_lo, prim_hi, config: EvolveConfig, devices, on_step, on_generation,
+            keep_elites: bool) -> EvolveResult:
+    """:func:`evolve` without its compile clock."""
     population, generations = config.population, config.generations
     crossover, mutation, k = config.crossover, config.mutation, config.max_children
     start = time.perf_counter()
@@ -344,14 +367,22 @@ def evolve(key, prim_lo, prim_hi, config: EvolveConfig | None = None, *, devices
         return population_costs(lo, hi, orders, n_dev, scale, max_children=k, mesh=mesh)
 
     swaps = max_swaps(capacity, mutation)
+    trace = []
+
+    def report(g: int, best: float) -> None:
+        info = StepInfo("evolve", "evolve", g, best, 0, time.perf_counter() - start)
+        trace.append(info)
+        if on_step is not None:
+            on_step(info)
+        if on_generation is not None:
+            on_generation(g, best)
 
     pop = initial_population(generation_key(key, 0), population, n, capacity)
     costs, elite_tree = fitness(pop)
     history = [float(jnp.min(costs))]
     elites = [np.asarray(pop[elite_index(costs), :n])] if keep_elites else None
     random_median = float(np.median(np.asarray(costs)))
-    if on_generation is not None:
-        on_generation(0, history[0])
+    report(0, history[0])
     for g in range(1, generations + 1):
         draws = generation_draws(generation_key(key, g), population, n, swaps, crossover, mutation)
         pop = next_population(pop, costs, draws)
@@ -359,17 +390,18 @@ def evolve(key, prim_lo, prim_hi, config: EvolveConfig | None = None, *, devices
         history.append(float(jnp.min(costs)))
         if keep_elites:
             elites.append(np.asarray(pop[elite_index(costs), :n]))
-        if on_generation is not None:
-            on_generation(g, history[-1])
+        report(g, history[-1])
     best_slot = int(elite_index(costs))
     order = np.asarray(pop[best_slot, :n])
     if elite_tree is None:  # a tie across devices: build it again
         trees, _ = insertion.insert_batch(lo, hi, pop[best_slot][None], n_dev, scale, max_children=k)
         elite_tree = insertion.tree_at(trees, 0)
     jax.block_until_ready(elite_tree)
-    return EvolveResult(order=order, tree=elite_tree, best=float(costs[best_slot]), initial_best=history[0],
-                        random_median=random_median, history=np.asarray(history),
-                        population=np.asarray(pop)[:, :n], costs=np.asarray(costs),
+    best = float(costs[best_slot])
+    return EvolveResult(tree=elite_tree, cost=best, cost_start=history[0], cost_name="gs", steps=generations + 1,
+                        history=np.asarray(history), converged=False, stop="limit", trace=tuple(trace),
+                        order=order, best=best, initial_best=history[0],
+                        random_median=random_median, population=np.asarray(pop)[:, :n], costs=np.asarray(costs),
                         elites=np.stack(elites) if keep_elites else None,
                         seconds=time.perf_counter() - start)
 

@@ -52,8 +52,9 @@ subtrees under its *topmost deviating nodes* (deviating, no deviating ancestor) 
 every trial, and builds only those subtrees, each as one tree of a forest
 (:func:`jaxbvh.builders.topdown.randomized_forest`: its own trial number, its nodes named as in the
 whole tree). Trees of many trials are packed into one forest, up to
-:data:`CHUNK_PRIMS` primitives per call (memory bound), every call of a run padded to one
-capacity (one compile). A trial's objective is the greedy
+:data:`CHUNK_PRIMS` primitives per call (memory bound), every call padded to one capacity
+that depends on the scene's capacity, the trials and the noise only (``_run_capacity``: one
+compile for every key and every scene of one capacity). A trial's objective is the greedy
 tree's with the rebuilt subtrees' contributions swapped in (in float64 on the host; both
 objectives are sums over nodes: the interior areas for ``"nt"``, each subtree's SAH
 weighted by the area ratios down to it for ``"sah"``). With ``deviations`` per tree the
@@ -66,6 +67,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
+import warnings
 from typing import Any, Callable
 
 import jax
@@ -78,6 +81,7 @@ from jaxbvh.builders.inputs import prepare
 from jaxbvh.builders.topdown import RandomSplits, randomized_forest
 from jaxbvh.configs import Checked, integer, knob, one_of, optional, real
 from jaxbvh.draws import split_uniforms
+from jaxbvh.optimize.protocol import CompileClock, SearchResult, StepInfo, check_on_step
 from jaxbvh.tree.layout import capacity_bucket, concat_ranges, to_numpy
 
 OBJECTIVES = ("nt", "sah")
@@ -102,19 +106,25 @@ CHUNK_PRIMS = 1 << 19
 _DRAWS_PER_CALL = 1 << 22  # u0 draws per call when screening the greedy tree's nodes
 
 
-@dataclasses.dataclass(frozen=True)
-class GraspResult:
-    """What :func:`grasp` returns.
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class GraspResult(SearchResult):
+    """What :func:`grasp` returns: the fields of every search
+    (:class:`jaxbvh.optimize.protocol.SearchResult`) and GRASP's own.
 
-    ``tree``: the best trial's :class:`~jaxbvh.tree.layout.BVH` (JAX arrays, one primitive per
-    leaf); ``objective``: its objective; ``objectives``: float64 NumPy [trials], every
-    trial's objective in trial order; ``best_trial``: its trial number; ``base``: the
-    objective of the greedy sweep tree (``noise = 0``); ``noise``: the noise used;
-    ``rcl``: ``"axes"`` or ``k``; ``name``: the objective's name; ``rebuilt``: int64
+    Search fields: ``tree``: the best trial's :class:`~jaxbvh.tree.layout.BVH` (JAX
+    arrays, one primitive per leaf); ``cost`` = ``objective``; ``cost_start`` = ``base``;
+    ``cost_name`` = ``name``; ``steps``: trials run; ``history`` float64 [trials]: the
+    best objective of the first ``t + 1`` trials; ``stop``: ``"limit"`` (every trial
+    ran); ``trace``: every trial's :class:`~jaxbvh.optimize.protocol.StepInfo`;
+    ``seconds``, ``compile_seconds``: the run's wall seconds and those spent compiling.
+
+    GRASP's own: ``objective``: the best objective; ``objectives``: float64 NumPy
+    [trials], every trial's objective in trial order; ``best_trial``: its trial number;
+    ``base``: the objective of the greedy sweep tree (``noise = 0``); ``noise``: the noise
+    used; ``rcl``: ``"axes"`` or ``k``; ``name``: the objective's name; ``rebuilt``: int64
     [trials], primitives under each trial's rebuilt subtrees (the work it cost).
     """
 
-    tree: Any
     objective: float
     objectives: np.ndarray
     best_trial: int
@@ -342,6 +352,23 @@ def _forest_values(forest, tree_of, groups, objective, root_area):
     return cost[:groups]
 
 
+def _run_capacity(trials: int, noise: float, base: int, chunk_prims: int) -> int:
+    """The forest capacity of a run, from its shapes and knobs only (not the key's draws
+    nor the scene's boxes), so that every run of one capacity ``base``, ``trials`` and
+    ``noise`` shares one compiled forest build (no retrace).
+
+    In a balanced tree of ``base`` primitives every level holds them all and a node is a
+    topmost deviating node with probability ``noise (1 - noise)^depth``, so a trial
+    rebuilds about ``base (1 - (1 - noise)^log2(base))`` primitives. The capacity holds
+    1.25 times that for all trials (a run above it makes one more call), at least
+    ``base`` (any one subtree fits) and at most ``chunk_prims``, rounded up to ``base``
+    x a power of two. (On spot, 100 trials at the default noise: 24,576 slots; the keys
+    0-3 rebuild 9.6k-15.7k primitives.)
+    """
+    expected = trials * base * (1.0 - (1.0 - noise) ** math.log2(base))
+    return _forest_capacity(max(1, min(math.ceil(1.25 * expected), chunk_prims)), base)
+
+
 def _forest_capacity(total: int, base: int) -> int:
     """Capacity of a forest of ``total`` primitives: ``base`` (the scene's) times a power of two.
 
@@ -360,7 +387,7 @@ class _Run:
     hi: np.ndarray    # [n, 3]
     scale: Any        # the scene's area scale (jaxbvh.builders.inputs.prepare)
     base: int         # the scene's capacity: a forest holds base x a power of two slots
-    capacity: int     # the run's least forest capacity (room for a full chunk: one compile)
+    capacity: int     # the run's forest capacity (_run_capacity: the same for every key and scene)
     pad: bool         # pad forests to a capacity (else exactly their primitives)
     noise: float      # per-node deviation probability
     k: int            # list length of the cardinality RCL (0: rcl "axes")
@@ -437,6 +464,7 @@ def _rebuild(run: _Run, batch):
 
 
 def grasp(key, prim_lo, prim_hi, config: GraspConfig | None = None, *,
+          on_step: Callable[[StepInfo], None] | None = None,
           on_chunk: Callable[[int, float], None] | None = None, **options) -> GraspResult:
     """Best of ``config.trials`` randomized full-sweep builds (module docstring).
 
@@ -446,8 +474,14 @@ def grasp(key, prim_lo, prim_hi, config: GraspConfig | None = None, *,
       config: a :class:`GraspConfig` (its knobs and defaults); or None and
       options: its knobs as keywords (``trials``, ``noise`` or ``deviations``, ``rcl``,
         ``objective``, ``chunk_prims``, ``pad``, ``dtype``).
-      on_chunk: called after each forest call with (trials done, best objective among
-        them; ``base`` while none is done), and once at the end with (trials, best).
+      on_step: the optimizers' progress callback (:func:`jaxbvh.optimize.optimize`):
+        called as ``on_step(info)`` once per trial, in trial order, with a
+        :class:`~jaxbvh.optimize.protocol.StepInfo` (``step``: the trial, ``sah``: the
+        best objective so far, ``moves``: primitives the trial rebuilt, ``seconds``:
+        since the run started), as soon as the forest call that finishes it returns.
+      on_chunk: deprecated (use ``on_step``): called after each forest call with
+        (trials done, best objective among them; ``base`` while none is done), and once
+        at the end with (trials, best).
 
     Returns:
       A :class:`GraspResult`; its tree is the best trial's (lowest objective, then lowest
@@ -457,6 +491,20 @@ def grasp(key, prim_lo, prim_hi, config: GraspConfig | None = None, *,
         config = GraspConfig(**options)
     elif options:
         raise TypeError("give a GraspConfig or keyword options, not both (config.replace(...) changes one)")
+    check_on_step(on_step)
+    if on_chunk is not None:
+        warnings.warn("grasp(on_chunk=...) is deprecated: use on_step(info), the optimizers' callback",
+                      DeprecationWarning, stacklevel=2)
+    with CompileClock() as clock:
+        started = time.perf_counter()
+        result = _grasp(key, prim_lo, prim_hi, config, on_step, on_chunk, started)
+        jax.block_until_ready(result.tree)
+        seconds = time.perf_counter() - started
+    return result.replace(seconds=seconds, compile_seconds=clock.seconds)
+
+
+def _grasp(key, prim_lo, prim_hi, config: GraspConfig, on_step, on_chunk, started: float) -> GraspResult:
+    """:func:`grasp` without its clocks (``started``: when the run began, for ``StepInfo.seconds``)."""
     trials, objective, rcl, pad, dtype = config.trials, config.objective, config.rcl, config.pad, config.dtype
     mode, k = _mode(rcl)
     chunk_prims = CHUNK_PRIMS if config.chunk_prims is None else config.chunk_prims
@@ -468,22 +516,39 @@ def grasp(key, prim_lo, prim_hi, config: GraspConfig | None = None, *,
     objectives = np.full(trials, greedy.base)
     rebuilt = np.zeros(trials, np.int64)
     subs = _deviating_subtrees(key, greedy, trials, noise, mode, k)
-    # one forest capacity for the whole run (one compile): room for a full chunk
-    sizes = greedy.count[[i for _, i in subs]] if subs else np.zeros(1, np.int64)
-    capacity = _forest_capacity(min(int(sizes.sum()), max(chunk_prims, int(sizes.max()))), lo.shape[0])
+    # one forest capacity for every run of this scene and knobs, whatever the key (one
+    # compile); padded forests are cut to fit it (a subtree alone always fits: <= base)
+    capacity = _run_capacity(trials, noise, lo.shape[0], chunk_prims)
     run = _Run(key=key, lo=np.asarray(lo)[:n], hi=np.asarray(hi)[:n], scale=scale, base=lo.shape[0],
                capacity=capacity, pad=pad, noise=noise, k=k, mode=mode, objective=objective, greedy=greedy)
-    batches = list(_batches(subs, greedy.count, chunk_prims))
+    batches = list(_batches(subs, greedy.count, min(chunk_prims, capacity) if pad else chunk_prims))
+    trace: list[StepInfo] = []
+
+    def report(done: int) -> None:
+        """StepInfo of trials ``len(trace) .. done - 1`` (all finished) to ``on_step``."""
+        seconds = time.perf_counter() - started
+        best = trace[-1].sah if trace else math.inf
+        for t in range(len(trace), done):
+            best = min(best, float(objectives[t]))
+            info = StepInfo("grasp", "grasp", t, best, int(rebuilt[t]), seconds)
+            trace.append(info)
+            if on_step is not None:
+                on_step(info)
+
     for number, batch in enumerate(batches):
         owner, change, counts = _rebuild(run, batch)
         np.add.at(objectives, owner, change)
         np.add.at(rebuilt, owner, counts)
+        done = batch[-1][0]  # trials before the batch's last one are finished
+        report(done)
         if on_chunk is not None and number < len(batches) - 1:
-            done = batch[-1][0]  # trials before the batch's last one are finished
             on_chunk(done, float(np.min(objectives[:done])) if done else greedy.base)
+    report(trials)
     best = int(np.argmin(objectives))
     if on_chunk is not None:
         on_chunk(trials, float(objectives[best]))
     tree = randomized_build(key, prim_lo, prim_hi, trial=best, noise=noise, rcl=rcl, pad=pad, dtype=dtype)
-    return GraspResult(tree=tree, objective=float(objectives[best]), objectives=objectives, best_trial=best,
-                       base=greedy.base, noise=noise, rcl=rcl, name=objective, rebuilt=rebuilt)
+    return GraspResult(tree=tree, cost=float(objectives[best]), cost_start=greedy.base, cost_name=objective,
+                       steps=trials, history=np.minimum.accumulate(objectives), converged=False, stop="limit",
+                       trace=tuple(trace), objective=float(objectives[best]), objectives=objectives,
+                       best_trial=best, base=greedy.base, noise=noise, rcl=rcl, name=objective, rebuilt=rebuilt)

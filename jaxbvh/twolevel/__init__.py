@@ -3,7 +3,8 @@
 =================  =====================================================================
 module             what it holds
 =================  =====================================================================
-``rebraid``        :class:`TwoLevelBVH`, :func:`build`, :func:`flatten`, :func:`sah`,
+``rebraid``        :class:`TwoLevelBVH`, :func:`run` (a :class:`RebraidResult`), :func:`build`
+                   (its tree), :func:`flatten`, :func:`sah`,
                    :func:`slots_of` (the BRef budget of a scene)
 ``objects``        one BVH per object, packed into a forest; instances and world boxes
 ``brefs``          the top level over build references that opens overlapping objects
@@ -13,8 +14,9 @@ module             what it holds
 =================  =====================================================================
 """
 
-from jaxbvh.twolevel.rebraid import TwoLevelBVH, build, build_from, flatten, sah, slots_of, stored_nodes
+from jaxbvh.twolevel.rebraid import (RebraidResult, TwoLevelBVH, build, build_from, flatten, run, run_from, sah, slots_of,
+                                     stored_nodes)
 from jaxbvh.twolevel.traversal import brute_force, closest_hit, stack_capacity, step_bound, trace_batch
 
-__all__ = ["TwoLevelBVH", "build", "build_from", "flatten", "sah", "slots_of", "stored_nodes", "brute_force",
+__all__ = ["RebraidResult", "TwoLevelBVH", "build", "build_from", "run", "run_from", "flatten", "sah", "slots_of", "stored_nodes", "brute_force",
            "closest_hit", "stack_capacity", "step_bound", "trace_batch"]

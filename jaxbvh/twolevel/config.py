@@ -1,7 +1,8 @@
 """The knobs of the re-braiding top level, as one Config (the command line's options).
 
-:class:`RebraidConfig` holds what :func:`jaxbvh.twolevel.build` and
-:func:`jaxbvh.twolevel.build_from` take besides the object builder: the opening
+:class:`RebraidConfig` holds what :func:`jaxbvh.twolevel.run` and
+:func:`jaxbvh.twolevel.run_from` (and ``build``, ``build_from``, their trees) take besides
+the object builder: the opening
 threshold, the BRef budget, the top level's bins, the overlap tolerance of the
 termination test and the paper's estimated primitive counts. Its defaults are the
 constants below (the paper's, or ours where it gives none; :mod:`jaxbvh.twolevel.brefs`
@@ -48,5 +49,5 @@ class RebraidConfig(Checked):
     estimate: bool = knob(False, help="the paper's estimated BRef primitive counts (off: exact)")
 
     def options(self) -> dict:
-        """The keywords of :func:`jaxbvh.twolevel.build_from` this Config sets."""
+        """This Config as keywords of :func:`jaxbvh.twolevel.run_from` (which also takes the Config itself)."""
         return dataclasses.asdict(self)

@@ -58,16 +58,19 @@ import dataclasses
 import itertools
 import math
 import time
-from typing import Any
+import warnings
+from typing import Any, Callable
 
 import jax
 import numpy as np
 
 from jaxbvh.builders.configs import BuilderConfig
 from jaxbvh.numerics import half_area
+from jaxbvh.optimize.protocol import CompileClock, SearchResult, StepInfo, check_on_step
 from jaxbvh.tree.cost import sah as sah_of
 from jaxbvh.tree.layout import BVH, capacity_bucket, concat_ranges, depth, pad_to, to_jax, to_numpy
 from jaxbvh.twolevel import brefs as _brefs
+from jaxbvh.twolevel.config import RebraidConfig
 from jaxbvh.twolevel.objects import Forest, Instances, ObjectTree, bref_boxes, build_objects, object_builder, pack
 
 
@@ -106,31 +109,98 @@ def _single_instance(forest: Forest, instances: Instances) -> TwoLevelBVH:
                        forest=forest, instances=instances, n_instances=np.int32(1))
 
 
-def build_from(mesh, trees: dict[int, ObjectTree], *, threshold: float = _brefs.DEFAULT_THRESHOLD,
-               budget: float | None = None, capacity: int | None = None,
-               top_bins: int = _brefs.DEFAULT_BINS, overlap: float = _brefs.DEFAULT_OVERLAP,
-               estimate: bool = False, rounds: int = _brefs.DEFAULT_ROUNDS, timings: dict | None = None,
-               shapes: dict | None = None, info: dict | None = None) -> TwoLevelBVH:
-    """Pack already built object trees and build the top level (see :func:`build`).
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class RebraidResult(SearchResult):
+    """What :func:`run` and :func:`run_from` return: the fields of every search
+    (:class:`jaxbvh.optimize.protocol.SearchResult`) and re-braiding's own.
 
-    ``timings``, if given, receives ``pack`` and ``top`` seconds (arrays ready; ``top``
-    includes the plain top level and the comparison of :func:`_keep_rebraided`);
-    ``shapes``: least array sizes ``{"nodes", "prims", "instances", "brefs"}`` (so that
-    many scenes share one compiled top-level build and traversal); ``info``, if given,
-    receives ``slots`` (the BRef array's size) and ``kept`` (``"rebraided"``,
-    ``"two-level"`` when opening did not lower the SAH or no slot was spare, or ``"single object"``).
+    Search fields: ``tree``: the :class:`TwoLevelBVH`; ``steps``: its stages run
+    (``"objects"`` (:func:`run` only), ``"pack"``, ``"top"``), one
+    :class:`~jaxbvh.optimize.protocol.StepInfo` each in ``trace`` (``moves`` of
+    ``"top"``: the BRefs the kept top level opened beyond one per instance; ``sah``:
+    NaN); ``cost``, ``cost_start``, ``cost_name``: None and ``history``: NaN [steps]
+    (a build prices nothing; :func:`sah` costs the tree); ``stop``: ``"limit"``;
+    ``seconds``: wall seconds of the whole build (arrays ready), ``compile_seconds``: the
+    part spent compiling.
+
+    Re-braiding's own: ``stage_seconds``: ``{stage: seconds}`` (``"top"`` includes the
+    plain top level and the comparison of :func:`_keep_rebraided`); ``slots``: the BRef
+    array's size; ``kept``: ``"rebraided"``, ``"two-level"`` (opening did not lower the
+    SAH, or no slot was spare) or ``"single object"``.
     """
-    _brefs.check_options(threshold, budget, top_bins, overlap, rounds)
-    start = time.perf_counter()
+
+    stage_seconds: dict
+    slots: int
+    kept: str
+
+
+def run_from(mesh, trees: dict[int, ObjectTree], config: RebraidConfig | None = None, *,
+             capacity: int | None = None, shapes: dict | None = None,
+             on_step: Callable[[StepInfo], None] | None = None, **options) -> RebraidResult:
+    """Pack already built object trees and build the top level (see :func:`run`).
+
+    ``config``: a :class:`~jaxbvh.twolevel.config.RebraidConfig` (None: its defaults), or
+    its knobs as keyword ``options`` (``threshold``, ``budget``, ``top_bins``,
+    ``overlap``, ``estimate``, ``rounds``). ``capacity``: BRef slots in all (instead of
+    ``config.budget`` per instance). ``shapes``: least array sizes ``{"nodes", "prims",
+    "instances", "brefs"}`` (so that many scenes share one compiled top-level build and
+    traversal). ``on_step(info)``: called after each stage (:class:`RebraidResult`).
+    """
+    config = _config(config, options)
+    check_on_step(on_step)
+    with CompileClock() as clock:
+        started = time.perf_counter()
+        trace: list[StepInfo] = []
+        tl, slots, kept = _build_from(mesh, trees, config, capacity, shapes, _reporter(trace, on_step, started))
+    seconds = time.perf_counter() - started
+    return _result(tl, trace, slots, kept, seconds, clock.seconds)
+
+
+def _config(config, options) -> RebraidConfig:
+    """``config``, or the RebraidConfig of keyword ``options`` (not both)."""
+    if config is None:
+        return RebraidConfig(**options)
+    if options:
+        raise TypeError("give a RebraidConfig or keyword options, not both (config.replace(...) changes one)")
+    if not isinstance(config, RebraidConfig):
+        raise TypeError(f"config must be a jaxbvh.twolevel.config.RebraidConfig, got {type(config).__name__}")
+    return config
+
+
+def _reporter(trace: list, on_step, started: float):
+    """``report(stage, moves)``: the StepInfo of a finished stage to ``trace`` and ``on_step``."""
+
+    def report(stage: str, moves: int = 0) -> None:
+        info = StepInfo("rebraid", stage, len(trace), math.nan, int(moves), time.perf_counter() - started)
+        trace.append(info)
+        if on_step is not None:
+            on_step(info)
+
+    return report
+
+
+def _result(tl, trace, slots, kept, seconds, compile_seconds) -> RebraidResult:
+    stage_seconds = dict(zip([i.stage for i in trace], np.diff([0.0] + [i.seconds for i in trace]).tolist()))
+    return RebraidResult(tree=tl, cost=None, cost_start=None, cost_name=None, steps=len(trace),
+                         history=np.full(len(trace), np.nan), converged=False, stop="limit", trace=tuple(trace),
+                         seconds=seconds, compile_seconds=compile_seconds, stage_seconds=stage_seconds,
+                         slots=slots, kept=kept)
+
+
+def _build_from(mesh, trees, config: RebraidConfig, capacity, shapes, report):
+    """``(TwoLevelBVH, slots, kept)`` of :func:`run_from`; ``report(stage, moves)`` after each stage."""
+    threshold, budget = config.threshold, config.budget
     shapes = shapes or {}
     forest, instances = pack(mesh, trees, capacity=shapes)
-    packed = time.perf_counter()
+    jax.block_until_ready((forest, instances))
+    report("pack")
     n = len(mesh.instances)
     slots = slots_of(mesh, threshold, budget, capacity)
     if n == 1:
         tl, kept = _single_instance(forest, instances), "single object"
     else:
-        top = dict(bins=top_bins, overlap=overlap, estimate=estimate, rounds=rounds, array_size=shapes.get("brefs"))
+        top = dict(bins=config.top_bins, overlap=config.overlap, estimate=config.estimate, rounds=config.rounds,
+                   array_size=shapes.get("brefs"))
         # on the device once for both top levels, without the triangles (not read there)
         nodes, placed = jax.device_put((_brefs.without_triangles(forest), instances))
         # NumPy from here: the comparison and the root box are a few small steps, each
@@ -151,12 +221,31 @@ def build_from(mesh, trees: dict[int, ObjectTree], *, threshold: float = _brefs.
                          bref_lo=result.lo, bref_hi=result.hi, bref_prims=result.prims,
                          bref_count=result.count, forest=forest, instances=instances,
                          n_instances=np.int32(n))
+    report("top", int(tl.bref_count) - n)
+    return tl, slots, kept
+
+
+def _deprecated_dicts(timings, info, result: RebraidResult, caller: str) -> None:
+    """Fill the old in-place ``timings`` and ``info`` dicts from ``result`` (with a warning)."""
+    if timings is None and info is None:
+        return
+    warnings.warn(f"{caller}(timings=..., info=...) is deprecated: use twolevel.{caller.replace('build', 'run')}, "
+                  "whose result has stage_seconds, slots and kept", DeprecationWarning, stacklevel=3)
     if timings is not None:
-        timings["pack"] = packed - start
-        timings["top"] = time.perf_counter() - packed
+        timings.update(result.stage_seconds)
     if info is not None:
-        info.update(slots=slots, kept=kept)
-    return tl
+        info.update(slots=result.slots, kept=result.kept)
+
+
+def build_from(mesh, trees: dict[int, ObjectTree], config: RebraidConfig | None = None, *,
+               capacity: int | None = None, shapes: dict | None = None, timings: dict | None = None,
+               info: dict | None = None, **options) -> TwoLevelBVH:
+    """The tree of :func:`run_from` (same arguments); ``timings`` and ``info`` are
+    deprecated (use :func:`run_from`'s ``stage_seconds``, ``slots`` and ``kept``): if given,
+    ``timings`` receives ``pack`` and ``top`` seconds and ``info`` ``slots`` and ``kept``."""
+    result = run_from(mesh, trees, config, capacity=capacity, shapes=shapes, **options)
+    _deprecated_dicts(timings, info, result, "build_from")
+    return result.tree
 
 
 def slots_of(mesh, threshold: float = _brefs.DEFAULT_THRESHOLD, budget: float | None = None,
@@ -331,13 +420,10 @@ def _keep_rebraided(braided, plain, forest, instances) -> bool:
                for opened in _opened_areas(node, instance, forest, instances))
 
 
-def build(mesh, builder: BuilderConfig | None = None, *, threshold: float = _brefs.DEFAULT_THRESHOLD,
-          budget: float | None = None, capacity: int | None = None,
-          top_bins: int = _brefs.DEFAULT_BINS, overlap: float = _brefs.DEFAULT_OVERLAP, estimate: bool = False,
-          rounds: int = _brefs.DEFAULT_ROUNDS, dtype=None, world_space: bool = True, timings: dict | None = None,
-          info: dict | None = None,
-          **builder_options) -> TwoLevelBVH:
-    """Two-level BVH of ``mesh`` with re-braiding (module docstring).
+def run(mesh, builder: BuilderConfig | None = None, config: RebraidConfig | None = None, *,
+        capacity: int | None = None, dtype=None, world_space: bool = True, shapes: dict | None = None,
+        on_step: Callable[[StepInfo], None] | None = None, **options) -> RebraidResult:
+    """Two-level BVH of ``mesh`` with re-braiding (module docstring), as a :class:`RebraidResult`.
 
     Object BVHs: ``builder``, a builder Config (None:
     :data:`jaxbvh.twolevel.objects.DEFAULT_BUILDER`, binned SAH with one primitive per
@@ -345,23 +431,42 @@ def build(mesh, builder: BuilderConfig | None = None, *, threshold: float = _bre
     :func:`jaxbvh.twolevel.objects.object_builder`), in ``dtype`` (None: the builder's,
     float32 unless it says float64, which needs x64); ``world_space``: build objects
     placed by a single instance in world space (:mod:`jaxbvh.twolevel.objects`). Top
-    level: ``threshold`` (opening threshold; inf: plain two-level), ``budget`` BRef slots
-    per instance (or ``capacity`` in all; neither: the scene's default,
-    :func:`jaxbvh.twolevel.brefs.scene_slots`), ``top_bins``, ``overlap``, ``estimate``, ``rounds`` as
-    :func:`jaxbvh.twolevel.brefs.build_top_level`. ``timings``, if given, receives
-    ``objects``, ``pack`` and ``top`` seconds; ``info`` as :func:`build_from`. The
+    level: ``config``, a :class:`~jaxbvh.twolevel.config.RebraidConfig` (threshold,
+    budget, top_bins, overlap, estimate, rounds; None: its defaults, or those knobs as
+    keywords), ``capacity``: BRef slots in all instead of ``config.budget`` per instance
+    (neither: the scene's default, :func:`jaxbvh.twolevel.brefs.scene_slots`);
+    ``shapes`` as :func:`run_from`. ``on_step(info)``: called after each stage. The
     re-braided top level is kept only where it lowers the SAH below the plain two-level
-    one (else the plain one is returned, ``info["kept"] == "two-level"``).
+    one (else the plain one is returned, ``result.kept == "two-level"``).
     """
-    _brefs.check_options(threshold, budget, top_bins, overlap, rounds)
-    builder = object_builder(builder, **builder_options)  # refused before any work
-    start = time.perf_counter()
-    trees = build_objects(mesh, builder, dtype=dtype, world_space=world_space)
-    if timings is not None:
-        timings["objects"] = time.perf_counter() - start
-    return build_from(mesh, trees, threshold=threshold, budget=budget, capacity=capacity,
-                      top_bins=top_bins, overlap=overlap, estimate=estimate, rounds=rounds, timings=timings,
-                      info=info)
+    top_options = {k: options.pop(k) for k in list(options) if k in _CONFIG_KNOBS}
+    config = _config(config, top_options)
+    builder = object_builder(builder, **options)  # refused before any work
+    check_on_step(on_step)
+    with CompileClock() as clock:
+        started = time.perf_counter()
+        trace: list[StepInfo] = []
+        report = _reporter(trace, on_step, started)
+        trees = jax.block_until_ready(build_objects(mesh, builder, dtype=dtype, world_space=world_space))
+        report("objects")
+        tl, slots, kept = _build_from(mesh, trees, config, capacity, shapes, report)
+    seconds = time.perf_counter() - started
+    return _result(tl, trace, slots, kept, seconds, clock.seconds)
+
+
+#: the keywords :func:`run` and :func:`build` take as RebraidConfig knobs (the rest make the builder)
+_CONFIG_KNOBS = frozenset(f.name for f in dataclasses.fields(RebraidConfig))
+
+
+def build(mesh, builder: BuilderConfig | None = None, config: RebraidConfig | None = None, *,
+          capacity: int | None = None, dtype=None, world_space: bool = True, timings: dict | None = None,
+          info: dict | None = None, **options) -> TwoLevelBVH:
+    """The tree of :func:`run` (same arguments); ``timings`` and ``info`` are deprecated (use
+    :func:`run`'s ``stage_seconds``, ``slots`` and ``kept``): if given, ``timings``
+    receives ``objects``, ``pack`` and ``top`` seconds and ``info`` ``slots`` and ``kept``."""
+    result = run(mesh, builder, config, capacity=capacity, dtype=dtype, world_space=world_space, **options)
+    _deprecated_dicts(timings, info, result, "build")
+    return result.tree
 
 
 # ----------------------------------------------------------------------------------

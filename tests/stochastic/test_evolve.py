@@ -140,9 +140,11 @@ def test_run_bookkeeping_and_reproducibility():
     lo, hi = boxes(4, 20)
     seen = []
     result = evolve.evolve(jax.random.key(3), lo, hi, population=P, generations=6, mutation=0.1,
-                           on_generation=lambda g, best: seen.append((g, best)), keep_elites=True)
-    assert [g for g, _ in seen] == list(range(7))
-    assert np.allclose([b for _, b in seen], result.history)
+                           on_step=seen.append, keep_elites=True)
+    assert tuple(seen) == result.trace and [i.step for i in seen] == list(range(7))
+    assert [i.sah for i in seen] == result.history.tolist() and result.steps == 7
+    assert result.cost == result.best and result.cost_start == result.initial_best and result.stop == "limit"
+    assert 0 <= result.compile_seconds <= result.seconds
     assert (np.diff(result.history) <= 0).all()  # the elite survives
     assert result.best == result.history[-1] == pytest.approx(result.costs.min())
     assert result.initial_best == result.history[0] and result.best <= result.random_median
@@ -271,6 +273,7 @@ def test_cli_evolve_json_and_saved_tree(capsys, tmp_path):
     for key in ("initial_best", "best", "random_median", "generations", "population", "history", "seconds"):
         assert key in result
     assert result["population"] == P and result["generations"] == 3 and len(result["history"]) == 4
+    assert 0 <= result["compile_seconds"] <= result["seconds"] and result["stop"] == "limit"
     assert result["best"] <= result["initial_best"] and result["best"] == result["history"][-1]
     assert result["valid"] is True and result["tree"]["goldsmith_salmon"] == pytest.approx(result["best"])
     saved, frame = jaxbvh.load(out)

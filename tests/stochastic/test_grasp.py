@@ -179,12 +179,30 @@ def test_chunking_and_trial_count_do_not_change_trials():
     assert runs[2].objective == runs[0].best_of(3)
 
 
-def test_progress_reports_each_chunk_and_the_best_so_far():
-    # what the CLI's progress bar shows: one report per forest call, then (trials, best)
+def test_progress_reports_every_trial_and_the_best_so_far():
+    # what the CLI's progress bar shows: on_step(info) once per trial, in order, as soon
+    # as the forest call that finishes it returns, with the best objective so far
+    lo, hi = random_boxes(8, 21)
+    infos = []
+    result = grasp.grasp(jax.random.key(5), lo, hi, trials=6, noise=0.4, rcl=3, chunk_prims=10,
+                         on_step=infos.append)
+    assert tuple(infos) == result.trace
+    assert [i.step for i in infos] == list(range(6)) and {i.method for i in infos} == {"grasp"}
+    np.testing.assert_array_equal([i.sah for i in infos], np.minimum.accumulate(result.objectives))
+    np.testing.assert_array_equal([i.moves for i in infos], result.rebuilt)
+    seconds = [i.seconds for i in infos]
+    assert seconds == sorted(seconds) and len(set(seconds)) >= 2  # reported after several forest calls
+    assert result.steps == 6 and result.stop == "limit" and not result.converged
+    assert result.cost == result.objective == result.history[-1] and result.cost_start == result.base
+    assert 0 <= result.compile_seconds <= result.seconds
+
+
+def test_the_deprecated_chunk_callback_still_reports():
     lo, hi = random_boxes(8, 21)
     calls = []
-    result = grasp.grasp(jax.random.key(5), lo, hi, trials=6, noise=0.4, rcl=3, chunk_prims=10,
-                         on_chunk=lambda done, best: calls.append((done, best)))
+    with pytest.warns(DeprecationWarning, match="on_step"):
+        result = grasp.grasp(jax.random.key(5), lo, hi, trials=6, noise=0.4, rcl=3, chunk_prims=10,
+                             on_chunk=lambda done, best: calls.append((done, best)))
     assert len(calls) >= 3  # several chunks of at most 10 primitives, and the final report
     done = [d for d, _ in calls]
     assert done == sorted(done) and 0 <= done[0] and done[-1] == 6
@@ -338,6 +356,7 @@ def test_cli_grasp(capsys, tmp_path):
     for key in ("base", "best", "best_of_10", "trials", "noise", "rcl", "sah", "seconds"):
         assert key in result, key
     assert result["trials"] == 12 and result["noise"] == 0.3 and result["rcl"] == 3
+    assert 0 <= result["compile_seconds"] <= result["seconds"] and result["stop"] == "limit"
     assert result["best"] <= result["best_of_10"] and result["valid"] is True
     assert result["deviations"] == pytest.approx(0.3 * 17)
     tree, frame = jaxbvh.load(out)

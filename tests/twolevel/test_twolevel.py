@@ -25,6 +25,7 @@ from jaxbvh.twolevel import brefs
 from jaxbvh.twolevel import brefs_reference as ref
 from jaxbvh.twolevel import objects as fm
 from jaxbvh.twolevel.brefs_segments import widest_rank
+from jaxbvh.twolevel.config import RebraidConfig
 from tests.strategies import triangle_soups
 
 SHAPES = {"nodes": 128, "prims": 64, "instances": 8, "brefs": 32, "boxes": 512}
@@ -305,9 +306,9 @@ def test_a_pile_of_rotated_instances_keeps_its_opened_nodes(seed):
     mesh = scenes.pile(jax.random.key(seed), *small_tree(3), 4)
     trees = fm.build_objects(mesh)
     plain = twolevel.build_from(mesh, trees, threshold=math.inf, shapes=SHAPES)
-    info = {}
-    tl = twolevel.build_from(mesh, trees, budget=4.0, shapes=SHAPES, info=info)
-    assert info["kept"] == "rebraided"
+    result = twolevel.run_from(mesh, trees, budget=4.0, shapes=SHAPES)
+    tl = result.tree
+    assert result.kept == "rebraided"
     for boxes in ("world", "object"):
         assert twolevel.sah(tl, boxes=boxes) < 0.95 * twolevel.sah(plain, boxes=boxes)
 
@@ -601,14 +602,14 @@ def material_scenes(draw):
 def test_rebraided_sah_never_exceeds_two_level(mesh, options):
     trees = fm.build_objects(mesh)
     plain = twolevel.build_from(mesh, trees, threshold=math.inf, shapes=SHAPES)
-    info = {}
-    tl = twolevel.build_from(mesh, trees, threshold=options["threshold"], budget=options["budget"],
-                             overlap=options["overlap"], estimate=options["estimate"], rounds=options["rounds"],
-                             shapes=SHAPES, info=info)
+    config = RebraidConfig(threshold=options["threshold"], budget=options["budget"], overlap=options["overlap"],
+                           estimate=options["estimate"], rounds=options["rounds"])
+    result = twolevel.run_from(mesh, trees, config, shapes=SHAPES)
+    tl, info = result.tree, result.kept
     assert twolevel.sah(tl) <= twolevel.sah(plain) * (1 + 1e-6), info
     # ... and in object frames, what the two-level traversal tests below a BRef
     assert twolevel.sah(tl, boxes="object") <= twolevel.sah(plain, boxes="object") * (1 + 1e-6), info
-    if info["kept"] == "two-level":  # the plain top level, BRef for BRef
+    if result.kept == "two-level":  # the plain top level, BRef for BRef
         assert int(tl.bref_count) == len(mesh.instances)
     # the flattened tree stays valid with the root on the instances' box
     lo, hi = mesh.local_boxes()
@@ -627,13 +628,13 @@ def test_an_opening_that_raises_the_sah_is_not_kept():
     forest, inst, raw = top_level(mesh, trees, threshold=0.1, budget=1.5)
     n = len(mesh.instances)
     plain = twolevel.build_from(mesh, trees, threshold=math.inf, shapes=SHAPES)
-    info = {}
-    tl = twolevel.build_from(mesh, trees, threshold=0.1, budget=1.5, shapes=SHAPES, info=info)
+    result = twolevel.run_from(mesh, trees, threshold=0.1, budget=1.5, shapes=SHAPES)
+    tl = result.tree
     raw_tl = twolevel.TwoLevelBVH(top=raw.top, bref_node=raw.node, bref_instance=raw.instance, bref_lo=raw.lo,
                                   bref_hi=raw.hi, bref_prims=raw.prims, bref_count=raw.count, forest=forest,
                                   instances=inst, n_instances=np.int32(n))
     assert int(raw.count) > n and twolevel.sah(raw_tl) > twolevel.sah(plain)  # the raw opening is worse
-    assert info["kept"] == "two-level" and twolevel.sah(tl) == twolevel.sah(plain)
+    assert result.kept == "two-level" and twolevel.sah(tl) == twolevel.sah(plain)
 
 
 def test_scene_slots_scale_with_the_scene():

@@ -58,12 +58,12 @@ def run(args) -> dict:
                                f"an insertion order and a tree of {mesh.n_triangles:,} triangles per member")
         bar = command_kit.progress(args, total=config.generations + 1, desc="generations")
 
-        def on_generation(g, best):
+        def on_step(info):  # once per generation
             bar.update(1)
-            bar.set_postfix(best=f"{best:.4f}")
+            bar.set_postfix(best=f"{info.sah:.4f}")
 
         with stages("evolve"):
-            result = evolve.evolve(command_kit.seed_key(args.seed), lo, hi, config, on_generation=on_generation)
+            result = evolve.evolve(command_kit.seed_key(args.seed), lo, hi, config, on_step=on_step)
         bar.close()
         tree = jaxbvh.to_numpy(result.tree)
         with stages("validate"):
@@ -81,5 +81,7 @@ def run(args) -> dict:
            if result.random_median else 0.0,
            "history": [float(x) for x in result.history],
            "seconds": result.seconds,  # includes compiling (cached across runs by the CLI)
+           "compile_seconds": result.compile_seconds,  # the part of it spent compiling
+           "stop": result.stop,
            "tree": command_kit.tree_stats(tree), "valid": True, "output": args.output}
     return out

@@ -56,13 +56,13 @@ def run(args) -> dict:
         noise = grasp.resolve_noise(lo.shape[0], config.noise, config.deviations)
         bar = command_kit.progress(args, total=config.trials, desc="trials")
 
-        def on_chunk(done, best):
-            bar.update(done - bar.n)
-            bar.set_postfix(best=f"{best:.4f}")
+        def on_step(info):  # once per trial, after the forest call that finishes it
+            bar.update(info.step + 1 - bar.n)
+            bar.set_postfix(best=f"{info.sah:.4f}")
 
         with stages("grasp"):
             start = time.perf_counter()
-            result = grasp.grasp(command_kit.seed_key(args.seed), lo, hi, config, on_chunk=on_chunk)
+            result = grasp.grasp(command_kit.seed_key(args.seed), lo, hi, config, on_step=on_step)
             tree = jax.block_until_ready(result.tree)
             seconds = time.perf_counter() - start
         bar.close()
@@ -91,6 +91,8 @@ def run(args) -> dict:
         "sah": float(jaxbvh.sah(tree)),
         "ng_trifonov": float(jaxbvh.ng_trifonov_cost(tree)),
         "seconds": seconds,  # all trials and the greedy build, compile included
+        "compile_seconds": result.compile_seconds,  # the part of it spent compiling
+        "stop": result.stop,
         "valid": True,
         "output": args.output,
     }

@@ -89,14 +89,11 @@ def run(args) -> dict:
         with stages("objects"):
             trees, t_objects = _timed(lambda: fm.build_objects(mesh, builder, world_space=not args.object_space))
         results = {}
-        kept = {}
         for name, threshold in (("two_level", math.inf), ("rebraid", config.threshold)):
-            top = dict(config.options(), threshold=threshold)
+            top = config.replace(threshold=threshold)
             with stages(name.replace("_", "-")):
-                timings = {}
-                twolevel.build_from(mesh, trees, **top)  # compile
-                tl = twolevel.build_from(mesh, trees, timings=timings, info=kept, **top)
-            results[name] = (tl, timings)
+                twolevel.run_from(mesh, trees, top)  # compile
+                results[name] = twolevel.run_from(mesh, trees, top)
         lo, hi = mesh.local_boxes()
         with stages("single"):
             single, t_single = _timed(lambda: jaxbvh.build(lo, hi, builder))
@@ -105,7 +102,8 @@ def run(args) -> dict:
             jaxbvh.validate(single, lo, hi)
             out = {}
             flats = {}
-            for name, (tl, timings) in results.items():
+            for name, built in results.items():
+                tl, timings = built.tree, built.stage_seconds
                 flat = twolevel.flatten(tl)
                 jaxbvh.validate(flat, lo, hi)
                 flats[name] = flat
@@ -123,7 +121,7 @@ def run(args) -> dict:
                 tri = mesh.local_triangles()
                 origin, direction = rays.make_rays(jax.random.key(args.seed), "random", single, tri, args.rays)
                 single_hits = traverse.closest_hit(single, tri, origin, direction)
-                hits = {name: twolevel.closest_hit(tl, origin, direction) for name, (tl, _) in results.items()}
+                hits = {name: twolevel.closest_hit(built.tree, origin, direction) for name, built in results.items()}
                 hits["single"] = single_hits
                 for name, h in hits.items():
                     out[name]["box_tests"] = float(np.mean(h.box_tests))
@@ -136,7 +134,7 @@ def run(args) -> dict:
 
     result = {"command": "rebraid", **command_kit.mesh_info(mesh), "builder": builder.method,
               "threshold": config.threshold, "budget": config.budget, "path": "two-level",
-              "slots": kept["slots"], "kept": kept["kept"],
+              "slots": results["rebraid"].slots, "kept": results["rebraid"].kept,
               "two_level": out["two_level"], "rebraid": out["rebraid"], "single": out["single"],
               "rebraid_vs_two_level": out["rebraid"]["sah"] / out["two_level"]["sah"],
               "rebraid_vs_single": out["rebraid"]["sah"] / out["single"]["sah"],
