@@ -11,7 +11,7 @@ import signal
 import jax
 import numpy as np
 import pytest
-from helpers import grid_obj, run_cli, run_json
+from helpers import assert_same_costs, grid_obj, run_cli, run_json
 
 import jaxbvh
 from jaxbvh.batch import runs
@@ -70,7 +70,9 @@ def test_cluster_trees_equal_the_single_process_run_and_bad_meshes_fail_alone(tm
     single_rows = {os.path.basename(r["mesh"]): r for r in single["rows"]}
     for name, row in rows.items():
         if not row.get("error"):
-            assert row["sah"] == single_rows[name]["sah"] == row["sah_built"]
+            # the same tree priced by another program (a worker's single device, not the
+            # batch's two): equal but for the last bits of a float sum
+            assert_same_costs(np.float32([row["sah"], row["sah_built"]]), np.float32([single_rows[name]["sah"]] * 2))
             assert row["triangles"] == jaxbvh.load_mesh(folder / name).n_triangles
     text = report.read_text().splitlines()
     assert text[0].split(",") == list(runs.REPORT_FIELDS) and len(text) == 1 + GOOD + len(BAD)

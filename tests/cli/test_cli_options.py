@@ -48,6 +48,7 @@ ESTABLISHED = {
     "evolve": {"--population", "--generations", "--crossover", "--mutation", "--max-children"},
     "grasp": {"--trials", "--noise", "--deviations", "--rcl", "--objective"},
     "rebraid": {"--max-leaf", "--bins"},
+    "export": set(),
     "batch": {"--max-leaf", "--bins", "--radius", "--morton-bits", "--ct", "--ci", "--iterations",
               "--max-passes", "--treelet-leaves", "--first-fraction", "--round-gain", "--memory-mb",
               "--max-padding"},
