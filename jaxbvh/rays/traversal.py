@@ -75,7 +75,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh.numerics import INV_BIG, robust_factor
-from jaxbvh.rays.stack_walk import Hits, Hooks, Node, finish, walk
+from jaxbvh.rays.stack_walk import LEAF_WIDTH, Hits, Hooks, Node, Ray, lanes_for, walk_rays
 from jaxbvh.tree.layout import BVH, depth, to_jax
 from jaxbvh.tree.validate import InvalidTreeError
 
@@ -162,30 +162,28 @@ def max_steps(tree) -> int:
     return int(tree.prim_count.shape[0]) + int(tree.prim_index.shape[0]) + 1
 
 
-def _trace_one(tree, prims, skip, origin, direction, t_min, t_max, *, intersect, mode,
-               capacity, max_hits):
-    """One ray through ``tree`` (scalars and [3] vectors); returns its :class:`Hits`."""
+def _ray(tree, prims, skip, origin, direction, t_min, t_max, i, *, intersect) -> Ray:
+    """Ray ``i`` of ``origin``, ``direction`` [R, 3], ``t_min``, ``t_max`` [R] through
+    ``tree``: its hooks and root test (:class:`~jaxbvh.rays.stack_walk.Ray`)."""
     dtype = tree.lo.dtype
-    origin = origin.astype(dtype)
-    direction = direction.astype(dtype)
-    t_min = jnp.asarray(t_min, dtype)
-    t_max = jnp.asarray(t_max, dtype)
-    inv_dir = inverse_direction(direction)
+    o = origin[i].astype(dtype)
+    d = direction[i].astype(dtype)
+    lo_t = t_min[i]
+    hi_t = t_max[i]
+    inv_dir = inverse_direction(d)
     root = tree.root
-    root_hit, root_entry = slab(tree.lo[root], tree.hi[root], origin, inv_dir, t_min, t_max)
+    root_hit, root_entry = slab(tree.lo[root], tree.hi[root], o, inv_dir, lo_t, hi_t)
     n_slots = tree.prim_index.shape[0]
 
     def primitive(slot, _):
         prim = tree.prim_index[jnp.minimum(slot, n_slots - 1)]
-        t, u, v = intersect(prims, prim, origin, direction)
+        t, u, v = intersect(prims, prim, o, d)
         return t, u, v, prim
 
     def node(ref, _, entry, t_far):
-        return _expand(tree, skip, ref, entry, origin, direction, inv_dir, t_min, t_far)
+        return _expand(tree, skip, ref, entry, o, d, inv_dir, lo_t, t_far)
 
-    end = walk(Hooks(primitive, node), root, root_hit, root_entry, t_min, t_max, mode=mode,
-               capacity=capacity, max_hits=max_hits, step_limit=max_steps(tree))
-    return finish(end, mode=mode, max_hits=max_hits)
+    return Ray(Hooks(primitive, node), root, root_hit, root_entry, lo_t, hi_t)
 
 
 def _expand(tree, skip, ref, entry, origin, direction, inv_dir, t_min, t_far) -> Node:
@@ -213,23 +211,27 @@ def _expand(tree, skip, ref, entry, origin, direction, inv_dir, t_min, t_far) ->
                 split=tree.axis[ref] if isinstance(tree, BVH) else None, direction=direction)
 
 
-@partial(jax.jit, static_argnames=("intersect", "mode", "capacity", "max_hits"))
+@partial(jax.jit, static_argnames=("intersect", "mode", "capacity", "max_hits", "lanes", "leaf_width"))
 def trace_batch(tree, prims, origin, direction, t_min, t_max, skip=None, *,
-                intersect=intersect_triangle, mode="closest", capacity=64, max_hits=16):
+                intersect=intersect_triangle, mode="closest", capacity=64, max_hits=16, lanes=None,
+                leaf_width=LEAF_WIDTH):
     """Trace rays ``origin``, ``direction`` [R, 3] (tree frame) through ``tree``; jitted.
 
     ``prims``: what ``intersect`` reads (``triangles`` [T, 3, 3] for the default);
     ``t_min``, ``t_max``: scalars or [R]; ``mode``: one of :data:`MODES`;
     ``capacity``: static stack size; ``max_hits``: list length for ``mode="all"``;
-    ``skip``: optional [N] bool flags (module docstring). Returns :class:`Hits` with
-    arrays [R]. The drivers below batch, pad and check.
+    ``skip``: optional [N] bool flags (module docstring); ``lanes``: rays in flight
+    (:func:`~jaxbvh.rays.stack_walk.lanes_for`); ``leaf_width``: leaf slots tested per
+    step. Returns :class:`Hits` with arrays [R]. The drivers below batch, pad and check.
     """
     r = origin.shape[0]
-    t_min = jnp.broadcast_to(jnp.asarray(t_min, tree.lo.dtype), (r,))
-    t_max = jnp.broadcast_to(jnp.asarray(t_max, tree.lo.dtype), (r,))
-    one = partial(_trace_one, tree, prims, skip, intersect=intersect, mode=mode,
-                  capacity=capacity, max_hits=max_hits)
-    return jax.vmap(one)(origin, direction, t_min, t_max)
+    dtype = tree.lo.dtype
+    t_min = jnp.broadcast_to(jnp.asarray(t_min, dtype), (r,))
+    t_max = jnp.broadcast_to(jnp.asarray(t_max, dtype), (r,))
+    ray = partial(_ray, tree, prims, skip, origin, direction, t_min, t_max, intersect=intersect)
+    return walk_rays(ray, r, mode=mode, capacity=capacity, max_hits=max_hits,
+                     step_limit=max_steps(tree), lanes=lanes_for(r, capacity, lanes),
+                     leaf_width=leaf_width)
 
 
 # ----------------------------------------------------------------------------------

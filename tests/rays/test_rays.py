@@ -242,7 +242,11 @@ def test_any_hit_and_all_hits_agree_with_closest():
     anyhit = run("any_hit", tree, tri, origin, direction)
     allhits = run("all_hits", tree, tri, origin, direction, max_hits=16)
     assert np.array_equal(anyhit.prim >= 0, closest.prim >= 0)
-    assert (anyhit.t >= closest.t).all()
+    # the same triangle's t from two programs may differ in its last bit (FMA
+    # contraction, see assert_t_close): compare up to that
+    same = anyhit.prim == closest.prim
+    assert_t_close(anyhit.t[same], closest.t[same], tri, direction[same], closest.prim[same])
+    assert (anyhit.t[~same] >= closest.t[~same]).all()
     assert (anyhit.prim_tests <= allhits.prim_tests).all()
     assert np.array_equal(allhits.prim, closest.prim)  # all-hits also reports the closest
     # hit counts equal the brute-force count of triangles each ray crosses
