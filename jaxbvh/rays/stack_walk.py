@@ -165,6 +165,9 @@ tree gets fewer lanes rather than a huge carry."""
 LEAF_WIDTH = 4
 """Primitive slots of an open leaf tested together in one step (closest and any hit; all
 hits test one per step, to list them in order)."""
+REFILL_EVERY = 4
+"""Steps between refills: a refill costs about as much as a step, and a lane whose ray
+ended idles at most this many steps minus one."""
 
 
 def lanes_for(rays: int, capacity: int, lanes: int | None = None) -> int:
@@ -237,8 +240,8 @@ def walk_rays(ray: Callable, n_rays: int, *, mode: str, capacity: int, max_hits:
         s = s._replace(steps=s.steps + pop.astype(I32))
         return _node_step(r.hooks, s, pop, top_node, top_tag, top_entry, capacity=capacity)
 
-    def body(carry):
-        s, stacks, out, next_ray = refill(*carry)
+    def step(_, carry):
+        s, stacks = carry
         top = jnp.maximum(s.sp - 1, 0)
         top_node = stacks.node[lane_ids, top]
         top_tag = None if stacks.tag is None else stacks.tag[lane_ids, top]
@@ -248,6 +251,11 @@ def walk_rays(ray: Callable, n_rays: int, *, mode: str, capacity: int, max_hits:
         stacks = Stacks(node=stacks.node.at[rows, pos].set(kids, mode="drop"),
                         tag=None if stacks.tag is None else stacks.tag.at[rows, pos].set(kid_tags, mode="drop"),
                         entry=stacks.entry.at[rows, pos].set(kid_entry, mode="drop"))
+        return s, stacks
+
+    def body(carry):
+        s, stacks, out, next_ray = refill(*carry)
+        s, stacks = jax.lax.fori_loop(0, REFILL_EVERY, step, (s, stacks))
         return s, stacks, out, next_ray
 
     def cond(carry):

@@ -80,6 +80,10 @@ from jaxbvh.tree.layout import BVH, depth, to_jax
 from jaxbvh.tree.validate import InvalidTreeError
 
 MODES = ("closest", "any", "all")
+BATCH = 16384
+"""Rays per jitted call (the last call padded): lanes refill from the call's rays
+(:func:`~jaxbvh.rays.stack_walk.walk_rays`), so a big call keeps them busy; the padding
+rays end at once."""
 
 
 # ----------------------------------------------------------------------------------
@@ -241,8 +245,8 @@ def trace_batch(tree, prims, origin, direction, t_min, t_max, skip=None, *,
 
 def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t_max=np.inf,
           intersect: Callable = intersect_triangle, capacity: int | None = None,
-          max_hits: int = 16, batch: int = 256, allow_overflow: bool = False, skip=None,
-          on_batch: Callable[[int], None] | None = None) -> Hits:
+          max_hits: int = 16, batch: int = BATCH, allow_overflow: bool = False, skip=None,
+          lanes: int | None = None, leaf_width: int = LEAF_WIDTH, on_batch: Callable[[int], None] | None = None) -> Hits:
     """Trace any number of rays in batches of ``batch``; returns :class:`Hits` (NumPy).
 
     ``tree``: :class:`~jaxbvh.tree.layout.BVH` or :class:`~jaxbvh.tree.layout.WideBVH`;
@@ -251,9 +255,9 @@ def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t
     (directions need not be unit; ``t`` is in units of ``|direction|``).
     ``capacity`` defaults to :func:`stack_capacity`; ``skip``: optional [N] bool per-node
     "assume hit" flags (module docstring, "Skip flags"). The last batch is padded so every
-    batch has the same shape (one compile). Batches are small so that the rays of one
-    batch finish at similar steps (a ``vmap``-ed loop runs as long as its longest ray;
-    on a 2-core CPU 256 rays per batch traced bunny rays 3x faster than 4096).
+    batch has the same shape (one compile). Within a batch ``lanes`` rays are in flight
+    and a lane whose ray ended takes the next one (:data:`BATCH`); ``leaf_width``: leaf
+    slots tested per step.
     ``on_batch(n)`` (optional) is called after each batch with its number of rays (a
     progress bar). Raises ``RuntimeError`` on stack overflow unless ``allow_overflow``, and
     :class:`~jaxbvh.tree.validate.InvalidTreeError` when a ray reaches the step bound.
@@ -270,7 +274,7 @@ def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t
 
     def run(o, d, lo_t, hi_t):
         return trace_batch(jtree, jprims, o, d, lo_t, hi_t, skip, intersect=intersect, mode=mode,
-                           capacity=capacity, max_hits=max_hits)
+                           capacity=capacity, max_hits=max_hits, lanes=lanes, leaf_width=leaf_width)
 
     hits = in_batches(run, origin, direction, t_min, t_max, batch=batch, dtype=dtype, on_batch=on_batch)
     if hits.step_limit.any():
