@@ -299,7 +299,9 @@ def _primitive_step(hooks, s: Walk, in_leaf, t_min, t_max, *, mode, max_hits, wi
     tests up to it count (and count as steps)."""
     slots = s.leaf_pos + jnp.arange(width, dtype=I32)
     tested = in_leaf & (slots < s.leaf_end)
-    t, u, v, prim = jax.vmap(hooks.primitive, in_axes=(0, None))(slots, s.leaf_tag)
+    # slots not tested read slot 0: the same address in every lane, a cache hit, where a
+    # stale slot would be a cache miss (gathers of scattered triangles dominate a step)
+    t, u, v, prim = jax.vmap(hooks.primitive, in_axes=(0, None))(jnp.where(tested, slots, 0), s.leaf_tag)
     valid = tested & (t > t_min) & (t < t_max)
     n_tested = jnp.sum(tested.astype(I32))
     if mode == "all":  # width 1: list in order
@@ -352,7 +354,8 @@ def _node_step(hooks, s: Walk, pop, top_node, top_tag, entry, *, capacity):
     writes, ``pos`` [k] the slots (``capacity``: none)."""
     # closest: cull against the best hit; any / all: found.t stays t_max
     visit = pop & (entry <= s.found.t)
-    node = hooks.node(top_node, top_tag, entry, s.found.t)
+    # a lane that does not pop reads node 0 (a cache hit for all of them, see _primitive_step)
+    node = hooks.node(jnp.where(pop, top_node, 0), top_tag, entry, s.found.t)
     counted = visit if node.assumed is None else visit & ~node.assumed
     open_leaf = visit & node.is_leaf
     expand = visit & ~node.is_leaf

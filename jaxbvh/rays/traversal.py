@@ -68,14 +68,14 @@ instance): :mod:`jaxbvh.twolevel.traversal` gives the shared loop its own hooks.
 from __future__ import annotations
 
 from functools import partial
-from typing import Callable
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh.numerics import INV_BIG, robust_factor
-from jaxbvh.rays.stack_walk import LEAF_WIDTH, Hits, Hooks, Node, Ray, lanes_for, walk_rays
+from jaxbvh.rays.stack_walk import I32, LEAF_WIDTH, Hits, Hooks, Node, Ray, lanes_for, walk_rays
 from jaxbvh.tree.layout import BVH, depth, to_jax
 from jaxbvh.tree.validate import InvalidTreeError
 
@@ -166,7 +166,34 @@ def max_steps(tree) -> int:
     return int(tree.prim_count.shape[0]) + int(tree.prim_index.shape[0]) + 1
 
 
-def _ray(tree, prims, skip, origin, direction, t_min, t_max, i, *, intersect) -> Ray:
+class Packed(NamedTuple):
+    """The arrays the traversal reads, packed so that one step reads few cache lines.
+
+    A popped node reads ``meta[n]`` and its children's boxes ``kid_box[n]`` (two rows
+    instead of six scattered reads); a leaf's triangles, stored in ``prim_index`` order,
+    lie side by side (``slot_tri``, default intersector only).
+    """
+
+    meta: Any      # int32 [N, k + 3]: children (-1: none), prim_start, prim_count, split axis (-1: none)
+    kid_box: Any   # float [N, k, 6]: each child's lo and hi (garbage where the child is -1)
+    slot_tri: Any  # float [P, 3, 3] triangle of each prim_index slot, or None (another intersector)
+
+
+def pack(tree, prims, intersect) -> Packed:
+    """:class:`Packed` arrays of ``tree`` (traced inside the jitted call: O(N k + P))."""
+    kids = tree.child
+    safe = jnp.maximum(kids, 0)
+    axis = tree.axis if isinstance(tree, BVH) else jnp.full(kids.shape[0], -1, I32)
+    meta = jnp.concatenate([kids, tree.prim_start[:, None], tree.prim_count[:, None], axis[:, None]],
+                           axis=1).astype(I32)
+    kid_box = jnp.concatenate([tree.lo[safe], tree.hi[safe]], axis=-1)
+    slot_tri = None
+    if intersect is intersect_triangle:
+        slot_tri = prims[jnp.clip(tree.prim_index, 0, prims.shape[0] - 1)]
+    return Packed(meta, kid_box, slot_tri)
+
+
+def _ray(tree, packed: Packed, prims, skip, origin, direction, t_min, t_max, i, *, intersect) -> Ray:
     """Ray ``i`` of ``origin``, ``direction`` [R, 3], ``t_min``, ``t_max`` [R] through
     ``tree``: its hooks and root test (:class:`~jaxbvh.rays.stack_walk.Ray`)."""
     dtype = tree.lo.dtype
@@ -180,39 +207,46 @@ def _ray(tree, prims, skip, origin, direction, t_min, t_max, i, *, intersect) ->
     n_slots = tree.prim_index.shape[0]
 
     def primitive(slot, _):
-        prim = tree.prim_index[jnp.minimum(slot, n_slots - 1)]
-        t, u, v = intersect(prims, prim, o, d)
+        slot = jnp.minimum(slot, n_slots - 1)
+        prim = tree.prim_index[slot]
+        if packed.slot_tri is not None:
+            tri = packed.slot_tri[slot]
+            t, u, v = moller_trumbore(tri[0], tri[1], tri[2], o, d)
+        else:
+            t, u, v = intersect(prims, prim, o, d)
         return t, u, v, prim
 
     def node(ref, _, entry, t_far):
-        return _expand(tree, skip, ref, entry, o, d, inv_dir, lo_t, t_far)
+        return _expand(packed, skip, ref, entry, o, d, inv_dir, lo_t, t_far, binary=isinstance(tree, BVH))
 
     return Ray(Hooks(primitive, node), root, root_hit, root_entry, lo_t, hi_t)
 
 
-def _expand(tree, skip, ref, entry, origin, direction, inv_dir, t_min, t_far) -> Node:
+def _expand(packed: Packed, skip, ref, entry, origin, direction, inv_dir, t_min, t_far, *, binary) -> Node:
     """The ``node`` hook of a binary or wide tree: node ``ref`` entered at ``entry``.
 
     With skip flags a flagged child is not tested but assumed hit, entered where this
     node was; a flagged node's own visit is not counted.
     """
-    count = tree.prim_count[ref]
-    kids = tree.child[ref]  # [k]
+    meta = packed.meta[ref]
+    k = packed.kid_box.shape[1]
+    kids = meta[:k]
+    count = meta[k + 1]
     real = kids >= 0
-    safe = jnp.maximum(kids, 0)
-    kid_hit, kid_entry = slab(tree.lo[safe], tree.hi[safe], origin, inv_dir[None, :], t_min, t_far)
+    box = packed.kid_box[ref]
+    kid_hit, kid_entry = slab(box[:, :3], box[:, 3:], origin, inv_dir[None, :], t_min, t_far)
     tested = real
     assumed = None
     if skip is not None:
         assumed = skip[ref]
-        skipped = real & skip[safe]
+        skipped = real & skip[jnp.maximum(kids, 0)]
         kid_hit = kid_hit | skipped
         kid_entry = jnp.where(skipped, entry, kid_entry)
         tested = real & ~skipped
-    return Node(is_leaf=count > 0, leaf_start=tree.prim_start[ref], leaf_count=count, leaf_tag=None,
+    return Node(is_leaf=count > 0, leaf_start=meta[k], leaf_count=count, leaf_tag=None,
                 assumed=assumed, kids=kids, kid_tags=None, kid_hit=kid_hit & real,
-                kid_entry=kid_entry, tested=tested,
-                split=tree.axis[ref] if isinstance(tree, BVH) else None, direction=direction)
+                kid_entry=kid_entry, tested=tested, split=meta[k + 2] if binary else None,
+                direction=direction)
 
 
 @partial(jax.jit, static_argnames=("intersect", "mode", "capacity", "max_hits", "lanes", "leaf_width"))
@@ -232,7 +266,8 @@ def trace_batch(tree, prims, origin, direction, t_min, t_max, skip=None, *,
     dtype = tree.lo.dtype
     t_min = jnp.broadcast_to(jnp.asarray(t_min, dtype), (r,))
     t_max = jnp.broadcast_to(jnp.asarray(t_max, dtype), (r,))
-    ray = partial(_ray, tree, prims, skip, origin, direction, t_min, t_max, intersect=intersect)
+    ray = partial(_ray, tree, pack(tree, prims, intersect), prims, skip, origin, direction, t_min, t_max,
+                  intersect=intersect)
     return walk_rays(ray, r, mode=mode, capacity=capacity, max_hits=max_hits,
                      step_limit=max_steps(tree), lanes=lanes_for(r, capacity, lanes),
                      leaf_width=leaf_width)
