@@ -1,4 +1,4 @@
-"""The traversal loop shared by one-level and two-level trees: one ray, one bounded stack.
+"""The traversal loop shared by one-level and two-level trees: lanes of rays, one bounded stack each.
 
 :mod:`jaxbvh.rays.traversal` (binary and wide BVHs) and :mod:`jaxbvh.twolevel.traversal`
 (instances below a top level) walk a tree the same way; only what a *node reference* and
@@ -18,11 +18,21 @@ counters, visiting order, push with overflow flag), the step bound and the
 :class:`Hits` record. The rules themselves (counters, order, ties, bounds) are written in
 :mod:`jaxbvh.rays.traversal`'s docstring.
 
-Every loop step does one of two things, a primitive step while a leaf is open, else a
-node step; both are computed and the other one masked out (a ``vmap``-ed loop runs both
-branches anyway). The loop stops when the stack is empty and no leaf is open, at the
-first hit in any-hit mode, or after ``step_limit`` steps; a ray still working at the
-bound reports ``step_limit``, a push that does not fit reports ``stack_overflow``.
+:func:`walk_rays` runs one ``while_loop`` over ``lanes`` rays at once. In every step each
+lane does one of two things for its ray, a primitive step while a leaf is open (the next
+``leaf_width`` slots), else a node step; both are computed and the other one masked out.
+A ray ends when its stack is empty and no leaf is open, at the first hit in any-hit mode,
+or after ``step_limit`` steps (node pops plus primitive tests); a ray still working at
+the bound reports ``step_limit``, a push that does not fit reports ``stack_overflow``.
+Every ``REFILL_EVERY`` steps the lanes whose ray ended write its :class:`Hits` and take
+the next rays (a wavefront). The stacks [lanes, capacity] are not part of the per-lane
+state that the step maps over: a step gathers each lane's top entry and scatters its
+pushes, so its cost does not grow with the capacity (a ``vmap``-ed ``while_loop``, the
+walk before, selected every entry of every stack in every step: depth x depth).
+
+Measured (bench/results/bench_rays.md, 2-core CPU): most of a step's time is gathers of
+scattered tree and triangle data (cache misses), hence the packed layout of
+:mod:`jaxbvh.rays.traversal` and lanes that do not pop reading one fixed node.
 """
 
 from __future__ import annotations

@@ -1,14 +1,19 @@
 """Ray traversal of binary and wide BVHs, counting box and primitive tests (jitted).
 
-One ray is one ``lax.while_loop`` over a fixed-capacity stack (the loop itself lives in
-:mod:`jaxbvh.rays.stack_walk`, shared with the two-level traversal; this module gives it
-the tree and the primitives); rays are ``vmap``-ed and fed to the device in batches.
-Every loop step does exactly one of two things:
+Each ray walks the tree with a fixed-capacity stack. The loop (:mod:`jaxbvh.rays.stack_walk`,
+shared with the two-level traversal; this module gives it the tree and the primitives)
+steps ``lanes`` rays at once, and a lane whose ray ended takes the next ray of the call
+(a wavefront: lanes do not idle behind the slowest ray); the stacks are read and written
+only at their tops, so a step costs the same for any stack capacity, i.e. any depth. The
+tree is read in a packed layout (a node's children and their boxes in one row, a leaf's
+triangles side by side). Every ray's walk does exactly one of two things per step:
 
 * **node step** — pop ``(node, entry)``; if ``entry <= t_best`` the node is *visited*:
   a leaf opens its run of primitives, an interior node tests the boxes of all its real
   children (one *box test* each) and pushes the children it hits, nearest visited first;
-* **primitive step** — test the next primitive of the open leaf (one *primitive test*).
+* **primitive step** — test the next ``leaf_width`` primitives of the open leaf together
+  (one *primitive test* each; any-hit mode counts those up to the first hit, as one by
+  one would).
 
 The root box is tested once before the loop. So for a binary tree
 ``box_tests = 1 + 2 * interior nodes visited``, and ``nodes_visited`` counts interior
@@ -29,7 +34,8 @@ allowed, and a ray whose pushes do not fit keeps the entries that fit and sets
 unless ``allow_overflow=True``.
 
 Step bound. In a valid tree a ray pops every node at most once and tests every
-primitive slot at most once, so the loop is cut off after ``N + P + 1`` steps (node and
+primitive slot at most once, so a ray is cut off after ``N + P + 1`` steps (node pops
+plus primitive tests; node and
 ``prim_index`` capacities, static): no tree file, however broken (a node listed as its
 own child, a cycle), can make it run forever. A ray that reaches the bound sets
 ``step_limit``; the drivers raise :class:`~jaxbvh.tree.validate.InvalidTreeError` for it
