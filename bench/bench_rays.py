@@ -1,12 +1,25 @@
-"""Rays per second of our traversal for each tree kind, beside Embree on the same rays.
+"""Closest-hit rays per second before and after a traversal change, beside Embree, in one run.
 
-    python bench/bench_rays.py [--meshes bunny legocar drone] [--rays 50000] [--kinds random camera bounce]
+    python bench/bench_rays.py [--before /path/to/old/checkout] [--meshes bunny legocar drone bunny4]
+                               [--rays 20000] [--kinds random camera bounce]
 
-For each shared mesh (../shared/data) and ray kind, traces the same closest-hit rays
-through: the tinybvh reference tree (binary, distance order), our own build (binary,
-split-axis order; skipped while ``jaxbvh.build`` is not implemented) and 4- and 8-wide
-trees collapsed from the reference tree by Pinto's optimal DP (``jaxbvh.collapse``); and
-through Embree (embreex, its own BVH, one ``run`` call). Times are the median of ``--repeat`` runs after a warm-up that compiles.
+Every measurement runs in a child process per implementation (``--before``: a checkout
+whose ``jaxbvh`` is imported instead of this one, e.g. the main branch before the change;
+without it only this checkout is measured), on the same trees and rays:
+
+* meshes: the shared meshes (../shared/data) with their tinybvh reference tree (binary,
+  distance order) and its 4-wide optimal collapse; ``bunny4``: the bunny subdivided once
+  (277,804 triangles) with a ``jaxbvh.build`` binned tree (built once, saved, loaded by
+  both children); ray kinds random, camera, bounce; Embree (embreex ``run``, its own BVH)
+  on the same rays, and the fraction of rays with Embree's primitive;
+* depth: chains of 50, 500, 5,000 and 6,320 triangles (a binary tree that peels one
+  triangle per level, depth = triangles - 1) with random rays: traversal steps per
+  second (``nodes_visited + prim_tests`` per ray) must not fall with depth;
+* compile: CPU seconds of the first call (trace, compile, run) minus a warm call, and the
+  backend compile seconds JAX reports, for a binary and a 4-wide closest-hit program.
+
+Times are CPU seconds of the child process (``getrusage``; the machine is shared, so
+wall time says little; ``uptime`` is recorded) and the median of ``--repeat`` warm runs.
 Writes ``bench/results/bench_rays.json`` and ``.md``.
 """
 
@@ -14,57 +27,86 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
+import resource
 import statistics
+import subprocess
+import sys
+import tempfile
 import time
 from pathlib import Path
 
-import jax
 import numpy as np
 
-import jaxbvh
-from jaxbvh import rays
-from jaxbvh.wide import collapse
-
 ROOT = Path(__file__).resolve().parent
+REPO = ROOT.parent
 DATA = ROOT.parents[1] / "shared" / "data"
 MESHES = {"bunny": "meshes/stanford-bunny.obj", "legocar": "meshes/legocar.obj",
-          "drone": "scenes/drone/scene.gltf"}
+          "drone": "scenes/drone/scene.gltf", "bunny4": "meshes/stanford-bunny.obj"}
+CHAINS = (50, 500, 5000, 6320)
+KINDS = ("random", "camera", "bounce")
 
 
 def load_triangles(name):
+    """Triangles [T, 3, 3] float32 of a shared mesh (``bunny4``: the bunny subdivided once)."""
     import trimesh
 
     loaded = trimesh.load(DATA / MESHES[name], process=False)
     if isinstance(loaded, trimesh.Scene):
         loaded = loaded.to_geometry()
-    return np.asarray(loaded.vertices, np.float64)[np.asarray(loaded.faces)].astype(np.float32)
+    vertices, faces = np.asarray(loaded.vertices, np.float64), np.asarray(loaded.faces)
+    if name == "bunny4":
+        vertices, faces = trimesh.remesh.subdivide(vertices, faces)
+    return vertices[faces].astype(np.float32)
 
 
-def trees_for(name, tri, max_leaf):
-    ref_tree, _ = jaxbvh.load(DATA / "trees" / f"{name}_binned_ref.npz")
-    out = {"binary (tinybvh, distance order)": ref_tree}
-    try:
-        built = jaxbvh.build(tri.min(axis=1), tri.max(axis=1), method="binned", max_leaf=max_leaf)
-        out["binary (jaxbvh.build binned, axis order)"] = jaxbvh.to_numpy(built)
-    except NotImplementedError:
-        pass
-    out["4-wide (DP collapse of tinybvh)"] = collapse.optimal(ref_tree, max_children=4).tree
-    out["8-wide (DP collapse of tinybvh)"] = collapse.optimal(ref_tree, max_children=8).tree
-    return out
+def chain_tree(triangles):
+    """Binary tree peeling one triangle per level (depth ``T - 1``), in centroid-x order.
+
+    Interior node ``j`` holds triangles ``j .. T-1``: its children are the leaf of
+    triangle ``j`` and interior node ``j + 1`` (the last interior node: two leaves).
+    """
+    from jaxbvh.tree import from_interchange
+
+    n = triangles.shape[0]
+    order = np.argsort(triangles.mean(axis=1)[:, 0], kind="stable").astype(np.int32)
+    lo_p, hi_p = triangles.min(axis=1)[order], triangles.max(axis=1)[order]
+    n_int = n - 1
+    leaf = n_int + np.arange(n)
+    child = np.full((n_int + n, 2), -1, np.int32)
+    child[:n_int, 0] = leaf[:n_int]
+    child[:n_int, 1] = np.arange(1, n_int + 1)
+    child[n_int - 1, 1] = leaf[n - 1]
+    lo = np.empty((n_int + n, 3), np.float32)
+    hi = np.empty((n_int + n, 3), np.float32)
+    lo[leaf], hi[leaf] = lo_p, hi_p
+    lo[:n_int] = np.minimum.accumulate(lo_p[::-1], axis=0)[::-1][:n_int]
+    hi[:n_int] = np.maximum.accumulate(hi_p[::-1], axis=0)[::-1][:n_int]
+    start = np.zeros(n_int + n, np.int32)
+    count = np.zeros(n_int + n, np.int32)
+    start[leaf], count[leaf] = np.arange(n), 1
+    return from_interchange(dict(child=child, prim_start=start, prim_count=count, prim_index=order,
+                                 lo=lo, hi=hi, root=np.int32(0)))
+
+
+def cpu_seconds():
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
 
 
 def timed(fn, repeat):
-    times = []
-    result = None
+    """Median ``(cpu, wall)`` seconds of ``repeat`` calls, and the last result."""
+    cpu, wall, result = [], [], None
     for _ in range(repeat):
-        start = time.perf_counter()
+        c, w = cpu_seconds(), time.perf_counter()
         result = fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times), result
+        wall.append(time.perf_counter() - w)
+        cpu.append(cpu_seconds() - c)
+    return statistics.median(cpu), statistics.median(wall), result
 
 
-def embree_scene(tri):
+def embree_run(tri, origin, direction, repeat):
     try:
         from embreex import rtcore_scene
         from embreex.mesh_construction import TriangleMesh
@@ -72,78 +114,178 @@ def embree_scene(tri):
         return None
     scene = rtcore_scene.EmbreeScene()
     TriangleMesh(scene, tri)
-    return scene
+    scene.run(origin[:1000], direction[:1000])
+    cpu, wall, out = timed(lambda: scene.run(origin, direction, output=1), repeat)
+    return {"cpu": cpu, "wall": wall, "prim": np.asarray(out["primID"])}
+
+
+def child(args):
+    """Measure with the ``jaxbvh`` on ``sys.path``; print one JSON document."""
+    import jax
+
+    import jaxbvh
+    from jaxbvh import rays
+    from jaxbvh.wide import collapse
+
+    compile_s = []
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda name, secs, **_: compile_s.append(secs) if name.endswith("backend_compile_duration") else None)
+    kw = {} if args.batch is None else {"batch": args.batch}
+    rows = []
+
+    def trace(tree, tri, o, d):
+        return rays.closest_hit(tree, tri, o, d, **kw)
+
+    for name in args.meshes:
+        tri = load_triangles(name)
+        if name == "bunny4":
+            ref_tree, _ = jaxbvh.load(args.big_tree)
+            trees = {"binary (jaxbvh.build binned)": ref_tree}
+        else:
+            ref_tree, _ = jaxbvh.load(DATA / "trees" / f"{name}_binned_ref.npz")
+            trees = {"binary (tinybvh)": ref_tree,
+                     "4-wide (collapse of tinybvh)": collapse.optimal(ref_tree, max_children=4).tree}
+        for kind in args.kinds:
+            origin, direction = rays.make_rays(jax.random.key(0), kind, ref_tree, tri, args.rays)
+            embree = embree_run(tri, origin, direction, args.repeat) if args.embree else None
+            for label, tree in trees.items():
+                n_compiles = len(compile_s)
+                c0, w0 = cpu_seconds(), time.perf_counter()
+                trace(tree, tri, origin, direction)
+                first_cpu = cpu_seconds() - c0
+                first_wall = time.perf_counter() - w0
+                cpu, wall, hits = timed(lambda: trace(tree, tri, origin, direction), args.repeat)
+                first_cpu -= cpu  # the first call's run, beside its trace and compile
+                row = {"section": "mesh", "mesh": name, "triangles": int(tri.shape[0]), "kind": kind,
+                       "tree": label, "rays": int(len(origin)), "cpu": cpu, "wall": wall,
+                       "rays_per_cpu_s": len(origin) / cpu, "first_call_cpu": first_cpu,
+                       "first_call_wall": first_wall, "backend_compile_s": sum(compile_s[n_compiles:]),
+                       "box_tests": float(np.mean(hits.box_tests)),
+                       "prim_tests": float(np.mean(hits.prim_tests)),
+                       "steps": float(np.mean(hits.nodes_visited + hits.prim_tests))}
+                if embree is not None:
+                    row["embree_rays_per_cpu_s"] = len(origin) / embree["cpu"]
+                    row["same_prim_as_embree"] = float(np.mean(hits.prim == embree["prim"]))
+                rows.append(row)
+                print(f"{name} {kind} {label}: {row['rays_per_cpu_s']:,.0f} rays/cpu-s", file=sys.stderr,
+                      flush=True)
+
+    bunny = load_triangles("bunny")
+    rng = np.random.default_rng(0)
+    for n in args.chains:
+        tri = bunny[np.sort(rng.choice(len(bunny), n, replace=False))]
+        tree = chain_tree(tri)
+        # the old walk costs depth x depth: fewer rays on deep chains keep it bounded
+        r = args.chain_rays if n <= 500 or not args.few_deep else max(100, args.chain_rays // 100)
+        origin, direction = rays.make_rays(jax.random.key(1), "random", tree, tri, r)
+        trace(tree, tri, origin, direction)
+        cpu, wall, hits = timed(lambda: trace(tree, tri, origin, direction), 1)
+        steps = float(np.mean(hits.nodes_visited + hits.prim_tests))
+        rows.append({"section": "depth", "mesh": f"chain of {n}", "triangles": n, "kind": "random",
+                     "tree": f"binary chain, depth {n - 1}", "rays": r, "cpu": cpu, "wall": wall,
+                     "rays_per_cpu_s": r / cpu, "steps": steps, "steps_per_cpu_s": r * steps / cpu,
+                     "box_tests": float(np.mean(hits.box_tests)),
+                     "prim_tests": float(np.mean(hits.prim_tests))})
+        print(f"chain {n}: {r / cpu:,.0f} rays/cpu-s, {r * steps / cpu:,.0f} steps/cpu-s", file=sys.stderr,
+              flush=True)
+    json.dump({"rows": rows, "uptime": os.getloadavg()}, sys.stdout)
+
+
+def run_child(path, args, extra):
+    env = dict(os.environ, PYTHONPATH=str(path))
+    env.pop("XLA_FLAGS", None)
+    env["JAXBVH_CACHE"] = "off"  # compile time is measured; a warm cache would hide it
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--rays", str(args.rays),
+           "--repeat", str(args.repeat), "--chain-rays", str(args.chain_rays),
+           "--meshes", *args.meshes, "--kinds", *args.kinds, "--chains", *map(str, args.chains), *extra]
+    out = subprocess.run(cmd, env=env, check=True, stdout=subprocess.PIPE, text=True)
+    return json.loads(out.stdout)
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--before", help="checkout whose jaxbvh is the 'before' (e.g. main)")
     parser.add_argument("--meshes", nargs="+", default=list(MESHES), choices=list(MESHES))
-    parser.add_argument("--kinds", nargs="+", default=list(rays.KINDS), choices=list(rays.KINDS))
-    parser.add_argument("--rays", type=int, default=50_000)
-    parser.add_argument("--batch", type=int, default=256)
-    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--kinds", nargs="+", default=list(KINDS), choices=list(KINDS))
+    parser.add_argument("--chains", nargs="*", type=int, default=list(CHAINS))
+    parser.add_argument("--rays", type=int, default=20_000)
+    parser.add_argument("--chain-rays", type=int, default=20_000)
+    parser.add_argument("--repeat", type=int, default=2)
     parser.add_argument("--out", default=str(ROOT / "results" / "bench_rays"))
+    # child-only options
+    parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--batch", type=int, default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--embree", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--few-deep", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--big-tree", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.child:
+        return child(args)
     if not DATA.exists():
         raise SystemExit(f"shared data not found at {DATA}")
 
-    rows = []
-    for name in args.meshes:
-        tri = load_triangles(name)
-        ref_tree, _ = jaxbvh.load(DATA / "trees" / f"{name}_binned_ref.npz")
-        max_leaf = int(np.asarray(ref_tree.prim_count).max())
-        trees = trees_for(name, tri, max_leaf)
-        scene = embree_scene(tri)
-        for kind in args.kinds:
-            origin, direction = rays.make_rays(jax.random.key(0), kind, ref_tree, tri, args.rays)
-            embree = None
-            if scene is not None:
-                scene.run(origin[:1000], direction[:1000])
-                seconds, out = timed(lambda: scene.run(origin, direction, output=1), args.repeat)
-                embree = {"seconds": seconds, "rays_per_second": len(origin) / seconds,
-                          "prim": out["primID"]}
-            for label, tree in trees.items():
-                # warm-up compiles; then median of repeats
-                rays.closest_hit(tree, tri, origin[: args.batch], direction[: args.batch],
-                                 batch=args.batch)
-                seconds, hits = timed(lambda: rays.closest_hit(tree, tri, origin, direction,
-                                                               batch=args.batch), args.repeat)
-                cost = rays.empirical_cost(hits)
-                row = {"mesh": name, "triangles": int(tri.shape[0]), "kind": kind, "tree": label,
-                       "rays": int(len(origin)), "seconds": seconds,
-                       "rays_per_second": len(origin) / seconds,
-                       "box_tests": cost["box_tests"][0], "prim_tests": cost["prim_tests"][0],
-                       "nodes_visited": cost["nodes_visited"][0],
-                       "sah": float(jaxbvh.sah(jaxbvh.to_jax(tree)))}
-                if embree is not None:
-                    row["embree_rays_per_second"] = embree["rays_per_second"]
-                    row["embree_over_ours"] = embree["rays_per_second"] / row["rays_per_second"]
-                    row["same_prim_as_embree"] = float(np.mean(hits.prim == embree["prim"]))
-                rows.append(row)
-                print(f"{name:8s} {kind:7s} {label:42s} {row['rays_per_second']:>10,.0f} rays/s"
-                      + (f"  embree {embree['rays_per_second']:>11,.0f}  ratio {row['embree_over_ours']:5.1f}x"
-                         if embree else ""), flush=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        big = Path(tmp) / "bunny4_binned.npz"
+        extra = []
+        if "bunny4" in args.meshes:
+            import jaxbvh
 
-    meta = {"machine": platform.platform(), "processor": platform.processor(),
-            "cpus": __import__("os").cpu_count(), "jax": jax.__version__,
-            "backend": jax.default_backend(), "rays": args.rays, "batch": args.batch,
-            "repeat": args.repeat, "embree": "embreex" if embree_scene(np.zeros((1, 3, 3), np.float32))
-            is not None else None}
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.with_suffix(".json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
-    lines = ["# Ray traversal throughput (closest hit)\n",
-             f"{meta['machine']}, {meta['cpus']} CPUs, JAX {meta['jax']} ({meta['backend']}), "
-             f"{args.rays} rays per set, batch {args.batch}, median of {args.repeat}. "
-             "Embree: embreex `run` on the same rays (its own BVH).\n",
-             "| mesh | rays | tree | rays/s | Embree rays/s | Embree / ours | box tests | prim tests | SAH | same prim |",
-             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|"]
-    for r in rows:
-        lines.append(f"| {r['mesh']} | {r['kind']} | {r['tree']} | {r['rays_per_second']:,.0f} | "
-                     f"{r.get('embree_rays_per_second', float('nan')):,.0f} | "
-                     f"{r.get('embree_over_ours', float('nan')):.1f}x | {r['box_tests']:.1f} | "
-                     f"{r['prim_tests']:.2f} | {r['sah']:.2f} | {r.get('same_prim_as_embree', float('nan')):.4f} |")
-    out.with_suffix(".md").write_text("\n".join(lines) + "\n")
+            tri = load_triangles("bunny4")
+            jaxbvh.save(big, jaxbvh.build(tri.min(axis=1), tri.max(axis=1), method="binned"))
+            extra = ["--big-tree", str(big)]
+        results = {}
+        if args.before:
+            # the old walk's documented best batch; deep chains with few rays (depth x depth)
+            results["before"] = run_child(args.before, args, extra + ["--batch", "256", "--few-deep"])
+        results["after"] = run_child(REPO, args, extra + ["--embree"])
+
+    meta = {"machine": platform.platform(), "cpus": os.cpu_count(), "rays": args.rays,
+            "repeat": args.repeat, "before": args.before, "load": {k: v["uptime"] for k, v in results.items()}}
+    write(Path(args.out), meta, results)
+
+
+def write(out, meta, results):
+    from jaxbvh.files import atomic_write
+
+    after = results["after"]["rows"]
+    before = {(r["mesh"], r["kind"], r["tree"]): r for r in results.get("before", {"rows": []})["rows"]}
+    lines = ["# Ray traversal throughput (closest hit), before and after\n",
+             f"{meta['machine']}, {meta['cpus']} CPUs (shared: load average {meta['load']}). "
+             f"{meta['rays']} rays per set; rays per CPU-second of the process (median of "
+             f"{meta['repeat']} warm runs). Before: {meta['before']} (batch 256); after: this checkout "
+             "(default batch and lanes). Embree: embreex `run` on the same rays, its own BVH.\n",
+             "| mesh | rays | tree | before rays/s | after rays/s | after / before | Embree rays/s | "
+             "Embree / after | same prim as Embree | steps/ray | compile CPU s before | after |",
+             "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in (r for r in after if r["section"] == "mesh"):
+        b = before.get((r["mesh"], r["kind"], r["tree"]))
+        emb = r.get("embree_rays_per_cpu_s", float("nan"))
+        lines.append(
+            f"| {r['mesh']} ({r['triangles']:,}) | {r['kind']} | {r['tree']} | "
+            f"{b['rays_per_cpu_s'] if b else float('nan'):,.0f} | {r['rays_per_cpu_s']:,.0f} | "
+            f"{r['rays_per_cpu_s'] / b['rays_per_cpu_s'] if b else float('nan'):.1f}x | {emb:,.0f} | "
+            f"{emb / r['rays_per_cpu_s']:.1f}x | {r.get('same_prim_as_embree', float('nan')):.4f} | "
+            f"{r['steps']:.1f} | {b['first_call_cpu'] if b else float('nan'):.1f} | "
+            f"{r['first_call_cpu']:.1f} |")
+    lines += ["\nCompile CPU s: CPU seconds of the first call minus a warm call on the same rays "
+              "(trace and compile; the persistent compile cache is off in the children). A row whose "
+              "program (tree kind, capacity bucket, stack, batch shape) an earlier row compiled reuses it.\n",
+              "## Depth: chains (one triangle peeled per level), random rays\n",
+              "| chain | depth | rays | before rays/s | before steps/s | after rays/s | after steps/s | "
+              "steps/ray | after CPU s |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in (r for r in after if r["section"] == "depth"):
+        b = before.get((r["mesh"], r["kind"], r["tree"]))
+        lines.append(f"| {r['mesh']} | {r['triangles'] - 1} | {r['rays']:,} | "
+                     f"{b['rays_per_cpu_s'] if b else float('nan'):,.0f} | "
+                     f"{b['steps_per_cpu_s'] if b else float('nan'):,.0f} | {r['rays_per_cpu_s']:,.0f} | "
+                     f"{r['steps_per_cpu_s']:,.0f} | {r['steps']:.0f} | {r['cpu']:.2f} |")
+    lines.append("\nSteps per ray = nodes visited + primitive tests (the walk's work, the same "
+                 "before and after). Before traced deep chains with 1/100 of the rays.")
+    with atomic_write(out.with_suffix(".json"), "w") as f:
+        json.dump({"meta": meta, **results}, f, indent=1)
+    with atomic_write(out.with_suffix(".md"), "w") as f:
+        f.write("\n".join(lines) + "\n")
     print(f"wrote {out.with_suffix('.json')} and {out.with_suffix('.md')}")
 
 

@@ -1,4 +1,4 @@
-"""The traversal loop shared by one-level and two-level trees: one ray, one bounded stack.
+"""The traversal loop shared by one-level and two-level trees: lanes of rays, one bounded stack each.
 
 :mod:`jaxbvh.rays.traversal` (binary and wide BVHs) and :mod:`jaxbvh.twolevel.traversal`
 (instances below a top level) walk a tree the same way; only what a *node reference* and
@@ -18,16 +18,27 @@ counters, visiting order, push with overflow flag), the step bound and the
 :class:`Hits` record. The rules themselves (counters, order, ties, bounds) are written in
 :mod:`jaxbvh.rays.traversal`'s docstring.
 
-Every loop step does one of two things, a primitive step while a leaf is open, else a
-node step; both are computed and the other one masked out (a ``vmap``-ed loop runs both
-branches anyway). The loop stops when the stack is empty and no leaf is open, at the
-first hit in any-hit mode, or after ``step_limit`` steps; a ray still working at the
-bound reports ``step_limit``, a push that does not fit reports ``stack_overflow``.
+:func:`walk_rays` runs one ``while_loop`` over ``lanes`` rays at once. In every step each
+lane does one of two things for its ray, a primitive step while a leaf is open (the next
+``leaf_width`` slots), else a node step; both are computed and the other one masked out.
+A ray ends when its stack is empty and no leaf is open, at the first hit in any-hit mode,
+or after ``step_limit`` steps (node pops plus primitive tests); a ray still working at
+the bound reports ``step_limit``, a push that does not fit reports ``stack_overflow``.
+Every ``REFILL_EVERY`` steps the lanes whose ray ended write its :class:`Hits` and take
+the next rays (a wavefront). The stacks [lanes, capacity] are not part of the per-lane
+state that the step maps over: a step gathers each lane's top entry and scatters its
+pushes, so its cost does not grow with the capacity (a ``vmap``-ed ``while_loop``, the
+walk before, selected every entry of every stack in every step: depth x depth).
+
+Measured (bench/results/bench_rays.md, 2-core CPU): most of a step's time is gathers of
+scattered tree and triangle data (cache misses), hence the packed layout of
+:mod:`jaxbvh.rays.traversal` and lanes that do not pop reading one fixed node.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from functools import partial
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -119,12 +130,10 @@ class Counts(NamedTuple):
 
 
 class Walk(NamedTuple):
-    """Loop state of one ray."""
+    """Loop state of one lane (one ray at a time), its stack excepted (:class:`Stacks`)."""
 
+    ray: Any             # int32 []: the ray this lane traces (-1: none)
     sp: Any              # int32 []: stack entries in use; the top is sp - 1
-    stack_node: Any      # int32 [capacity]: node reference of each entry (the hooks' numbering)
-    stack_tag: Any       # int32 [capacity] or None: tag of each entry (two-level: instance, -1 top level)
-    stack_entry: Any     # float [capacity]: where the ray enters the entry's box
     leaf_pos: Any        # int32 []: next prim_index slot of the open leaf
     leaf_end: Any        # int32 []: end of the open leaf's run (leaf_pos == leaf_end: no leaf open)
     leaf_tag: Any        # int32 [] or None: tag the open leaf was opened with
@@ -132,34 +141,144 @@ class Walk(NamedTuple):
     counts: Counts       # counters
     stack_overflow: Any  # bool []: a push did not fit (hit and counts then untrustworthy)
     done: Any            # bool []: any-hit mode found its hit
-    steps: Any           # int32 []: loop steps taken (bounded by step_limit)
+    steps: Any           # int32 []: steps taken (node steps + primitive tests), bounded by step_limit
 
 
-def walk(hooks: Hooks, root, root_hit, root_entry, t_min, t_max, *, mode: str, capacity: int,
-         max_hits: int, step_limit, tagged: bool = False) -> Walk:
-    """Trace one ray from ``root`` (a node reference) to the end; returns the final :class:`Walk`.
+class Stacks(NamedTuple):
+    """The lanes' stacks, [L, capacity] each; kept out of the per-lane state so that a
+    step reads and writes only the entries it pops and pushes (a ``vmap``-ed
+    ``while_loop`` would select the whole carry, every stack entry, every step)."""
 
-    ``root_hit``, ``root_entry``: the root box test (made by the caller, counted here as
-    one box test); ``t_min``, ``t_max``: the open ray interval (float scalars, the walk's
-    dtype); ``mode``: "closest", "any" or "all"; ``capacity``: static stack size;
-    ``max_hits``: all-hits list length; ``step_limit``: the loop bound (int or int32
-    scalar); ``tagged``: entries carry tags (``Node.leaf_tag``, ``Node.kid_tags``).
+    node: Any   # int32: node reference of each entry (the hooks' numbering)
+    tag: Any    # int32 or None: tag of each entry (two-level: instance, -1 top level)
+    entry: Any  # float: where the ray enters the entry's box
+
+
+class Ray(NamedTuple):
+    """What the walk needs of ray ``i`` (``ray(i)`` in :func:`walk_rays`)."""
+
+    hooks: Hooks     # the tree's hooks, bound to this ray
+    root: Any        # int32 []: the root's node reference
+    root_hit: Any    # bool []: the ray meets the root box within its interval
+    root_entry: Any  # float []: where it enters the root box
+    t_min: Any       # float []: open interval start
+    t_max: Any       # float []: open interval end
+
+
+# One source of truth for the walk's throughput knobs (static: each value is a compile).
+LANES = 512
+"""Rays in flight per call: lanes whose ray ended take the next ray (a wavefront), so a
+call runs for about (total steps / lanes), not for its slowest ray times the batches."""
+STACK_ENTRIES = 1 << 21
+"""Upper bound of lanes * stack capacity (two int32/float arrays of this size): a deep
+tree gets fewer lanes rather than a huge carry."""
+LEAF_WIDTH = 4
+"""Primitive slots of an open leaf tested together in one step (closest and any hit; all
+hits test one per step, to list them in order)."""
+REFILL_EVERY = 4
+"""Steps between refills: a refill costs about as much as a step, and a lane whose ray
+ended idles at most this many steps minus one."""
+
+
+def lanes_for(rays: int, capacity: int, lanes: int | None = None) -> int:
+    """Lanes of a call tracing ``rays`` rays with stacks of ``capacity`` (host, static)."""
+    lanes = LANES if lanes is None else int(lanes)
+    return max(1, min(lanes, rays, max(32, STACK_ENTRIES // max(capacity, 1))))
+
+
+def walk_rays(ray: Callable, n_rays: int, *, mode: str, capacity: int, max_hits: int, step_limit,
+              lanes: int, leaf_width: int, tagged: bool = False) -> Hits:
+    """Trace rays ``0 .. n_rays - 1`` on ``lanes`` lanes; returns :class:`Hits` [n_rays].
+
+    ``ray(i) -> Ray`` (``i`` int32 []): the hooks and root test of ray ``i`` (made
+    under ``vmap``, so it reads per-ray arrays by index). ``mode``: "closest", "any" or
+    "all"; ``capacity``: static stack size per lane; ``max_hits``: all-hits list length;
+    ``step_limit``: a ray's bound on steps (int or int32 []); ``leaf_width``: primitive
+    slots tested per step (all-hits mode uses 1); ``tagged``: entries carry tags.
+
+    One ``while_loop`` steps every lane at once. Before each step a lane whose ray ended
+    (no work left, or at the step bound) writes the ray's :class:`Hits` and takes the
+    next ray not yet started, so lanes do not idle behind the slowest ray. Each lane's
+    walk is the one-ray walk of the module docstring; results do not depend on ``lanes``.
     """
-    state = _start(root, root_hit, root_entry, t_max, mode=mode, capacity=capacity,
-                   max_hits=max_hits, tagged=tagged)
+    width = 1 if mode == "all" else max(1, int(leaf_width))
+    lane_ids = jnp.arange(lanes)
 
-    def cond(s):
-        return working(s) & (s.steps < step_limit)
+    def fresh(i):
+        r = ray(i)
+        return _start(i, r.root_hit, r.t_max, mode=mode, max_hits=max_hits, tagged=tagged), r.root, r.root_entry
 
-    def body(s):
+    s0, _, entry0 = jax.vmap(fresh)(jnp.zeros(lanes, I32))
+    s0 = s0._replace(ray=jnp.full(lanes, -1, I32))
+    dtype = entry0.dtype
+    stacks = Stacks(node=jnp.zeros((lanes, capacity), I32),
+                    tag=jnp.full((lanes, capacity), -1, I32) if tagged else None,
+                    entry=jnp.full((lanes, capacity), jnp.inf, dtype))
+    finish_lane = jax.vmap(partial(finish, mode=mode, max_hits=max_hits))
+    out = jax.tree_util.tree_map(lambda x: jnp.zeros((n_rays,) + x.shape[1:], x.dtype), finish_lane(s0))
+
+    def live(s):
+        return (s.ray >= 0) & working(s) & (s.steps < step_limit)
+
+    def refill(s, stacks, out, next_ray):
+        has = s.ray >= 0
+        free = ~live(s)
+        retire = has & free
+        # a lane whose ray ended writes its record, then takes the next ray
+        where_out = jnp.where(retire, s.ray, n_rays)
+        out = jax.tree_util.tree_map(lambda o, h: o.at[where_out].set(h, mode="drop"), out, finish_lane(s))
+        new_id = next_ray + jnp.cumsum(free.astype(I32)) - 1
+        take = free & (new_id < n_rays)
+        f, root, root_entry = jax.vmap(fresh)(jnp.where(take, new_id, 0))
+        s = jax.tree_util.tree_map(lambda a, b: _select(take, a, b), f, s)
+        s = s._replace(ray=jnp.where(take, new_id, jnp.where(retire, -1, s.ray)))
+        col = jnp.where(take, 0, capacity)
+        stacks = Stacks(node=stacks.node.at[lane_ids, col].set(root, mode="drop"),
+                        tag=None if stacks.tag is None else stacks.tag.at[lane_ids, col].set(-1, mode="drop"),
+                        entry=stacks.entry.at[lane_ids, col].set(root_entry, mode="drop"))
+        return s, stacks, out, next_ray + jnp.sum(take.astype(I32))
+
+    def lane_step(s, top_node, top_tag, top_entry):
+        r = ray(jnp.maximum(s.ray, 0))
+        go = live(s)
         # decided once, before the primitive step: a leaf that ends in this step must not
         # also pop (its stack may be empty; the top entry would then be stale)
-        in_leaf = s.leaf_pos < s.leaf_end
-        s = s._replace(steps=s.steps + 1)
-        s = _primitive_step(hooks, s, in_leaf, t_min, t_max, mode=mode, max_hits=max_hits)
-        return _node_step(hooks, s, ~in_leaf, capacity=capacity)
+        in_leaf = go & (s.leaf_pos < s.leaf_end)
+        pop = go & ~in_leaf
+        s = _primitive_step(r.hooks, s, in_leaf, r.t_min, r.t_max, mode=mode, max_hits=max_hits,
+                            width=width)
+        s = s._replace(steps=s.steps + pop.astype(I32))
+        return _node_step(r.hooks, s, pop, top_node, top_tag, top_entry, capacity=capacity)
 
-    return jax.lax.while_loop(cond, body, state)
+    def step(_, carry):
+        s, stacks = carry
+        top = jnp.maximum(s.sp - 1, 0)
+        top_node = stacks.node[lane_ids, top]
+        top_tag = None if stacks.tag is None else stacks.tag[lane_ids, top]
+        top_entry = stacks.entry[lane_ids, top]
+        s, pos, kids, kid_tags, kid_entry = jax.vmap(lane_step)(s, top_node, top_tag, top_entry)
+        rows = lane_ids[:, None]
+        stacks = Stacks(node=stacks.node.at[rows, pos].set(kids, mode="drop"),
+                        tag=None if stacks.tag is None else stacks.tag.at[rows, pos].set(kid_tags, mode="drop"),
+                        entry=stacks.entry.at[rows, pos].set(kid_entry, mode="drop"))
+        return s, stacks
+
+    def body(carry):
+        s, stacks, out, next_ray = refill(*carry)
+        s, stacks = jax.lax.fori_loop(0, REFILL_EVERY, step, (s, stacks))
+        return s, stacks, out, next_ray
+
+    def cond(carry):
+        s, _, _, next_ray = carry
+        return jnp.any(s.ray >= 0) | (next_ray < n_rays)
+
+    _, _, out, _ = jax.lax.while_loop(cond, body, (s0, stacks, out, I32(0)))
+    return out
+
+
+def _select(mask, a, b):
+    """``where(mask, a, b)`` with ``mask`` [L] broadcast over the trailing axes of ``a``."""
+    return jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b)
 
 
 def working(s: Walk):
@@ -167,7 +286,7 @@ def working(s: Walk):
     return ~s.done & ((s.sp > 0) | (s.leaf_pos < s.leaf_end))
 
 
-def _start(root, root_hit, root_entry, t_max, *, mode, capacity, max_hits, tagged) -> Walk:
+def _start(ray, root_hit, t_max, *, mode, max_hits, tagged) -> Walk:
     dtype = t_max.dtype
     all_hits = mode == "all"
     found = Found(t=t_max, prim=I32(-1), u=jnp.zeros((), dtype), v=jnp.zeros((), dtype),
@@ -176,24 +295,41 @@ def _start(root, root_hit, root_entry, t_max, *, mode, capacity, max_hits, tagge
                   prims=jnp.full(max_hits, -1, I32) if all_hits else None,
                   ts=jnp.full(max_hits, jnp.inf, dtype) if all_hits else None)
     return Walk(
-        sp=jnp.where(root_hit, 1, 0).astype(I32),
-        stack_node=jnp.zeros(capacity, I32).at[0].set(root),
-        stack_tag=jnp.full(capacity, -1, I32) if tagged else None,
-        stack_entry=jnp.full(capacity, jnp.inf, dtype).at[0].set(root_entry),
+        ray=jnp.asarray(ray, I32), sp=jnp.where(root_hit, 1, 0).astype(I32),
         leaf_pos=I32(0), leaf_end=I32(0), leaf_tag=I32(0) if tagged else None,
         found=found, counts=Counts(box_tests=I32(1), prim_tests=I32(0), nodes_visited=I32(0),
                                    leaves_visited=I32(0)),
         stack_overflow=jnp.zeros((), bool), done=jnp.zeros((), bool), steps=I32(0))
 
 
-def _primitive_step(hooks, s: Walk, in_leaf, t_min, t_max, *, mode, max_hits) -> Walk:
-    """Test the open leaf's next primitive (masked out unless ``in_leaf``)."""
-    t, u, v, prim = hooks.primitive(s.leaf_pos, s.leaf_tag)
-    valid = in_leaf & (t > t_min) & (t < t_max)
-    found = _record(s.found, valid, t, u, v, prim, mode=mode, max_hits=max_hits)
-    counts = s.counts._replace(prim_tests=s.counts.prim_tests + in_leaf.astype(I32))
-    return s._replace(found=found, counts=counts, leaf_pos=s.leaf_pos + in_leaf.astype(I32),
-                      done=valid if mode == "any" else s.done)
+def _primitive_step(hooks, s: Walk, in_leaf, t_min, t_max, *, mode, max_hits, width) -> Walk:
+    """Test the open leaf's next ``width`` primitives together (masked out unless
+    ``in_leaf``). The hit kept is the one the same tests made one by one would keep:
+    closest, the smallest ``(t, id)``; any, the first valid in slot order, and only the
+    tests up to it count (and count as steps)."""
+    slots = s.leaf_pos + jnp.arange(width, dtype=I32)
+    tested = in_leaf & (slots < s.leaf_end)
+    # slots not tested read slot 0: the same address in every lane, a cache hit, where a
+    # stale slot would be a cache miss (gathers of scattered triangles dominate a step)
+    t, u, v, prim = jax.vmap(hooks.primitive, in_axes=(0, None))(jnp.where(tested, slots, 0), s.leaf_tag)
+    valid = tested & (t > t_min) & (t < t_max)
+    n_tested = jnp.sum(tested.astype(I32))
+    if mode == "all":  # width 1: list in order
+        found = _record(s.found, valid[0], t[0], u[0], v[0], prim[0], mode=mode, max_hits=max_hits)
+    else:
+        if mode == "any":
+            j = jnp.argmax(valid)
+            n_tested = jnp.where(valid[j], j + 1, n_tested).astype(I32)
+        else:
+            t_best = jnp.min(jnp.where(valid, t, jnp.inf))
+            at_best = valid & (t == t_best)
+            p_best = jnp.min(jnp.where(at_best, prim, jnp.iinfo(jnp.int32).max))
+            j = jnp.argmax(at_best & (prim == p_best))
+        found = _record(s.found, valid[j], t[j], u[j], v[j], prim[j], mode=mode, max_hits=max_hits)
+    counts = s.counts._replace(prim_tests=s.counts.prim_tests + n_tested)
+    return s._replace(found=found, counts=counts, leaf_pos=s.leaf_pos + n_tested,
+                      steps=s.steps + n_tested,
+                      done=found.prim >= 0 if mode == "any" else s.done)
 
 
 def _record(f: Found, valid, t, u, v, prim, *, mode, max_hits) -> Found:
@@ -221,15 +357,15 @@ def _record(f: Found, valid, t, u, v, prim, *, mode, max_hits) -> Found:
                       v=jnp.where(take, v, f.v))
 
 
-def _node_step(hooks, s: Walk, pop, *, capacity) -> Walk:
-    """Pop the top entry (masked out unless ``pop``); a visited leaf opens, a visited
-    interior node pushes the children the ray enters, nearest on top."""
-    top = jnp.maximum(s.sp - 1, 0)
-    entry = s.stack_entry[top]
+def _node_step(hooks, s: Walk, pop, top_node, top_tag, entry, *, capacity):
+    """Pop the top entry (``top_node``, ``top_tag``, ``entry``; masked out unless
+    ``pop``); a visited leaf opens, a visited interior node pushes the children the ray
+    enters, nearest on top. Returns ``(s, pos, kids, kid_tags, kid_entry)``: the stack
+    writes, ``pos`` [k] the slots (``capacity``: none)."""
     # closest: cull against the best hit; any / all: found.t stays t_max
     visit = pop & (entry <= s.found.t)
-    node = hooks.node(s.stack_node[top], None if s.stack_tag is None else s.stack_tag[top],
-                      entry, s.found.t)
+    # a lane that does not pop reads node 0 (a cache hit for all of them, see _primitive_step)
+    node = hooks.node(jnp.where(pop, top_node, 0), top_tag, entry, s.found.t)
     counted = visit if node.assumed is None else visit & ~node.assumed
     open_leaf = visit & node.is_leaf
     expand = visit & ~node.is_leaf
@@ -243,7 +379,7 @@ def _node_step(hooks, s: Walk, pop, *, capacity) -> Walk:
         leaf_pos=jnp.where(open_leaf, node.leaf_start, s.leaf_pos),
         leaf_end=jnp.where(open_leaf, node.leaf_start + node.leaf_count, s.leaf_end),
         leaf_tag=None if s.leaf_tag is None else jnp.where(open_leaf, node.leaf_tag, s.leaf_tag))
-    return _push(s, node, node.kid_hit & expand, pop, top, capacity=capacity)
+    return _push(s, node, node.kid_hit & expand, pop, jnp.maximum(s.sp - 1, 0), capacity=capacity)
 
 
 def _visit_key(node: Node):
@@ -258,9 +394,10 @@ def _visit_key(node: Node):
     return jnp.where(node.split >= 0, by_axis, node.kid_entry)
 
 
-def _push(s: Walk, node: Node, kid_hit, pop, top, *, capacity) -> Walk:
+def _push(s: Walk, node: Node, kid_hit, pop, top, *, capacity):
     """Replace the popped entry by the children hit, in visiting order, nearest on top;
-    children that do not fit are dropped and flagged."""
+    children that do not fit are dropped and flagged. Returns the new state and the
+    stack writes (:func:`_node_step`)."""
     key = _visit_key(node)
     slot_ids = jnp.arange(key.shape[0])
     before = (key[:, None] < key[None, :]) | (
@@ -270,15 +407,11 @@ def _push(s: Walk, node: Node, kid_hit, pop, top, *, capacity) -> Walk:
     pos = top + n_push - 1 - rank  # nearest on top
     fits = pos < capacity
     pos = jnp.where(kid_hit & fits, pos, capacity)
-    stack_tag = s.stack_tag
-    if stack_tag is not None:
-        stack_tag = stack_tag.at[pos].set(node.kid_tags, mode="drop")
-    return s._replace(
-        stack_node=s.stack_node.at[pos].set(node.kids, mode="drop"),
-        stack_tag=stack_tag,
-        stack_entry=s.stack_entry.at[pos].set(node.kid_entry, mode="drop"),
-        stack_overflow=s.stack_overflow | jnp.any(kid_hit & ~fits),
-        sp=jnp.where(pop, jnp.minimum(top + n_push, capacity), s.sp))
+    k = node.kids.shape[0]
+    tags = None if node.kid_tags is None else jnp.broadcast_to(node.kid_tags, (k,)).astype(I32)
+    s = s._replace(stack_overflow=s.stack_overflow | jnp.any(kid_hit & ~fits),
+                   sp=jnp.where(pop, jnp.minimum(top + n_push, capacity), s.sp))
+    return s, pos.astype(I32), node.kids, tags, node.kid_entry
 
 
 def finish(s: Walk, *, mode: str, max_hits: int) -> Hits:

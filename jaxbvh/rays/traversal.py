@@ -1,14 +1,19 @@
 """Ray traversal of binary and wide BVHs, counting box and primitive tests (jitted).
 
-One ray is one ``lax.while_loop`` over a fixed-capacity stack (the loop itself lives in
-:mod:`jaxbvh.rays.stack_walk`, shared with the two-level traversal; this module gives it
-the tree and the primitives); rays are ``vmap``-ed and fed to the device in batches.
-Every loop step does exactly one of two things:
+Each ray walks the tree with a fixed-capacity stack. The loop (:mod:`jaxbvh.rays.stack_walk`,
+shared with the two-level traversal; this module gives it the tree and the primitives)
+steps ``lanes`` rays at once, and a lane whose ray ended takes the next ray of the call
+(a wavefront: lanes do not idle behind the slowest ray); the stacks are read and written
+only at their tops, so a step costs the same for any stack capacity, i.e. any depth. The
+tree is read in a packed layout (a node's children and their boxes in one row, a leaf's
+triangles side by side). Every ray's walk does exactly one of two things per step:
 
 * **node step** — pop ``(node, entry)``; if ``entry <= t_best`` the node is *visited*:
   a leaf opens its run of primitives, an interior node tests the boxes of all its real
   children (one *box test* each) and pushes the children it hits, nearest visited first;
-* **primitive step** — test the next primitive of the open leaf (one *primitive test*).
+* **primitive step** — test the next ``leaf_width`` primitives of the open leaf together
+  (one *primitive test* each; any-hit mode counts those up to the first hit, as one by
+  one would).
 
 The root box is tested once before the loop. So for a binary tree
 ``box_tests = 1 + 2 * interior nodes visited``, and ``nodes_visited`` counts interior
@@ -29,7 +34,8 @@ allowed, and a ray whose pushes do not fit keeps the entries that fit and sets
 unless ``allow_overflow=True``.
 
 Step bound. In a valid tree a ray pops every node at most once and tests every
-primitive slot at most once, so the loop is cut off after ``N + P + 1`` steps (node and
+primitive slot at most once, so a ray is cut off after ``N + P + 1`` steps (node pops
+plus primitive tests; node and
 ``prim_index`` capacities, static): no tree file, however broken (a node listed as its
 own child, a cycle), can make it run forever. A ray that reaches the bound sets
 ``step_limit``; the drivers raise :class:`~jaxbvh.tree.validate.InvalidTreeError` for it
@@ -68,18 +74,22 @@ instance): :mod:`jaxbvh.twolevel.traversal` gives the shared loop its own hooks.
 from __future__ import annotations
 
 from functools import partial
-from typing import Callable
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh.numerics import INV_BIG, robust_factor
-from jaxbvh.rays.stack_walk import Hits, Hooks, Node, finish, walk
+from jaxbvh.rays.stack_walk import I32, LEAF_WIDTH, Hits, Hooks, Node, Ray, lanes_for, walk_rays
 from jaxbvh.tree.layout import BVH, depth, to_jax
 from jaxbvh.tree.validate import InvalidTreeError
 
 MODES = ("closest", "any", "all")
+BATCH = 16384
+"""Rays per jitted call (the last call padded): lanes refill from the call's rays
+(:func:`~jaxbvh.rays.stack_walk.walk_rays`), so a big call keeps them busy; the padding
+rays end at once."""
 
 
 # ----------------------------------------------------------------------------------
@@ -162,74 +172,111 @@ def max_steps(tree) -> int:
     return int(tree.prim_count.shape[0]) + int(tree.prim_index.shape[0]) + 1
 
 
-def _trace_one(tree, prims, skip, origin, direction, t_min, t_max, *, intersect, mode,
-               capacity, max_hits):
-    """One ray through ``tree`` (scalars and [3] vectors); returns its :class:`Hits`."""
+class Packed(NamedTuple):
+    """The arrays the traversal reads, packed so that one step reads few cache lines.
+
+    A popped node reads ``meta[n]`` and its children's boxes ``kid_box[n]`` (two rows
+    instead of six scattered reads); a leaf's triangles, stored in ``prim_index`` order,
+    lie side by side (``slot_tri``, default intersector only).
+    """
+
+    meta: Any      # int32 [N, k + 3]: children (-1: none), prim_start, prim_count, split axis (-1: none)
+    kid_box: Any   # float [N, k, 6]: each child's lo and hi (garbage where the child is -1)
+    slot_tri: Any  # float [P, 3, 3] triangle of each prim_index slot, or None (another intersector)
+
+
+def pack(tree, prims, intersect) -> Packed:
+    """:class:`Packed` arrays of ``tree`` (traced inside the jitted call: O(N k + P))."""
+    kids = tree.child
+    safe = jnp.maximum(kids, 0)
+    axis = tree.axis if isinstance(tree, BVH) else jnp.full(kids.shape[0], -1, I32)
+    meta = jnp.concatenate([kids, tree.prim_start[:, None], tree.prim_count[:, None], axis[:, None]],
+                           axis=1).astype(I32)
+    kid_box = jnp.concatenate([tree.lo[safe], tree.hi[safe]], axis=-1)
+    slot_tri = None
+    if intersect is intersect_triangle:
+        slot_tri = prims[jnp.clip(tree.prim_index, 0, prims.shape[0] - 1)]
+    return Packed(meta, kid_box, slot_tri)
+
+
+def _ray(tree, packed: Packed, prims, skip, origin, direction, t_min, t_max, i, *, intersect) -> Ray:
+    """Ray ``i`` of ``origin``, ``direction`` [R, 3], ``t_min``, ``t_max`` [R] through
+    ``tree``: its hooks and root test (:class:`~jaxbvh.rays.stack_walk.Ray`)."""
     dtype = tree.lo.dtype
-    origin = origin.astype(dtype)
-    direction = direction.astype(dtype)
-    t_min = jnp.asarray(t_min, dtype)
-    t_max = jnp.asarray(t_max, dtype)
-    inv_dir = inverse_direction(direction)
+    o = origin[i].astype(dtype)
+    d = direction[i].astype(dtype)
+    lo_t = t_min[i]
+    hi_t = t_max[i]
+    inv_dir = inverse_direction(d)
     root = tree.root
-    root_hit, root_entry = slab(tree.lo[root], tree.hi[root], origin, inv_dir, t_min, t_max)
+    root_hit, root_entry = slab(tree.lo[root], tree.hi[root], o, inv_dir, lo_t, hi_t)
     n_slots = tree.prim_index.shape[0]
 
     def primitive(slot, _):
-        prim = tree.prim_index[jnp.minimum(slot, n_slots - 1)]
-        t, u, v = intersect(prims, prim, origin, direction)
+        slot = jnp.minimum(slot, n_slots - 1)
+        prim = tree.prim_index[slot]
+        if packed.slot_tri is not None:
+            tri = packed.slot_tri[slot]
+            t, u, v = moller_trumbore(tri[0], tri[1], tri[2], o, d)
+        else:
+            t, u, v = intersect(prims, prim, o, d)
         return t, u, v, prim
 
     def node(ref, _, entry, t_far):
-        return _expand(tree, skip, ref, entry, origin, direction, inv_dir, t_min, t_far)
+        return _expand(packed, skip, ref, entry, o, d, inv_dir, lo_t, t_far, binary=isinstance(tree, BVH))
 
-    end = walk(Hooks(primitive, node), root, root_hit, root_entry, t_min, t_max, mode=mode,
-               capacity=capacity, max_hits=max_hits, step_limit=max_steps(tree))
-    return finish(end, mode=mode, max_hits=max_hits)
+    return Ray(Hooks(primitive, node), root, root_hit, root_entry, lo_t, hi_t)
 
 
-def _expand(tree, skip, ref, entry, origin, direction, inv_dir, t_min, t_far) -> Node:
+def _expand(packed: Packed, skip, ref, entry, origin, direction, inv_dir, t_min, t_far, *, binary) -> Node:
     """The ``node`` hook of a binary or wide tree: node ``ref`` entered at ``entry``.
 
     With skip flags a flagged child is not tested but assumed hit, entered where this
     node was; a flagged node's own visit is not counted.
     """
-    count = tree.prim_count[ref]
-    kids = tree.child[ref]  # [k]
+    meta = packed.meta[ref]
+    k = packed.kid_box.shape[1]
+    kids = meta[:k]
+    count = meta[k + 1]
     real = kids >= 0
-    safe = jnp.maximum(kids, 0)
-    kid_hit, kid_entry = slab(tree.lo[safe], tree.hi[safe], origin, inv_dir[None, :], t_min, t_far)
+    box = packed.kid_box[ref]
+    kid_hit, kid_entry = slab(box[:, :3], box[:, 3:], origin, inv_dir[None, :], t_min, t_far)
     tested = real
     assumed = None
     if skip is not None:
         assumed = skip[ref]
-        skipped = real & skip[safe]
+        skipped = real & skip[jnp.maximum(kids, 0)]
         kid_hit = kid_hit | skipped
         kid_entry = jnp.where(skipped, entry, kid_entry)
         tested = real & ~skipped
-    return Node(is_leaf=count > 0, leaf_start=tree.prim_start[ref], leaf_count=count, leaf_tag=None,
+    return Node(is_leaf=count > 0, leaf_start=meta[k], leaf_count=count, leaf_tag=None,
                 assumed=assumed, kids=kids, kid_tags=None, kid_hit=kid_hit & real,
-                kid_entry=kid_entry, tested=tested,
-                split=tree.axis[ref] if isinstance(tree, BVH) else None, direction=direction)
+                kid_entry=kid_entry, tested=tested, split=meta[k + 2] if binary else None,
+                direction=direction)
 
 
-@partial(jax.jit, static_argnames=("intersect", "mode", "capacity", "max_hits"))
+@partial(jax.jit, static_argnames=("intersect", "mode", "capacity", "max_hits", "lanes", "leaf_width"))
 def trace_batch(tree, prims, origin, direction, t_min, t_max, skip=None, *,
-                intersect=intersect_triangle, mode="closest", capacity=64, max_hits=16):
+                intersect=intersect_triangle, mode="closest", capacity=64, max_hits=16, lanes=None,
+                leaf_width=LEAF_WIDTH):
     """Trace rays ``origin``, ``direction`` [R, 3] (tree frame) through ``tree``; jitted.
 
     ``prims``: what ``intersect`` reads (``triangles`` [T, 3, 3] for the default);
     ``t_min``, ``t_max``: scalars or [R]; ``mode``: one of :data:`MODES`;
     ``capacity``: static stack size; ``max_hits``: list length for ``mode="all"``;
-    ``skip``: optional [N] bool flags (module docstring). Returns :class:`Hits` with
-    arrays [R]. The drivers below batch, pad and check.
+    ``skip``: optional [N] bool flags (module docstring); ``lanes``: rays in flight
+    (:func:`~jaxbvh.rays.stack_walk.lanes_for`); ``leaf_width``: leaf slots tested per
+    step. Returns :class:`Hits` with arrays [R]. The drivers below batch, pad and check.
     """
     r = origin.shape[0]
-    t_min = jnp.broadcast_to(jnp.asarray(t_min, tree.lo.dtype), (r,))
-    t_max = jnp.broadcast_to(jnp.asarray(t_max, tree.lo.dtype), (r,))
-    one = partial(_trace_one, tree, prims, skip, intersect=intersect, mode=mode,
-                  capacity=capacity, max_hits=max_hits)
-    return jax.vmap(one)(origin, direction, t_min, t_max)
+    dtype = tree.lo.dtype
+    t_min = jnp.broadcast_to(jnp.asarray(t_min, dtype), (r,))
+    t_max = jnp.broadcast_to(jnp.asarray(t_max, dtype), (r,))
+    ray = partial(_ray, tree, pack(tree, prims, intersect), prims, skip, origin, direction, t_min, t_max,
+                  intersect=intersect)
+    return walk_rays(ray, r, mode=mode, capacity=capacity, max_hits=max_hits,
+                     step_limit=max_steps(tree), lanes=lanes_for(r, capacity, lanes),
+                     leaf_width=leaf_width)
 
 
 # ----------------------------------------------------------------------------------
@@ -239,8 +286,8 @@ def trace_batch(tree, prims, origin, direction, t_min, t_max, skip=None, *,
 
 def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t_max=np.inf,
           intersect: Callable = intersect_triangle, capacity: int | None = None,
-          max_hits: int = 16, batch: int = 256, allow_overflow: bool = False, skip=None,
-          on_batch: Callable[[int], None] | None = None) -> Hits:
+          max_hits: int = 16, batch: int = BATCH, allow_overflow: bool = False, skip=None,
+          lanes: int | None = None, leaf_width: int = LEAF_WIDTH, on_batch: Callable[[int], None] | None = None) -> Hits:
     """Trace any number of rays in batches of ``batch``; returns :class:`Hits` (NumPy).
 
     ``tree``: :class:`~jaxbvh.tree.layout.BVH` or :class:`~jaxbvh.tree.layout.WideBVH`;
@@ -249,9 +296,9 @@ def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t
     (directions need not be unit; ``t`` is in units of ``|direction|``).
     ``capacity`` defaults to :func:`stack_capacity`; ``skip``: optional [N] bool per-node
     "assume hit" flags (module docstring, "Skip flags"). The last batch is padded so every
-    batch has the same shape (one compile). Batches are small so that the rays of one
-    batch finish at similar steps (a ``vmap``-ed loop runs as long as its longest ray;
-    on a 2-core CPU 256 rays per batch traced bunny rays 3x faster than 4096).
+    batch has the same shape (one compile). Within a batch ``lanes`` rays are in flight
+    and a lane whose ray ended takes the next one (:data:`BATCH`); ``leaf_width``: leaf
+    slots tested per step.
     ``on_batch(n)`` (optional) is called after each batch with its number of rays (a
     progress bar). Raises ``RuntimeError`` on stack overflow unless ``allow_overflow``, and
     :class:`~jaxbvh.tree.validate.InvalidTreeError` when a ray reaches the step bound.
@@ -268,7 +315,7 @@ def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t
 
     def run(o, d, lo_t, hi_t):
         return trace_batch(jtree, jprims, o, d, lo_t, hi_t, skip, intersect=intersect, mode=mode,
-                           capacity=capacity, max_hits=max_hits)
+                           capacity=capacity, max_hits=max_hits, lanes=lanes, leaf_width=leaf_width)
 
     hits = in_batches(run, origin, direction, t_min, t_max, batch=batch, dtype=dtype, on_batch=on_batch)
     if hits.step_limit.any():

@@ -2,7 +2,7 @@
 
 The algorithm, the stack of ``(node, instance)`` pairs and the step bound are described
 in :mod:`jaxbvh.twolevel.rebraid` (section "Traversal"); the tree is a
-:class:`jaxbvh.twolevel.rebraid.TwoLevelBVH`. The loop is :func:`jaxbvh.rays.stack_walk.walk`,
+:class:`jaxbvh.twolevel.rebraid.TwoLevelBVH`. The loop is :func:`jaxbvh.rays.stack_walk.walk_rays`,
 the one-level traversal's own, with this module's hooks (``_primitive``, ``_expand``);
 slab and Möller-Trumbore tests, ray checks and batching come from
 :mod:`jaxbvh.rays.traversal`.
@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxbvh.rays.stack_walk import Hits, Hooks, Node, finish, walk
+from jaxbvh.rays.stack_walk import LEAF_WIDTH, Hits, Hooks, Node, Ray, lanes_for, walk_rays
 from jaxbvh.rays.traversal import check_rays, in_batches, inverse_direction, moller_trumbore, slab
 from jaxbvh.tree.layout import depth, to_jax, to_numpy
 
@@ -58,8 +58,9 @@ def step_bound(tl) -> int:
     return int(top + obj_nodes[used].sum() + obj_prims[used].sum() + 1)
 
 
-def _trace_one(tl, origin, direction, t_max, max_steps, *, capacity):
-    """One ray through the two-level tree ``tl`` (scene frame); returns its :class:`Hits`.
+def _ray(tl, origin, direction, t_max, i) -> Ray:
+    """Ray ``i`` of ``origin``, ``direction`` [R, 3], ``t_max`` [R] through the
+    two-level tree ``tl`` (scene frame): its hooks and root test.
 
     Stack entries are ``(reference, instance)``: a reference below ``n_top`` is a
     top-level node (instance -1), ``n_top + f`` is forest node ``f`` under the instance.
@@ -70,14 +71,15 @@ def _trace_one(tl, origin, direction, t_max, max_steps, *, capacity):
     # one extra map, the identity, for the top level (instance -1)
     eye = jnp.zeros((1, 3, 4), dtype).at[0, :, :3].set(jnp.eye(3, dtype=dtype))
     to_object = jnp.concatenate([inst.to_object, eye])
-    origin = origin.astype(dtype)
-    direction = direction.astype(dtype)
+    o = origin[i].astype(dtype)
+    d = direction[i].astype(dtype)
+    hi_t = t_max[i].astype(dtype)
     t_min = jnp.zeros((), dtype)
 
     def ray_in(k):
         """The ray in instance ``k``'s object frame (``k = -1``: the scene frame)."""
         m = to_object[jnp.where(k >= 0, k, n_inst)]
-        return m[:, :3] @ origin + m[:, 3], m[:, :3] @ direction
+        return m[:, :3] @ o + m[:, 3], m[:, :3] @ d
 
     def primitive(slot, k):
         return _primitive(tl, ray_in, slot, k)
@@ -86,11 +88,8 @@ def _trace_one(tl, origin, direction, t_max, max_steps, *, capacity):
         return _expand(tl, ray_in, ref, k, t_min, t_far)
 
     top = tl.top
-    root_hit, root_entry = slab(top.lo[top.root], top.hi[top.root], origin, inverse_direction(direction),
-                                t_min, t_max)
-    end = walk(Hooks(primitive, node), top.root, root_hit, root_entry, t_min, t_max, mode="closest",
-               capacity=capacity, max_hits=0, step_limit=max_steps, tagged=True)
-    return finish(end, mode="closest", max_hits=0)
+    root_hit, root_entry = slab(top.lo[top.root], top.hi[top.root], o, inverse_direction(d), t_min, hi_t)
+    return Ray(Hooks(primitive, node), top.root, root_hit, root_entry, t_min, hi_t)
 
 
 def _primitive(tl, ray_in, slot, k):
@@ -136,16 +135,18 @@ def _expand(tl, ray_in, ref, k, t_min, t_far) -> Node:
                 tested=real, split=jnp.where(in_forest, f.axis[fid], top.axis[tid]), direction=d_n)
 
 
-@partial(jax.jit, static_argnames=("capacity",))
-def trace_batch(tl, origin, direction, t_max, max_steps, *, capacity):
+@partial(jax.jit, static_argnames=("capacity", "lanes", "leaf_width"))
+def trace_batch(tl, origin, direction, t_max, max_steps, *, capacity, lanes=None, leaf_width=LEAF_WIDTH):
     """Closest hits of rays ``origin``, ``direction`` [R, 3] (scene frame) through ``tl``.
 
     ``t_max`` [R]; ``max_steps``: loop bound (:func:`step_bound`); ``capacity``: static
     stack size (:func:`stack_capacity`). Returns :class:`~jaxbvh.rays.traversal.Hits` (``step_limit``:
     the ray was still busy at the bound).
     """
-    one = partial(_trace_one, tl, max_steps=max_steps, capacity=capacity)
-    return jax.vmap(one)(origin, direction, t_max)
+    r = origin.shape[0]
+    return walk_rays(partial(_ray, tl, origin, direction, t_max), r, mode="closest", capacity=capacity,
+                     max_hits=0, step_limit=max_steps, lanes=lanes_for(r, capacity, lanes),
+                     leaf_width=leaf_width, tagged=True)
 
 
 def closest_hit(tl, origin, direction, *, batch: int = 256,
