@@ -130,10 +130,10 @@ def in_child(name: str, args) -> dict:
     """``one_input`` in a fresh process (each input compiles its own programs)."""
     cmd = [sys.executable, __file__, "--row", "--inputs", name, "--limits", *map(str, args.limits),
            "--pipeline-limits", *map(str, args.pipeline_limits)]
-    done = subprocess.run(cmd, capture_output=True, text=True)
+    done = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)  # progress on stderr
     lines = [line for line in done.stdout.splitlines() if line.startswith('{"input"')]
     if done.returncode != 0 or not lines:
-        raise RuntimeError(f"bench_leaves on {name} failed (exit {done.returncode}): {done.stderr.strip()[-2000:]}")
+        raise RuntimeError(f"bench_leaves on {name} failed (exit {done.returncode})")
     print(lines[-1], flush=True)
     return json.loads(lines[-1])
 
