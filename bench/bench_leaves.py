@@ -15,6 +15,10 @@ interior of :mod:`bench.scenes`), each in its own child process:
 
 SAH: Ct = Ci = 1, normalised by the root's area (the harness's figure). Writes
 ``bench/results/leaves.json`` and ``leaves.md`` (``--tag`` adds a suffix).
+
+``--combine BEFORE AFTER``: no run; ``leaves.md`` from two tagged runs, the code before a
+change (``PYTHONPATH`` at the old checkout) and after it: the defaults' SAH before and after,
+beside tinybvh, and the leaf-limit study of the run before.
 """
 
 from __future__ import annotations
@@ -129,6 +133,42 @@ def markdown(rows: list[dict], meta: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def combined(before: dict, after: dict) -> str:
+    """The before/after table of two runs (``--combine``): each run's default leaf limit is
+    the smallest of its ``--pipeline-limits`` in the before run (the old default, 1) and
+    the largest in the after run."""
+    lb, la = min(before["args"]["pipeline_limits"]), max(after["args"]["pipeline_limits"])
+    rows_a = {r["input"]: r for r in after["rows"]}
+    lines = [f"# Leaves of several primitives (issue 40): the defaults before and after", "",
+             f"Before: `max_leaf` {lb} (every builder's old default), the pipeline as it was. After: "
+             f"`max_leaf` {la} (`jaxbvh.configs.DEFAULT_MAX_LEAF`) in the builders and the pipeline's "
+             "final exact leaf merge. SAH with Ct = Ci = 1, normalised by the root's area; default = "
+             "`build` (sweep) -> `optimize` (pipeline, to convergence); sbvh = `--builder sbvh` -> "
+             "`optimize`. tinybvh v1.6.7, one thread, same triangles. Ratios < 1: ours lower. "
+             f"Machine: {after['machine']}; load {before['load']} (before run), {after['load']} (after run): "
+             "shared, busy (CPU seconds in the JSON files).", "",
+             "| input | tris | default before | default after | sbvh before | sbvh after | tinybvh Build | "
+             "tinybvh BuildHQ | tinybvh Optimize(200) | default after / Opt(200) | best after / min(HQ, Opt) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in before["rows"]:
+        a = rows_a.get(r["input"])
+        if a is None:
+            continue
+        o, n, t = r["ours"], a["ours"], a["tinybvh"]
+        db, sb = o[f"sweep:{lb}"]["pipeline_sah"], o[f"sbvh:{lb}"]["pipeline_sah"]
+        da, sa = n[f"sweep:{la}"]["pipeline_sah"], n[f"sbvh:{la}"]["pipeline_sah"]
+        peer = min(t["hq"]["sah"], t["optimize"]["sah"])
+        lines.append(f"| {r['input']} | {r['triangles']:,} | {db:.3f} | **{da:.3f}** | {sb:.3f} | **{sa:.3f}** | "
+                     f"{t['binned']['sah']:.3f} | {t['hq']['sah']:.3f} | {t['optimize']['sah']:.3f} | "
+                     f"{da / t['optimize']['sah']:.4f} | {min(da, sa) / peer:.4f} |")
+    invalid = [(r["input"], k, v["problems"]) for run in (before, after) for r in run["rows"]
+               for k, v in r["ours"].items() if v.get("problems")]
+    if invalid:
+        lines += ["", "Problems the check found:"] + [f"- {i}, {k}: {p}" for i, k, p in invalid]
+    study = markdown(before["rows"], before).split("\n", 1)[1]
+    return "\n".join(lines) + "\n\n## The leaf-limit study (code before the change)\n" + study
+
+
 def in_child(name: str, args) -> dict:
     """``one_input`` in a fresh process (each input compiles its own programs)."""
     cmd = [sys.executable, __file__, "--row", "--inputs", name, "--limits", *map(str, args.limits),
@@ -149,7 +189,13 @@ def main(argv=None) -> int:
     parser.add_argument("--tag", default="")
     parser.add_argument("--rewrite", action="store_true", help="run nothing: rewrite the .md from the .json")
     parser.add_argument("--row", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--combine", nargs=2, metavar=("BEFORE", "AFTER"),
+                        help="run nothing: leaves.md from leaves_BEFORE.json and leaves_AFTER.json")
     args = parser.parse_args(argv)
+    if args.combine:
+        runs = [json.loads((RESULTS / f"leaves_{tag}.json").read_text()) for tag in args.combine]
+        (RESULTS / "leaves.md").write_text(combined(*runs))
+        return 0
     if not set(args.pipeline_limits) <= set(args.limits):
         parser.error("--pipeline-limits must be among --limits")
     stem = RESULTS / ("leaves" + (f"_{args.tag}" if args.tag else ""))
