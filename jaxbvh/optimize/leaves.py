@@ -18,8 +18,9 @@ the fixpoint, height + 1 sweeps), as :func:`jaxbvh.tree.cost.node_costs` does. T
 merged tree keeps the node ids and capacity; the nodes under a merged node become
 padding. When anything merges, ``prim_index`` is laid out again in depth-first order
 (left before right, each leaf's run in its old order), so each merged leaf's run is the
-runs of the leaves it replaces, concatenated; when nothing merges the tree is returned
-unchanged. The NumPy twin (:mod:`jaxbvh.optimize.leaves_reference`) follows the
+runs of the leaves it replaces, concatenated (a triangle that several of them reference,
+after spatial splits, kept once: the decision counted every reference, so the SAH only
+falls further); when nothing merges the tree is returned unchanged. The NumPy twin (:mod:`jaxbvh.optimize.leaves_reference`) follows the
 definition by recursion; the two are equal (``tests/optimize/test_leaves.py``).
 
 Float rule: areas are half-areas scaled by the root's power of two
@@ -73,8 +74,9 @@ def subtree_costs(tree, max_leaf, ct, ci):
 
 
 def _top_down(tree, count, merge):
-    """``(hidden, offset)``: whether a proper ancestor is merged [N] bool, and the first
-    slot of every node's primitives in depth-first order [N] int32 (left before right)."""
+    """``(hidden, offset, top)``: whether a proper ancestor is merged [N] bool, the first
+    slot of every node's primitives in depth-first order [N] int32 (left before right), and
+    the topmost merged ancestor of every hidden node [N] int32 (-1 for the others)."""
     cap = tree.left.shape[0]
     parent = tree.parent
     has_parent = parent >= 0
@@ -83,28 +85,29 @@ def _top_down(tree, count, merge):
     before = jnp.where(is_right, count[jnp.where(is_right, tree.left[p], 0)], 0)
 
     def sweep(carry):
-        hidden, offset = carry
-        return (has_parent & (hidden[p] | merge[p]), jnp.where(has_parent, offset[p] + before, 0))
+        hidden, offset, top = carry
+        inside = has_parent & (hidden[p] | merge[p])
+        return (inside, jnp.where(has_parent, offset[p] + before, 0),
+                jnp.where(inside, jnp.where(hidden[p], top[p], p), -1))
 
     def cond(c):
-        (h, o), (h0, o0), i = c
-        return (jnp.any(h != h0) | jnp.any(o != o0)) & (i <= cap)
+        now, old, i = c
+        return jnp.any(jnp.stack([jnp.any(a != b) for a, b in zip(now, old)])) & (i <= cap)
 
     def body(c):
         now, _, i = c
         return sweep(now), now, i + 1
 
-    start = (jnp.zeros(cap, bool), jnp.zeros(cap, jnp.int32))
+    start = (jnp.zeros(cap, bool), jnp.zeros(cap, jnp.int32), jnp.full(cap, -1, jnp.int32))
     out, _, _ = jax.lax.while_loop(cond, body, (sweep(start), start, jnp.int32(0)))
     return out
 
 
-def _merged(tree, count, merge):
+def _merged(tree, count, merge, max_leaf):
     cap, slots = tree.left.shape[0], tree.prim_index.shape[0]
-    hidden, offset = _top_down(tree, count, merge)
+    hidden, offset, top = _top_down(tree, count, merge)
     real = (tree.left >= 0) | (tree.prim_count > 0)
     kept = real & ~hidden
-    new_leaf = kept & merge
     inner = kept & ~merge & (tree.left >= 0)
     leaf = kept & ((tree.prim_count > 0) | merge)
     # slot -> the old leaf whose run holds it: run starts marked, carried forward
@@ -116,13 +119,29 @@ def _merged(tree, count, merge):
     k = jnp.arange(slots, dtype=jnp.int32) - tree.prim_start[owner]
     used = (last_start >= 0) & (k < tree.prim_count[owner])
     dest = jnp.where(used, offset[owner] + k, slots)
-    prim_index = jnp.full(slots, -1, tree.prim_index.dtype).at[dest].set(tree.prim_index, mode="drop")
+    laid = jnp.full(slots, -1, tree.prim_index.dtype).at[dest].set(tree.prim_index, mode="drop")
+    # a triangle referenced by several merged leaves (spatial splits) is kept once in the
+    # new leaf: a slot repeating an earlier slot of its run (at most max_leaf back) goes
+    new_leaf = jnp.where(top[owner] >= 0, top[owner], owner)
+    run_start = jnp.full(slots, slots, jnp.int32).at[dest].set(offset[new_leaf], mode="drop")
+    here = jnp.arange(slots, dtype=jnp.int32)
+
+    def repeats(j, dup):
+        back = jnp.maximum(here - j, 0)
+        return dup | ((here - j >= run_start) & (laid[back] == laid) & (laid >= 0))
+
+    dup = jax.lax.fori_loop(1, jnp.minimum(max_leaf, slots), repeats, jnp.zeros(slots, bool))
+    gone = jnp.concatenate([jnp.zeros(1, jnp.int32), jnp.cumsum(dup.astype(jnp.int32))])  # [slots + 1]
+    prim_index = jnp.full(slots, -1, laid.dtype).at[jnp.where(dup, slots, here - gone[:-1])].set(laid, mode="drop")
+    start = jnp.clip(offset, 0, slots)
+    end = jnp.clip(offset + count, 0, slots)
     inf = jnp.asarray(jnp.inf, tree.lo.dtype)
     return tree.replace(
         left=jnp.where(inner, tree.left, -1), right=jnp.where(inner, tree.right, -1),
         parent=jnp.where(kept, tree.parent, -1),
         lo=jnp.where(kept[:, None], tree.lo, inf), hi=jnp.where(kept[:, None], tree.hi, -inf),
-        prim_start=jnp.where(leaf, offset, 0), prim_count=jnp.where(leaf, count, 0),
+        prim_start=jnp.where(leaf, offset - gone[start], 0),
+        prim_count=jnp.where(leaf, count - (gone[end] - gone[start]), 0),
         axis=jnp.where(inner, tree.axis, -1), prim_index=prim_index)
 
 
@@ -133,4 +152,4 @@ def merge_leaves(tree, max_leaf, ct, ci):
     (SAH with ``ct``, ``ci`` [] in the tree's dtype) is one leaf. Traceable; the same
     capacity; the tree itself when nothing merges."""
     count, _, merge = subtree_costs(tree, max_leaf, ct, ci)
-    return jax.lax.cond(jnp.any(merge), lambda t: _merged(t, count, merge), lambda t: t, tree)
+    return jax.lax.cond(jnp.any(merge), lambda t: _merged(t, count, merge, max_leaf), lambda t: t, tree)

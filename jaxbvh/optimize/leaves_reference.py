@@ -86,7 +86,7 @@ def merge_leaves(tree, max_leaf: int, ct=1.0, ci=1.0):
             out["axis"][node] = t.axis[node]
             stack += [int(t.right[node]), int(t.left[node])]
             continue
-        run = prims(node)
+        run = list(dict.fromkeys(prims(node)))  # a triangle several leaves referenced: once
         out["prim_start"][node], out["prim_count"][node] = slot, len(run)
         out["prim_index"][slot:slot + len(run)] = run
         slot += len(run)

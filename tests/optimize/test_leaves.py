@@ -76,3 +76,24 @@ def test_zero_area_subtrees_merge():
     assert_same_tree(got, leaves_reference.merge_leaves(tree, 16), fields=ALL)
     assert int(np.sum(got.prim_count > 0)) == 1 and int(got.prim_count[int(got.root)]) == 12
     jaxbvh.validate(got, plo, phi)
+
+
+def test_a_triangle_in_several_merged_leaves_is_kept_once():
+    """SBVH leaves reference pieces of one triangle: the merged leaf holds it once, equal to
+    the twin, and the tree stays valid in references mode."""
+    from strategies import boxes
+    from test_sbvh_trees import crossing_slivers
+
+    from jaxbvh.builders import SBVHConfig, build_sbvh
+
+    tri = crossing_slivers()
+    built = build_sbvh(tri, SBVHConfig(bins=8, max_leaf=1, reference_capacity=4))
+    assert int(built.references) > tri.shape[0]  # the case under test
+    got = merged(built.tree, 16, ct=4.0)
+    assert_same_tree(got, leaves_reference.merge_leaves(built.tree, 16, ct=4.0), fields=ALL)
+    runs = [got.prim_index[s:s + c] for s, c in zip(got.prim_start, got.prim_count) if c > 0]
+    assert all(len(set(r)) == len(r) for r in runs) and max(len(r) for r in runs) > 1
+    assert int(np.sum(got.prim_count)) < int(built.references)  # duplicates went
+    lo, hi = boxes(tri)
+    jaxbvh.validate(got, lo, hi, references=True, triangles=tri)
+    assert cost_reference.sah(got, 4.0) < cost_reference.sah(built.tree, 4.0)
