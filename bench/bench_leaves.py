@@ -165,6 +165,9 @@ def combined(before: dict, after: dict) -> str:
                for k, v in r["ours"].items() if v.get("problems")]
     if invalid:
         lines += ["", "Problems the check found:"] + [f"- {i}, {k}: {p}" for i, k, p in invalid]
+    for run in (before, after):
+        if run.get("note"):
+            lines += ["", f"Note ({'before' if run is before else 'after'} run): {run['note']}"]
     study = markdown(before["rows"], before).split("\n", 1)[1]
     return "\n".join(lines) + "\n\n## The leaf-limit study (code before the change)\n" + study
 
