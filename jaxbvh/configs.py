@@ -204,6 +204,19 @@ def ct_knob():
     return knob(1.0, check=real(0), metavar="CT", help="SAH traversal cost, >= 0")
 
 
+#: the largest leaf, by default, of every builder (SAH leaf test) and of the pipeline's final
+#: leaf merge (jaxbvh.optimize.leaves): the one place this default is set. Measured in
+#: bench/results/leaves.md (issue 40): 1 (one primitive per leaf) ... 16 on the shared
+#: meshes and the procedural interior.
+DEFAULT_MAX_LEAF = 4
+
+
+def max_leaf_knob():
+    """``max_leaf``: the most primitives in a leaf; leaves of several primitives are made
+    only where the SAH says they cost less (:data:`DEFAULT_MAX_LEAF`)."""
+    return knob(DEFAULT_MAX_LEAF, check=integer(1), metavar="N", help="most primitives per leaf")
+
+
 def ci_knob():
     """``ci``: the SAH's cost of a primitive test (1)."""
     return knob(1.0, check=real(0), metavar="CI", help="SAH intersection cost, >= 0")

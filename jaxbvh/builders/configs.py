@@ -28,7 +28,7 @@ from collections import OrderedDict
 from typing import Any, ClassVar
 
 from jaxbvh.builders.morton import CODE_BITS, check_code_bits
-from jaxbvh.configs import Checked, ci_knob, ct_knob, integer, knob, real
+from jaxbvh.configs import Checked, ci_knob, ct_knob, integer, knob, max_leaf_knob, real
 
 
 def _code_bits(name, value):
@@ -39,8 +39,9 @@ def _code_bits(name, value):
 class BuilderConfig(Checked):
     """Knobs every builder has (a base class; build with one of its subclasses).
 
-    ``max_leaf``: the largest leaf; 1 splits down to single primitives, larger leaves are
-    made where the SAH says a leaf costs no more than its best split (the median
+    ``max_leaf``: the largest leaf (default :data:`jaxbvh.configs.DEFAULT_MAX_LEAF`); 1
+    splits down to single primitives, larger leaves are made where the SAH says a leaf
+    costs no more than its best split (the median
     builder makes every node of at most ``max_leaf`` primitives a leaf).
     ``ct``, ``ci``: the SAH's traversal and intersection costs, used only by that leaf
     test. ``pad``: pad the arrays to a capacity bucket (fewer compiles) or size them
@@ -50,7 +51,7 @@ class BuilderConfig(Checked):
 
     method: ClassVar[str] = ""  # the name in BUILDERS and on the command line
 
-    max_leaf: int = knob(1, check=integer(1), metavar="N", help="most primitives per leaf")
+    max_leaf: int = max_leaf_knob()
     ct: float = ct_knob()
     ci: float = ci_knob()
     pad: bool = knob(True, help="pad arrays to a capacity bucket (fewer recompiles)")

@@ -48,8 +48,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxbvh.configs import Checked, ci_knob, config_of, ct_knob, integer, knob, optional, real, split_axes_knob
+from jaxbvh.configs import Checked, ci_knob, config_of, ct_knob, integer, knob, max_leaf_knob, optional, real, split_axes_knob
 from jaxbvh.optimize import reinsert, treelet
+from jaxbvh.optimize.leaves import merge_leaves
 from jaxbvh.optimize.driver import run
 from jaxbvh.optimize.protocol import (
     Optimizer,
@@ -104,7 +105,10 @@ class Config(Checked):
     candidates that are this share of the nodes or more (None: it widens to every node;
     later rounds search every node and never widen). The pipeline's ``ct``, ``ci``,
     ``treelet_passes``, ``widen_until`` replace those of the stage configs (as stored
-    here), and the stages never assign split axes themselves.
+    here), and the stages never assign split axes themselves. ``max_leaf``: ``result``
+    merges every subtree of at most this many primitives into one leaf where that lowers
+    the SAH (:mod:`jaxbvh.optimize.leaves`, exact; before the split-axis pass; 1: no
+    merge), so the run ends with the leaves the scene needs whatever leaves it started with.
     """
 
     round_gain: float = knob(DEFAULT_ROUND_GAIN, check=real(0, finite=False), metavar="G",
@@ -128,6 +132,7 @@ class Config(Checked):
     ct: float = ct_knob()
     ci: float = ci_knob()
     split_axes: bool = split_axes_knob()
+    max_leaf: int = max_leaf_knob()
 
     def _check_together(self):
         # the stored stage configs are what runs: the pipeline's costs and passes, no
@@ -147,6 +152,7 @@ class Params(NamedTuple):
     need_first: Any  # [] int32: first candidates of the first round's reinsertion
     need_later: Any  # [] int32: the same in later rounds (every node)
     split_axes: Any  # [] bool: Kensler's final pass in result()
+    max_leaf: Any    # [] int32: the final leaf merge's largest leaf (1: none)
 
 
 class Static(NamedTuple):
@@ -257,7 +263,7 @@ def init(tree, config: Config | None = None, key=None) -> OptimizerState:
     params = Params(ct=jnp.asarray(config.ct, dtype), ci=jnp.asarray(config.ci, dtype),
                     round_gain=jnp.asarray(config.round_gain, dtype), max_rounds=jnp.int32(config.max_rounds),
                     need_first=reinsertion.params.need, need_later=jnp.int32(candidates_needed(1.0, nodes)),
-                    split_axes=jnp.bool_(config.split_axes))
+                    split_axes=jnp.bool_(config.split_axes), max_leaf=jnp.int32(config.max_leaf))
     treelet_limit, reinsert_limit = int(treelets.progress.limit), int(reinsertion.progress.limit)
     progress = new_progress(sah_start, config.max_rounds * (treelet_limit + reinsert_limit), dtype)
     inner = Inner(treelets, reinsertion, jnp.int32(TREELETS), jnp.int32(0), progress.sah_start)
@@ -286,7 +292,8 @@ def step(state: OptimizerState) -> OptimizerState:
 
 
 def result(state: OptimizerState) -> OptimizeResult:
-    """The optimized tree (same capacity as the input) and the run's figures.
+    """The optimized tree (same capacity as the input), its leaves merged where that
+    pays (``max_leaf``), and the run's figures.
 
     The current stage's state holds the latest tree (a stage that has just started
     holds the tree the previous one ended with).
@@ -294,6 +301,7 @@ def result(state: OptimizerState) -> OptimizeResult:
     inner = state.inner
     out = jax.lax.cond(inner.stage == TREELETS, lambda i: treelet.result(i.treelet).tree,
                        lambda i: reinsert.result(i.reinsert).tree, inner)
+    out = merge_leaves(out, state.params.max_leaf, state.params.ct, state.params.ci)
     out = jax.lax.cond(state.params.split_axes, apply_split_axes, lambda t: t, out)
     progress = state.progress._replace(sah=sah_of(out, state.params.ct, state.params.ci))
     return make_result(out, progress)

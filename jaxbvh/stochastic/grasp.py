@@ -512,7 +512,9 @@ def _grasp(key, prim_lo, prim_hi, config: GraspConfig, on_step, on_chunk, starte
     n = int(n)
     noise = resolve_noise(n, config.noise, config.deviations)
 
-    greedy = _greedy(build(prim_lo, prim_hi, SweepConfig(pad=pad, dtype=dtype)), objective)
+    # the greedy tree GRASP perturbs: the sweep build with one primitive per leaf, as the
+    # randomized builds make (not the builders' default leaves)
+    greedy = _greedy(build(prim_lo, prim_hi, SweepConfig(pad=pad, dtype=dtype, max_leaf=1)), objective)
     objectives = np.full(trials, greedy.base)
     rebuilt = np.zeros(trials, np.int64)
     subs = _deviating_subtrees(key, greedy, trials, noise, mode, k)

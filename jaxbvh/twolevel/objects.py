@@ -283,7 +283,9 @@ def placements(mesh, world_space: bool = True) -> list[Placement]:
 
 #: the object BVHs' builder unless told otherwise: binned SAH, one primitive per leaf (the
 #: paper's choice; the command line's ``jaxbvh rebraid`` reads its defaults from it)
-DEFAULT_BUILDER = BinnedConfig()
+# one primitive per leaf, as the two-level builder (re-braiding) was designed and measured with;
+# the builders' own default leaves (jaxbvh.configs.DEFAULT_MAX_LEAF) are not yet tried there
+DEFAULT_BUILDER = BinnedConfig(max_leaf=1)
 
 
 def object_builder(builder: BuilderConfig | None = None, **options) -> BuilderConfig:

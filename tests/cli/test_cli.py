@@ -25,6 +25,7 @@ from hypothesis import strategies as st
 import jaxbvh
 from jaxbvh import cli
 from jaxbvh.cli import command_kit
+from jaxbvh.configs import DEFAULT_MAX_LEAF
 from jaxbvh.testing.plugin import examples
 
 # ----------------------------------------------------------------------------------
@@ -238,7 +239,9 @@ def test_build_bundled_mesh(capsys, tmp_path):
     result = run_json(capsys, "build", "-o", out)
     assert result["triangles"] == 5856 and result["degenerate"] == 0
     assert result["valid"] is True
-    assert result["nodes"] == 2 * 5856 - 1 and result["leaves"] == 5856
+    # the default leaves (SAH leaf test up to DEFAULT_MAX_LEAF primitives): a binary tree of them
+    assert result["nodes"] == 2 * result["leaves"] - 1 and result["primitives"] == 5856
+    assert 1 <= result["leaf_size_min"] and result["leaf_size_max"] <= DEFAULT_MAX_LEAF == result["max_leaf"]
     assert result["depth"] >= 13  # log2(5856) ~ 12.5
     assert result["seconds"] > 0 and result["sah"] > 0
     tree, frame = jaxbvh.load(out)

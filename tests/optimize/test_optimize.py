@@ -8,15 +8,18 @@ import pytest
 from helpers import assert_same_tree, random_tree
 
 import jaxbvh
+from jaxbvh.configs import DEFAULT_MAX_LEAF
 from jaxbvh.optimize import OPTIMIZERS, make_config, optimize, pipeline, reinsert, treelet
+from jaxbvh.optimize.leaves_reference import merge_leaves
 from jaxbvh.optimize.driver import TimeBudget
 
 
 def check(tree, result, prim_lo, prim_hi):
     jaxbvh.validate(result.tree, prim_lo, prim_hi)
-    t = jaxbvh.to_numpy(tree)
-    leaf = t.prim_count > 0
-    np.testing.assert_array_equal(result.tree.lo[leaf], t.lo[leaf])
+    t, out = jaxbvh.to_numpy(tree), jaxbvh.to_numpy(result.tree)
+    # leaves are kept, but for the pipeline's final merge of subtrees into leaves
+    kept = (t.prim_count > 0) & (out.prim_count == t.prim_count)
+    np.testing.assert_array_equal(out.lo[kept], t.lo[kept])
     assert result.sah == pytest.approx(float(jaxbvh.sah(jaxbvh.to_jax(result.tree))), rel=1e-6)
     assert result.sah <= result.sah_start * (1 + 1e-6)
 
@@ -35,8 +38,10 @@ def test_every_method_gives_a_valid_tree_and_reports_every_step():
 
 
 def chained_by_hand(tree, rounds=8, round_gain=1e-3, treelet_options=None, reinsert_options=None,
-                    first_passes=pipeline.DEFAULT_FIRST_TREELET_PASSES, widen_until=pipeline.DEFAULT_WIDEN_UNTIL):
-    """The pipeline's rounds written out with the stages' own entry points: ``(tree, stages)``."""
+                    first_passes=pipeline.DEFAULT_FIRST_TREELET_PASSES, widen_until=pipeline.DEFAULT_WIDEN_UNTIL,
+                    max_leaf=DEFAULT_MAX_LEAF):
+    """The pipeline's rounds written out with the stages' own entry points, then the final
+    leaf merge (its NumPy twin): ``(tree, stages)``."""
     t, sah, stages = tree, float(jaxbvh.sah(jaxbvh.to_jax(tree))), []
     for round_ in range(rounds):
         before = sah
@@ -54,7 +59,7 @@ def chained_by_hand(tree, rounds=8, round_gain=1e-3, treelet_options=None, reins
         sah = float(r.history[r.steps - 1]) if r.steps else sah
         if before - sah < round_gain * before:
             break
-    return t, stages
+    return merge_leaves(t, max_leaf), stages
 
 
 def test_pipeline_is_its_stages_in_rounds():
@@ -239,3 +244,18 @@ def test_time_budget_clock_counts_from_start():
     for bad in (0, -1.0, float("nan")):
         with pytest.raises(ValueError, match="time_budget"):
             TimeBudget(bad)
+
+
+def test_pipeline_ends_with_the_leaf_merge():
+    """With a dear traversal step, leaves of several primitives pay: the pipeline's tree
+    is its max_leaf 1 tree merged exactly (the NumPy twin), at most max_leaf per leaf."""
+    tree, plo, phi = random_tree(23, 50, 1)
+    single = optimize(tree, "pipeline", ct=4.0, max_leaf=1)
+    assert int(np.max(single.tree.prim_count)) == 1
+    merged = optimize(tree, "pipeline", ct=4.0, max_leaf=3)
+    jaxbvh.validate(merged.tree, plo, phi)
+    assert merged.sah == pytest.approx(float(jaxbvh.sah(jaxbvh.to_jax(merged.tree), 4.0)), rel=1e-6)
+    want = merge_leaves(single.tree, 3, ct=4.0)  # (its runs laid out before the split-axis pass)
+    assert_same_tree(merged.tree, want, fields=("left", "right", "parent", "lo", "hi", "prim_count", "root"))
+    assert 1 < int(np.max(merged.tree.prim_count)) <= 3
+    assert merged.sah < single.sah

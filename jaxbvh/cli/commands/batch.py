@@ -41,6 +41,7 @@ from jaxbvh.batch import BatchConfig, build, costs, optimize, runs, use_cpu_core
 from jaxbvh.builders.configs import TRIANGLE_BUILDERS
 from jaxbvh.cli import command_kit
 from jaxbvh.cli.commands.optimize import OPTIONS as OPTIMIZER_OPTIONS
+from jaxbvh.cli.commands.optimize import leaf_limit
 from jaxbvh.cli.options import add_config_options
 from jaxbvh.io import load_mesh
 from jaxbvh.optimize import DEFAULT_METHOD, OPTIMIZERS
@@ -165,7 +166,7 @@ def run(args) -> dict:
     optimizer = None
     given = OPTIMIZER_OPTIONS.given(args)
     if args.action == "optimize":
-        optimizer = OPTIMIZER_OPTIONS.config(args.method, args, ct=builder.ct, ci=builder.ci)
+        optimizer = OPTIMIZER_OPTIONS.config(args.method, args, ct=builder.ct, ci=builder.ci, **leaf_limit(args.method, builder))
     elif given:
         raise ValueError(f"{', '.join(given)}: optimizer options apply to 'batch optimize' only")
     batch_config = args.batch_options.config(None, args)

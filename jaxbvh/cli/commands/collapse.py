@@ -60,7 +60,8 @@ def _config(args, builder, kind: str) -> CollapseConfig:
         raise ValueError(config_options.with_flags(str(exc), {"simd_width": "--simd-width"})) from None
     config = OPTIONS.config(None, args, test_cost=test_cost, ci=builder.ci)
     if config.method != "dp":
-        if kind == "tree" and builder.max_leaf > 1:
+        # only an explicit --max-leaf asks for merging (its default shapes a mesh's build)
+        if kind == "tree" and "max_leaf" in vars(args) and builder.max_leaf > 1:
             raise ValueError("--max-leaf with a tree input merges leaves, which needs --method dp")
         return config
     return config.replace(max_leaf=builder.max_leaf)

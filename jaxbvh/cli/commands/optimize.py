@@ -17,6 +17,7 @@ naming the option, before anything is loaded.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -37,11 +38,18 @@ FLAGS = {
     "max_iterations": "--max-passes",   # reinsertion's iterations, also the pipeline's
     "max_quench": "--max-passes",       # annealing's passes at T = 0 after the schedule
 }
-#: config fields the command line does not offer: the SAH constants come with the builder
-#: options (--ct, --ci: they cost the tree too); work sizes never change a result; the
+#: config fields the command line does not offer: the SAH constants and the leaf limit come
+#: with the builder options (--ct, --ci, --max-leaf: they cost and shape the tree too); work sizes never change a result; the
 #: pipeline sets its stages' passes, costs and split axes itself
-EXCLUDE = ("ct", "ci", "windows", "frontier", "treelet.max_passes", "treelet.split_axes",
+EXCLUDE = ("ct", "ci", "max_leaf", "windows", "frontier", "treelet.max_passes", "treelet.split_axes",
            "reinsert.split_axes")
+
+def leaf_limit(method: str, builder) -> dict:
+    """``{"max_leaf": builder.max_leaf}`` for an optimizer whose Config has the knob (the
+    pipeline's final leaf merge): ``--max-leaf`` shapes the leaves of both steps."""
+    fields = {f.name for f in dataclasses.fields(OPTIMIZERS[method].Config)}
+    return {"max_leaf": builder.max_leaf} if "max_leaf" in fields else {}
+
 
 #: methods whose options serve each other: Kensler's hill climbing is his annealing
 #: without the heat, so annealing's options (--iterations, --chains, ...) are accepted,
@@ -87,7 +95,7 @@ def make_config(args, builder=None):
     """The Config of ``args.method`` from the options given (the Config's defaults for the
     rest), with the SAH constants of ``builder`` (None: of the builder options in ``args``)."""
     builder = command_kit.builder_config(args) if builder is None else builder
-    return OPTIONS.config(args.method, args, ct=builder.ct, ci=builder.ci)
+    return OPTIONS.config(args.method, args, ct=builder.ct, ci=builder.ci, **leaf_limit(args.method, builder))
 
 
 def _load(args, builder, stages):
