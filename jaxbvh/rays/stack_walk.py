@@ -236,7 +236,7 @@ def walk_rays(ray: Callable, n_rays: int, *, mode: str, capacity: int, max_hits:
         stacks = Stacks(node=stacks.node.at[lane_ids, col].set(root, mode="drop"),
                         tag=None if stacks.tag is None else stacks.tag.at[lane_ids, col].set(-1, mode="drop"),
                         entry=stacks.entry.at[lane_ids, col].set(root_entry, mode="drop"))
-        return s, stacks, out, next_ray + jnp.sum(take.astype(I32))
+        return s, stacks, out, next_ray + jnp.sum(take, dtype=I32)
 
     def lane_step(s, top_node, top_tag, top_entry):
         r = ray(jnp.maximum(s.ray, 0))
@@ -313,7 +313,7 @@ def _primitive_step(hooks, s: Walk, in_leaf, t_min, t_max, *, mode, max_hits, wi
     # stale slot would be a cache miss (gathers of scattered triangles dominate a step)
     t, u, v, prim = jax.vmap(hooks.primitive, in_axes=(0, None))(jnp.where(tested, slots, 0), s.leaf_tag)
     valid = tested & (t > t_min) & (t < t_max)
-    n_tested = jnp.sum(tested.astype(I32))
+    n_tested = jnp.sum(tested, dtype=I32)  # int32 under x64 too (a loop carry)
     if mode == "all":  # width 1: list in order
         found = _record(s.found, valid[0], t[0], u[0], v[0], prim[0], mode=mode, max_hits=max_hits)
     else:
@@ -373,7 +373,7 @@ def _node_step(hooks, s: Walk, pop, top_node, top_tag, entry, *, capacity):
     counts = c._replace(
         nodes_visited=c.nodes_visited + counted.astype(I32),
         leaves_visited=c.leaves_visited + open_leaf.astype(I32),
-        box_tests=c.box_tests + jnp.where(expand, jnp.sum(node.tested), 0).astype(I32))
+        box_tests=c.box_tests + jnp.where(expand, jnp.sum(node.tested, dtype=I32), 0))
     s = s._replace(
         counts=counts,
         leaf_pos=jnp.where(open_leaf, node.leaf_start, s.leaf_pos),
@@ -403,7 +403,7 @@ def _push(s: Walk, node: Node, kid_hit, pop, top, *, capacity):
     before = (key[:, None] < key[None, :]) | (
         (key[:, None] == key[None, :]) & (slot_ids[:, None] < slot_ids[None, :]))
     rank = jnp.sum(kid_hit[:, None] & before, axis=0)  # visiting position of each kid
-    n_push = jnp.sum(kid_hit).astype(I32)
+    n_push = jnp.sum(kid_hit, dtype=I32)
     pos = top + n_push - 1 - rank  # nearest on top
     fits = pos < capacity
     pos = jnp.where(kid_hit & fits, pos, capacity)

@@ -117,7 +117,7 @@ def test_one_and_two_primitives_and_duplicates():
     assert jaxbvh.tree.node_count(tree) == 3 and tree.axis[0] == 0
     # 48 primitives with one centre: split by id bits, so balanced; axes -1
     same = np.zeros((48, 3), np.float32)
-    tree = jaxbvh.to_numpy(jaxbvh.build(same, same + 1, method="lbvh"))
+    tree = jaxbvh.to_numpy(jaxbvh.build(same, same + 1, method="lbvh", max_leaf=1))
     jaxbvh.validate(tree, same, same + 1)
     assert jaxbvh.tree.depth(tree).max() == 6
     assert (tree.axis[tree.left >= 0] == -1).all()

@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 
 import jaxbvh
 from jaxbvh.optimize import leaves_reference
+from jaxbvh.numerics import half_area
 from jaxbvh.optimize.leaves import merge_leaves
 from jaxbvh.tree import cost_reference
 
@@ -30,7 +31,7 @@ def all_costs(t, node, max_leaf, ct, ci):
     primitive count (brute force, float64: every combination of the children's options)."""
     if t.left[node] < 0:
         return [ci * float(t.prim_count[node])], int(t.prim_count[node])
-    a = {c: cost_reference._area(t.lo[c], t.hi[c]) for c in (node, int(t.left[node]), int(t.right[node]))}
+    a = {c: half_area(np.float64(t.lo[c]), np.float64(t.hi[c])) for c in (node, int(t.left[node]), int(t.right[node]))}
     left, nl = all_costs(t, int(t.left[node]), max_leaf, ct, ci)
     right, nr = all_costs(t, int(t.right[node]), max_leaf, ct, ci)
     s = a[node]

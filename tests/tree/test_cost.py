@@ -83,7 +83,7 @@ def test_zero_area_root_uses_unit_weights():
     """All primitives in one point: every child is hit whenever its parent is."""
     n = 8
     lo = np.full((n, 3), 5.0, np.float32)
-    tree = jaxbvh.build(lo, lo)
+    tree = jaxbvh.build(lo, lo, max_leaf=1)  # n leaves of one primitive, n - 1 interior nodes
     costs = jaxbvh.all_costs(tree)
     interior = n - 1
     assert costs["sah"] == pytest.approx(interior * 1.0 + n * 1.0)

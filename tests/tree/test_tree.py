@@ -167,7 +167,7 @@ DAMAGE_NAMED = {
 def test_validate_catches_damage(data, seed, kind):
     lo, hi = data
     hi = hi + np.float32(0.01)  # no zero-extent boxes: every damage is visible
-    tree = jaxbvh.build(lo, hi)
+    tree = jaxbvh.build(lo, hi, max_leaf=1)  # interior nodes and two leaves at least, whatever the boxes
     jaxbvh.validate(tree, lo, hi)
     broken = _damage(kind, tree, np.random.default_rng(seed))
     with pytest.raises(jaxbvh.InvalidTreeError, match=DAMAGE_NAMED[kind]):
