@@ -85,6 +85,20 @@ REPORT_FIELDS = ("mesh", "output", "triangles", "builder", "optimizer", "sah_bui
                  "input_sha256", "output_sha256", "skipped", "error")
 
 
+def checked_tree(tree, lo, hi, triangles=None):
+    """``tree`` (one of a batch's) validated against its mesh and compacted to NumPy.
+
+    ``lo``, ``hi`` [P, 3]: the mesh's primitive boxes; ``triangles`` [P, 3, 3] for a tree
+    with spatial splits (a triangle may sit in several leaves, each leaf box holding a
+    piece of it), else None. Raises :class:`jaxbvh.InvalidTreeError` on a broken tree.
+    The single-process batch command and the chunked runs check every tree this one way.
+    """
+    if triangles is None:
+        jaxbvh.validate(tree, lo, hi)
+    else:
+        jaxbvh.validate(tree, lo, hi, references=True, triangles=triangles)
+    return compact(tree)
+
 def mesh_key(seed: int, name: str):
     """The ``jax.random`` key of the mesh whose output name is ``name`` (module docstring):
     ``fold_in(seed_key(seed), h)``, ``h`` the first 31 bits of SHA-256 of ``name``."""
@@ -195,12 +209,7 @@ def trees_of(meshes, names, settings: Settings, on_chunk=None) -> tuple[list, li
         if tree is None:
             continue
         try:
-            lo, hi = boxes[i]
-            if triangles is None:
-                jaxbvh.validate(tree, lo, hi)
-            else:  # a triangle may sit in several leaves: each leaf box holds a piece of it
-                jaxbvh.validate(tree, lo, hi, references=True, triangles=triangles[k])
-            trees[i] = compact(tree)
+            trees[i] = checked_tree(tree, *boxes[i], None if triangles is None else triangles[k])
             rows[i]["sah_built"] = float(sah_built[k])
             rows[i]["sah"] = float(figures.sah[k]) if figures is not None else float(sah_built[k])
         except Exception as exc:  # noqa: BLE001 (a tree that fails its checks is that mesh's row)

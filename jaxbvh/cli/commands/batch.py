@@ -45,7 +45,6 @@ from jaxbvh.cli.commands.optimize import leaf_limit
 from jaxbvh.cli.options import add_config_options
 from jaxbvh.io import load_mesh
 from jaxbvh.optimize import DEFAULT_METHOD, OPTIMIZERS
-from jaxbvh.tree.interchange import compact
 
 HELP = "build (and optimize) the BVHs of many meshes at once, one tree file per mesh"
 ACTIONS = ("build", "optimize")
@@ -236,12 +235,7 @@ def run(args) -> dict:
                 row = rows[i]
                 stage = "validate"
                 try:
-                    lo, hi = boxes[i]
-                    if triangles is None:
-                        jaxbvh.validate(tree, lo, hi)
-                    else:  # a triangle may sit in several leaves: each leaf box holds a piece of it
-                        jaxbvh.validate(tree, lo, hi, references=True, triangles=triangles[k])
-                    tree = compact(tree)
+                    tree = runs.checked_tree(tree, *boxes[i], None if triangles is None else triangles[k])
                     stage = "write"  # atomic: a failed write leaves no file behind
                     temporary = staged_name(row["output"])
                     try:
