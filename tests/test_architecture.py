@@ -21,6 +21,7 @@ RULES = [
     (r"\bj?np\.frexp\(", "the power-of-two area scale"),
     (r"^def _take\(", "the bounded gather"),
     (r"^def _?working_dtype\(", "the working dtype"),
+    (r"(\w+)\[(\.\.\., |:, )?0\] \* \1\[(\.\.\., |:, )?1\] \+ \1\[", "the box half-area (numerics.half_area)"),
 ]
 RULE_HOMES = {"numerics.py", "tree/frame.py"}  # frame.py: the frame's own scale (not an area scale)
 

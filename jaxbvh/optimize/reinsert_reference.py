@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxbvh.numerics import box_scale
+from jaxbvh.numerics import box_scale, half_area
 from jaxbvh.numerics import min_gain as default_min_gain
 from jaxbvh.optimize.reinsert_rules import (
     ALL_OCTAVES,
@@ -55,8 +55,7 @@ class Tree:
     def area_of(self, lo, hi):
         """Half surface area of the box ``lo``, ``hi`` [3], scaled by the tree's area scale,
         in its dtype."""
-        d = np.maximum((hi - lo) * self.scale, self.dtype(0))
-        return d[0] * d[1] + d[1] * d[2] + d[2] * d[0]
+        return half_area(lo, hi, self.scale)
 
     def area(self, n):
         """Half area of node ``n``'s box (:meth:`area_of`)."""

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxbvh.numerics import box_scale
+from jaxbvh.numerics import box_scale, half_area
 from jaxbvh.numerics import min_gain as min_gain_of
 from jaxbvh.tree.layout import to_numpy
 from jaxbvh.tree.walks import post_order
@@ -44,8 +44,7 @@ class _Tree:
                                               self.area(a), self.cost[a], self.area(b), self.cost[b])
 
     def area_of(self, lo, hi):
-        d = np.maximum((hi - lo) * self.scale, self.dtype(0))
-        return d[0] * d[1] + d[1] * d[2] + d[2] * d[0]
+        return half_area(lo, hi, self.scale)
 
     def area(self, n):
         return self.area_of(self.lo[n], self.hi[n])

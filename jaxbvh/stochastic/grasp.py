@@ -81,6 +81,7 @@ from jaxbvh.builders.inputs import prepare
 from jaxbvh.builders.topdown import RandomSplits, randomized_forest
 from jaxbvh.configs import Checked, integer, knob, one_of, optional, real
 from jaxbvh.draws import split_uniforms
+from jaxbvh.numerics import half_area
 from jaxbvh.optimize.protocol import CompileClock, SearchResult, StepInfo, check_on_step
 from jaxbvh.tree.layout import capacity_bucket, concat_ranges, to_numpy
 
@@ -255,8 +256,8 @@ def _levels(left, right, roots):
 
 
 def _areas(lo, hi):
-    d = np.maximum(np.asarray(hi, np.float64) - np.asarray(lo, np.float64), 0.0)
-    return d[:, 0] * d[:, 1] + d[:, 1] * d[:, 2] + d[:, 2] * d[:, 0]
+    """Half-areas [n] float64 of the boxes ``lo``, ``hi`` [n, 3] (host)."""
+    return half_area(np.asarray(lo, np.float64), np.asarray(hi, np.float64))
 
 
 def _subtree_sums(t, levels, area):

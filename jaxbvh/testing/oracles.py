@@ -18,6 +18,7 @@ import itertools
 
 import numpy as np
 
+from jaxbvh.numerics import half_area
 from jaxbvh.optimize.treelet_reference import Tree as TreeletTree
 from jaxbvh.optimize.treelet_reference import brute_force as treelet_brute_force
 from jaxbvh.rays.traversal_reference import brute_force_closest
@@ -46,8 +47,7 @@ def any_hits(triangles, origin, direction, *, t_min: float = 0.0, t_max: float =
 
 
 def _area(lo, hi) -> float:
-    d = np.maximum(np.asarray(hi, np.float64) - np.asarray(lo, np.float64), 0.0)
-    return float(2.0 * (d[0] * d[1] + d[1] * d[2] + d[2] * d[0]))
+    return float(2.0 * half_area(np.asarray(lo, np.float64), np.asarray(hi, np.float64)))
 
 
 def _splits(items):

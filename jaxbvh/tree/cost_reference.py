@@ -8,12 +8,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from jaxbvh.numerics import half_area
 from jaxbvh.tree.layout import to_numpy
 
 
 def _area(lo, hi):
-    d = np.maximum(np.asarray(hi, np.float64) - np.asarray(lo, np.float64), 0.0)
-    return 2.0 * (d[0] * d[1] + d[1] * d[2] + d[2] * d[0])
+    return 2.0 * half_area(np.asarray(lo, np.float64), np.asarray(hi, np.float64))
 
 
 def _children(t, node):

@@ -574,8 +574,7 @@ def sah(tl: TwoLevelBVH, ct: float = 1.0, ci: float = 1.0, *, boxes: str = "worl
     t = to_numpy(tl)
     lo, hi = flat.lo.astype(np.float64), flat.hi.astype(np.float64)
 
-    d = np.maximum(hi - lo, 0)
-    area = d[:, 0] * d[:, 1] + d[:, 1] * d[:, 2] + d[:, 2] * d[:, 0]
+    area = half_area(lo, hi)
     # copies below a BRef's root are tested in their object frame
     below = np.ones(cid.size, bool)
     below[: int(np.count_nonzero(t.top.prim_count > 0))] = False  # the first copies are the roots
