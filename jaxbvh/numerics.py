@@ -105,14 +105,29 @@ def working_dtype(dtype, given) -> np.dtype:
     return dtype
 
 
+def exponent_for_extent(m, dtype=np.float64) -> int:
+    """The exponent ``k`` of :func:`scale_for_extent`: ``2^k`` brings an extent ``m > 0``
+    into [0.5, 1); 0 when ``m <= 0`` (host); ``2^k`` at most the largest power of two
+    finite in ``dtype``."""
+    m = float(m)
+    if not m > 0:
+        return 0
+    return min(-int(np.frexp(m)[1]), np.finfo(dtype).maxexp - 1, np.finfo(np.float64).maxexp - 1)
+
+
 def scale_for_extent(m, dtype=np.float64) -> float:
     """Power of two that brings an extent ``m > 0`` into [0.5, 1); 1.0 when ``m <= 0``
     (host); at most the largest power of two finite in ``dtype``."""
-    m = float(m)
-    if not m > 0:
-        return 1.0
-    exponent = min(-int(np.frexp(m)[1]), np.finfo(dtype).maxexp - 1, np.finfo(np.float64).maxexp - 1)
-    return float(np.ldexp(1.0, exponent))
+    return float(np.ldexp(1.0, exponent_for_extent(m, dtype)))
+
+
+def root_exponent(lo, hi) -> int:
+    """The exponent ``k`` of the area scale of the box ``lo``, ``hi`` [3] (NumPy; usually
+    the root's): ``2^k`` brings its largest extent, taken in float64, into [0.5, 1) (0 for
+    a point). A host tree whose ``k > 0`` is small, perhaps subnormal, and scaling its
+    boxes by ``2^k`` (exact) keeps them out of the range XLA flushes to zero (module
+    docstring); an exponent, since ``2^k`` itself may not fit the boxes' type."""
+    return exponent_for_extent(np.max(np.asarray(hi).astype(np.float64) - np.asarray(lo).astype(np.float64)))
 
 
 def scene_scale(lo, hi) -> float:

@@ -26,14 +26,13 @@ exact: the costs of a tree stored at 1e-40 are those of the same tree at 1.
 from __future__ import annotations
 
 import dataclasses
-import math
 from functools import partial
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxbvh.numerics import extent_scale, half_area, scale_for_extent
+from jaxbvh.numerics import extent_scale, half_area, root_exponent
 from jaxbvh.tree.layout import to_jax, to_numpy
 
 
@@ -121,10 +120,7 @@ def _scaled_up_on_host(tree):
     lo, hi = np.asarray(t.lo), np.asarray(t.hi)
     if not (np.isfinite(lo[root]).all() and np.isfinite(hi[root]).all()):
         return tree
-    # numerics.scale_for_extent: the power of two that brings the largest extent into
-    # [0.5, 1), as an exponent (inf where 2^k overflows float64: float64 subnormals, left)
-    factor = scale_for_extent(np.max(hi[root].astype(np.float64) - lo[root].astype(np.float64)))
-    exponent = int(round(math.log2(factor))) if math.isfinite(factor) else 0
+    exponent = root_exponent(lo[root], hi[root])
     if exponent <= 0:
         return tree
     return dataclasses.replace(t, lo=np.ldexp(lo, exponent).astype(lo.dtype),

@@ -34,7 +34,7 @@ import zipfile
 import numpy as np
 
 from jaxbvh.files import atomic_write
-from jaxbvh.numerics import scale_for_extent
+from jaxbvh.numerics import root_exponent
 from jaxbvh.tree.frame import Frame
 from jaxbvh.tree.layout import BVH, WideBVH, capacity_bucket, concat_ranges, pad_rows, real_nodes, to_numpy
 
@@ -262,12 +262,7 @@ def _out_of_subnormals(tree, frame: Frame):
         return tree, frame
     if not (np.isfinite(lo[root]).all() and np.isfinite(hi[root]).all()):
         return tree, frame  # validation names the broken root box
-    # the power of two that brings the root's largest extent into [0.5, 1) (as
-    # numerics.scene_scale, as an exponent: 2^k itself may not fit the boxes' type)
-    # numerics.scale_for_extent: the power of two that brings the largest extent into
-    # [0.5, 1), as an exponent (inf where 2^k overflows float64: float64 subnormals, left)
-    factor = scale_for_extent(np.max(hi[root].astype(np.float64) - lo[root].astype(np.float64)))
-    exponent = int(round(math.log2(factor))) if math.isfinite(factor) else 0
+    exponent = root_exponent(lo[root], hi[root])
     if exponent <= 0:
         return tree, frame  # the extent is not small: the subnormals are below the tree's precision
     with np.errstate(over="ignore"):
