@@ -4,7 +4,8 @@ Part of :mod:`jaxbvh.optimize.rotate`, whose docstring explains the passes (heig
 windows, the queue of changed nodes and the walk to their ancestors) and the forest of
 annealing chains. :func:`run_pass` runs one pass; :func:`initial_state` computes the
 costs and heights a run starts from; :func:`forest_of` and :func:`chain_of` put K
-copies of a tree into one forest and take one back out.
+copies of a tree into one forest and take one back out. The windows over each height
+are :mod:`jaxbvh.tree.windows`' (the loop treelet restructuring and collapsing share).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import jax.numpy as jnp
 
 from jaxbvh.numerics import extent_scale, half_area, none_to_oob, take
 from jaxbvh.optimize.rotate_moves import State, node_cost, process_window
+from jaxbvh.tree import windows as level_windows
 
 # queue lengths up to this are walked in a narrow compiled branch (speed only)
 SMALL_QUEUE = 4096
@@ -190,37 +192,16 @@ def run_pass(st, interior, scale, ct, min_gain, temperature, draws, collect=True
     # more than the moves themselves)
     log = jnp.full(order.shape + (3,), cap, jnp.int32)
 
-    def window_loop(carry, width, last):
-        """Windows of ``width`` while at least ``width`` (``last``: any) nodes remain."""
-        def cond(c):
-            _, _, start, end, _ = c
-            return (end - start >= width) | (last & (start < end))
-
-        def body(c):
-            st, log, start, end, moves = c
-            nodes = jax.lax.dynamic_slice(order, (start,), (width,))
-            nodes = jnp.where(start + jnp.arange(width) < end, nodes, cap)
-            st, made, moved = process_window(st, nodes, scale, ct, min_gain, temperature, draws,
-                                       annealing, chains)
-            log = jax.lax.dynamic_update_slice(log, moved, (start, jnp.int32(0)))
-            return st, log, start + jnp.minimum(width, end - start), end, moves + made
-
-        return jax.lax.while_loop(cond, body, carry)
-
-    def cond(carry):
-        return carry[2] < count
-
-    def body(carry):
-        st, log, start, moves = carry
-        end = jnp.searchsorted(keys, keys[start], side="right").astype(jnp.int32)
-        carry = (st, log, start, end, moves)
-        for i, width in enumerate(windows):
-            carry = window_loop(carry, width, i == len(windows) - 1)
-        st, log, start, _, moves = carry
-        return st, log, start, moves
+    def visit(carry, start, valid):
+        st, log, moves = carry
+        nodes = jnp.where(valid, jax.lax.dynamic_slice(order, (start,), (valid.shape[0],)), cap)
+        st, made, moved = process_window(st, nodes, scale, ct, min_gain, temperature, draws,
+                                         annealing, chains)
+        log = jax.lax.dynamic_update_slice(log, moved, (start, jnp.int32(0)))
+        return st, log, moves + made
 
     moves = jnp.zeros(chains, jnp.int32)
-    st, log, _, moves = jax.lax.while_loop(cond, body, (st, log, jnp.int32(0), moves))
+    st, log, moves = level_windows.by_runs(visit, (st, log, moves), keys, count, windows)
     capacity = st.queue.shape[0]
     queued = 3 * jnp.sum(moves, dtype=jnp.int32)
     # no queue is needed when it overflows or the next pass visits everything anyway

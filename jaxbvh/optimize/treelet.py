@@ -81,6 +81,7 @@ from jaxbvh.optimize.reinsert import start_sah
 from jaxbvh.tree.cost import sah as sah_of
 from jaxbvh.tree.layout import to_jax
 from jaxbvh.tree.refit import refit_boxes
+from jaxbvh.tree import windows as level_windows
 from jaxbvh.tree.split_axes import apply_split_axes
 
 DEFAULT_LEAVES = 7
@@ -335,35 +336,14 @@ def _pass(st: _State, fresh, scale, ct, min_gain, *, n, windows):
     widths = tuple(sorted({min(w, cap) for w in windows}, reverse=True))
     order = jnp.concatenate([order, jnp.full(widths[0], cap, jnp.int32)])
 
-    def window_loop(carry, width, last):
-        def cond(c):
-            _, start, end, _, _ = c
-            return (end - start >= width) | (last & (start < end))
+    def visit(carry, start, valid):
+        st, changed, rewritten = carry
+        roots = jnp.where(valid, jax.lax.dynamic_slice(order, (start,), (valid.shape[0],)), cap)
+        st, made, at = _process(st, roots, scale, ct, min_gain, n)
+        return st, changed + made, rewritten.at[at].set(True, mode="drop")
 
-        def body(c):
-            st, start, end, changed, rewritten = c
-            roots = jax.lax.dynamic_slice(order, (start,), (width,))
-            roots = jnp.where(start + jnp.arange(width) < end, roots, cap)
-            st, made, at = _process(st, roots, scale, ct, min_gain, n)
-            rewritten = rewritten.at[at].set(True, mode="drop")
-            return st, start + jnp.minimum(width, end - start), end, changed + made, rewritten
-
-        return jax.lax.while_loop(cond, body, carry)
-
-    def cond(c):
-        return c[1] < count
-
-    def body(c):
-        st, start, changed, rewritten = c
-        end = jnp.searchsorted(keys, keys[start], side="right").astype(jnp.int32)
-        carry = (st, start, end, changed, rewritten)
-        for i, width in enumerate(widths):
-            carry = window_loop(carry, width, i == len(widths) - 1)
-        st, start, _, changed, rewritten = carry
-        return st, start, changed, rewritten
-
-    st, _, changed, rewritten = jax.lax.while_loop(
-        cond, body, (st, jnp.int32(0), jnp.int32(0), jnp.zeros(cap, bool)))
+    st, changed, rewritten = level_windows.by_runs(
+        visit, (st, jnp.int32(0), jnp.zeros(cap, bool)), keys, count, widths)
     # fresh for the next pass: the nodes a changed treelet rewrote and their ancestors in the
     # new tree; every other node was solved (now or before) with the subtree it has, found
     # no change and would find none again (Passes)

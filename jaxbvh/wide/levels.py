@@ -19,8 +19,9 @@ Sweeps (:func:`sweep_down`, :func:`sweep_up`) call ``step(carry, start, valid)``
 windows ``[start, start + W)`` of positions of one level (``valid`` [W] bool masks the
 positions outside it), root level first or deepest level first. A level with many
 nodes goes through windows of the largest size in ``widths`` while that many remain,
-then the next size down; so the work is about the number of nodes plus
-(levels x smallest width), not nodes x levels.
+then the next size down (:mod:`jaxbvh.tree.windows`, the loop the optimizers' passes by
+height share); so the work is about the number of nodes plus (levels x smallest width),
+not nodes x levels.
 
 Arrays that a step writes by position (``jax.lax.dynamic_update_slice`` at ``start``)
 have ``levels.order.shape[0]`` rows. In a bottom-up sweep a level's last window is
@@ -36,6 +37,8 @@ from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
+
+from jaxbvh.tree import windows as level_windows
 
 
 @jax.tree_util.register_dataclass
@@ -109,7 +112,7 @@ def level_order(left, right, root, interior, widths=(4096, 128)) -> Levels:
     def body(c):
         order, starts, d = c
         begin, end = starts[d], starts[d + 1]
-        order, next_end = _forward(place, (order, end), begin, end, widths)
+        order, next_end = level_windows.forward(place, (order, end), begin, end, widths)
         return order, starts.at[d + 2].set(next_end), d + 1
 
     order, starts, levels = jax.lax.while_loop(cond, body, (order, starts, jnp.int32(0)))
@@ -117,54 +120,11 @@ def level_order(left, right, root, interior, widths=(4096, 128)) -> Levels:
     return Levels(order, starts, levels, position, widths)
 
 
-def _forward(step, carry, begin, end, widths):
-    """Windows over ``[begin, end)`` front to back; the last one masks what lies past ``end``."""
-
-    def run(state, width, last):
-        def cond(s):
-            _, start = s
-            return (end - start >= width) | (last & (start < end))
-
-        def body(s):
-            carry, start = s
-            valid = start + jnp.arange(width) < end
-            return step(carry, start, valid), start + jnp.minimum(width, end - start)
-
-        return jax.lax.while_loop(cond, body, state)
-
-    state = (carry, begin)
-    for i, width in enumerate(widths):
-        state = run(state, width, i == len(widths) - 1)
-    return state[0]
-
-
-def _backward(step, carry, begin, end, widths):
-    """Windows over ``[begin, end)`` back to front; the last one masks what lies before ``begin``."""
-
-    def run(state, width, last):
-        def cond(s):
-            _, stop = s
-            return (stop - begin >= width) | (last & (stop > begin))
-
-        def body(s):
-            carry, stop = s
-            start = stop - width
-            valid = start + jnp.arange(width) >= begin
-            return step(carry, start, valid), jnp.maximum(start, begin)
-
-        return jax.lax.while_loop(cond, body, state)
-
-    state = (carry, end)
-    for i, width in enumerate(widths):
-        state = run(state, width, i == len(widths) - 1)
-    return state[0]
-
-
 def sweep_down(levels: Levels, step: Callable, carry):
     """``step(carry, start, valid) -> carry`` on every level, the root's first."""
 
     def body(d, carry):
-        return _forward(step, carry, levels.starts[d], levels.starts[d + 1], levels.widths)
+        return level_windows.forward(step, carry, levels.starts[d], levels.starts[d + 1], levels.widths)
 
     return jax.lax.fori_loop(0, levels.levels, body, carry)
 
@@ -174,7 +134,7 @@ def sweep_up(levels: Levels, step: Callable, carry):
 
     def body(i, carry):
         d = levels.levels - 1 - i
-        return _backward(step, carry, levels.starts[d], levels.starts[d + 1], levels.widths)
+        return level_windows.backward(step, carry, levels.starts[d], levels.starts[d + 1], levels.widths)
 
     return jax.lax.fori_loop(0, levels.levels, body, carry)
 
