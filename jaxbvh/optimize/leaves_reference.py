@@ -14,19 +14,7 @@ import numpy as np
 
 from jaxbvh.numerics import half_area, scale_for_extent
 from jaxbvh.tree.layout import to_numpy
-
-
-def _postorder(t, root):
-    out, stack = [], [(root, False)]
-    while stack:
-        node, done = stack.pop()
-        if done:
-            out.append(node)
-            continue
-        stack.append((node, True))
-        if t.left[node] >= 0:
-            stack += [(int(t.right[node]), False), (int(t.left[node]), False)]
-    return out
+from jaxbvh.tree.walks import post_order
 
 
 def merge_leaves(tree, max_leaf: int, ct=1.0, ci=1.0):
@@ -40,7 +28,7 @@ def merge_leaves(tree, max_leaf: int, ct=1.0, ci=1.0):
     area = half_area(t.lo, t.hi, scale).astype(t.lo.dtype)
     ct, ci = dtype(ct), dtype(ci)
     count, best, merge = {}, {}, {}
-    for node in _postorder(t, root):
+    for node in post_order(np.stack([t.left, t.right], axis=1), root):
         if t.left[node] < 0:
             count[node] = int(t.prim_count[node])
             best[node] = ci * dtype(count[node])

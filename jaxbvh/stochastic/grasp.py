@@ -84,6 +84,7 @@ from jaxbvh.draws import split_uniforms
 from jaxbvh.numerics import half_area
 from jaxbvh.optimize.protocol import CompileClock, SearchResult, StepInfo, check_on_step
 from jaxbvh.tree.layout import capacity_bucket, concat_ranges, to_numpy
+from jaxbvh.tree.walks import levels as tree_levels
 
 OBJECTIVES = ("nt", "sah")
 
@@ -243,18 +244,6 @@ def randomized_build(key, prim_lo, prim_hi, *, trial: int = 0, noise: float, rcl
 # ----------------------------------------------------------------------------------
 
 
-def _levels(left, right, roots):
-    """Node ids by depth from ``roots``: list of int arrays (each loop step one level)."""
-    out, frontier = [], np.asarray(roots, np.int64)
-    for _ in range(left.shape[0] + 1):  # bound: a level per node at most
-        if frontier.size == 0:
-            break
-        out.append(frontier)
-        kids = np.concatenate([left[frontier], right[frontier]])
-        frontier = kids[kids >= 0]
-    return out
-
-
 def _areas(lo, hi):
     """Half-areas [n] float64 of the boxes ``lo``, ``hi`` [n, 3] (host)."""
     return half_area(np.asarray(lo, np.float64), np.asarray(hi, np.float64))
@@ -293,7 +282,7 @@ class _Greedy:
 def _greedy(tree, objective) -> _Greedy:
     t = to_numpy(tree)
     root = int(t.root)
-    levels = _levels(t.left.astype(np.int64), t.right.astype(np.int64), [root])
+    levels = tree_levels(np.stack([t.left, t.right], axis=1).astype(np.int64), [root])
     area = _areas(t.lo, t.hi)
     count, interior_area, cost = _subtree_sums(t, levels, area)
     start = np.zeros_like(count)
@@ -348,7 +337,7 @@ def _forest_values(forest, tree_of, groups, objective, root_area):
         inner = t.left >= 0
         sums = np.bincount(tree_of[inner], weights=area[inner], minlength=groups)[:groups]
         return sums / root_area if root_area > 0 else np.zeros(groups)
-    levels = _levels(t.left.astype(np.int64), t.right.astype(np.int64), np.arange(groups))
+    levels = tree_levels(np.stack([t.left, t.right], axis=1).astype(np.int64), np.arange(groups))
     _, _, cost = _subtree_sums(t, levels, area)
     return cost[:groups]
 

@@ -10,6 +10,7 @@ import numpy as np
 
 from jaxbvh.numerics import half_area
 from jaxbvh.tree.layout import to_numpy
+from jaxbvh.tree.walks import post_order
 
 
 def _area(lo, hi):
@@ -21,17 +22,9 @@ def _children(t, node):
 
 
 def _postorder(t):
-    """Nodes reachable from the root, children before parents."""
-    out, stack = [], [(int(t.root), False)]
-    while stack:
-        node, done = stack.pop()
-        if done:
-            out.append(node)
-            continue
-        stack.append((node, True))
-        for c in _children(t, node):
-            stack.append((c, False))
-    return out
+    """Nodes reachable from the root, children before parents (the last child's subtree
+    first: the order the sums below were always taken in)."""
+    return post_order(np.asarray(t.child), int(t.root), last_child_first=True)
 
 
 def node_costs(tree, ct=1.0, ci=1.0) -> dict[int, float]:

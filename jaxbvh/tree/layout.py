@@ -52,6 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh import compile_cache
+from jaxbvh.tree.walks import depths
 
 # the package's JAX code passes here before it compiles anything: the persistent
 # compilation cache is on from then (idempotent; jaxbvh.compile_cache says when not)
@@ -164,16 +165,7 @@ def prim_total(tree) -> int:
 def depth(tree) -> np.ndarray:
     """Depth of every node [N] int32 (root 0); -1 for nodes not reachable from the root."""
     t = to_numpy(tree)
-    child = np.asarray(t.child)
-    out = np.full(child.shape[0], -1, np.int32)
-    frontier = np.array([int(t.root)])
-    d = 0
-    while frontier.size and d <= child.shape[0]:
-        out[frontier] = d
-        nxt = child[frontier].ravel()
-        frontier = nxt[nxt >= 0]
-        d += 1
-    return out
+    return depths(t.child, [int(t.root)], np.int32)
 
 
 def concat_ranges(starts, counts) -> np.ndarray:

@@ -74,6 +74,7 @@ from jaxbvh.builders.dispatch import build
 from jaxbvh.tree.frame import Frame
 from jaxbvh.tree.layout import BVH, capacity_bucket, concat_ranges, depth, to_numpy
 from jaxbvh.tree.validate import validate
+from jaxbvh.tree.walks import levels
 
 
 @jax.tree_util.register_dataclass
@@ -218,15 +219,14 @@ def forest_depths(forest) -> np.ndarray:
     ``forest``: a :class:`Forest` (any object with ``left``, ``right`` [N] and ``root``
     int arrays). Raises ``ValueError`` if the links hold a cycle (the walk is bounded).
     """
-    out = np.full(forest.left.shape[0], -1, np.int64)
-    nodes = forest.root[forest.root >= 0].astype(np.int64)
-    for d in range(out.size + 1):  # no deeper than its node count: bounded even if links were cyclic
-        if not nodes.size:
-            return out
-        out[nodes] = d
-        kids = np.concatenate([forest.left[nodes], forest.right[nodes]])
-        nodes = kids[kids >= 0].astype(np.int64)
-    raise ValueError("forest links do not end in leaves (a cycle): refusing to compute node depths")
+    child = np.stack([forest.left, forest.right], axis=1)
+    by_depth = levels(child, forest.root[forest.root >= 0])
+    if len(by_depth) > child.shape[0]:  # deeper than its node count: a cycle
+        raise ValueError("forest links do not end in leaves (a cycle): refusing to compute node depths")
+    out = np.full(child.shape[0], -1, np.int64)
+    for d, ids in enumerate(by_depth):
+        out[ids] = d
+    return out
 
 
 def margin_for(dtype) -> float:
