@@ -185,7 +185,7 @@ def main(argv=None):
     parser.add_argument("--meshes", type=int, default=200)
     parser.add_argument("--min-tris", type=int, default=200)
     parser.add_argument("--max-tris", type=int, default=5000)
-    parser.add_argument("--builder", default="sweep", choices=list(jaxbvh.BUILDERS))
+    parser.add_argument("--builder", default="sweep", choices=list(jaxbvh.BOX_BUILDERS))
     parser.add_argument("--method", default="pipeline", help="optimizer of the batched-vs-loop run")
     parser.add_argument("--no-pipeline", action="store_true", help="skip the optimizer runs")
     parser.add_argument("--sizes", type=int, nargs="*", default=None,

@@ -50,6 +50,7 @@ _LAZY = {
     "twolevel": ("jaxbvh.twolevel", None), "insertion": ("jaxbvh.builders.insertion", None),
     "lbvh": ("jaxbvh.builders.lbvh", None), "morton": ("jaxbvh.builders.morton", None),
     "ploc": ("jaxbvh.builders.ploc", None), "BUILDERS": ("jaxbvh.builders.dispatch", "BUILDERS"),
+    "BOX_BUILDERS": ("jaxbvh.builders.dispatch", "BOX_BUILDERS"),
     "build": ("jaxbvh.builders.dispatch", "build"), "load_mesh": ("jaxbvh.io", "load_mesh"),
     "reinsert": ("jaxbvh.optimize.reinsert", None), "rotate": ("jaxbvh.optimize.rotate", None),
     "treelet": ("jaxbvh.optimize.treelet", None), "evolve": ("jaxbvh.stochastic.evolve", None),
@@ -67,7 +68,7 @@ _LAZY = {
 }
 
 __all__ = [
-    "BVH", "WideBVH", "Frame", "InvalidTreeError", "BUILDERS",
+    "BVH", "WideBVH", "Frame", "InvalidTreeError", "BUILDERS", "BOX_BUILDERS",
     "build", "check", "validate", "sah", "node_costs", "ng_trifonov_cost", "goldsmith_salmon_cost",
     "all_costs", "save", "load", "to_interchange", "from_interchange", "to_numpy", "to_jax",
     "capacity_bucket", "compile_cache", "load_mesh", "batch", "io", "optimize", "queries", "rays", "scenes", "twolevel",

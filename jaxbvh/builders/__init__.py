@@ -23,6 +23,7 @@ Each module's NumPy twin sits beside it as ``<module>_reference``.
 
 from jaxbvh.builders.configs import (
                                      ALL_BUILDERS,
+                                     BOX_BUILDERS,
                                      BUILDERS,
                                      DEFAULT_BUILDER,
                                      TRIANGLE_BUILDERS,
@@ -37,5 +38,5 @@ from jaxbvh.builders.configs import (
 from jaxbvh.builders.dispatch import build
 from jaxbvh.builders.sbvh import SBVHBuild, build_sbvh
 
-__all__ = ["ALL_BUILDERS", "TRIANGLE_BUILDERS", "BUILDERS", "DEFAULT_BUILDER", "BuilderConfig", "SweepConfig", "BinnedConfig", "MedianConfig",
+__all__ = ["ALL_BUILDERS", "BOX_BUILDERS", "TRIANGLE_BUILDERS", "BUILDERS", "DEFAULT_BUILDER", "BuilderConfig", "SweepConfig", "BinnedConfig", "MedianConfig",
            "LBVHConfig", "PLOCConfig", "SBVHConfig", "SBVHBuild", "build", "build_sbvh"]

@@ -1,9 +1,9 @@
 """One frozen Config per builder: its knobs, their defaults, their checks.
 
 :func:`jaxbvh.build` takes one of these (``jaxbvh.build(lo, hi, BinnedConfig(bins=8))``);
-:data:`BUILDERS` maps each method that builds from boxes to its class,
-:data:`TRIANGLE_BUILDERS` those that need the triangles (``"sbvh"``), :data:`ALL_BUILDERS`
-both. The defaults here are the only
+:data:`BUILDERS` maps every method to its class: :data:`BOX_BUILDERS` those that build
+from boxes alone, :data:`TRIANGLE_BUILDERS` those that need the triangles (``"sbvh"``).
+The defaults here are the only
 ones: :func:`jaxbvh.build`'s keyword form, the command line's options and their
 ``--help`` all read them from these classes (:mod:`jaxbvh.configs` says how).
 
@@ -137,20 +137,24 @@ class SBVHConfig(BuilderConfig):
                                      help="reference slots as a multiple of the triangle count")
 
 
-# method name -> Config class. An OrderedDict: ``method in BUILDERS`` and iterating give
-# the names in this order, and hypothesis' sampled_from takes it (it refuses plain dicts)
-BUILDERS: OrderedDict[str, type[BuilderConfig]] = OrderedDict(
+# method name -> Config class. OrderedDicts: ``method in BUILDERS`` and iterating give
+# the names in this order, and hypothesis' sampled_from takes them (it refuses plain dicts)
+# the builders that need only the primitives' boxes: what code building from boxes alone
+# (two-level objects, tests drawing box sets) can take
+BOX_BUILDERS: OrderedDict[str, type[BuilderConfig]] = OrderedDict(
     (c.method, c) for c in (SweepConfig, BinnedConfig, MedianConfig, LBVHConfig, PLOCConfig))
-# the builders that need the triangles, not only their boxes (jaxbvh.build(..., triangles=tri));
-# kept apart so that code building from boxes alone can take any of BUILDERS
+# the builders that need the triangles, not only their boxes (jaxbvh.build(..., triangles=tri))
 TRIANGLE_BUILDERS: OrderedDict[str, type[BuilderConfig]] = OrderedDict((c.method, c) for c in (SBVHConfig,))
 # every builder: what jaxbvh.build, make_config and the command line's --builder take
-ALL_BUILDERS: OrderedDict[str, type[BuilderConfig]] = OrderedDict(list(BUILDERS.items())
-                                                                   + list(TRIANGLE_BUILDERS.items()))
+BUILDERS: OrderedDict[str, type[BuilderConfig]] = OrderedDict(list(BOX_BUILDERS.items())
+                                                               + list(TRIANGLE_BUILDERS.items()))
 DEFAULT_BUILDER = "sweep"  # the method of jaxbvh.build(lo, hi) and of the command line
+# BUILDERS' name while BUILDERS listed the box builders only (jaxbvh.batch.build still
+# imports it): the same mapping
+ALL_BUILDERS = BUILDERS
 
 # every builder knob: the keyword form of jaxbvh.build takes any of them for any method
-KNOBS = tuple(OrderedDict.fromkeys(f.name for c in ALL_BUILDERS.values() for f in dataclasses.fields(c)))
+KNOBS = tuple(OrderedDict.fromkeys(f.name for c in BUILDERS.values() for f in dataclasses.fields(c)))
 
 
 def make_config(method: str = DEFAULT_BUILDER, **options) -> BuilderConfig:
@@ -160,11 +164,11 @@ def make_config(method: str = DEFAULT_BUILDER, **options) -> BuilderConfig:
     the command line and the two-level builder pass them); a name no builder knows is a
     ``TypeError``, a bad value a ``ValueError`` naming the knob.
     """
-    if method not in ALL_BUILDERS:
-        raise ValueError(f"unknown builder {method!r}; choose one of {', '.join(ALL_BUILDERS)}")
+    if method not in BUILDERS:
+        raise ValueError(f"unknown builder {method!r}; choose one of {', '.join(BUILDERS)}")
     unknown = sorted(set(options) - set(KNOBS))
     if unknown:
         raise TypeError(f"unknown builder option(s) {', '.join(unknown)}; builders take {', '.join(KNOBS)}")
-    cls = ALL_BUILDERS[method]
+    cls = BUILDERS[method]
     own = {f.name for f in dataclasses.fields(cls)}
     return cls(**{k: v for k, v in options.items() if k in own})

@@ -11,11 +11,11 @@ import warnings
 import numpy as np
 
 from jaxbvh.builders import lbvh, ploc, sbvh, topdown
-from jaxbvh.builders.configs import ALL_BUILDERS, BUILDERS, DEFAULT_BUILDER, BuilderConfig, make_config
+from jaxbvh.builders.configs import BOX_BUILDERS, BUILDERS, DEFAULT_BUILDER, BuilderConfig, make_config
 from jaxbvh.builders.inputs import prepare
 from jaxbvh.tree.layout import BVH
 
-__all__ = ["BUILDERS", "DEFAULT_BUILDER", "build"]
+__all__ = ["BUILDERS", "BOX_BUILDERS", "DEFAULT_BUILDER", "build"]
 
 # method -> its builder on prepared inputs: (lo, hi, n, scale, config) -> BVH
 _ON_PREPARED = {"sweep": topdown.build, "binned": topdown.build, "median": topdown.build,
@@ -37,9 +37,9 @@ def build(prim_lo, prim_hi, config: BuilderConfig | str | None = None, *, method
       prim_lo, prim_hi: [n, 3] primitive boxes (any frame; pass scene-relative
         coordinates, e.g. ``jaxbvh.io.Mesh.local_boxes()``, for float32 accuracy far
         from the origin).
-      config: a Config of :data:`ALL_BUILDERS` (its knobs and defaults are documented
+      config: a Config of :data:`BUILDERS` (its knobs and defaults are documented
         there), a method name, or None: ``method`` and ``options``.
-      method: a name in :data:`ALL_BUILDERS` (default :data:`DEFAULT_BUILDER`), with
+      method: a name in :data:`BUILDERS` (default :data:`DEFAULT_BUILDER`), with
       options: the Config's knobs (``max_leaf``, ``bins``, ``ct``, ``ci``, ``pad``,
         ``dtype``, ``radius``, ``morton_bits``, ``alpha``, ``reference_capacity``). ``dtype`` float64 needs x64; the boxes
         are cast to it, so validate the tree against boxes cast the same way.
@@ -71,8 +71,8 @@ def build(prim_lo, prim_hi, config: BuilderConfig | str | None = None, *, method
     elif method is not None or options:
         raise TypeError("give a builder Config or method and keyword options, not both "
                         "(config.replace(...) changes a Config)")
-    elif not isinstance(config, BuilderConfig) or config.method not in ALL_BUILDERS:
-        raise TypeError(f"config must be one of {', '.join(c.__name__ for c in ALL_BUILDERS.values())}, "
+    elif not isinstance(config, BuilderConfig) or config.method not in BUILDERS:
+        raise TypeError(f"config must be one of {', '.join(c.__name__ for c in BUILDERS.values())}, "
                         f"got {type(config).__name__}")
     if config.method == "sbvh":
         return _build_sbvh(prim_lo, prim_hi, triangles, config, capacity)

@@ -14,7 +14,7 @@ from typing import NamedTuple
 import numpy as np
 
 import jaxbvh
-from jaxbvh.builders.configs import ALL_BUILDERS, DEFAULT_BUILDER, TRIANGLE_BUILDERS, BuilderConfig
+from jaxbvh.builders.configs import BUILDERS, DEFAULT_BUILDER, TRIANGLE_BUILDERS, BuilderConfig
 from jaxbvh.cli import options as config_options
 from jaxbvh.cli.front import int_option
 from jaxbvh.configs import INT_MAX, SAHCosts
@@ -60,10 +60,10 @@ DEFAULT_SEED = 0
 BUILDER_EXCLUDE = ("pad", "dtype")
 
 
-def builder_options(default: BuilderConfig | None = None, methods=ALL_BUILDERS) -> config_options.ConfigOptions:
+def builder_options(default: BuilderConfig | None = None, methods=BUILDERS) -> config_options.ConfigOptions:
     """The builder options of the builders ``methods`` (names); ``default``: a Config whose
     values are its builder's defaults (None: every builder's class defaults)."""
-    configs = {m: ALL_BUILDERS[m] for m in methods}
+    configs = {m: BUILDERS[m] for m in methods}
     if default is not None:
         configs[default.method] = default
     return config_options.ConfigOptions(configs, exclude=BUILDER_EXCLUDE, method_flag="--builder",
@@ -71,7 +71,7 @@ def builder_options(default: BuilderConfig | None = None, methods=ALL_BUILDERS) 
                                         check_while_parsing=True)
 
 
-def add_builder_args(parser, *, default: BuilderConfig | None = None, methods=ALL_BUILDERS) -> None:
+def add_builder_args(parser, *, default: BuilderConfig | None = None, methods=BUILDERS) -> None:
     """``--builder`` and the builders' knobs (:mod:`jaxbvh.builders.configs`); ``default``:
     the builder (its method and values) when no option says otherwise (None:
     :data:`~jaxbvh.builders.configs.DEFAULT_BUILDER` with its class defaults);

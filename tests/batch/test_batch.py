@@ -52,7 +52,7 @@ def assert_same_arrays(got, want, what=""):
 # ----------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("method", list(jaxbvh.BUILDERS))
+@pytest.mark.parametrize("method", list(jaxbvh.BOX_BUILDERS))
 @settings(max_examples=examples(3))
 @given(soups=soup_lists, max_leaf=st.sampled_from([1, 3]), config=st.sampled_from([ONE_GROUP, ONE_GROUP_VMAP]))
 def test_batched_build_equals_single_builds(method, soups, max_leaf, config):

@@ -21,7 +21,7 @@ from jaxbvh.testing.plugin import examples
 
 
 @settings(max_examples=examples(15))
-@given(tri=triangle_soups(), method=st.sampled_from(jaxbvh.BUILDERS), max_leaf=st.sampled_from([1, 2, 8]))
+@given(tri=triangle_soups(), method=st.sampled_from(jaxbvh.BOX_BUILDERS), max_leaf=st.sampled_from([1, 2, 8]))
 def test_every_build_is_valid(tri, method, max_leaf):
     lo, hi = local_boxes(tri)
     tree = jaxbvh.build(lo, hi, method=method, max_leaf=max_leaf, bins=8)
@@ -33,7 +33,7 @@ def test_every_build_is_valid(tri, method, max_leaf):
 
 
 @settings(max_examples=examples(15))
-@given(data=box_sets(max_size=48), method=st.sampled_from(jaxbvh.BUILDERS), max_leaf=st.sampled_from([1, 3]),
+@given(data=box_sets(max_size=48), method=st.sampled_from(jaxbvh.BOX_BUILDERS), max_leaf=st.sampled_from([1, 3]),
        bins=st.sampled_from([4, 16]))
 def test_jax_builder_equals_reference(data, method, max_leaf, bins):
     lo, hi = data
@@ -44,7 +44,7 @@ def test_jax_builder_equals_reference(data, method, max_leaf, bins):
 
 
 @settings(max_examples=examples(15))
-@given(tri=triangle_soups(max_size=30), method=st.sampled_from(jaxbvh.BUILDERS))
+@given(tri=triangle_soups(max_size=30), method=st.sampled_from(jaxbvh.BOX_BUILDERS))
 def test_jax_builder_equals_reference_on_extreme_soups(tri, method):
     lo, hi = local_boxes(tri)
     got = jaxbvh.build(lo, hi, method=method, max_leaf=2, bins=8)
@@ -53,7 +53,7 @@ def test_jax_builder_equals_reference_on_extreme_soups(tri, method):
 
 
 @settings(max_examples=examples(8))
-@given(data=box_sets(min_size=9, max_size=16), method=st.sampled_from(jaxbvh.BUILDERS))
+@given(data=box_sets(min_size=9, max_size=16), method=st.sampled_from(jaxbvh.BOX_BUILDERS))
 def test_float64_builder_equals_reference(data, method):
     with jax.enable_x64(True):
         lo, hi = (a.astype(np.float64) for a in data)
@@ -77,7 +77,7 @@ def test_one_and_two_primitives():
 
 def test_all_primitives_in_one_point_give_a_balanced_tree():
     lo = np.zeros((64, 3), np.float32)
-    for method in jaxbvh.BUILDERS:
+    for method in jaxbvh.BOX_BUILDERS:
         tree = jaxbvh.build(lo, lo, method=method, max_leaf=1)  # leaves of one: the split rule shows
         jaxbvh.validate(tree, lo, lo)
         assert jaxbvh.tree.depth(tree).max() == 6  # log2(64): ties split in the middle
@@ -87,7 +87,7 @@ def test_sah_builders_beat_median_split():
     rng = np.random.default_rng(0)
     c = rng.random((300, 3)) ** 3  # clustered towards a corner
     lo, hi = (c - 0.01).astype(np.float32), (c + 0.01).astype(np.float32)
-    cost = {m: float(jaxbvh.sah(jaxbvh.build(lo, hi, method=m))) for m in jaxbvh.BUILDERS}
+    cost = {m: float(jaxbvh.sah(jaxbvh.build(lo, hi, method=m))) for m in jaxbvh.BOX_BUILDERS}
     assert cost["sweep"] <= cost["binned"] * 1.02
     assert cost["sweep"] < cost["median"]
 
@@ -136,23 +136,24 @@ def test_bad_options_get_clear_errors():
 
 
 def test_builders_map_methods_to_their_configs():
-    assert list(jaxbvh.BUILDERS) == ["sweep", "binned", "median", "lbvh", "ploc"]
+    assert list(jaxbvh.BOX_BUILDERS) == ["sweep", "binned", "median", "lbvh", "ploc"]
+    assert list(jaxbvh.BUILDERS) == [*jaxbvh.BOX_BUILDERS, *jaxbvh.builders.TRIANGLE_BUILDERS] == [*jaxbvh.BOX_BUILDERS, "sbvh"]
     for method, cls in jaxbvh.BUILDERS.items():
         assert cls.method == method and cls.__doc__ and dataclasses.is_dataclass(cls)
         with pytest.raises(dataclasses.FrozenInstanceError):
             cls().max_leaf = 2
-    assert configs.DEFAULT_BUILDER in jaxbvh.BUILDERS
+    assert configs.DEFAULT_BUILDER in jaxbvh.BOX_BUILDERS
 
 
 @settings(max_examples=examples(15))
-@given(method=st.sampled_from(jaxbvh.BUILDERS),
+@given(method=st.sampled_from(jaxbvh.BOX_BUILDERS),
        knob=st.sampled_from(["max_leaf", "ct", "ci", "bins", "radius", "morton_bits"]),
        value=st.one_of(st.integers(-2, 70), st.floats(-1, 40, allow_nan=False), st.just(True)))
 def test_the_keyword_form_makes_the_methods_config(method, knob, value):
-    """``build(lo, hi, method=m, **kw)`` is ``build(lo, hi, BUILDERS[m](**own kw))``: a
+    """``build(lo, hi, method=m, **kw)`` is ``build(lo, hi, BOX_BUILDERS[m](**own kw))``: a
     knob of another builder is ignored, a knob of this one is checked by its Config
     (a ValueError naming it) and otherwise kept."""
-    cls = jaxbvh.BUILDERS[method]
+    cls = jaxbvh.BOX_BUILDERS[method]
     own = knob in {f.name for f in dataclasses.fields(cls)}
     try:
         made = configs.make_config(method, **{knob: value})

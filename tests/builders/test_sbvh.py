@@ -233,7 +233,8 @@ def test_build_takes_sbvh_by_name_and_config():
     by_name = jaxbvh.build(lo, hi, method="sbvh", triangles=tri, alpha=1e-5, bins=8, reference_capacity=4)
     by_config = jaxbvh.build(lo, hi, SBVHConfig(bins=8, reference_capacity=4), triangles=tri)
     assert canonical(by_name) == canonical(by_config)
-    assert "sbvh" in jaxbvh.builders.ALL_BUILDERS and "sbvh" not in jaxbvh.BUILDERS
+    assert "sbvh" in jaxbvh.BUILDERS and "sbvh" not in jaxbvh.BOX_BUILDERS
+    assert jaxbvh.builders.ALL_BUILDERS is jaxbvh.BUILDERS  # the older name
 
 
 @pytest.mark.parametrize("call, message", [

@@ -22,7 +22,7 @@ from helpers import REPO
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jaxbvh.builders.configs import ALL_BUILDERS, BUILDERS, DEFAULT_BUILDER
+from jaxbvh.builders.configs import BOX_BUILDERS, BUILDERS, DEFAULT_BUILDER
 from jaxbvh.cli import make_parser
 from jaxbvh.cli.commands import optimize as optimize_command
 from jaxbvh.cli.options import ConfigOptions, add_config_options, field_docs, shown, with_flags
@@ -152,11 +152,11 @@ def field_names(config) -> set[str]:
 def test_method_choices_default_to_the_library():
     for command in ("build", "stats", "collapse", "optimize"):
         action = next(a for a in SUBPARSERS[command]._actions if a.dest == "builder")
-        assert action.default == DEFAULT_BUILDER and list(action.choices) == list(ALL_BUILDERS)
+        assert action.default == DEFAULT_BUILDER and list(action.choices) == list(BUILDERS)
     action = next(a for a in SUBPARSERS["rebraid"]._actions if a.dest == "builder")
     assert action.default == two_level_objects.DEFAULT_BUILDER.method == "binned"
     # two-level BVHs are built from boxes: only the builders that need no triangles are offered
-    assert list(action.choices) == list(BUILDERS) and "sbvh" not in action.help
+    assert list(action.choices) == list(BOX_BUILDERS) and "sbvh" not in action.help
     action = next(a for a in SUBPARSERS["optimize"]._actions if a.dest == "method")
     assert action.default == DEFAULT_METHOD == "pipeline" and list(action.choices) == list(OPTIMIZERS)
     assert inspect.signature(optimize).parameters["method"].default == DEFAULT_METHOD

@@ -28,7 +28,7 @@ import numpy as np
 
 import jaxbvh
 from jaxbvh import rays, twolevel
-from jaxbvh.builders.configs import BUILDERS
+from jaxbvh.builders.configs import BOX_BUILDERS
 from jaxbvh.cli import command_kit
 from jaxbvh.cli import options as config_options
 from jaxbvh.io import load_mesh
@@ -51,7 +51,7 @@ def add_parser(subparsers):
     # the builder of the object BVHs and of the single BVH: the two-level builder's
     # (binned SAH, one primitive per leaf), not jaxbvh.build's sweep. Builders from boxes
     # only: the two-level BVH's objects and BRefs are built from boxes (no spatial splits)
-    command_kit.add_builder_args(parser, default=fm.DEFAULT_BUILDER, methods=BUILDERS)
+    command_kit.add_builder_args(parser, default=fm.DEFAULT_BUILDER, methods=BOX_BUILDERS)
     parser.add_argument("--object-space", action="store_true",
                         help="build every object in its own frame, also those placed by one instance "
                         "(default: those are built in world space)")
