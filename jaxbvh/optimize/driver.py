@@ -113,8 +113,9 @@ def run(optimizer, tree, config=None, *, key=None, time_budget: float | None = N
     ``on_step(info)``: called on the host after every step with a ``StepInfo``.
     ``state``: start from this state instead of ``init(tree, config, key)``.
     The result's ``trace`` lists every step's ``StepInfo`` when the run went in chunks,
-    and its ``compile_seconds`` the seconds before the search began (``init`` and
-    compiling or loading the programs; about 0 once this process has them).
+    its ``compile_seconds`` the seconds before the search began (``init`` and
+    compiling or loading the programs; about 0 once this process has them), ``seconds``
+    those of the whole run and ``stop`` why it ended.
     """
     if on_step is not None and not callable(on_step):
         raise ValueError(f"on_step must be a function on_step(info), got {on_step!r}")
@@ -131,7 +132,9 @@ def run(optimizer, tree, config=None, *, key=None, time_budget: float | None = N
     else:
         state = drive(optimizer, state, budget=budget, on_step=on_step, trace=trace, clock=clock)
     out = jax.device_get(finish(optimizer.result, state))
-    return out.replace(trace=tuple(trace), compile_seconds=compile_seconds)
+    stop = "converged" if bool(out.converged) else "limit" if bool(state.progress.done) else "budget"
+    return out.replace(trace=tuple(trace), compile_seconds=compile_seconds, stop=stop,
+                       seconds=time.perf_counter() - clock)
 
 
 def compile_loop(optimizer, state: OptimizerState) -> float:

@@ -114,26 +114,41 @@ def keep_if_done(old: OptimizerState, new: OptimizerState) -> OptimizerState:
     return jax.tree_util.tree_map(lambda n, o: jnp.where(done, o, n), new, old)
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class OptimizeResult:
-    """What every optimizer returns (``result(state)``, :func:`jaxbvh.optimize.optimize`).
+#: why a run ended: ``"converged"`` (a step changed nothing), ``"limit"`` (its steps,
+#: trials or generations were all run), ``"budget"`` (its time budget was spent)
+STOP_REASONS = ("converged", "limit", "budget")
 
-    ``tree``: the optimized :class:`~jaxbvh.tree.layout.BVH`, same capacity as the
-    input. ``sah``, ``sah_start``: its SAH and the input's (``ct``, ``ci`` of the
-    config). ``steps``: passes or iterations run. ``moves``: moves applied in all
-    (rotations, reinsertions, restructured treelets). ``converged``: the run ended
-    because a step changed nothing (not at a step limit or a time budget).
-    ``history`` [H]: SAH after each step (NaN past ``steps``); ``history_moves`` [H]:
-    moves of each step; ``history_stage`` [H]: the stage of each step (index into the
-    optimizer's ``stages``: the pipeline's are ``("treelet", "reinsert")``).
-    ``chain_sah`` [K]: for annealing with K chains, every chain's final SAH (the other
-    fields describe the best chain); None otherwise. ``trace``: the driver's
-    :class:`StepInfo` of every step, on the host (empty from ``result`` alone).
-    ``compile_seconds``: wall seconds the driver spent before the search began (``init``
-    and compiling the programs, or loading them from the persistent cache; about 0 when
-    this process had them already); a time budget counts the search only. None from
-    ``result`` alone.
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class OptimizeResult:
+    """What every optimizer and every search returns: one type, one set of conventions.
+
+    The optimizers (``result(state)``, :func:`jaxbvh.optimize.optimize`) fill every
+    field; the searches that are not step functions over one tree (GRASP, the GA,
+    re-braiding: their results subclass this one, below) leave the per-move fields None.
+
+    ``tree``: the tree found (optimizers: a :class:`~jaxbvh.tree.layout.BVH` of the
+    input's capacity). ``sah``, ``sah_start``: its cost and the start's, measured by
+    ``cost_name``: ``"sah"`` for the optimizers (``ct``, ``ci`` of the config); a search
+    may price by another cost (``"nt"``, ``"gs"``: :mod:`jaxbvh.tree.cost`), or by none
+    (None, re-braiding) as :class:`StepInfo`'s ``sah`` does. ``steps``: steps run (a
+    pass or an iteration of an optimizer; GRASP: trials; the GA: generations, generation
+    0 included; re-braiding: stages). ``converged``: the run ended because a step changed
+    nothing (not at a step limit or a time budget); ``stop``: why it ended, one of
+    :data:`STOP_REASONS` (None from ``result`` alone). ``history`` [H]: the cost after each
+    step (NaN past ``steps``, or where nothing is priced; GRASP and the GA: the best so far).
+    ``moves``: moves applied in all (rotations, reinsertions, restructured treelets);
+    ``history_moves`` [H]: moves of each step; ``history_stage`` [H]: the stage of each
+    step (index into the optimizer's ``stages``: the pipeline's are ``("treelet",
+    "reinsert")``): None for the searches. ``chain_sah`` [K]: for annealing with K chains,
+    every chain's final SAH (the other fields describe the best chain); None otherwise.
+    ``trace``: the :class:`StepInfo` of every step as ``on_step`` got them, on the host
+    (empty from ``result`` alone). ``seconds``: wall seconds of the whole run;
+    ``compile_seconds``: wall seconds spent before the search began (``init`` and
+    compiling the programs, or loading them from the persistent cache; about 0 when this
+    process had them already; a search counts its tracing and compiling); a time budget
+    counts the search only. Both None from ``result`` alone.
     Arrays are JAX arrays from ``result``, NumPy from :func:`jaxbvh.optimize.optimize`.
     """
 
@@ -141,14 +156,27 @@ class OptimizeResult:
     sah: Any
     sah_start: Any
     steps: Any
-    moves: Any
     converged: Any
     history: Any
-    history_moves: Any
-    history_stage: Any
+    moves: Any = None
+    history_moves: Any = None
+    history_stage: Any = None
     chain_sah: Any = None
+    cost_name: str | None = dataclasses.field(default="sah", metadata=dict(static=True))
+    stop: str | None = dataclasses.field(default=None, metadata=dict(static=True))
     trace: tuple = dataclasses.field(default=(), metadata=dict(static=True))
+    seconds: float | None = dataclasses.field(default=None, metadata=dict(static=True))
     compile_seconds: float | None = dataclasses.field(default=None, metadata=dict(static=True))
+
+    @property
+    def cost(self):
+        """``sah`` under the name searches gave it (the cost measured by ``cost_name``)."""
+        return self.sah
+
+    @property
+    def cost_start(self):
+        """``sah_start`` under the name searches gave it."""
+        return self.sah_start
 
     def replace(self, **changes) -> "OptimizeResult":
         """A copy with the given fields replaced."""
@@ -227,49 +255,12 @@ def float_dtype(tree) -> np.dtype:
 #
 # GRASP (jaxbvh.stochastic.grasp), the genetic algorithm (jaxbvh.stochastic.evolve) and
 # re-braiding (jaxbvh.twolevel) build many trees or a two-level tree, not one tree step
-# by step, so they do not run under the driver; they report the way it does: one result
-# type with the driver's fields (SearchResult) and the driver's callback, on_step(info)
-# with a StepInfo after every step.
+# by step, so they do not run under the driver; they report the way it does: the
+# optimizers' result type (their results subclass OptimizeResult, adding their own
+# fields) and the driver's callback, on_step(info) with a StepInfo after every step.
 
-#: why a run ended: ``"converged"`` (a step changed nothing), ``"limit"`` (its steps,
-#: trials or generations were all run), ``"budget"`` (its time budget was spent)
-STOP_REASONS = ("converged", "limit", "budget")
-
-
-@dataclasses.dataclass(frozen=True, kw_only=True)
-class SearchResult:
-    """The fields every search reports, named and meant as :class:`OptimizeResult`'s.
-
-    ``tree``: the tree found. ``cost``: its cost, ``cost_start``: the start's (GRASP:
-    the greedy tree's, the GA: the best of generation 0), both measured by
-    ``cost_name`` (``"nt"``, ``"sah"``: :mod:`jaxbvh.tree.cost`; ``"gs"``: Goldsmith and
-    Salmon's; None where the run prices nothing, as re-braiding). ``steps``: steps run
-    (GRASP: trials; the GA: generations, generation 0 included; re-braiding: stages).
-    ``history`` float64 [steps]: the cost of the result so far after each step (the
-    best so far for GRASP and the GA; NaN where nothing is priced). ``converged`` and
-    ``stop`` (one of :data:`STOP_REASONS`): why the run ended. ``trace``: the
-    :class:`StepInfo` of every step, as ``on_step`` got them (their ``sah`` holds the
-    search's cost, measured by ``cost_name``; NaN where it prices nothing). ``seconds``: wall seconds
-    of the whole run; ``compile_seconds``: those of them spent tracing and compiling
-    programs (loading them from the persistent cache is not counted; about 0 once this
-    process has them).
-    """
-
-    tree: Any
-    cost: float | None
-    cost_start: float | None
-    cost_name: str | None
-    steps: int
-    history: np.ndarray
-    converged: bool = False
-    stop: str = "limit"
-    trace: tuple = ()
-    seconds: float | None = None
-    compile_seconds: float | None = None
-
-    def replace(self, **changes):
-        """A copy with the given fields replaced."""
-        return dataclasses.replace(self, **changes)
+#: the name the searches' result type had; the same type as :class:`OptimizeResult`
+SearchResult = OptimizeResult
 
 
 def check_on_step(on_step) -> None:

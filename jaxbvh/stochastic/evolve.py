@@ -71,7 +71,7 @@ import numpy as np
 from jaxbvh.builders import insertion
 from jaxbvh.configs import Checked, integer, knob, real
 from jaxbvh.numerics import TIE_TOLERANCE
-from jaxbvh.optimize.protocol import CompileClock, SearchResult, StepInfo, check_on_step
+from jaxbvh.optimize.protocol import CompileClock, OptimizeResult, StepInfo, check_on_step
 from jaxbvh.rays.measure import make_rays, stack_capacity, trace
 
 
@@ -125,12 +125,12 @@ class Draws(NamedTuple):
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
-class EvolveResult(SearchResult):
+class EvolveResult(OptimizeResult):
     """What :func:`evolve` returns (NumPy / Python values): the fields of every search
-    (:class:`jaxbvh.optimize.protocol.SearchResult`) and the GA's own.
+    (:class:`jaxbvh.optimize.protocol.OptimizeResult`) and the GA's own.
 
     Search fields: ``tree``: the best order's tree (:class:`~jaxbvh.tree.layout.WideBVH`,
-    JAX arrays); ``cost`` = ``best``; ``cost_start`` = ``initial_best``; ``cost_name``:
+    JAX arrays); ``sah`` (also ``cost``) = ``best``; ``sah_start`` = ``initial_best``; ``cost_name``:
     ``"gs"`` (Goldsmith and Salmon's cost); ``steps``: generations run, generation 0
     included (G + 1); ``history`` [G + 1]: the best cost of every generation (0 .. G);
     ``stop``: ``"limit"``; ``trace``: every generation's
@@ -398,7 +398,7 @@ def _evolve(key, prim_lo, prim_hi, config: EvolveConfig, devices, on_step, on_ge
         elite_tree = insertion.tree_at(trees, 0)
     jax.block_until_ready(elite_tree)
     best = float(costs[best_slot])
-    return EvolveResult(tree=elite_tree, cost=best, cost_start=history[0], cost_name="gs", steps=generations + 1,
+    return EvolveResult(tree=elite_tree, sah=best, sah_start=history[0], cost_name="gs", steps=generations + 1,
                         history=np.asarray(history), converged=False, stop="limit", trace=tuple(trace),
                         order=order, best=best, initial_best=history[0],
                         random_median=random_median, population=np.asarray(pop)[:, :n], costs=np.asarray(costs),

@@ -82,7 +82,7 @@ from jaxbvh.builders.topdown import RandomSplits, randomized_forest
 from jaxbvh.configs import Checked, integer, knob, one_of, optional, real
 from jaxbvh.draws import split_uniforms
 from jaxbvh.numerics import half_area
-from jaxbvh.optimize.protocol import CompileClock, SearchResult, StepInfo, check_on_step
+from jaxbvh.optimize.protocol import CompileClock, OptimizeResult, StepInfo, check_on_step
 from jaxbvh.tree.layout import capacity_bucket, concat_ranges, to_numpy
 from jaxbvh.tree.walks import levels as tree_levels
 
@@ -109,12 +109,12 @@ _DRAWS_PER_CALL = 1 << 22  # u0 draws per call when screening the greedy tree's 
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
-class GraspResult(SearchResult):
+class GraspResult(OptimizeResult):
     """What :func:`grasp` returns: the fields of every search
-    (:class:`jaxbvh.optimize.protocol.SearchResult`) and GRASP's own.
+    (:class:`jaxbvh.optimize.protocol.OptimizeResult`) and GRASP's own.
 
     Search fields: ``tree``: the best trial's :class:`~jaxbvh.tree.layout.BVH` (JAX
-    arrays, one primitive per leaf); ``cost`` = ``objective``; ``cost_start`` = ``base``;
+    arrays, one primitive per leaf); ``sah`` (also ``cost``) = ``objective``; ``sah_start`` = ``base``;
     ``cost_name`` = ``name``; ``steps``: trials run; ``history`` float64 [trials]: the
     best objective of the first ``t + 1`` trials; ``stop``: ``"limit"`` (every trial
     ran); ``trace``: every trial's :class:`~jaxbvh.optimize.protocol.StepInfo`;
@@ -540,7 +540,7 @@ def _grasp(key, prim_lo, prim_hi, config: GraspConfig, on_step, on_chunk, starte
     if on_chunk is not None:
         on_chunk(trials, float(objectives[best]))
     tree = randomized_build(key, prim_lo, prim_hi, trial=best, noise=noise, rcl=rcl, pad=pad, dtype=dtype)
-    return GraspResult(tree=tree, cost=float(objectives[best]), cost_start=greedy.base, cost_name=objective,
+    return GraspResult(tree=tree, sah=float(objectives[best]), sah_start=greedy.base, cost_name=objective,
                        steps=trials, history=np.minimum.accumulate(objectives), converged=False, stop="limit",
                        trace=tuple(trace), objective=float(objectives[best]), objectives=objectives,
                        best_trial=best, base=greedy.base, noise=noise, rcl=rcl, name=objective, rebuilt=rebuilt)

@@ -66,7 +66,7 @@ import numpy as np
 
 from jaxbvh.builders.configs import BuilderConfig
 from jaxbvh.numerics import half_area
-from jaxbvh.optimize.protocol import CompileClock, SearchResult, StepInfo, check_on_step
+from jaxbvh.optimize.protocol import CompileClock, OptimizeResult, StepInfo, check_on_step
 from jaxbvh.tree.cost import sah as sah_of
 from jaxbvh.tree.layout import BVH, capacity_bucket, concat_ranges, depth, pad_to, to_jax, to_numpy
 from jaxbvh.twolevel import brefs as _brefs
@@ -110,15 +110,15 @@ def _single_instance(forest: Forest, instances: Instances) -> TwoLevelBVH:
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
-class RebraidResult(SearchResult):
+class RebraidResult(OptimizeResult):
     """What :func:`run` and :func:`run_from` return: the fields of every search
-    (:class:`jaxbvh.optimize.protocol.SearchResult`) and re-braiding's own.
+    (:class:`jaxbvh.optimize.protocol.OptimizeResult`) and re-braiding's own.
 
     Search fields: ``tree``: the :class:`TwoLevelBVH`; ``steps``: its stages run
     (``"objects"`` (:func:`run` only), ``"pack"``, ``"top"``), one
     :class:`~jaxbvh.optimize.protocol.StepInfo` each in ``trace`` (``moves`` of
     ``"top"``: the BRefs the kept top level opened beyond one per instance; ``sah``:
-    NaN); ``cost``, ``cost_start``, ``cost_name``: None and ``history``: NaN [steps]
+    NaN); ``sah``, ``sah_start``, ``cost_name``: None and ``history``: NaN [steps]
     (a build prices nothing; :func:`sah` costs the tree); ``stop``: ``"limit"``;
     ``seconds``: wall seconds of the whole build (arrays ready), ``compile_seconds``: the
     part spent compiling.
@@ -181,7 +181,7 @@ def _reporter(trace: list, on_step, started: float):
 
 def _result(tl, trace, slots, kept, seconds, compile_seconds) -> RebraidResult:
     stage_seconds = dict(zip([i.stage for i in trace], np.diff([0.0] + [i.seconds for i in trace]).tolist()))
-    return RebraidResult(tree=tl, cost=None, cost_start=None, cost_name=None, steps=len(trace),
+    return RebraidResult(tree=tl, sah=None, sah_start=None, cost_name=None, steps=len(trace),
                          history=np.full(len(trace), np.nan), converged=False, stop="limit", trace=tuple(trace),
                          seconds=seconds, compile_seconds=compile_seconds, stage_seconds=stage_seconds,
                          slots=slots, kept=kept)

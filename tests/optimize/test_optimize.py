@@ -35,6 +35,9 @@ def test_every_method_gives_a_valid_tree_and_reports_every_step():
         assert [info.step for info in steps] == list(range(len(steps)))
         assert {info.method for info in steps} == {method}
         assert {info.stage for info in steps} <= set(optimizer.stages)
+        # the one result type's run fields, as GRASP, the GA and re-braiding fill them
+        assert result.stop == ("converged" if result.converged else "limit") and result.cost_name == "sah"
+        assert 0 <= result.compile_seconds <= result.seconds and result.cost == result.sah
 
 
 def chained_by_hand(tree, rounds=8, round_gain=1e-3, treelet_options=None, reinsert_options=None,
@@ -162,7 +165,7 @@ def test_time_budget_stops_the_pipeline_after_its_first_step():
         first = optimize(tree, "pipeline", time_budget=1e-9)
     check(tree, first, plo, phi)
     assert int(first.steps) == 1 and [info.step for info in first.trace] == [0]
-    assert float(first.sah) < float(first.sah_start) and first.compile_seconds > 0
+    assert float(first.sah) < float(first.sah_start) and first.compile_seconds > 0 and first.stop == "budget"
     whole = optimize(tree, "pipeline")  # compiled now: the same programs, a step for step equal start
     np.testing.assert_array_equal(first.history[:1], whole.history[:1])
     spent = TimeBudget(1e-9)
