@@ -52,6 +52,7 @@ from jaxbvh.rays import traversal as traverse
 from jaxbvh.twolevel import brefs
 from jaxbvh.twolevel import objects as fm  # noqa: E402
 from jaxbvh.twolevel.brefs import DEFAULT_THRESHOLD
+from jaxbvh.twolevel.config import RebraidConfig
 
 DATA = ROOT.parent / "shared" / "data"
 RESULTS = ROOT / "bench" / "results"
@@ -119,19 +120,20 @@ def bench_scene(name, kind, mesh, args):
     jaxbvh.validate(single, lo, hi)
     row["objects_seconds"] = t_objects
 
-    # top-level seconds (build_from's "top": the plain top level, the re-braided one and
+    # top-level seconds (run_from's stage_seconds["top"]: the plain top level, the re-braided one and
     # their comparison) of the plain and the default configuration, timed round-robin (the
     # load on a shared machine drifts; interleaving keeps their ratio fair)
     configs = {"two_level": (math.inf, None), "rebraid": (DEFAULT_THRESHOLD, None)}
     times = {k: [] for k in configs}
     built = {}
-    for k, (t, b) in configs.items():  # compile
-        twolevel.build_from(mesh, trees, threshold=t, budget=b)
+    configs = {k: RebraidConfig(threshold=t, budget=b) for k, (t, b) in configs.items()}
+    for config in configs.values():  # compile
+        twolevel.run_from(mesh, trees, config)
     for _ in range(args.repeat):
-        for k, (t, b) in configs.items():
-            timings, info = {}, {}
-            built[k] = (twolevel.build_from(mesh, trees, threshold=t, budget=b, timings=timings, info=info), info)
-            times[k].append((timings["top"], timings["pack"]))
+        for k, config in configs.items():
+            result = twolevel.run_from(mesh, trees, config)
+            built[k] = (result.tree, {"slots": result.slots, "kept": result.kept})
+            times[k].append((result.stage_seconds["top"], result.stage_seconds["pack"]))
     origin, direction = rays.make_rays(jax.random.key(2), "random", single, None, args.rays)
     out = {}
     for label, (tl, info) in built.items():
@@ -155,9 +157,8 @@ def bench_scene(name, kind, mesh, args):
     row["top_ratio"] = (out["rebraid"]["top_seconds"] / out["two_level"]["top_seconds"]
                         if out["two_level"]["top_seconds"] > 0 else None)
     # one round of opening per split (the paper's), beside the default rounds
-    info = {}
-    one = twolevel.build_from(mesh, trees, rounds=1, info=info)
-    row["one_round"] = {"sah": twolevel.sah(one), "brefs": int(one.bref_count), "kept": info["kept"]}
+    one = twolevel.run_from(mesh, trees, RebraidConfig(rounds=1))
+    row["one_round"] = {"sah": twolevel.sah(one.tree), "brefs": int(one.tree.bref_count), "kept": one.kept}
     for label in ("two_level", "rebraid", "single"):
         r = out[label]
         print(f"  {label:10s} SAH {r['sah']:9.3f}"
@@ -174,11 +175,11 @@ def bench_scene(name, kind, mesh, args):
         forest, inst = fm.pack(mesh, trees)
         for budget in BUDGETS:
             for threshold in THRESHOLDS:
-                info = {}
-                tl = twolevel.build_from(mesh, trees, threshold=threshold, budget=budget, info=info)
+                result = twolevel.run_from(mesh, trees, RebraidConfig(threshold=threshold, budget=budget))
+                tl = result.tree
                 entry = {"threshold": threshold, "budget": "default" if budget is None else budget,
-                         "slots": info["slots"], "kept": info["kept"], "brefs": int(tl.bref_count),
-                         "sah": twolevel.sah(tl), "raw_sah": _raw_sah(mesh, forest, inst, threshold, info["slots"])}
+                         "slots": result.slots, "kept": result.kept, "brefs": int(tl.bref_count),
+                         "sah": twolevel.sah(tl), "raw_sah": _raw_sah(mesh, forest, inst, threshold, result.slots)}
                 if budget is None and args.sweep_rays:
                     entry["box_tests"], entry["prim_tests"], _ = tests_per_ray(tl, mesh, origin[:args.sweep_rays],
                                                                                direction[:args.sweep_rays])
@@ -226,11 +227,11 @@ def bench_dynamic(args):
             start = time.perf_counter()
             trees = dict(static) | fm.build_objects(mesh, only=[dyn.moving_object])
             moving = time.perf_counter() - start
-            timings = {}
-            tl = twolevel.build_from(mesh, trees, threshold=threshold, timings=timings)
+            result = twolevel.run_from(mesh, trees, RebraidConfig(threshold=threshold))
+            timings = result.stage_seconds
             entry[label] = {"object_seconds": moving, "pack_seconds": timings["pack"],
                             "top_seconds": timings["top"],
-                            "seconds": moving + timings["pack"] + timings["top"], "sah": twolevel.sah(tl)}
+                            "seconds": moving + timings["pack"] + timings["top"], "sah": twolevel.sah(result.tree)}
         lo, hi = mesh.local_boxes()
         start = time.perf_counter()
         single = jax.block_until_ready(jaxbvh.build(lo, hi, method="binned"))

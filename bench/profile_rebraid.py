@@ -19,7 +19,7 @@ loop is close to proportional to its array (tenth round: 0.12 ms at 128 slots, 0
 levels without opening (whose spare room keeps every slot live), the level's time less
 its dispatch (the levels' sum less the engine's time, per level) times the share of its
 array it would not need: an upper bound, before the program's gathers and scatters;
-beside it, ``build_from``'s ``timings["top"]`` at the same slots (min of ``--repeat``). This script reads the engine's private names: it
+beside it, ``run_from``'s ``stage_seconds["top"]`` at the same slots (min of ``--repeat``). This script reads the engine's private names: it
 profiles the engine, it is no API.
 """
 
@@ -109,12 +109,10 @@ def profile(name, slots, args):
     e_wall, e_cpu = best_of(engine, args.repeat)
     top = []
     for _ in range(args.repeat + 1):  # the first compiles
-        timings = {}
-        twolevel.build_from(mesh, trees, capacity=slots, timings=timings)
-        top.append(1e3 * timings["top"])
+        top.append(1e3 * twolevel.run_from(mesh, trees, capacity=slots).stage_seconds["top"])
     # what a level call costs beyond the compiled loop's level (its dispatch), on average
     d_wall = max(sum(r["wall"] for r in rows) - e_wall, 0.0) / len(rows)
-    print(f"\n{name}: {slots} slots (array {cap}), {len(rows)} levels; build_from's top {min(top[1:]):.2f} ms, "
+    print(f"\n{name}: {slots} slots (array {cap}), {len(rows)} levels; run_from's top {min(top[1:]):.2f} ms, "
           f"engine {e_wall:.2f} ms wall, {e_cpu:.2f} ms CPU (min of {args.repeat}); a level call's dispatch "
           f"{d_wall:.2f} ms (levels' sum less the engine, per level)")
     print("level  live-slots  split-slots  live-BRefs  BRefs  live-segs  split-segs  with-room  wall-ms  cpu-ms")

@@ -5,9 +5,9 @@
     python bench/rebraid_frontier.py --rounds 64,8,2 # the opening rounds too
 
 For each scene and BRef array size (``capacity``; ``0`` in ``--slots`` is the scene's
-default, :func:`jaxbvh.twolevel.brefs.scene_slots`), ``build_from`` at the default
+default, :func:`jaxbvh.twolevel.brefs.scene_slots`), ``run_from`` at the default
 threshold, timed round-robin with the plain two-level build (``threshold = inf``), warm,
-``--repeat`` runs each: ``timings["top"]`` of both (the re-braided one includes building
+``--repeat`` runs each: ``stage_seconds["top"]`` of both (the re-braided one includes building
 the plain top level and the never-worse comparison, as every report of this library
 does). SAH: the flattened world-box SAH (``twolevel.sah``, Ct = Ci = 1) of what
 ``build_from`` kept, over the plain two-level's and over a single binned BVH's; beside
@@ -37,7 +37,7 @@ from bench.bench_rebraid import TARGET_TOP_RATIO, TARGETS, machine  # noqa: E402
 from jaxbvh import scenes, twolevel  # noqa: E402
 from jaxbvh.io import load_mesh  # noqa: E402
 from jaxbvh.twolevel import objects as fm  # noqa: E402
-from jaxbvh.twolevel.config import DEFAULT_THRESHOLD  # noqa: E402
+from jaxbvh.twolevel.config import DEFAULT_THRESHOLD, RebraidConfig  # noqa: E402
 
 MESHES = ROOT.parent / "shared" / "data" / "meshes"
 RESULTS = ROOT / "bench" / "results"
@@ -55,20 +55,20 @@ def scene_list(quick):
 
 
 def timed_pair(mesh, trees, config, repeat):
-    """Warm ``timings["top"]`` seconds of the plain build and of ``config``'s, round-robin;
-    ``(plain times, times, the last tree, info)``."""
-    plain_cfg = {"threshold": math.inf}
+    """Warm ``stage_seconds["top"]`` of the plain build and of ``config``'s (keyword knobs
+    of a RebraidConfig, and ``capacity``), round-robin; ``(plain times, times, the last
+    tree, {"slots", "kept"} of its run)``."""
+    config = dict(config)
+    capacity = config.pop("capacity", None)
+    plain_cfg, config = RebraidConfig(threshold=math.inf), RebraidConfig(**config)
     for cfg in (plain_cfg, config):  # compile
-        twolevel.build_from(mesh, trees, **cfg)
+        twolevel.run_from(mesh, trees, cfg, capacity=capacity)
     plain, braided = [], []
     for _ in range(repeat):
-        timings = {}
-        twolevel.build_from(mesh, trees, timings=timings, **plain_cfg)
-        plain.append(timings["top"])
-        timings, info = {}, {}
-        tl = twolevel.build_from(mesh, trees, timings=timings, info=info, **config)
-        braided.append(timings["top"])
-    return plain, braided, tl, info
+        plain.append(twolevel.run_from(mesh, trees, plain_cfg, capacity=capacity).stage_seconds["top"])
+        result = twolevel.run_from(mesh, trees, config, capacity=capacity)
+        braided.append(result.stage_seconds["top"])
+    return plain, braided, result.tree, {"slots": result.slots, "kept": result.kept}
 
 
 def bench_scene(name, kind, mesh, slots_list, rounds_list, repeat):
@@ -113,7 +113,7 @@ def markdown(results) -> str:
              f"Machine: {results['machine']}; load before the run: {results['load']}. JAX {results['jax']}, "
              f"float32, Ct = Ci = 1. Threshold {results['threshold']}; top-level times warm, the plain "
              f"(`threshold = inf`) and the re-braided `build_from` round-robin, {results['repeat']} runs each; "
-             "the re-braided one's `timings[\"top\"]` includes the plain top level and the never-worse "
+             "the re-braided one's `stage_seconds[\"top\"]` includes the plain top level and the never-worse "
              "comparison. SAH: world boxes, of what `build_from` kept (`kept`), over the plain two-level's "
              "and a single binned BVH's; *object frames*: the SAH the two-level traversal pays, over the plain "
              "one's. Targets: by material <= 0.7 x two-level and <= 1.2 x single, piles <= 0.89 x two-level, "
