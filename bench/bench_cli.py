@@ -106,7 +106,7 @@ def main() -> None:
     cases = {
         "build": ["build", "--json"],
         "optimize hc": ["optimize", str(tree), "--method", "hc", "--json"],
-        "optimize sa (N=100, 2 chains)": ["optimize", str(tree), "--method", "sa", "--iterations", "100",
+        "optimize sa (N=100, 2 chains)": ["optimize", str(tree), "--method", "sa", "--steps", "100",
                                           "--chains", "2", "--json"],
         "trace (10k rays)": ["trace", str(tree), mesh, "--rays", "10000", "--json"],
     }

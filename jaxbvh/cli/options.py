@@ -6,7 +6,8 @@ collapse's) is made here, by :class:`ConfigOptions`, from the fields that
 :func:`jaxbvh.configs.knob` declares:
 
 * the flag is the field's name (``max_steps`` -> ``--max-steps``) unless a rename
-  says otherwise (a command keeps its established spellings: ``--iterations``);
+  says otherwise (``--treelet-leaves``); a spelling a command had before
+  (``renamed``) still sets its knob, with a ``DeprecationWarning``;
 * the type comes from the default (``int``, ``float``, ``str``; a ``bool`` becomes a
   ``--x/--no-x`` pair) or, for a default of None, from the knob's ``type`` or the
   field's annotation (``float | None``);
@@ -48,6 +49,7 @@ import argparse
 import dataclasses
 import re
 import typing
+import warnings
 from typing import Any, Callable, Mapping
 
 #: argparse types of the supported knob kinds, and their metavars unless a knob names one
@@ -144,13 +146,16 @@ class ConfigOptions:
     method (``"--method"``), named in errors. ``families``: method -> family name;
     methods of one family share their options (module docstring; by default each method
     is a family of its own). ``check_while_parsing``: run the knobs' checks in argparse
-    (see the module docstring).
+    (see the module docstring). ``renamed``: old flag -> ``{method: flag}`` (``"*"``: every
+    method), spellings the command had; given, they set the new flag's knob (unless it
+    is given too) with a ``DeprecationWarning``. An old flag that is still another
+    knob's flag (``--max-passes``) is moved only for the methods named.
     """
 
     def __init__(self, configs: Mapping[str, Any], *, exclude=(), flags: Mapping[str, str] | None = None,
                  choices: Mapping[str, tuple] | None = None, helps: Mapping[str, str] | None = None,
                  method_flag: str | None = None, families: Mapping[str, str] | None = None,
-                 check_while_parsing: bool = False):
+                 check_while_parsing: bool = False, renamed: Mapping[str, Mapping[str, str]] | None = None):
         self.bases = {method: _instance(config) for method, config in configs.items()}
         self.exclude = set(exclude)
         self.renames = dict(flags or {})
@@ -159,6 +164,7 @@ class ConfigOptions:
         self.method_flag = method_flag
         self.families = {method: (families or {}).get(method, method) for method in self.bases}
         self.check_while_parsing = check_while_parsing
+        self.renamed = {old: dict(new) for old, new in (renamed or {}).items()}
         self.knobs: dict[str, list[Knob]] = {}  # flag -> the knobs it sets
         for method, base in self.bases.items():
             self._walk(method, base, ())
@@ -257,6 +263,11 @@ class ConfigOptions:
                                              metavar=None if choices else (metavar or _METAVARS[first.kind]),
                                              **common)
             action.config_options = self
+        for old, targets in self.renamed.items():  # hidden: --help shows the current spellings
+            if old not in self.knobs:
+                new = next(iter(targets.values()))
+                target.add_argument(old, dest=self.dest(old), default=argparse.SUPPRESS,
+                                    help=argparse.SUPPRESS, type=self._parse(new, self.knobs[new][0].kind))
 
     # -- configs from the parsed arguments ------------------------------------------
 
@@ -268,8 +279,26 @@ class ConfigOptions:
         return method
 
     def given(self, args: argparse.Namespace) -> dict[str, Any]:
-        """The flags given in ``args``: flag -> value."""
-        return {flag: getattr(args, self.dest(flag)) for flag in self.knobs if hasattr(args, self.dest(flag))}
+        """The flags given in ``args`` (old spellings included): flag -> value."""
+        flags = list(self.knobs) + [old for old in self.renamed if old not in self.knobs]
+        return {flag: getattr(args, self.dest(flag)) for flag in flags if hasattr(args, self.dest(flag))}
+
+    def _renamed_to_current(self, method: str, args: argparse.Namespace) -> None:
+        """Move the values of old spellings given (``renamed``) to their current flags in
+        ``args``, each with a ``DeprecationWarning`` (shown: a command line is no library
+        caller whose warnings Python hides)."""
+        for old, targets in self.renamed.items():
+            new = targets.get(method, targets.get("*"))
+            if new is None or not hasattr(args, self.dest(old)):
+                continue
+            value = getattr(args, self.dest(old))
+            delattr(args, self.dest(old))
+            if not hasattr(args, self.dest(new)):
+                setattr(args, self.dest(new), value)
+            where = "" if "*" in targets else f" with {self.method_flag or 'method'} {method}"
+            with warnings.catch_warnings():
+                warnings.simplefilter("always", DeprecationWarning)
+                warnings.warn(f"{old}{where} is deprecated: use {new}", DeprecationWarning, stacklevel=3)
 
     def config(self, method: str | None, args: argparse.Namespace, **fixed):
         """``method``'s Config (None: the only one) from the flags given in ``args``, the
@@ -277,7 +306,8 @@ class ConfigOptions:
         options). ``ValueError`` naming the flag when the Config refuses a value, or
         naming the flag and the method when a flag given does not apply to it."""
         method = self._method(method)
-        given = self.given(args)
+        self._renamed_to_current(method, args)
+        given = {flag: value for flag, value in self.given(args).items() if flag in self.knobs}
         values: dict[tuple, Any] = {}
         mine: dict[str, list[tuple]] = {}
         for flag, value in given.items():

@@ -311,7 +311,7 @@ def test_the_unbroken_tree_is_valid(capsys, tmp_path):
 TREE_READERS = {
     "optimize": lambda tree, mesh: ["optimize", tree],  # the default method: the pipeline
     "optimize hc": lambda tree, mesh: ["optimize", tree, "--method", "hc"],
-    "optimize sa": lambda tree, mesh: ["optimize", tree, "--method", "sa", "--iterations", 4],
+    "optimize sa": lambda tree, mesh: ["optimize", tree, "--method", "sa", "--steps", 4],
     "trace": lambda tree, mesh: ["trace", tree, mesh, "--rays", 20],
     "collapse dp": lambda tree, mesh: ["collapse", tree],
     "collapse greedy": lambda tree, mesh: ["collapse", tree, "--method", "greedy"],
@@ -444,7 +444,7 @@ def test_second_run_compiles_nothing(tmp_path, cache_dir):
     np.savez(tree, **arrays)
     commands = [["build", str(mesh), "--json"],
                 ["optimize", str(tree), "--json"],
-                ["optimize", str(tree), "--method", "sa", "--iterations", "6", "--chains", "2", "--json"],
+                ["optimize", str(tree), "--method", "sa", "--steps", "6", "--chains", "2", "--json"],
                 ["trace", str(tree), str(mesh), "--rays", "64", "--json"],
                 ["evolve", str(mesh), "--population", "4", "--generations", "2", "--json"],
                 ["collapse", str(tree), "--json"],

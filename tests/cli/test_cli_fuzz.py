@@ -34,7 +34,7 @@ READERS = {
     "stats --mesh": lambda tree, mesh: ["stats", tree, "--mesh", mesh],
     "optimize": lambda tree, mesh: ["optimize", tree],
     "optimize treelet": lambda tree, mesh: ["optimize", tree, "--method", "treelet"],
-    "optimize sa": lambda tree, mesh: ["optimize", tree, "--method", "sa", "--iterations", 4],
+    "optimize sa": lambda tree, mesh: ["optimize", tree, "--method", "sa", "--steps", 4],
     "trace": lambda tree, mesh: ["trace", tree, mesh, "--rays", 20],
     "collapse": lambda tree, mesh: ["collapse", tree],
 }

@@ -538,7 +538,7 @@ def test_cli_optimize_tree_file(tmp_path):
     jaxbvh.save(src, tree)
     parser, modules = make_parser()
     for method in ("hc", "sa"):
-        args = parser.parse_args(["optimize", str(src), "--method", method, "--iterations", "8",
+        args = parser.parse_args(["optimize", str(src), "--method", method, "--steps", "8",
                                   "--chains", "2", "--json", "-o", str(out)])
         result = modules["optimize"].run(args)
         assert result["valid"] and result["after"]["sah"] <= result["before"]["sah"] * (1 + 1e-6)

@@ -31,12 +31,15 @@ from jaxbvh.optimize import DEFAULT_METHOD, OPTIMIZERS, optimize, pipeline
 HELP = ("optimize a BVH: rotations (hill climbing, annealing), parallel reinsertion, treelet "
         "restructuring, or the pipeline of treelets and reinsertion")
 
-#: config fields the command line spells its own way (established flags)
+#: config fields the command line spells its own way (every other flag is its field's name)
 FLAGS = {
-    "steps": "--iterations",            # annealing: passes of the schedule
     "leaves": "--treelet-leaves",       # treelet size, also the pipeline's
-    "max_iterations": "--max-passes",   # reinsertion's iterations, also the pipeline's
-    "max_quench": "--max-passes",       # annealing's passes at T = 0 after the schedule
+}
+#: spellings the command had before each flag was its field's name (docs/optimizers.md,
+#: Words): still accepted, with a DeprecationWarning
+RENAMED = {
+    "--iterations": {"*": "--steps"},   # annealing's passes that follow the schedule
+    "--max-passes": {"sa": "--max-quench", "reinsert": "--max-iterations", "pipeline": "--max-iterations"},
 }
 #: config fields the command line does not offer: the SAH constants and the leaf limit come
 #: with the builder options (--ct, --ci, --max-leaf: they cost and shape the tree too); work sizes never change a result; the
@@ -52,7 +55,7 @@ def leaf_limit(method: str, builder) -> dict:
 
 
 #: methods whose options serve each other: Kensler's hill climbing is his annealing
-#: without the heat, so annealing's options (--iterations, --chains, ...) are accepted,
+#: without the heat, so annealing's options (--steps, --chains, ...) are accepted,
 #: and checked, with --method hc; any other method's option is an error
 FAMILIES = {"hc": "rotations", "sa": "rotations"}
 
@@ -60,7 +63,7 @@ FAMILIES = {"hc": "rotations", "sa": "rotations"}
 #: schedules by name, the knob's choices; a function is the library's alone)
 OPTIONS = config_options.ConfigOptions({name: o.Config for name, o in OPTIMIZERS.items()},
                                        exclude=EXCLUDE, flags=FLAGS, method_flag="--method",
-                                       families=FAMILIES)
+                                       families=FAMILIES, renamed=RENAMED)
 
 
 #: memory of one annealing chain per node of the tree (the current, best and proposed
