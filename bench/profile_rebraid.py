@@ -19,7 +19,8 @@ loop is close to proportional to its array (tenth round: 0.12 ms at 128 slots, 0
 levels without opening (whose spare room keeps every slot live), the level's time less
 its dispatch (the levels' sum less the engine's time, per level) times the share of its
 array it would not need: an upper bound, before the program's gathers and scatters;
-beside it, ``run_from``'s ``stage_seconds["top"]`` at the same slots (min of ``--repeat``). This script reads the engine's private names: it
+beside it, ``run_from``'s ``stage_seconds["top"]`` at the same slots (min of ``--repeat``).
+This script reads the engine's private names: it
 profiles the engine, it is no API.
 """
 

@@ -38,5 +38,6 @@ from jaxbvh.builders.configs import (
 from jaxbvh.builders.dispatch import build
 from jaxbvh.builders.sbvh import SBVHBuild, build_sbvh
 
-__all__ = ["ALL_BUILDERS", "BOX_BUILDERS", "TRIANGLE_BUILDERS", "BUILDERS", "DEFAULT_BUILDER", "BuilderConfig", "SweepConfig", "BinnedConfig", "MedianConfig",
-           "LBVHConfig", "PLOCConfig", "SBVHConfig", "SBVHBuild", "build", "build_sbvh"]
+__all__ = ["ALL_BUILDERS", "BOX_BUILDERS", "TRIANGLE_BUILDERS", "BUILDERS", "DEFAULT_BUILDER", "BuilderConfig",
+           "SweepConfig", "BinnedConfig", "MedianConfig", "LBVHConfig", "PLOCConfig", "SBVHConfig", "SBVHBuild",
+           "build", "build_sbvh"]

@@ -1,4 +1,4 @@
-"""GRASP and the GA report as the optimizers do (jaxbvh.optimize.protocol.SearchResult).
+"""GRASP and the GA report as the optimizers do (their results subclass jaxbvh.optimize.protocol.OptimizeResult).
 
 For each: the result has the optimizer result's fields, consistent with each other and
 with what ``on_step`` got (one StepInfo per step, in order); a second run on other

@@ -1,4 +1,4 @@
-"""Re-braiding reports as the optimizers do (jaxbvh.optimize.protocol.SearchResult).
+"""Re-braiding reports as the optimizers do (jaxbvh.optimize.protocol.OptimizeResult; old name SearchResult).
 
 ``twolevel.run`` / ``run_from`` return a :class:`jaxbvh.twolevel.RebraidResult`: the
 search fields (one step per stage, ``on_step`` once per stage) and the stage seconds,
