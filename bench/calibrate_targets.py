@@ -1,6 +1,6 @@
 """Calibrate the cost targets (:mod:`jaxbvh.tree.targets`) from tinybvh's kernels (issue 40).
 
-    python bench/calibrate_targets.py                       # legocar, fandisk, spot; res 128
+    python bench/calibrate_targets.py                       # legocar and spot, res 96
     python bench/calibrate_targets.py --meshes legocar --res 96 --repeats 3
 
 For every mesh, a few trees of different shapes (builders, leaf limits) are written to
@@ -23,7 +23,7 @@ triangle tests *of the tree each kernel runs*:
   leaves of more than 4 triangles are left out of these two fits (tinybvh's
   ``SplitLeafs(4)`` would change them).
 
-The fit, per layout, by least squares over every (tree, ray set): ``ns per ray = c0 +
+The fit, per layout, by non-negative least squares over every (tree, ray set): ``ns per ray = c0 +
 a * node visits + b * triangle tests``. The target's costs are ``Ct = a / b`` and ``Ci =
 1`` (cost in triangle tests; only the ratio changes which tree is best). For the wide
 layouts a second fit against the *binary* tree's counts (the tree after the leaf merge,
@@ -48,15 +48,20 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy.optimize import nnls
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from bench.bench_render import DATA, INPUTS, LAYOUT_CLASS, LAYOUTS, PEER, RESULTS, SETS, load, tracer  # noqa: E402
 
-#: the trees of every mesh: name -> (builder, max_leaf); shapes from deep one-triangle
-#: leaves to shallow 16-triangle ones, good and poor builders
-TREES = {"sweep1": ("sweep", 1), "sweep2": ("sweep", 2), "sweep4": ("sweep", 4), "sweep8": ("sweep", 8),
-         "binned4": ("binned", 4), "lbvh1": ("lbvh", 1), "lbvh4": ("lbvh", 4), "ploc2": ("ploc", 2)}
+#: the trees of every mesh: name -> (builder, options); shapes from deep one-triangle
+#: leaves to shallow 16-triangle ones (a high Ct or a low Ci makes the builder's SAH leaf
+#: test keep big leaves), good and poor builders, so that node visits and triangle tests
+#: vary apart
+TREES = {"sweep1": ("sweep", {"max_leaf": 1}), "sweep4": ("sweep", {"max_leaf": 4}),
+         "sweep8ci": ("sweep", {"max_leaf": 8, "ci": 0.3}), "sweep16ct": ("sweep", {"max_leaf": 16, "ct": 6.0}),
+         "median1": ("median", {"max_leaf": 1}), "binned4": ("binned", {"max_leaf": 4}),
+         "lbvh1": ("lbvh", {"max_leaf": 1}), "ploc4": ("ploc", {"max_leaf": 4})}
 WIDTH = {"bvh4": 4, "bvh8": 8}
 #: tinybvh's ConvertFrom merges subtrees of up to this many triangles (CombineLeafs(4))
 COMBINE = 4
@@ -181,8 +186,8 @@ def one_mesh(name, args, exe, work):
     work = work / Path(name).stem
     work.mkdir(parents=True, exist_ok=True)
     files, trees = {}, {}
-    for tree_name, (builder, max_leaf) in TREES.items():
-        tree = jaxbvh.to_numpy(jaxbvh.build(lo, hi, method=builder, max_leaf=max_leaf))
+    for tree_name, (builder, options) in TREES.items():
+        tree = jaxbvh.to_numpy(jaxbvh.build(lo, hi, method=builder, **options))
         tree = tree.replace(axis=np.full_like(tree.axis, -1))  # visit by entry distance, as tinybvh does
         trees[tree_name] = tree
         files[tree_name] = work / f"{tree_name}.bin"
@@ -239,7 +244,7 @@ def one_mesh(name, args, exe, work):
                                "rays_here": int(o.shape[0])})
         print(f"{name}/{tree_name}: counted (load {load()})", file=sys.stderr, flush=True)
     return {"mesh": name, "triangles": int(world.shape[0]), "load_trace": [load_before, load()],
-            "trees": {k: list(v) for k, v in TREES.items()}, "points": points,
+            "trees": {k: [b, o] for k, (b, o) in TREES.items()}, "points": points,
             "tracer": [x for x in lines if x["kind"] != "trace"]}
 
 
@@ -252,10 +257,10 @@ def fit(points, visits_key="visits"):
     """Least squares ``ns = c0 + a visits + b tris``: ``{c0, a, b, ct, rms_rel, max_rel, n}``."""
     y = np.array([p["ns_per_ray"] for p in points])
     x = np.array([[1.0, p[visits_key], p["tris"]] for p in points])
-    (c0, a, b), *_ = np.linalg.lstsq(x, y, rcond=None)
+    (c0, a, b), _ = nnls(x, y)  # no cost can be negative
     rel = (x @ np.array([c0, a, b]) - y) / y
-    return {"c0_ns": float(c0), "node_ns": float(a), "tri_ns": float(b), "ct": float(a / b), "ci": 1.0,
-            "rms_rel": float(np.sqrt(np.mean(rel ** 2))), "max_rel": float(np.max(np.abs(rel))), "n": len(points)}
+    return {"c0_ns": float(c0), "node_ns": float(a), "tri_ns": float(b), "ci": 1.0,
+            "ct": float(a / b) if b > 0 else float("inf"), "rms_rel": float(np.sqrt(np.mean(rel ** 2))), "max_rel": float(np.max(np.abs(rel))), "n": len(points)}
 
 
 def fits(meshes) -> dict:
@@ -271,8 +276,8 @@ def fits(meshes) -> dict:
         # the same ratio without the per-ray constant, for comparison
         y = np.array([p["ns_per_ray"] for p in mine])
         x = np.array([[p["visits"], p["tris"]] for p in mine])
-        (a, b), *_ = np.linalg.lstsq(x, y, rcond=None)
-        out[layout]["no_constant_ct"] = float(a / b)
+        (a, b), _ = nnls(x, y)
+        out[layout]["no_constant_ct"] = float(a / b) if b > 0 else float("inf")
     return out
 
 
@@ -283,7 +288,7 @@ def markdown(report) -> str:
            f"tinybvh v1.6.7 kernels, one thread; {report['res']}² rays per set, min of {report['repeats']} "
            f"rounds of thread CPU time; {report['utc']} UTC. Meshes: "
            + ", ".join(f"{r['mesh']} ({r['triangles']:,} triangles)" for r in report["meshes"])
-           + f"; trees per mesh: {', '.join(f'{k} ({b}, max_leaf {p})' for k, (b, p) in TREES.items())}.", "",
+           + "; trees per mesh: " + ", ".join(f"{k} ({b}, {json.dumps(o)})" for k, (b, o) in TREES.items()) + ".", "",
            "Fit per layout over every (mesh, tree, ray set): ns per ray = c0 + a · node visits + b · triangle "
            "tests (counts from `jaxbvh.rays` on the tree each kernel runs; module docstring). Ct = a / b, Ci = 1. "
            "Wide layouts: node visits are wide-node visits; `binary Ct` is the same fit against the binary tree's "
@@ -309,8 +314,8 @@ def markdown(report) -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--meshes", nargs="+", default=["legocar", "fandisk", "spot"])
-    parser.add_argument("--res", type=int, default=128)
+    parser.add_argument("--meshes", nargs="+", default=["legocar", "spot"])
+    parser.add_argument("--res", type=int, default=96)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "jaxbvh-calibrate")
     parser.add_argument("--peer-build", type=Path, default=Path(os.environ.get("PEER_BUILD", "/tmp/jaxbvh-peer")))
