@@ -23,7 +23,7 @@ triangle tests *of the tree each kernel runs*:
   leaves of more than 4 triangles are left out of these two fits (tinybvh's
   ``SplitLeafs(4)`` would change them).
 
-The fit, per layout, by non-negative least squares over every (tree, ray set): ``ns per ray = c0 +
+The fit, per layout, by non-negative least squares over every (tree, ray set): ``ns per ray = c0[set] +
 a * node visits + b * triangle tests``. The target's costs are ``Ct = a / b`` and ``Ci =
 1`` (cost in triangle tests; only the ratio changes which tree is best). For the wide
 layouts a second fit against the *binary* tree's counts (the tree after the leaf merge,
@@ -166,8 +166,10 @@ def counts(tree, tris, origin, direction, skip=None) -> dict:
     from jaxbvh.rays import closest_hit
 
     hits = closest_hit(tree, tris, origin, direction, skip=skip)
-    interior = np.asarray(hits.nodes_visited) - np.asarray(hits.leaves_visited)
-    return {"visits": float(interior.mean()), "tris": float(np.asarray(hits.prim_tests).mean())}
+    leaves = np.asarray(hits.leaves_visited)
+    interior = np.asarray(hits.nodes_visited) - leaves
+    return {"visits": float(interior.mean()), "tris": float(np.asarray(hits.prim_tests).mean()),
+            "leaves": float(leaves.mean())}
 
 
 def one_mesh(name, args, exe, work):
@@ -253,31 +255,43 @@ def one_mesh(name, args, exe, work):
 # ----------------------------------------------------------------------------------
 
 
-def fit(points, visits_key="visits"):
-    """Least squares ``ns = c0 + a visits + b tris``: ``{c0, a, b, ct, rms_rel, max_rel, n}``."""
+def fit(points, visits_key="visits", leaf_key="tris"):
+    """Non-negative least squares ``ns = c0[set] + a visits + b leaf_work`` over ``points``:
+    one intercept per ray set (coherent primary rays and incoherent random rays differ in
+    what a ray costs besides its tests: setup, caches), one price per node visit and per
+    unit of leaf work (a triangle test, or a leaf visit for the wide kernels, which test a
+    leaf's up to 4 triangles at once). ``{c0_ns: {set: ns}, node_ns, leaf_ns, ratio,
+    rms_rel, max_rel, n}``."""
+    sets = sorted({p["set"] for p in points})
     y = np.array([p["ns_per_ray"] for p in points])
-    x = np.array([[1.0, p[visits_key], p["tris"]] for p in points])
-    (c0, a, b), _ = nnls(x, y)  # no cost can be negative
-    rel = (x @ np.array([c0, a, b]) - y) / y
-    return {"c0_ns": float(c0), "node_ns": float(a), "tri_ns": float(b), "ci": 1.0,
-            "ct": float(a / b) if b > 0 else float("inf"), "rms_rel": float(np.sqrt(np.mean(rel ** 2))), "max_rel": float(np.max(np.abs(rel))), "n": len(points)}
+    x = np.array([[float(p["set"] == s) for s in sets] + [p[visits_key], p[leaf_key]] for p in points])
+    coef, _ = nnls(x, y)  # no cost can be negative
+    a, b = coef[-2], coef[-1]
+    rel = (x @ coef - y) / y
+    return {"c0_ns": {s: float(c) for s, c in zip(sets, coef[:-2])}, "node_ns": float(a), "leaf_ns": float(b),
+            "ratio": float(a / b) if b > 0 else float("inf"), "rms_rel": float(np.sqrt(np.mean(rel ** 2))),
+            "max_rel": float(np.max(np.abs(rel))), "n": len(points), "visits": visits_key, "leaf_work": leaf_key}
 
 
 def fits(meshes) -> dict:
+    """Per layout: the fit (triangle tests for the binary kernels, leaf visits for the wide
+    ones), the per-triangle fit beside it, per ray set fits, and for the wide layouts the
+    fit against the binary tree's visits (``binary``)."""
     points = [p for m in meshes for p in m["points"]]
     out = {}
     for layout in LAYOUTS:
         mine = [p for p in points if p["layout"] == layout]
-        if len(mine) < 4:
+        if len(mine) < 6:
             continue
-        out[layout] = {"fit": fit(mine)}
-        if layout in WIDTH:
-            out[layout]["binary"] = fit(mine, "binary_visits")
-        # the same ratio without the per-ray constant, for comparison
-        y = np.array([p["ns_per_ray"] for p in mine])
-        x = np.array([[p["visits"], p["tris"]] for p in mine])
-        (a, b), _ = nnls(x, y)
-        out[layout]["no_constant_ct"] = float(a / b) if b > 0 else float("inf")
+        wide = layout in WIDTH
+        leaf = "leaves" if wide else "tris"
+        f = {"fit": fit(mine, "visits", leaf), "per_triangle": fit(mine, "visits", "tris"),
+             "per_set": {s: fit([p for p in mine if p["set"] == s], "visits", leaf) for s in SETS}}
+        # a leaf visit in triangles: the mean occupancy of the leaves visited
+        f["tris_per_leaf_visit"] = float(np.sum([p["tris"] for p in mine]) / np.sum([p["leaves"] for p in mine]))
+        if wide:
+            f["binary"] = fit(mine, "binary_visits", leaf)
+        out[layout] = f
     return out
 
 
@@ -289,26 +303,34 @@ def markdown(report) -> str:
            f"rounds of thread CPU time; {report['utc']} UTC. Meshes: "
            + ", ".join(f"{r['mesh']} ({r['triangles']:,} triangles)" for r in report["meshes"])
            + "; trees per mesh: " + ", ".join(f"{k} ({b}, {json.dumps(o)})" for k, (b, o) in TREES.items()) + ".", "",
-           "Fit per layout over every (mesh, tree, ray set): ns per ray = c0 + a · node visits + b · triangle "
-           "tests (counts from `jaxbvh.rays` on the tree each kernel runs; module docstring). Ct = a / b, Ci = 1. "
-           "Wide layouts: node visits are wide-node visits; `binary Ct` is the same fit against the binary tree's "
-           "visits after the leaf merge (what the binary optimizers see).", "",
-           "| layout | points | c0 (ns) | a: ns / node visit | b: ns / triangle test | **Ct** (a/b) | Ct without c0 "
-           "| rel. error RMS / max | binary Ct (error RMS / max) |",
-           "|---|---|---|---|---|---|---|---|---|"]
+           "Fit per layout over every (mesh, tree, ray set), non-negative least squares: ns per ray = c0[ray set] + "
+           "a · node visits + b · leaf work, with the counts of `jaxbvh.rays` on the tree each kernel runs (module "
+           "docstring). Leaf work: triangle tests for `BVH` and `BVH_SoA`, which test one triangle at a time; leaf "
+           "visits for `BVH4_CPU` and `BVH8_CPU`, which test a leaf's up to 4 triangles at once (their per-triangle "
+           "fit is shown beside). Wide layouts: node visits are wide-node visits; the last column fits the same "
+           "times against the binary tree's visits after the leaf merge (what the binary optimizers see).", "",
+           "| layout | points | c0 (ns) primary / random / bounce | ns / node visit | ns / leaf work | leaf work "
+           "| node / leaf work | rel. error RMS / max | per ray set: node / leaf work | per triangle: ns / node, ns / "
+           "triangle (error RMS) | binary tree's visits: ns / visit, ratio (error RMS) |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
     for layout, f in report["fits"].items():
-        g = f["fit"]
+        g, t = f["fit"], f["per_triangle"]
         b = f.get("binary")
-        binary = f"{b['ct']:.3f} ({100 * b['rms_rel']:.1f}% / {100 * b['max_rel']:.1f}%)" if b else "–"
-        out.append(f"| {LAYOUT_CLASS[layout]} | {g['n']} | {g['c0_ns']:.1f} | {g['node_ns']:.2f} | {g['tri_ns']:.2f} "
-                   f"| **{g['ct']:.3f}** | {f['no_constant_ct']:.3f} | {100 * g['rms_rel']:.1f}% / "
-                   f"{100 * g['max_rel']:.1f}% | {binary} |")
-    out += ["", "## Points", "", "| mesh | tree | layout | set | ns/ray | node visits | binary visits | triangle tests |",
-            "|---|---|---|---|---|---|---|---|"]
+        binary = f"{b['node_ns']:.2f}, {b['ratio']:.3f} ({100 * b['rms_rel']:.1f}%)" if b else "–"
+        c0 = " / ".join(f"{g['c0_ns'].get(s, float('nan')):.0f}" for s in SETS)
+        per_set = " / ".join(f"{f['per_set'][s]['ratio']:.2f}" for s in SETS)
+        work = "leaf visit" if g["leaf_work"] == "leaves" else "triangle test"
+        out.append(f"| {LAYOUT_CLASS[layout]} | {g['n']} | {c0} | {g['node_ns']:.2f} | {g['leaf_ns']:.2f} | {work} "
+                   f"| **{g['ratio']:.3f}** | {100 * g['rms_rel']:.1f}% / {100 * g['max_rel']:.1f}% | {per_set} "
+                   f"| {t['node_ns']:.2f}, {t['leaf_ns']:.2f} ({100 * t['rms_rel']:.1f}%) | {binary} |")
+    out += ["", "Triangles per leaf visit (all points of a layout): "
+            + ", ".join(f"{LAYOUT_CLASS[k]} {f['tris_per_leaf_visit']:.2f}" for k, f in report["fits"].items()) + "."]
+    out += ["", "## Points", "", "| mesh | tree | layout | set | ns/ray | node visits | binary visits | triangle tests "
+            "| leaf visits |", "|---|---|---|---|---|---|---|---|---|"]
     for r in report["meshes"]:
         for p in r["points"]:
             out.append(f"| {p['mesh']} | {p['tree']} | {p['layout']} | {p['set']} | {p['ns_per_ray']:.1f} | "
-                       f"{p['visits']:.2f} | {p['binary_visits']:.2f} | {p['tris']:.2f} |")
+                       f"{p['visits']:.2f} | {p['binary_visits']:.2f} | {p['tris']:.2f} | {p['leaves']:.2f} |")
     return "\n".join(out) + "\n"
 
 
