@@ -117,7 +117,7 @@ def one_mesh(name: str, args, exe: Path, work: Path) -> dict:
     work.mkdir(parents=True, exist_ok=True)
     started = {"load": load(), "utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime())}
     ours = {}
-    trees = dict(OURS, **{f"ours_{t}": ["--target", t] for t in args.targets})
+    trees = dict({k: v for k, v in OURS.items() if k in args.ours}, **{f"ours_{t}": ["--target", t] for t in args.targets})
     for tree, options in trees.items():
         print(f"{name}: {tree} (jaxbvh optimize {' '.join(options)})", file=sys.stderr, flush=True)
         ours[tree] = our_tree(path, tree, options, work, args.reuse)
@@ -302,6 +302,8 @@ def main(argv=None) -> int:
     parser.add_argument("--res", type=int, default=512, help="rays per set: RES^2 (default 512)")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--ours", nargs="*", default=list(OURS), choices=list(OURS),
+                        help="which of our default trees to make (default: all)")
     parser.add_argument("--targets", nargs="*", default=[],
                         help="also trees optimized for these cost targets (jaxbvh optimize --target NAME)")
     parser.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "jaxbvh-bench-render")

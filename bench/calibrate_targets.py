@@ -292,7 +292,28 @@ def fits(meshes) -> dict:
         if wide:
             f["binary"] = fit(mine, "binary_visits", leaf)
         out[layout] = f
+    wide = [p for p in points if p["layout"] in WIDTH]
+    if len(wide) >= 12:
+        out["wide"] = {key: joint_fit(wide, key) for key in ("visits", "binary_visits")}
+        out["wide"]["tris_per_leaf_visit"] = float(np.sum([p["tris"] for p in wide]) / np.sum([p["leaves"] for p in wide]))
     return out
+
+
+def joint_fit(points, visits_key):
+    """The wide kernels together: one intercept per (layout, ray set), one node price per
+    layout, one leaf-visit price shared (both kernels test a leaf's triangles with the same
+    4-wide code). Node visits and leaf visits rise together across trees (correlation
+    about 0.9 within a ray set), so one layout's points alone fix their ratio poorly; the
+    shared leaf price uses both layouts' points."""
+    keys = sorted({(p["layout"], p["set"]) for p in points})
+    layouts = sorted(WIDTH)
+    y = np.array([p["ns_per_ray"] for p in points])
+    x = np.array([[float((p["layout"], p["set"]) == k) for k in keys]
+                  + [p[visits_key] * (p["layout"] == w) for w in layouts] + [p["leaves"]] for p in points])
+    coef, _ = nnls(x, y)
+    rel = (x @ coef - y) / y
+    return {"node_ns": {w: float(c) for w, c in zip(layouts, coef[len(keys):-1])}, "leaf_ns": float(coef[-1]),
+            "rms_rel": float(np.sqrt(np.mean(rel ** 2))), "max_rel": float(np.max(np.abs(rel))), "n": len(points)}
 
 
 def markdown(report) -> str:
@@ -314,6 +335,8 @@ def markdown(report) -> str:
            "triangle (error RMS) | binary tree's visits: ns / visit, ratio (error RMS) |",
            "|---|---|---|---|---|---|---|---|---|---|---|"]
     for layout, f in report["fits"].items():
+        if layout == "wide":
+            continue
         g, t = f["fit"], f["per_triangle"]
         b = f.get("binary")
         binary = f"{b['node_ns']:.2f}, {b['ratio']:.3f} ({100 * b['rms_rel']:.1f}%)" if b else "–"
@@ -324,7 +347,29 @@ def markdown(report) -> str:
                    f"| **{g['ratio']:.3f}** | {100 * g['rms_rel']:.1f}% / {100 * g['max_rel']:.1f}% | {per_set} "
                    f"| {t['node_ns']:.2f}, {t['leaf_ns']:.2f} ({100 * t['rms_rel']:.1f}%) | {binary} |")
     out += ["", "Triangles per leaf visit (all points of a layout): "
-            + ", ".join(f"{LAYOUT_CLASS[k]} {f['tris_per_leaf_visit']:.2f}" for k, f in report["fits"].items()) + "."]
+            + ", ".join(f"{LAYOUT_CLASS[k]} {f['tris_per_leaf_visit']:.2f}" for k, f in report["fits"].items()
+                        if k != "wide") + "."]
+    w = report["fits"].get("wide")
+    if w:
+        occupancy = w["tris_per_leaf_visit"]
+        out += ["", "## The targets", "",
+                "Wide kernels fitted together (one leaf-visit price for both; `joint_fit`), in triangle tests: a leaf "
+                f"visit tests {occupancy:.2f} triangles on average, so one triangle test = leaf price / {occupancy:.2f}. "
+                "`node_ct`: a wide node visit; `ct`: a visit of a node of the binary tree after the leaf merge "
+                "(what the optimizers price). Binary kernels: `ct` = the fit's node / triangle ratio.", "",
+                "| target | ct | node_ct | ci | fit error RMS / max (wide visits; binary visits) |", "|---|---|---|---|---|"]
+        fits = report["fits"]
+        for layout in ("bvh", "soa"):
+            if layout in fits:
+                g = fits[layout]["fit"]
+                out.append(f"| tinybvh-{layout} | {g['ratio']:.2f} | {g['ratio']:.2f} | 1 | {100 * g['rms_rel']:.1f}% / "
+                           f"{100 * g['max_rel']:.1f}% |")
+        for layout in WIDTH:
+            a, b = w["visits"], w["binary_visits"]
+            node_ct = a["node_ns"][layout] / (a["leaf_ns"] / occupancy)
+            ct = b["node_ns"][layout] / (b["leaf_ns"] / occupancy)
+            out.append(f"| tinybvh-{layout} | {ct:.2f} | {node_ct:.2f} | 1 | {100 * a['rms_rel']:.1f}% / "
+                       f"{100 * a['max_rel']:.1f}%; {100 * b['rms_rel']:.1f}% / {100 * b['max_rel']:.1f}% |")
     out += ["", "## Points", "", "| mesh | tree | layout | set | ns/ray | node visits | binary visits | triangle tests "
             "| leaf visits |", "|---|---|---|---|---|---|---|---|---|"]
     for r in report["meshes"]:
@@ -342,7 +387,13 @@ def main(argv=None) -> int:
     parser.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "jaxbvh-calibrate")
     parser.add_argument("--peer-build", type=Path, default=Path(os.environ.get("PEER_BUILD", "/tmp/jaxbvh-peer")))
     parser.add_argument("--name", default="targets")
+    parser.add_argument("--refit", action="store_true", help="fit again the points of the saved JSON (no runs)")
     args = parser.parse_args(argv)
+    if args.refit:
+        report = json.loads((RESULTS / f"{args.name}.json").read_text())
+        report["fits"] = fits(report["meshes"])
+        write(report, args.name)
+        return 0
     exe = tracer(args.peer_build)
     cpu = next((x.split(":", 1)[1].strip() for x in open("/proc/cpuinfo") if x.startswith("model name")),
                platform.processor())
