@@ -4,6 +4,7 @@ and optimizing for a target lowers that target's cost."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -102,3 +103,17 @@ def test_optimize_target_gives_way_to_explicit_options():
     np.testing.assert_array_equal(np.asarray(with_target.tree.left), np.asarray(plain.tree.left))
     with pytest.raises(ValueError, match="tinybvh-bvh8"):
         optimize(tree, "treelet", target="bvh8")
+
+
+def test_the_documented_table_is_the_code():
+    """docs/optimizers.md's table of targets states TARGETS' values (the code is the source)."""
+    page = (Path(__file__).resolve().parents[2] / "docs" / "optimizers.md").read_text()
+    rows = {}
+    for line in page.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == 6 and cells[0].startswith("`") and cells[0].split("`")[1] in targets.TARGETS:
+            rows[cells[0].split("`")[1]] = [float(c) for c in cells[1:]]
+    assert set(rows) == set(targets.TARGETS)
+    for name, (ct, node_ct, ci, max_leaf, width) in rows.items():
+        t = targets.TARGETS[name]
+        assert (ct, node_ct, ci, max_leaf, width) == (t.ct, t.node_ct, t.ci, t.max_leaf, t.width), name
