@@ -39,6 +39,13 @@ at most ``max_leaf`` primitives one leaf, as tinybvh's ``CombineLeafs`` does) an
 collapse to ``width`` children (:func:`jaxbvh.wide.collapse.optimal` with ``T(k) =
 node_ct * ceil(k / width)``: the least cost over collapses; tinybvh's own collapse is
 greedy and can only cost more).
+
+What it buys (issue 40, ``docs/optimizers.md``): the wide targets' ``ct`` barely moves
+the wide cost of the pipeline's result (under 1% on spot for ``ct`` from 0.5 to 3,
+``bench/results/target_proxy.md``), and a tree optimized for ``tinybvh-bvh8`` was not
+measurably faster in ``BVH8_CPU`` than the default tree (``bench/results/
+bench_render_targets*.md``). The binary targets set the leaf test and the optimizers'
+prices directly.
 """
 
 from __future__ import annotations
