@@ -3,6 +3,7 @@
     python bench/bench_render.py                                  # legocar and the bunny
     python bench/bench_render.py --meshes legocar --res 256 --repeats 3
     python bench/bench_render.py --meshes legocar stanford-bunny drone --reuse
+    python bench/bench_render.py --meshes legocar fandisk --targets tinybvh-bvh8 --name bench_render_targets
 
 Per mesh, one run of the shared tracer (``../shared/peer/tinybvh_trace``, TRACE.md there):
 
@@ -10,6 +11,8 @@ Per mesh, one run of the shared tracer (``../shared/peer/tinybvh_trace``, TRACE.
   ``jaxbvh optimize MESH -o`` (the default build, then the default optimizer) and
   ``jaxbvh optimize MESH --builder sbvh -o`` (spatial splits, then the optimizer), each
   written by ``jaxbvh export --format tinybvh``;
+* with ``--targets NAME ...``, also ``jaxbvh optimize MESH --target NAME -o`` for each
+  cost target (:mod:`jaxbvh.tree.targets`), reported against ``ours_default``;
 * tinybvh's trees, built by the tracer on the same triangles: ``Build`` (binned SAH),
   ``Build`` + ``Optimize(200, extreme)`` and ``BuildHQ`` (SBVH);
 * every tree traced in the four layouts (``BVH``, ``BVH_SoA``, ``BVH4_CPU``,
@@ -97,7 +100,9 @@ def our_tree(mesh: Path, name: str, options: list, work: Path, reuse: bool) -> d
                    check=True)
     keep = ("builder", "method", "passes", "seconds", "compile_seconds", "cpu_seconds", "sah_change_percent")
     return {"file": str(out), "options": options, **{k: result.get(k) for k in keep},
-            "sah_before": result["before"]["sah"], "sah_after": result["after"]["sah"]}
+            "sah_before": result["before"]["sah"], "sah_after": result["after"]["sah"],
+            "target_cost_before": result["before"].get("target_cost"),
+            "target_cost_after": result["after"].get("target_cost")}
 
 
 def geomean(values) -> float:
@@ -112,7 +117,8 @@ def one_mesh(name: str, args, exe: Path, work: Path) -> dict:
     work.mkdir(parents=True, exist_ok=True)
     started = {"load": load(), "utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime())}
     ours = {}
-    for tree, options in OURS.items():
+    trees = dict({k: v for k, v in OURS.items() if k in args.ours}, **{f"ours_{t}": ["--target", t] for t in args.targets})
+    for tree, options in trees.items():
         print(f"{name}: {tree} (jaxbvh optimize {' '.join(options)})", file=sys.stderr, flush=True)
         ours[tree] = our_tree(path, tree, options, work, args.reuse)
     tris = work / "tris.bin"
@@ -214,8 +220,11 @@ def markdown(report: dict) -> str:
             cells = [f"{fmt(t[x]['geomean'])} ({fmt(t[x]['vs_tinybvh_best'], 3)})" for x in LAYOUTS]
             out.append(f"| {name} | {fmt(t['sah'], 3)} | {fmt(t['sah_after_combine4'], 3)} | {t['leaves']:,} ({t['max_leaf']}) "
                        f"| {t['depth']} | {fmt(t['refs_per_tri'], 3)} | " + " | ".join(cells) + " |")
+        out += target_rows(r)
         ours = "; ".join(f"{k}: {v['builder']} → {v['method']}, SAH {fmt(v['sah_before'], 3)} → {fmt(v['sah_after'], 3)}"
-                         f" (jaxbvh's figure, tree frame, before rounding to world float32)" for k, v in r["ours"].items())
+                         + (f", target cost {fmt(v['target_cost_before'], 3)} → {fmt(v['target_cost_after'], 3)}"
+                            if v.get("target_cost_after") is not None else "")
+                         + " (jaxbvh's figures, tree frame, before rounding to world float32)" for k, v in r["ours"].items())
         out += ["", f"Ours: {ours}. Run at {r['started']['utc']} UTC, load {r['started']['load']} → {r['finished_load']}."]
         skipped = {n: t["skipped"] for n, t in s["trees"].items() if t["skipped"]}
         if skipped:
@@ -238,6 +247,26 @@ def markdown(report: dict) -> str:
                            + ("; the same counts on every tree" if s["kernel_differences_alike"] else
                               "; the counts differ between trees (see the JSON)") + ".")
     return "\n".join(out) + "\n"
+
+
+def target_rows(r: dict) -> list[str]:
+    """Per tree optimized for a target: its rays/s over ``ours_default``'s, per layout and
+    ray set (one run: the same process, the same rays)."""
+    trees = r["summary"]["trees"]
+    named = [n for n in trees if n.startswith("ours_tinybvh") or n.startswith("ours_sah")]
+    if not named or "ours_default" not in trees:
+        return []
+    out = ["", "Trees optimized for a target / `ours_default`, Mrays/s ratio per ray set (geomean):", "",
+           "| tree | " + " | ".join(LAYOUT_CLASS[x] for x in LAYOUTS) + " |", "|---|" + "---|" * len(LAYOUTS)]
+    for name in named:
+        cells = []
+        for layout in LAYOUTS:
+            mine, base = trees[name][layout], trees["ours_default"][layout]
+            sets = " / ".join(fmt(mine.get(x, float("nan")) / base.get(x, float("nan")), 3) for x in SETS)
+            cells.append(f"{sets} (**{fmt(mine['geomean'] / base['geomean'], 3)}**)")
+        out.append(f"| {name} | " + " | ".join(cells) + " |")
+    out.append(f"Ray sets in the order {' / '.join(SETS)}.")
+    return out
 
 
 def plot(report: dict, path: Path) -> None:
@@ -273,6 +302,10 @@ def main(argv=None) -> int:
     parser.add_argument("--res", type=int, default=512, help="rays per set: RES^2 (default 512)")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--ours", nargs="*", default=list(OURS), choices=list(OURS),
+                        help="which of our default trees to make (default: all)")
+    parser.add_argument("--targets", nargs="*", default=[],
+                        help="also trees optimized for these cost targets (jaxbvh optimize --target NAME)")
     parser.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "jaxbvh-bench-render")
     parser.add_argument("--reuse", action="store_true", help="reuse our trees already in --work")
     parser.add_argument("--name", default="bench_render")

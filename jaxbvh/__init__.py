@@ -65,13 +65,14 @@ _LAZY = {
     "to_jax": ("jaxbvh.tree.layout", "to_jax"), "to_numpy": ("jaxbvh.tree.layout", "to_numpy"),
     "InvalidTreeError": ("jaxbvh.tree.validate", "InvalidTreeError"), "check": ("jaxbvh.tree.validate", "check"),
     "validate": ("jaxbvh.tree.validate", "validate"), "collapse": ("jaxbvh.wide.collapse", None),
+    "targets": ("jaxbvh.tree.targets", None),
 }
 
 __all__ = [
     "BVH", "WideBVH", "Frame", "InvalidTreeError", "BUILDERS", "BOX_BUILDERS",
     "build", "check", "validate", "sah", "node_costs", "ng_trifonov_cost", "goldsmith_salmon_cost",
     "all_costs", "save", "load", "to_interchange", "from_interchange", "to_numpy", "to_jax",
-    "capacity_bucket", "compile_cache", "load_mesh", "batch", "io", "optimize", "queries", "rays", "scenes", "twolevel",
+    "capacity_bucket", "compile_cache", "load_mesh", "batch", "io", "optimize", "queries", "rays", "scenes", "twolevel", "targets",
     "insertion", "lbvh", "morton", "ploc", "reinsert", "rotate", "treelet", "evolve", "grasp", "collapse",
 ]
 

@@ -17,6 +17,7 @@ import jaxbvh
 from jaxbvh.builders.configs import BUILDERS, DEFAULT_BUILDER, TRIANGLE_BUILDERS, BuilderConfig
 from jaxbvh.cli import options as config_options
 from jaxbvh.cli.front import int_option
+from jaxbvh.tree import targets
 from jaxbvh.configs import INT_MAX, SAHCosts
 from jaxbvh.io import Mesh, TreeFile, bundled_mesh_path, load_any, load_mesh
 from jaxbvh.tree import layout as tree_mod
@@ -91,8 +92,30 @@ def add_builder_args(parser, *, default: BuilderConfig | None = None, methods=BU
 
 def builder_config(args) -> BuilderConfig:
     """The Config of ``args.builder`` with the builder options in ``args`` (one-line
-    ``ValueError`` naming the option if refused)."""
-    return args.builder_options.config(args.builder, args)
+    ``ValueError`` naming the option if refused); a ``--target`` (:func:`add_target`) sets
+    ``ct``, ``ci`` and ``max_leaf`` where ``--ct``, ``--ci``, ``--max-leaf`` are not given."""
+    target = getattr(args, "target", None)
+    fixed = {} if target is None else targets.costs(target)  # the flags given replace these
+    return args.builder_options.config(args.builder, args, **fixed)
+
+
+def add_target(parser) -> None:
+    """``--target NAME``: the cost model of the tracer the tree is for (:mod:`jaxbvh.tree.targets`)."""
+    parser.add_argument("--target", choices=list(targets.TARGETS), default=None, metavar="NAME",
+                        help="cost model of the tracer the tree is for: its Ct, Ci and leaf limit for the "
+                             "builder and optimizer (--ct, --ci, --max-leaf given win), and its cost in the "
+                             f"report; one of {', '.join(targets.TARGETS)} (default: {targets.DEFAULT_TARGET}, "
+                             "the SAH with the builder options' values)")
+
+
+def target_report(tree, args, builder) -> dict:
+    """``{"target", "target_cost"}`` of ``tree`` for ``--target`` with the builder's
+    constants (empty when no target is given)."""
+    target = getattr(args, "target", None)
+    if target is None:
+        return {}
+    return {"target": target, "target_cost": targets.target_cost(tree, target, ct=builder.ct, ci=builder.ci,
+                                                                 max_leaf=builder.max_leaf)}
 
 
 def add_seed(parser, what: str = "random seed") -> None:

@@ -28,6 +28,7 @@ import dataclasses
 from jaxbvh.optimize import pipeline, reinsert, rotate, treelet
 from jaxbvh.optimize.driver import run
 from jaxbvh.optimize.protocol import Optimizer, OptimizeResult, StepInfo
+from jaxbvh.tree import targets
 
 #: every optimizer by method name (the command line's ``--method``)
 OPTIMIZERS: dict[str, Optimizer] = {
@@ -63,7 +64,7 @@ def make_config(method: str, config=None, **options):
 
 
 def optimize(tree, method: str = DEFAULT_METHOD, *, key=None, time_budget: float | None = None,
-             on_step=None, config=None, **options) -> OptimizeResult:
+             on_step=None, config=None, target=None, **options) -> OptimizeResult:
     """Optimize ``tree`` with ``method`` (a name of :data:`OPTIMIZERS`); the result has
     NumPy arrays.
 
@@ -73,8 +74,14 @@ def optimize(tree, method: str = DEFAULT_METHOD, *, key=None, time_budget: float
     ``key``: ``jax.random`` key for ``"sa"`` (default ``key(0)``). ``time_budget``:
     seconds (module docstring). ``on_step(info)``: called on the host after every step
     with a :class:`~jaxbvh.optimize.protocol.StepInfo` (``info.stage`` says which
-    stage of the pipeline). See :func:`jaxbvh.optimize.driver.run`.
+    stage of the pipeline). See :func:`jaxbvh.optimize.driver.run`. ``target``: a cost
+    target (a name of :data:`jaxbvh.tree.targets.TARGETS` or a Target) whose ``ct``,
+    ``ci`` and ``max_leaf`` the method uses where ``options`` do not set them.
     """
+    if target is not None:
+        fields = set(OPTIMIZERS[method].Config.__dataclass_fields__) if method in OPTIMIZERS else set()
+        chosen = targets.costs(target)
+        options = {**{k: v for k, v in chosen.items() if k in fields}, **options}
     config = make_config(method, config, **options)
     return run(OPTIMIZERS[method], tree, config, key=key, time_budget=time_budget, on_step=on_step)
 

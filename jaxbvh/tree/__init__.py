@@ -13,6 +13,7 @@ module             what it holds
 ``split_axes``     Kensler's final pass: split axes and child order
 ``batching``       trees stacked along a leading axis
 ``walks``          host-side walks (post-order) the NumPy twins share
+``targets``        cost targets: the SAH constants, leaf limit and width of a tracer
 =================  =====================================================================
 """
 

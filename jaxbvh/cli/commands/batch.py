@@ -84,6 +84,7 @@ def add_parser(subparsers):
     parser.set_defaults(batch_options=add_config_options(parser, BatchConfig, title="batch options"))
     OPTIMIZER_OPTIONS.add_to(parser, "optimizer options of 'batch optimize' (fields of each method's Config)")
     command_kit.add_builder_args(parser)
+    command_kit.add_target(parser)
     command_kit.add_json(parser)
     return parser
 
@@ -246,6 +247,7 @@ def run(args) -> dict:
                     row["sah_built"] = float(sah_built[k])
                     row["sah"] = float(figures.sah[k]) if figures is not None else float(sah_built[k])
                     row["seconds"] = float(seconds[k])
+                    row.update(command_kit.target_report(tree, args, builder))
                 except Exception as exc:  # noqa: BLE001 (a tree that fails its checks is that mesh's row)
                     row["error"] = f"{stage}: {_one_line(exc)}"
                 bar.update(1)

@@ -14,6 +14,7 @@ def add_parser(subparsers):
     parser = subparsers.add_parser("build", help=HELP, description=HELP + ".")
     command_kit.add_mesh_arg(parser)
     command_kit.add_builder_args(parser)
+    command_kit.add_target(parser)
     parser.add_argument("-o", "--output", metavar="TREE.npz", default=None,
                         help="save the tree (interchange .npz with its scene frame)")
     command_kit.add_json(parser)
@@ -39,6 +40,7 @@ def run(args) -> dict:
     if builder.method == "binned":
         result["bins"] = builder.bins
     result.update(command_kit.tree_stats(tree, builder))
+    result.update(command_kit.target_report(tree, args, builder))
     result.update({
         "valid": True,
         "frame_origin": [float(x) for x in mesh.frame.origin],

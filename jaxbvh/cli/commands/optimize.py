@@ -90,6 +90,7 @@ def add_parser(subparsers):
                         help="save the optimized tree (interchange .npz with its frame)")
     OPTIONS.add_to(parser, "method options (fields of each method's Config; defaults per method)")
     command_kit.add_builder_args(parser)
+    command_kit.add_target(parser)
     command_kit.add_json(parser)
     return parser
 
@@ -141,6 +142,7 @@ def run(args) -> dict:
             command_kit.check_fits("--chains", chains, nodes * BYTES_PER_NODE_PER_CHAIN,
                                    f"{nodes:,}-node trees per chain")
         before = jaxbvh.all_costs(tree, config.ct, config.ci)
+        before.update(command_kit.target_report(tree, args, builder))
         totals = {"hc": getattr(config, "max_passes", None), "sa": getattr(config, "steps", None)}
         bar = command_kit.progress(args, total=totals.get(args.method), desc=f"{args.method}")
 
@@ -157,6 +159,7 @@ def run(args) -> dict:
         with stages("check"):
             _check(tree, result.tree, prim_lo, prim_hi)
         after = jaxbvh.all_costs(result.tree, config.ct, config.ci)
+        after.update(command_kit.target_report(result.tree, args, builder))
         if args.output:
             with stages("save"):
                 jaxbvh.save(args.output, result.tree, frame=frame)
