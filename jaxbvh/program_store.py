@@ -41,6 +41,9 @@ from pathlib import Path
 
 import jax
 
+from jaxbvh import compile_cache
+from jaxbvh.files import atomic_write
+
 __all__ = ["MAX_STORE_FILES", "StoredFunction", "clear_memory", "store_dir", "stored_jit"]
 
 #: the folder keeps at most this many programs; the oldest half goes when it is full
@@ -66,8 +69,6 @@ def _can_serialize() -> bool:
 def store_dir() -> Path | None:
     """The folder of stored programs (None: the store is off): ``programs/`` in
     :func:`jaxbvh.compile_cache.cache_dir`; off with ``JAXBVH_CACHE=off``."""
-    from jaxbvh import compile_cache
-
     if compile_cache.switched_off() or not _can_serialize():
         return None
     return compile_cache.cache_dir() / "programs"
@@ -262,8 +263,6 @@ def _read(path: Path):
 
 
 def _write(path: Path, loaded) -> None:
-    from jaxbvh.files import atomic_write
-
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_write(path) as f:
