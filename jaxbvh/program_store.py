@@ -14,7 +14,8 @@ with concrete arguments is keyed by everything that decides what the program is:
 function's module and name, its static arguments (by value), the pytree structure and
 the shapes and dtypes of its array arguments, the jaxbvh sources (a fingerprint of every
 ``.py`` file of the package: any code change makes new keys), JAX's version, the
-platform and ``jax_enable_x64``. Anything that cannot be keyed so (a static argument or
+platform, its device count and ``jax_enable_x64``; arrays spread over several devices
+(sharded batches) are compiled as usual. Anything that cannot be keyed so (a static argument or
 pytree node whose ``repr`` is not a value, such as a closure) and every call made while
 tracing (inside a user's ``jit``, ``vmap`` or ``grad``) goes to plain :func:`jax.jit`,
 which gives the same results: the store is only ever a shortcut to the same program.
@@ -88,7 +89,7 @@ def _fingerprint() -> str:
 def _environment() -> str:
     import jaxlib
 
-    return "|".join((jax.__version__, jaxlib.__version__, jax.default_backend(),
+    return "|".join((jax.__version__, jaxlib.__version__, jax.default_backend(), str(jax.device_count()),
                      str(jax.config.jax_enable_x64), str(jax.config.jax_numpy_dtype_promotion),
                      str(jax.config.jax_default_matmul_precision)))
 
@@ -160,6 +161,9 @@ class StoredFunction:
         leaves, treedef = jax.tree_util.tree_flatten(dynamic)
         if any(isinstance(x, jax.core.Tracer) for x in leaves):
             return self.jitted(*args, **kwargs)  # inside someone's transformation
+        if any(isinstance(x, jax.Array) and not isinstance(x.sharding, jax.sharding.SingleDeviceSharding)
+               for x in leaves):
+            return self.jitted(*args, **kwargs)  # a program over several devices: compiled as usual
         try:
             static = tuple((k, _value_repr(v)) for k, v in bound.arguments.items() if k in self._static)
             avals = tuple(str(jax.typeof(x)) for x in leaves)
