@@ -14,14 +14,15 @@ with concrete arguments is keyed by everything that decides what the program is:
 function's module and name, its static arguments (by value), the pytree structure and
 the shapes and dtypes of its array arguments, the jaxbvh sources (a fingerprint of every
 ``.py`` file of the package: any code change makes new keys), JAX's version, the
-platform, its device count and ``jax_enable_x64``; arrays spread over several devices
-(sharded batches) are compiled as usual. Anything that cannot be keyed so (a static argument or
+platform and ``jax_enable_x64``. A process with several devices (sharded batches) compiles
+as usual: an exported program is pinned to the devices it was exported for. Anything that cannot be keyed so (a static argument or
 pytree node whose ``repr`` is not a value, such as a closure) and every call made while
 tracing (inside a user's ``jit``, ``vmap`` or ``grad``) goes to plain :func:`jax.jit`,
 which gives the same results: the store is only ever a shortcut to the same program.
 
 Rules: on when jaxbvh's cache rules allow a folder (:func:`jaxbvh.compile_cache.cache_dir`
-/ ``programs``; ``JAXBVH_CACHE=off`` turns it off, with the compile cache); files are
+/ ``programs``; ``JAXBVH_CACHE=off`` turns it off, with the compile cache; off in a process with several
+devices); files are
 written atomically (:func:`jaxbvh.files.atomic_write`); an unreadable or stale file is
 replaced, never trusted; the folder is kept under :data:`MAX_STORE_FILES` files (oldest
 first out).
@@ -70,7 +71,10 @@ def _can_serialize() -> bool:
 def store_dir() -> Path | None:
     """The folder of stored programs (None: the store is off): ``programs/`` in
     :func:`jaxbvh.compile_cache.cache_dir`; off with ``JAXBVH_CACHE=off``."""
-    if compile_cache.switched_off() or not _can_serialize():
+    if compile_cache.switched_off() or not _can_serialize() or jax.device_count() > 1:
+        # several devices: an exported program is pinned to the devices it was exported
+        # for and its outputs are committed to them, which a later program over all the
+        # devices (a sharded batch) refuses; such a process compiles as usual
         return None
     return compile_cache.cache_dir() / "programs"
 
