@@ -128,7 +128,10 @@ def _release_compiled_programs():
     yield
     import jax
 
+    from jaxbvh import program_store
+
     jax.clear_caches()
+    program_store.clear_memory()
     gc.collect()
 
 

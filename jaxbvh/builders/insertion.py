@@ -113,6 +113,7 @@ from jaxbvh.configs import integer
 from jaxbvh.numerics import TIE_TOLERANCE, half_area
 from jaxbvh.tree.cost import goldsmith_salmon_cost
 from jaxbvh.tree.layout import WideBVH
+from jaxbvh.program_store import stored_jit
 
 DEFAULT_MAX_CHILDREN = 8  # see the table in the module docstring
 
@@ -428,7 +429,7 @@ def _insert(t, trees: _Trees, lo, hi, orders, scale, max_children, nodes) -> _Tr
     return _walk_up(placed, ins, jnp.where(w.m_count == 0, w.m_parent, w.m), nodes)
 
 
-@partial(jax.jit, static_argnames=("max_children",))
+@partial(stored_jit, static_argnames=("max_children",))
 def insert_batch(lo, hi, orders, n, scale, *, max_children: int = DEFAULT_MAX_CHILDREN):
     """The build on prepared inputs (:func:`prepare`, :func:`pad_order`), one tree per order.
 

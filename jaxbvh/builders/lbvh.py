@@ -50,6 +50,7 @@ from jaxbvh.builders.bottom_up import Linked, to_bvh
 from jaxbvh.builders.configs import LBVHConfig
 from jaxbvh.numerics import exclusive_sum, take
 from jaxbvh.tree.layout import BVH
+from jaxbvh.program_store import stored_jit
 
 SENTINEL = np.uint64(2**64 - 1)  # key "outside [0, n)": top bit set, so its prefix with any key is empty
 
@@ -103,7 +104,7 @@ def radix_tree(key, n, code_len):
     return left, right, first, last - first + 1, axis
 
 
-@partial(jax.jit, static_argnames=("bits",))
+@partial(stored_jit, static_argnames=("bits",))
 def topology(lo, hi, n, origin, scale, *, bits):
     """Steps 1 and 2 (module docstring), jitted: the sort and the radix tree.
 
@@ -173,7 +174,7 @@ def fit_boxes(left, right, n, leaf_lo, leaf_hi, *, window: int):
     return carry[0][:cap], carry[1][:cap]
 
 
-@partial(jax.jit, static_argnames=("window", "collapse"))
+@partial(stored_jit, static_argnames=("window", "collapse"))
 def assemble(lo, hi, n, order, left, right, first, count, axis, max_leaf, ct, ci, scale, *, window, collapse):
     """Steps 3 and 4 (module docstring), jitted: boxes bottom-up, leaves collapsed, the layout.
 

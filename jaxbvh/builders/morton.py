@@ -49,6 +49,7 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxbvh.program_store import stored_jit
 
 CODE_BITS = (30, 63)
 PAD_BIT = np.uint64(1) << np.uint64(63)
@@ -67,7 +68,7 @@ def check_code_bits(bits: int) -> int:
     return int(bits)
 
 
-@jax.jit
+@stored_jit
 def centre_bounds(lo, hi, n):
     """Lowest and highest centre [3] each of the first ``n`` of ``lo``, ``hi`` [cap, 3] (exact)."""
     centre = 0.5 * lo + 0.5 * hi
@@ -159,6 +160,6 @@ def morton_order(lo, hi, n, origin, scale, *, bits: int):
         return _morton_order(lo, hi, jnp.int32(n), origin, scale, bits=bits)
 
 
-@partial(jax.jit, static_argnames=("bits",))
+@partial(stored_jit, static_argnames=("bits",))
 def _morton_order(lo, hi, n, origin, scale, *, bits):
     return sort_keys(keys(lo, hi, n, origin, scale, bits=bits), n)[1]

@@ -55,6 +55,7 @@ from jaxbvh.builders.bottom_up import Linked, to_bvh
 from jaxbvh.builders.configs import PLOCConfig
 from jaxbvh.numerics import TIE_TOLERANCE, exclusive_sum, half_area
 from jaxbvh.tree.layout import BVH
+from jaxbvh.program_store import stored_jit
 
 SMALLEST_STAGE = 2048
 
@@ -190,7 +191,7 @@ def _iteration(n, scale, radius: int, carry):
     return clusters, internal, made + jnp.sum(lower, dtype=jnp.int32), steps + 1
 
 
-@partial(jax.jit, static_argnames=("radius", "stages", "collapse"))
+@partial(stored_jit, static_argnames=("radius", "stages", "collapse"))
 def cluster(lo, hi, n, order, max_leaf, ct, ci, scale, *, radius, stages, collapse):
     """The clustering and the layout (module docstring), jitted: what :func:`build` runs after the sort.
 

@@ -108,6 +108,7 @@ from jaxbvh.builders.inputs import narrow_triangles, widen_back
 from jaxbvh.numerics import TIE_TOLERANCE, half_area, scene_scale, take, working_dtype
 from jaxbvh.tree.layout import BVH, capacity_bucket
 from jaxbvh.tree.validate import few_ids
+from jaxbvh.program_store import stored_jit
 
 __all__ = ["SBVHBuild", "build_sbvh", "check_triangles", "reference_slots"]
 
@@ -412,20 +413,20 @@ def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int, spatial_bin
     raise RuntimeError(f"SBVH engine: levels still open after {2 * tri.shape[0] + 1} runs (a bug: please report)")
 
 
-@jax.jit
+@stored_jit
 def _start(tri, n, max_leaf, ct, ci, scale, threshold) -> tuple[_Scene, _State]:
     """The scene and the state before the first level (root open, every triangle a reference)."""
     scene = _Scene(tri, tri.reshape(tri.shape[0], 9).T, scale, threshold, max_leaf, ct, ci)
     return scene, _initial(scene, n)
 
 
-@jax.jit
+@stored_jit
 def _size(s: _State):
     """The level's open nodes and references (int32 each)."""
     return s.next_free - s.level_start, jnp.sum(_in_level(s), dtype=jnp.int32)
 
 
-@jax.jit
+@stored_jit
 def _finish(s: _State) -> SBVHBuild:
     return SBVHBuild(_tree(s), s.n_refs, s.spatial, s.short)
 
@@ -442,7 +443,7 @@ def _fits(s: _State, programs) -> Any:
     return jnp.stack(_fitting(*_size(s), programs))
 
 
-@partial(jax.jit, static_argnames=("bins", "spatial_bins", "program"))
+@partial(stored_jit, static_argnames=("bins", "spatial_bins", "program"))
 def _levels(scene: _Scene, state: _State, *, bins: int, spatial_bins: int, program: int) -> _State:
     """Levels from ``state`` on, in program ``program`` of :func:`level_programs`, while
     the tree is not finished and that program is the first that holds the level."""

@@ -82,6 +82,7 @@ from jaxbvh.builders.configs import BuilderConfig
 from jaxbvh.draws import split_uniforms
 from jaxbvh.numerics import TIE_TOLERANCE, half_area
 from jaxbvh.tree.layout import BVH, capacity_bucket
+from jaxbvh.program_store import stored_jit
 
 
 class RandomSplits(NamedTuple):
@@ -587,7 +588,7 @@ def _tree(s: _State, n) -> BVH:
                root=jnp.int32(0))
 
 
-@partial(jax.jit, static_argnames=("method", "bins"))
+@partial(stored_jit, static_argnames=("method", "bins"))
 def engine(lo, hi, n, max_leaf, ct, ci, scale, *, method: str, bins: int = 0) -> BVH:
     """The greedy engine on prepared inputs (:func:`jaxbvh.builders.inputs.prepare`); jitted, vmappable.
 

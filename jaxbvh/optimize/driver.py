@@ -45,6 +45,7 @@ import numpy as np
 
 from jaxbvh.optimize.protocol import OptimizeResult, OptimizerState, StepInfo
 from jaxbvh.tree.batching import unstack_trees
+from jaxbvh.program_store import stored_jit
 
 #: a chunk of steps grows (doubling, up to this many) while one takes under CHUNK_SECONDS
 MAX_CHUNK = 256
@@ -96,10 +97,10 @@ def _advance(step: Callable, state: OptimizerState, stop) -> OptimizerState:
 
 #: ``advance(step, state, stop)``: the compiled loop of steps (one program per step
 #: function and state shape)
-advance = jax.jit(_advance, static_argnums=0)
+advance = stored_jit(_advance, static_argnums=0)
 
 
-@partial(jax.jit, static_argnums=0)
+@partial(stored_jit, static_argnums=0)
 def finish(result: Callable, state: OptimizerState):
     return result(state)
 
@@ -204,7 +205,7 @@ def init_batch(optimizer, trees, config=None, keys=None) -> OptimizerState:
                         for i, tree in enumerate(singles))
 
 
-@partial(jax.jit, static_argnums=(0, 1))
+@partial(stored_jit, static_argnums=(0, 1))
 def _run_batch(step: Callable, result: Callable, states: OptimizerState):
     states = jax.lax.while_loop(lambda s: ~jnp.all(s.progress.done), jax.vmap(step), states)
     return jax.vmap(result)(states)

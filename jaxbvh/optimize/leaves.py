@@ -34,6 +34,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxbvh.numerics import extent_scale, half_area
+from jaxbvh.program_store import stored_jit
 
 
 def subtree_costs(tree, max_leaf, ct, ci):
@@ -145,7 +146,7 @@ def _merged(tree, count, merge, max_leaf):
         axis=jnp.where(inner, tree.axis, -1), prim_index=prim_index)
 
 
-@jax.jit
+@stored_jit
 def merge_leaves(tree, max_leaf, ct, ci):
     """The pass on a :class:`~jaxbvh.tree.layout.BVH` of JAX arrays (module docstring):
     every subtree of at most ``max_leaf`` [] int32 primitives whose leaf costs less

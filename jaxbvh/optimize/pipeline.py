@@ -68,6 +68,7 @@ from jaxbvh.optimize.reinsert_rules import candidates_needed
 from jaxbvh.tree.cost import sah as sah_of
 from jaxbvh.tree.layout import to_jax
 from jaxbvh.tree.split_axes import apply_split_axes
+from jaxbvh.program_store import stored_jit
 
 DEFAULT_TREELET_PASSES = 2
 DEFAULT_FIRST_TREELET_PASSES = None
@@ -226,7 +227,7 @@ def _settle(inner: Inner, sah, params: Params, static: Static):
     return jax.lax.while_loop(cond, body, (inner, jnp.bool_(False), jnp.bool_(False)))
 
 
-@jax.jit
+@stored_jit
 def _settle_at_init(state: OptimizerState) -> OptimizerState:
     inner, finished, converged = _settle(state.inner, state.progress.sah, state.params, state.static)
     progress = state.progress._replace(done=state.progress.done | finished, converged=converged,

@@ -167,6 +167,7 @@ from jaxbvh.optimize.reinsert_search import prepare, to_tree
 from jaxbvh.tree.cost import sah as sah_of
 from jaxbvh.tree.layout import to_jax
 from jaxbvh.tree.split_axes import apply_split_axes
+from jaxbvh.program_store import stored_jit
 
 DEFAULT_MAX_STEPS = 1024       # search steps per node and iteration (legocar needs < 200)
 DEFAULT_MAX_ITERATIONS = 1000
@@ -290,10 +291,10 @@ def init(tree, config: Config | None = None, key=None, *, sah_start=None) -> Opt
 
 #: ``sah_of(tree, ct, ci)`` as one compiled program (called eagerly, its indexing of the
 #: node costs would compile five more small ones); what the optimizers' ``init`` use
-start_sah = jax.jit(sah_of)
+start_sah = stored_jit(sah_of)
 
 
-@jax.jit
+@stored_jit
 def _start(tree, need) -> Inner:
     st = prepare(tree)
     octaves = octaves_holding(st.area, st.parent, st.root, need, xp=jnp)

@@ -129,6 +129,7 @@ from jaxbvh.optimize.rotate_passes import chain_of, forest_of, initial_state, ru
 from jaxbvh.optimize.schedules import DEFAULT_HOTTEST, KENSLER_PERIOD, KENSLER_STEPS, SCHEDULES, kensler_temperature
 from jaxbvh.tree.layout import to_jax
 from jaxbvh.tree.split_axes import apply_split_axes
+from jaxbvh.program_store import stored_jit
 
 __all__ = [
     "MOVES", "DEFAULT_WINDOWS", "ANNEAL_WINDOWS", "DEFAULT_FRONTIER", "DEFAULT_HOTTEST", "score_moves",
@@ -155,7 +156,7 @@ def score_moves(tree, ct=1.0, ci=1.0):
     return _score_moves(to_jax(tree), ct, ci)
 
 
-@jax.jit
+@stored_jit
 def _score_moves(tree, ct, ci):
     scale, st = initial_state(tree, ct, ci)
     s = score(st, jnp.arange(tree.left.shape[0]), scale, jnp.asarray(ct, tree.lo.dtype))
@@ -326,7 +327,7 @@ def _keep_best(best, cost, forest: State, cap: int):
     return jnp.where(better, cost, best_cost), jax.lax.cond(jnp.any(better), update, lambda: best_st)
 
 
-@partial(jax.jit, static_argnames=("chains", "frontier", "keep_best", "history"))
+@partial(stored_jit, static_argnames=("chains", "frontier", "keep_best", "history"))
 def _start(tree, params: Params, keys, *, chains, frontier, keep_best, history):
     """The inner state before the first pass (K = ``chains`` copies as one forest) and
     the input's SAH (``C`` of the root)."""
@@ -502,7 +503,7 @@ def anneal(key, tree, *, time_budget: float | None = None, on_step: Callable | N
     return run(ANNEAL, tree, AnnealConfig(**config), key=key, time_budget=time_budget, on_step=on_step)
 
 
-@partial(jax.jit, static_argnums=(0, 1))
+@partial(stored_jit, static_argnums=(0, 1))
 def _run_batch(step_fn, result_fn, states):
     """``step_fn`` vmapped over the batch until every state is done, then ``result_fn``."""
     states = jax.lax.while_loop(lambda s: ~jnp.all(s.progress.done), jax.vmap(step_fn), states)

@@ -83,6 +83,7 @@ from jaxbvh.tree.layout import to_jax
 from jaxbvh.tree.refit import refit_boxes
 from jaxbvh.tree import windows as level_windows
 from jaxbvh.tree.split_axes import apply_split_axes
+from jaxbvh.program_store import stored_jit
 
 DEFAULT_LEAVES = 7
 MAX_LEAVES = 10        # 2^n subsets and 3^n splits: beyond this the DP is too large
@@ -399,7 +400,7 @@ class Config(Checked):
                                  help="treelets solved at once (speed only; none: by the tree's capacity)")
 
 
-@jax.jit
+@stored_jit
 def _prepare(tree, ct, ci) -> Inner:
     child = jnp.stack([tree.left, tree.right], axis=1).astype(jnp.int32)
     lo, hi = refit_boxes(child, tree.lo, tree.hi)
@@ -492,7 +493,7 @@ class Treelet(NamedTuple):
     current: Any   # [] area-weighted cost of its present topology
 
 
-@jax.jit
+@stored_jit
 def solve(state: OptimizerState, root) -> Treelet:
     """Form and solve the treelet of ``root`` (an interior node) in ``state``, writing nothing back.
 

@@ -73,6 +73,7 @@ from jaxbvh.configs import Checked, integer, knob, real
 from jaxbvh.numerics import TIE_TOLERANCE
 from jaxbvh.optimize.protocol import CompileClock, OptimizeResult, StepInfo, check_on_step
 from jaxbvh.rays.measure import make_rays, stack_capacity, trace
+from jaxbvh.program_store import stored_jit
 
 
 def _max_children(name, value):
@@ -168,7 +169,7 @@ def generation_key(key, generation: int):
     return jax.random.fold_in(key, generation)
 
 
-@partial(jax.jit, static_argnames=("population", "capacity"))
+@partial(stored_jit, static_argnames=("population", "capacity"))
 def initial_population(key, population: int, n, capacity: int):
     """``population`` uniformly random orders of ``0 .. n-1``, padded: int32 [P, capacity].
 
@@ -184,7 +185,7 @@ def initial_population(key, population: int, n, capacity: int):
     return jax.vmap(one)(jax.random.split(key, population))
 
 
-@partial(jax.jit, static_argnames=("population", "swaps"))
+@partial(stored_jit, static_argnames=("population", "swaps"))
 def generation_draws(key, population: int, n, swaps: int, crossover, mutation) -> Draws:
     """The random numbers of one generation (:class:`Draws`) for orders of ``n`` objects;
     ``swaps`` is :func:`max_swaps`."""
@@ -226,7 +227,7 @@ def order_crossover(first, second, cut):
     return child.at[jnp.where(keep, cut + rank, capacity)].set(second, mode="drop")
 
 
-@jax.jit
+@stored_jit
 def next_population(population, costs, draws: Draws):
     """Selection with elitism, order crossover and swap mutation: int32 [P, capacity]."""
     near = 1 + TIE_TOLERANCE
@@ -271,7 +272,7 @@ def _mesh(devices, population: int):
     return jax.sharding.Mesh(np.array(devices), ("population",))
 
 
-@partial(jax.jit, static_argnames=("max_children",))
+@partial(stored_jit, static_argnames=("max_children",))
 def _costs_and_elite(lo, hi, orders, n, scale, *, max_children: int):
     trees, costs = insertion.insert_batch(lo, hi, orders, n, scale, max_children=max_children)
     elite = elite_index(costs)

@@ -84,6 +84,7 @@ from jaxbvh.draws import split_uniforms
 from jaxbvh.numerics import half_area
 from jaxbvh.optimize.protocol import CompileClock, OptimizeResult, StepInfo, check_on_step
 from jaxbvh.tree.layout import capacity_bucket, concat_ranges, to_numpy
+from jaxbvh.program_store import stored_jit
 from jaxbvh.tree.walks import levels as tree_levels
 
 OBJECTIVES = ("nt", "sah")
@@ -210,7 +211,7 @@ def _mode(rcl):
 
 #: :func:`jaxbvh.builders.topdown.randomized_forest`, compiled: every forest of a run and
 #: every :func:`randomized_build` go through it (one program per capacity and RCL mode)
-build_forest = jax.jit(randomized_forest, static_argnames=("rcl",))
+build_forest = stored_jit(randomized_forest, static_argnames=("rcl",))
 
 
 def randomized_build(key, prim_lo, prim_hi, *, trial: int = 0, noise: float, rcl="axes", pad: bool = True,
@@ -311,7 +312,7 @@ def _greedy(tree, objective) -> _Greedy:
                    contribution=contribution, weight=weight_inner, base=float(base), root_area=float(area[root]))
 
 
-@jax.jit
+@stored_jit
 def _first_uniforms(key, trials, start, count):
     """u0 [T, m] of the greedy tree's interior nodes in trials ``trials`` [T]."""
     t = jnp.broadcast_to(trials[:, None], (trials.shape[0], start.shape[0]))

@@ -34,6 +34,7 @@ import numpy as np
 
 from jaxbvh.numerics import extent_scale, half_area, root_exponent
 from jaxbvh.tree.layout import to_jax, to_numpy
+from jaxbvh.program_store import stored_jit
 
 
 def _children(tree):
@@ -45,7 +46,7 @@ def _scaled_areas(tree):
     return half_area(tree.lo, tree.hi, scale)
 
 
-@partial(jax.jit, static_argnames=())
+@stored_jit
 def node_costs(tree, ct=1.0, ci=1.0):
     """SAH cost ``C(n)`` of every node [N] (padding: ``Ct``, never used).
 
@@ -88,7 +89,7 @@ def sah(tree, ct=1.0, ci=1.0):
     return node_costs(tree, ct, ci)[tree.root]
 
 
-@jax.jit
+@stored_jit
 def ng_trifonov_cost(tree):
     """Total half-area of interior boxes / root half-area (scalar)."""
     area = _scaled_areas(tree)
@@ -99,7 +100,7 @@ def ng_trifonov_cost(tree):
                      jnp.sum(interior).astype(area.dtype))
 
 
-@jax.jit
+@stored_jit
 def goldsmith_salmon_cost(tree):
     """Sum of area x children over nodes / root area (scalar); see module docstring."""
     area = _scaled_areas(tree)

@@ -14,6 +14,7 @@ import jax.numpy as jnp
 
 from jaxbvh.numerics import none_to_oob, take
 from jaxbvh.tree.layout import BVH, to_jax
+from jaxbvh.program_store import stored_jit
 
 
 def split_axis_rule(lo_a, hi_a, lo_b, hi_b, xp=jnp):
@@ -30,7 +31,7 @@ def split_axis_rule(lo_a, hi_a, lo_b, hi_b, xp=jnp):
     return axis.astype(xp.int32), centre_a > centre_b
 
 
-@jax.jit
+@stored_jit
 def apply_split_axes(tree):
     """The pass itself on a :class:`BVH` of JAX arrays (traceable; no checks)."""
     cap = tree.left.shape[0]

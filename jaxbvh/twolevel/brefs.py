@@ -111,6 +111,7 @@ from jaxbvh.tree.layout import BVH, capacity_bucket
 from jaxbvh.twolevel import brefs_level
 from jaxbvh.twolevel.brefs_level import SMALL_SEGMENT, Build  # noqa: F401 (SMALL_SEGMENT: public here)
 from jaxbvh.twolevel.config import DEFAULT_BINS, DEFAULT_OVERLAP, DEFAULT_ROUNDS, DEFAULT_THRESHOLD, RebraidConfig
+from jaxbvh.program_store import stored_jit
 
 DEFAULT_BUDGET = 4.0     # paper §5.2: 4 x #instances (the top-level engine's default)
 PRIMS_PER_SLOT = 1000    # paper §5.2: #primitives / 1000 for trees over objects
@@ -258,7 +259,7 @@ def without_triangles(forest):
 # ----------------------------------------------------------------------------------
 
 
-@partial(jax.jit, static_argnames=("cap", "bins", "estimate"))
+@partial(stored_jit, static_argnames=("cap", "bins", "estimate"))
 def build_levels(forest, instances, n_inst, slots, threshold, overlap, rounds, *, cap, bins, estimate):
     """The compiled engine of :func:`build_top_level` (module docstring): a :class:`TopLevel`.
 

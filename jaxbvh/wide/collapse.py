@@ -94,6 +94,7 @@ from jaxbvh.wide import collapse_dp
 from jaxbvh.wide import levels as lv
 from jaxbvh.wide.box_tests import cost_table, node_test_cost  # noqa: F401 (public here)
 from jaxbvh.wide.collapse_layout import emit, layout, links, prices, relative_areas, schedule
+from jaxbvh.program_store import stored_jit
 
 METHODS = ("greedy", "dp", "qbvh")
 DEFAULT_MAX_CHILDREN = 8  # the DP's K when none is given (the paper used 15)
@@ -181,7 +182,7 @@ class CollapseResult:
 # ----------------------------------------------------------------------------------
 
 
-@jax.jit
+@stored_jit
 def _rcost(child, lo, hi, prim_count, root, table, ci):
     return prices(relative_areas(lo, hi, root), child, prim_count, table, jnp.asarray(ci, lo.dtype))
 
@@ -238,7 +239,7 @@ def _check_k(max_children, what="max_children") -> int:
 # ----------------------------------------------------------------------------------
 
 
-@jax.jit
+@stored_jit
 def _qbvh_decide(tree, levels):
     _, _, interior, real = links(tree)
     return real & ~(interior & (lv.depth_of(levels) % 2 == 1))
@@ -253,7 +254,7 @@ def qbvh(tree, test_cost: Callable | None = None) -> CollapseResult:
     return finish(t, kept, anchor, slot, 4, cost_table(test_cost, 4))
 
 
-@partial(jax.jit, static_argnames=("max_children",))
+@partial(stored_jit, static_argnames=("max_children",))
 def _greedy_decide(tree, levels, *, max_children):
     """The kept nodes [N] bool of the greedy pushup."""
     n = tree.left.shape[0]

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 from jaxbvh.numerics import min_gain, take
 from jaxbvh.wide import levels as lv
 from jaxbvh.wide.collapse_layout import links, relative_areas
+from jaxbvh.program_store import stored_jit
 
 
 def _first_near_min(candidates):
@@ -161,7 +162,7 @@ def _back_track(tree, levels, tables: _Tables, *, k) -> _Placement:
     return lv.sweep_down(levels, back, start)
 
 
-@partial(jax.jit, static_argnames=("max_children", "merge"))
+@partial(stored_jit, static_argnames=("max_children", "merge"))
 def decide(tree, levels, table, ci, max_leaf, *, max_children, merge):
     """The optimal collapse of ``tree`` (a JAX binary BVH) with ``K = max_children``.
 
@@ -196,7 +197,7 @@ def decide(tree, levels, table, ci, max_leaf, *, max_children, merge):
     return kept, placed.anchor, placed.slot, objective, made_leaf, placed.owner, count
 
 
-@jax.jit
+@stored_jit
 def regroup_prims(tree, owner, count):
     """``prim_index`` with every new leaf's primitives in one run: ``(start, prim_index)``.
 

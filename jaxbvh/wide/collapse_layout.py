@@ -18,6 +18,7 @@ import jax.numpy as jnp
 from jaxbvh.numerics import extent_scale, half_area, take
 from jaxbvh.tree.layout import WideBVH
 from jaxbvh.wide import levels as lv
+from jaxbvh.program_store import stored_jit
 
 
 def relative_areas(lo, hi, root):
@@ -49,7 +50,7 @@ def links(tree):
     return left, right, interior, real
 
 
-@jax.jit
+@stored_jit
 def schedule(tree):
     """The interior nodes level by level (:mod:`jaxbvh.wide.levels`); one compile per capacity,
     shared by the three methods."""
@@ -57,7 +58,7 @@ def schedule(tree):
     return lv.level_order(left, right, tree.root, interior, (window_width(tree.left.shape[0]),))
 
 
-@jax.jit
+@stored_jit
 def layout(tree, levels, kept):
     """Anchor (nearest kept proper ancestor) and child slot of every node, from ``kept``
     [N] bool; and the most children of a node: ``(anchor [N] int32, slot [N] int32,
@@ -107,7 +108,7 @@ def prices(a, child, prim_count, table, ci):
     return rc, leaves
 
 
-@partial(jax.jit, static_argnames=("arity",))
+@partial(stored_jit, static_argnames=("arity",))
 def emit(tree, kept, anchor, slot, leaf_count, leaf_start, prim_index, table, ci, *, arity):
     """The WideBVH on the input's ids (kept nodes linked to their anchors at their
     slots, ``arity`` children per node), and ``(R, leaf cost)`` of it and of the input.

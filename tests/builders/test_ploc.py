@@ -96,7 +96,8 @@ def test_no_mutual_pair_falls_back_to_exact_comparisons(monkeypatch):
     monkeypatch.setattr(reference, "nearest", spy)
     monkeypatch.setattr(reference, "TIE_TOLERANCE", 0.5)
     monkeypatch.setattr(ploc, "TIE_TOLERANCE", 0.5)
-    ploc.cluster.clear_cache()  # the tolerance is read at trace time
+    monkeypatch.setenv("JAXBVH_CACHE", "off")  # the tolerance is read at trace time: no stored program
+    ploc.cluster.clear_cache()
     try:
         got = jaxbvh.build(lo, hi, method="ploc", radius=2)
     finally:

@@ -1,0 +1,290 @@
+"""Traced programs kept on disk, so that a warm process skips tracing and lowering too.
+
+JAX's persistent cache (:mod:`jaxbvh.compile_cache`) keeps what XLA *compiled*; every new
+process still traces each program in Python and lowers it to StableHLO before it can
+look the compiled code up. For our large programs (an optimizer's loop of steps, the
+SBVH level loop) that is most of a warm first call: the README script spent 3.5 of its
+7.0 warm CPU s tracing and lowering (bench/results/bench_compile.md). This module keeps
+each lowered program as a serialized :mod:`jax.export` artifact beside the compiled
+ones; a later process deserializes it (milliseconds), and its compiled code comes from
+JAX's cache as before.
+
+:func:`stored_jit` is :func:`jax.jit` for the library's own top-level programs. A call
+with concrete arguments is keyed by everything that decides what the program is: the
+function's module and name, its static arguments (by value), the pytree structure and
+the shapes and dtypes of its array arguments, the jaxbvh sources (a fingerprint of every
+``.py`` file of the package: any code change makes new keys), JAX's version, the
+platform and ``jax_enable_x64``. A process with several devices (sharded batches) compiles
+as usual: an exported program is pinned to the devices it was exported for. Anything that cannot be keyed so (a static argument or
+pytree node whose ``repr`` is not a value, such as a closure) and every call made while
+tracing (inside a user's ``jit``, ``vmap`` or ``grad``) goes to plain :func:`jax.jit`,
+which gives the same results: the store is only ever a shortcut to the same program.
+
+Rules: on when jaxbvh's cache rules allow a folder (:func:`jaxbvh.compile_cache.cache_dir`
+/ ``programs``; ``JAXBVH_CACHE=off`` turns it off, with the compile cache; off in a process with several
+devices); files are
+written atomically (:func:`jaxbvh.files.atomic_write`); an unreadable or stale file is
+replaced, never trusted; the folder is kept under :data:`MAX_STORE_FILES` files (oldest
+first out).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import hashlib
+import inspect
+import os
+import pickle
+import importlib.util
+import warnings
+import weakref
+from pathlib import Path
+
+import jax
+
+from jaxbvh import compile_cache
+from jaxbvh.files import atomic_write
+
+__all__ = ["MAX_STORE_FILES", "StoredFunction", "clear_memory", "store_dir", "stored_jit"]
+
+#: the folder keeps at most this many programs; the oldest half goes when it is full
+MAX_STORE_FILES = 4000
+
+#: bump when the file layout changes
+_FORMAT = b"jaxbvh-program-store-1"
+
+_SUFFIX = ".jaxprog"
+
+
+#: every StoredFunction, for :func:`clear_memory`
+_ALL: weakref.WeakSet = weakref.WeakSet()
+
+
+@functools.cache
+def _can_serialize() -> bool:
+    # jax.export writes its files with flatbuffers (a dependency of jaxbvh; without it
+    # every program is compiled as usual)
+    return importlib.util.find_spec("flatbuffers") is not None
+
+
+def store_dir() -> Path | None:
+    """The folder of stored programs (None: the store is off): ``programs/`` in
+    :func:`jaxbvh.compile_cache.cache_dir`; off with ``JAXBVH_CACHE=off``."""
+    if compile_cache.switched_off() or not _can_serialize() or jax.device_count() > 1:
+        # several devices: an exported program is pinned to the devices it was exported
+        # for and its outputs are committed to them, which a later program over all the
+        # devices (a sharded batch) refuses; such a process compiles as usual
+        return None
+    return compile_cache.cache_dir() / "programs"
+
+
+@functools.cache
+def _fingerprint() -> str:
+    """A hash of every ``.py`` file of the jaxbvh package (paths and bytes)."""
+    root = Path(__file__).resolve().parent
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        digest.update(str(path.relative_to(root)).encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def _environment() -> str:
+    import jaxlib
+
+    return "|".join((jax.__version__, jaxlib.__version__, jax.default_backend(), str(jax.device_count()),
+                     str(jax.config.jax_enable_x64), str(jax.config.jax_numpy_dtype_promotion),
+                     str(jax.config.jax_default_matmul_precision)))
+
+
+class _Unkeyable(Exception):
+    """This call's program cannot be named by value: plain jit serves it."""
+
+
+def _value_repr(value) -> str:
+    """``value`` as text that names it across processes, or :class:`_Unkeyable`."""
+    if isinstance(value, functools.partial):
+        return (f"partial({_value_repr(value.func)}, {[_value_repr(a) for a in value.args]}, "
+                f"{ {k: _value_repr(v) for k, v in sorted(value.keywords.items())} })")
+    if inspect.isfunction(value) or inspect.isbuiltin(value):
+        module = inspect.getmodule(value)
+        name = getattr(value, "__qualname__", "")
+        # a module-level function: its module and name say which code runs
+        if module is not None and "<" not in name and getattr(module, name.split(".")[0], None) is not None:
+            return f"{module.__name__}.{name}"
+        raise _Unkeyable(name)
+    text = repr(value)
+    if " at 0x" in text or "object at" in text:
+        raise _Unkeyable(text)
+    return f"{type(value).__module__}.{type(value).__qualname__}:{text}"
+
+
+class StoredFunction:
+    """A jitted function whose lowered programs are kept in :func:`store_dir` (module
+    docstring). Call it as the function; ``.jitted`` is the plain :func:`jax.jit`."""
+
+    def __init__(self, fun, *, static_argnums=(), static_argnames=()):
+        self.fun = fun
+        self.jitted = jax.jit(fun, static_argnums=static_argnums, static_argnames=static_argnames)
+        functools.update_wrapper(self, fun)
+        self._signature = inspect.signature(fun)
+        params = list(self._signature.parameters.values())
+        nums = (static_argnums,) if isinstance(static_argnums, int) else tuple(static_argnums)
+        names = (static_argnames,) if isinstance(static_argnames, str) else tuple(static_argnames)
+        self._static = {params[i].name for i in nums} | set(names)
+        self._plain_only = any(p.kind in (p.VAR_POSITIONAL, p.VAR_KEYWORD) for p in params)
+        self._memo: dict = {}
+        self._name = f"{fun.__module__}.{fun.__qualname__}"
+        self._warned = False
+        _ALL.add(self)
+
+    def lower(self, *args, **kwargs):
+        """:meth:`jax.stages.Wrapped.lower` of the plain jit."""
+        return self.jitted.lower(*args, **kwargs)
+
+    def _cache_size(self) -> int:
+        """Programs this process holds for the function (stored ones and plain jit's)."""
+        return len(self._memo) + self.jitted._cache_size()
+
+    def clear_cache(self) -> None:
+        """Forget the programs held in memory (the stored files stay: a test that
+        changes a constant read at trace time sets ``JAXBVH_CACHE=off`` as well)."""
+        self._memo.clear()
+        self.jitted.clear_cache()
+
+    def __call__(self, *args, **kwargs):
+        if self._plain_only:
+            return self.jitted(*args, **kwargs)
+        folder = store_dir()
+        if folder is None:
+            return self.jitted(*args, **kwargs)
+        bound = self._signature.bind(*args, **kwargs)
+        bound.apply_defaults()
+        dynamic = {k: v for k, v in bound.arguments.items() if k not in self._static}
+        leaves, treedef = jax.tree_util.tree_flatten(dynamic)
+        if any(isinstance(x, jax.core.Tracer) for x in leaves):
+            return self.jitted(*args, **kwargs)  # inside someone's transformation
+        if any(isinstance(x, jax.Array) and not isinstance(x.sharding, jax.sharding.SingleDeviceSharding)
+               for x in leaves):
+            return self.jitted(*args, **kwargs)  # a program over several devices: compiled as usual
+        try:
+            static = tuple((k, _value_repr(v)) for k, v in bound.arguments.items() if k in self._static)
+            avals = tuple(str(jax.typeof(x)) for x in leaves)
+            memo_key = (treedef, avals, static)
+        except (_Unkeyable, TypeError):
+            return self.jitted(*args, **kwargs)
+        program = self._memo.get(memo_key)
+        if program is None:
+            program = self._program(folder, bound, treedef, leaves, avals, static)
+            self._memo[memo_key] = program
+        return program(leaves)
+
+    def _program(self, folder: Path, bound, treedef, leaves, avals, static):
+        """The callable ``leaves -> outputs`` for this key: loaded, or exported and stored."""
+        text = repr((self._name, static, str(treedef), avals))
+        if " at 0x" in text:
+            return self._plain(bound)
+        key = hashlib.sha256("\n".join((_fingerprint(), _environment(), text)).encode()).hexdigest()
+        path = folder / f"{key[:2]}" / f"{key}{_SUFFIX}"
+        loaded = _read(path)
+        if loaded is None:
+            try:
+                loaded = self._export(bound, treedef, leaves)
+            except Exception as exc:  # noqa: BLE001 - any export failure: plain jit, same results
+                if not self._warned:
+                    self._warned = True
+                    warnings.warn(f"{self._name}: program not stored ({type(exc).__name__}: {exc}); "
+                                  "compiling it as usual", RuntimeWarning, stacklevel=4)
+                return self._plain(bound)
+            _write(path, loaded)
+        out_treedef, blob = loaded
+        exported = jax.export.deserialize(bytearray(blob))
+        call = jax.jit(exported.call)
+
+        def program(leaves):
+            return jax.tree_util.tree_unflatten(out_treedef, call(*leaves))
+
+        return program
+
+    def _plain(self, bound):
+        static = {k: v for k, v in bound.arguments.items() if k in self._static}
+        names = list(bound.arguments)
+
+        def program(leaves, treedef=jax.tree_util.tree_structure({k: v for k, v in bound.arguments.items()
+                                                                   if k not in self._static})):
+            arguments = dict(static)
+            arguments.update(jax.tree_util.tree_unflatten(treedef, leaves))
+            call = inspect.BoundArguments(self._signature, {k: arguments[k] for k in names})
+            return self.jitted(*call.args, **call.kwargs)
+
+        return program
+
+    def _export(self, bound, treedef, leaves):
+        """Trace and lower this call's program; returns ``(output treedef, bytes)``."""
+        names = list(bound.arguments)
+        static = {k: v for k, v in bound.arguments.items() if k in self._static}
+        out = []
+
+        def flat(*flat_leaves):
+            arguments = dict(static)
+            arguments.update(jax.tree_util.tree_unflatten(treedef, flat_leaves))
+            call = inspect.BoundArguments(self._signature, {k: arguments[k] for k in names})
+            result_leaves, result_treedef = jax.tree_util.tree_flatten(self.fun(*call.args, **call.kwargs))
+            out.append(result_treedef)
+            return result_leaves
+
+        exported = jax.export.export(jax.jit(flat))(*leaves)
+        return out[0], bytes(exported.serialize())
+
+
+def stored_jit(fun=None, *, static_argnums=(), static_argnames=()):
+    """:func:`jax.jit` with the lowered programs kept on disk (module docstring); use as
+    ``@stored_jit`` or ``@partial(stored_jit, static_argnames=(...))``."""
+    if fun is None:
+        return functools.partial(stored_jit, static_argnums=static_argnums, static_argnames=static_argnames)
+    return StoredFunction(fun, static_argnums=static_argnums, static_argnames=static_argnames)
+
+
+def clear_memory() -> None:
+    """Forget the programs held in memory by every :class:`StoredFunction` (the files stay)."""
+    for fun in list(_ALL):
+        fun._memo.clear()
+
+
+def _read(path: Path):
+    """``(out treedef, bytes)`` from ``path``, or None when absent or unreadable (then removed)."""
+    try:
+        data = path.read_bytes()
+    except OSError:
+        return None
+    try:
+        if not data.startswith(_FORMAT):
+            raise ValueError("not a stored program")
+        out_treedef, blob = pickle.loads(data[len(_FORMAT):])
+        os.utime(path)  # recently used: evicted last
+        return out_treedef, blob
+    except Exception:  # noqa: BLE001 - a damaged or foreign file is replaced, never trusted
+        with contextlib.suppress(OSError):
+            path.unlink()
+        return None
+
+
+def _write(path: Path, loaded) -> None:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_write(path) as f:
+            f.write(_FORMAT + pickle.dumps(loaded))
+        _evict(path.parent.parent)
+    except OSError:
+        pass  # a read-only or full disk: the program still runs, it is just not kept
+
+
+def _evict(folder: Path) -> None:
+    files = list(folder.glob(f"*/*{_SUFFIX}"))
+    if len(files) <= MAX_STORE_FILES:
+        return
+    files.sort(key=lambda p: p.stat().st_mtime)
+    for old in files[: len(files) // 2]:
+        with contextlib.suppress(OSError):
+            old.unlink()

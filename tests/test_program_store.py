@@ -1,0 +1,145 @@
+"""Lowered programs kept on disk (jaxbvh.program_store): the same results as plain jit,
+keys that separate every program, damaged files replaced, and no tracing in a warm process."""
+
+from __future__ import annotations
+
+import functools
+import os
+import subprocess
+import sys
+
+import hypothesis.strategies as st
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+
+from jaxbvh import program_store
+from jaxbvh.program_store import stored_jit
+
+
+@pytest.fixture
+def store(tmp_path, monkeypatch):
+    """A fresh store folder for this test."""
+    monkeypatch.setenv("JAXBVH_CACHE_DIR", str(tmp_path))
+    monkeypatch.delenv("JAXBVH_CACHE", raising=False)
+    return tmp_path / "programs"
+
+
+def _stored_files(folder):
+    return sorted(folder.glob("*/*.jaxprog")) if folder.exists() else []
+
+
+def scaled_sum(x, y, *, power: int):
+    return {"sum": (x ** power).sum() + y, "shape": jnp.zeros(x.shape[:1], jnp.int32)}
+
+
+stored_scaled_sum = stored_jit(scaled_sum, static_argnames=("power",))
+
+
+@settings(max_examples=15, deadline=None)
+@given(rows=st.integers(1, 5), power=st.integers(1, 3), y=st.floats(-4, 4, width=32), wide=st.booleans())
+def test_stored_program_equals_plain_jit(tmp_path_factory, rows, power, y, wide):
+    folder = tmp_path_factory.mktemp("store")
+    old = os.environ.get("JAXBVH_CACHE_DIR")
+    os.environ["JAXBVH_CACHE_DIR"] = str(folder)
+    try:
+        x = np.arange(rows * 2, dtype=np.float32).reshape(rows, 2) / 3
+        if wide:
+            x = x.astype(np.int32)
+        want = jax.jit(scaled_sum, static_argnames=("power",))(x, y, power=power)
+        got = stored_scaled_sum(x, y, power=power)          # exported, stored
+        program_store.clear_memory()
+        again = stored_scaled_sum(x, y, power=power)        # read back from the file
+        for out in (got, again):
+            assert jax.tree_util.tree_structure(out) == jax.tree_util.tree_structure(want)
+            for a, b in zip(jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(want)):
+                assert a.dtype == b.dtype and a.shape == b.shape
+                np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        assert len(_stored_files(folder / "programs")) == 1
+    finally:
+        if old is None:
+            os.environ.pop("JAXBVH_CACHE_DIR", None)
+        else:
+            os.environ["JAXBVH_CACHE_DIR"] = old
+
+
+def test_each_static_value_shape_and_dtype_is_its_own_program(store):
+    x = np.ones((3, 2), np.float32)
+    stored_scaled_sum(x, 1.0, power=1)
+    stored_scaled_sum(x, 2.0, power=1)                      # same shapes: same program
+    assert len(_stored_files(store)) == 1
+    stored_scaled_sum(x, 1.0, power=2)                      # another static value
+    stored_scaled_sum(x[:2], 1.0, power=2)                  # another shape
+    stored_scaled_sum(x.astype(np.int32), 1.0, power=2)     # another dtype
+    assert len(_stored_files(store)) == 4
+    assert float(stored_scaled_sum(x, 1.0, power=2)["sum"]) == 7.0
+
+
+def test_a_damaged_file_is_replaced_not_trusted(store):
+    x = np.ones((2, 2), np.float32)
+    want = float(stored_scaled_sum(x, 0.5, power=3)["sum"])
+    [path] = _stored_files(store)
+    for damage in (b"", b"garbage", path.read_bytes()[:40]):
+        path.write_bytes(damage)
+        program_store.clear_memory()
+        assert float(stored_scaled_sum(x, 0.5, power=3)["sum"]) == want
+        assert path.read_bytes().startswith(b"jaxbvh-program-store")
+
+
+def test_calls_while_tracing_and_unnameable_statics_use_plain_jit(store):
+    x = jnp.ones((4, 2), jnp.float32)
+    # inside a user's transformation: traced into their program, nothing stored
+    grads = jax.grad(lambda v: stored_scaled_sum(v, 0.0, power=2)["sum"])(x)
+    np.testing.assert_array_equal(np.asarray(grads), 2 * np.asarray(x))
+    batched = jax.vmap(lambda v: stored_scaled_sum(v, 1.0, power=1)["sum"])(x[:, None, :])
+    np.testing.assert_array_equal(np.asarray(batched), np.asarray(x.sum(axis=1) + 1))
+    assert _stored_files(store) == []
+
+    # a closure as a static argument has no name that lasts past this process
+    def apply(fun, v):
+        return fun(v)
+
+    stored_apply = stored_jit(apply, static_argnums=0)
+    offset = 3.0
+    assert float(stored_apply(lambda v: v.sum() + offset, x)) == 11.0
+    assert _stored_files(store) == []
+    # module-level functions (and partials of them) do
+    assert float(stored_apply(jnp.sum, x)) == 8.0
+    out = stored_apply(functools.partial(scaled_sum, y=1.0, power=2), x)
+    assert float(out["sum"]) == 9.0
+    assert len(_stored_files(store)) == 2
+
+
+def test_the_switch_turns_the_store_off(store, monkeypatch):
+    monkeypatch.setenv("JAXBVH_CACHE", "off")
+    assert program_store.store_dir() is None
+    stored_scaled_sum(np.ones((5, 2), np.float32), 1.0, power=1)
+    assert _stored_files(store) == []
+
+
+_WARM_PROBE = """
+import sys, jax.monitoring
+traced = []
+jax.monitoring.register_event_duration_secs_listener(
+    lambda event, duration, **kw: traced.append(kw.get("fun_name")) if event == "/jax/core/compile/jaxpr_trace_duration" else None)
+import numpy as np, jaxbvh
+lo = np.random.default_rng(0).random((40, 3)).astype(np.float32)
+tree = jaxbvh.build(lo, lo + 0.05, method="sweep")
+print(float(jaxbvh.sah(tree)))
+print(sorted(set(traced)))
+"""
+
+
+def test_a_warm_process_does_not_trace_the_builder(tmp_path):
+    env = dict(os.environ, JAXBVH_CACHE_DIR=str(tmp_path))
+    env.pop("JAXBVH_CACHE", None)
+    runs = [subprocess.run([sys.executable, "-c", _WARM_PROBE], env=env, capture_output=True, text=True,
+                           timeout=300) for _ in range(2)]
+    for run in runs:
+        assert run.returncode == 0, run.stderr
+    (cold_sah, cold_traced), (warm_sah, warm_traced) = (r.stdout.split("\n")[:2] for r in runs)
+    assert cold_sah == warm_sah
+    assert "flat" in cold_traced   # exported in the cold process
+    assert "flat" not in warm_traced  # loaded in the warm one
