@@ -63,7 +63,7 @@ def timed_cli(argv, env) -> dict:
     return {"wall_s": wall, "cpu_s": cpu, "written": result["written"], "failed": result["failed"]}
 
 
-def empty_chunk(items, settings, out_dir):
+def empty_chunk(items, settings, out_dir, mesh_cache=None):
     """A task with no work: the row of every file, as a worker would return it."""
     return [{"mesh": path, "output": None, "worker": "empty", "seconds": 0.0} for path, _ in items]
 
