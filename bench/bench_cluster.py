@@ -118,6 +118,7 @@ def main(argv=None):
             os.pathsep)).rstrip(os.pathsep), JAXBVH_CACHE_DIR=str(work / "cache"))
         env.pop("XLA_FLAGS", None)  # the product's settings, not the test suite's
         out = {"machine": f"{platform.machine()}, {os.cpu_count()} cores", "load_before": os.getloadavg(),
+               "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                "meshes": len(named), "triangles": tris, "chunk_files": chunk, "runs": {}}
         print(f"{len(named)} meshes, {tris:,} triangles; load {os.getloadavg()}", flush=True)
         for run in args.runs:
@@ -143,7 +144,7 @@ def main(argv=None):
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "bench_cluster.json").write_text(json.dumps(out, indent=1))
     lines = [f"# jaxbvh batch build on Dask workers ({out['meshes']} meshes, {out['triangles']:,} triangles)", "",
-             f"Machine: {out['machine']}; load average before {out['load_before'][0]:.1f}, "
+             f"Machine: {out['machine']}; {out['date']}; load average before {out['load_before'][0]:.1f}, "
              f"after {out['load_after'][0]:.1f} (shared machine). Warm compile cache; "
              f"chunks of {chunk} files.", "",
              "| run | wall s | CPU s (all processes) | files/s | vs single | load |", "|---|---|---|---|---|---|"]

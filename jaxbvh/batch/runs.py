@@ -88,6 +88,10 @@ MANIFEST_WAIT_RATIO = 10.0
 DEFAULT_CHUNK_FILES = 32
 #: prefix of an address that starts a LocalCluster of N worker processes
 LOCAL = "local:"
+#: Dask settings of the workers a run starts itself (``local:N``): no statistical profiler
+#: (it samples the running task's stack every 10 ms, a fifth of a worker's CPU on our
+#: chunks, bench/bench_cluster.py) and no GIL monitor; nothing here reads what they gather
+QUIET_WORKER = {"distributed.worker.profile.enabled": False, "distributed.admin.system-monitor.gil.enabled": False}
 #: the fields of a report row, in the CSV's column order
 REPORT_FIELDS = ("mesh", "output", "triangles", "builder", "optimizer", "sah_built", "sah", "seconds", "worker",
                  "input_sha256", "output_sha256", "skipped", "error")
@@ -411,6 +415,7 @@ def connect(address: str, **cluster_options):
     worker processes (one thread each: JAX uses the cores itself) for the ``with`` block;
     anything else is a running scheduler's address (``"tcp://host:8786"``)."""
     try:
+        import dask
         from distributed import Client, LocalCluster
     except ImportError as exc:  # the optional extra
         raise ImportError("a Dask scheduler needs the 'cluster' extra: pip install 'jaxbvh[cluster]'") from exc
@@ -420,7 +425,9 @@ def connect(address: str, **cluster_options):
             raise ValueError(f"--scheduler {address}: local:N needs a worker count N >= 1")
         options = dict(n_workers=int(text), threads_per_worker=1, processes=True, dashboard_address=None)
         options.update(cluster_options)
-        with LocalCluster(**options) as cluster, Client(cluster) as client:
+        with dask.config.set(QUIET_WORKER):  # read by the nannies as they start (and restart) workers
+            cluster = LocalCluster(**options)
+        with cluster, Client(cluster) as client:
             client.register_plugin(quick_exit_plugin())
             yield client
     else:
