@@ -33,7 +33,9 @@ changed (:func:`row_still_holds`): a file whose size, times and inode are all wh
 were when it was hashed has the same bytes (the rule of ``make``, ``rsync`` and git's
 index; any write sets the change time, which no tool can set back). An input changed
 less than :data:`RACY_S` before it was hashed gets no stamp (a second write in the same
-clock tick would leave the stamp as it was), so it is hashed again on resume. A worker that dies mid-chunk (killed, out of memory) loses only its chunk:
+clock tick would leave the stamp as it was), so it is hashed again on resume.
+
+A worker that dies mid-chunk (killed, out of memory) loses only its chunk:
 the scheduler gives the chunk to another worker (Dask's ``allowed-failures``); a
 chunk that fails again (a mesh that crashes its worker) is split and each file run
 alone, so a bad mesh fails alone. Each file's row is taken once, from the first result
@@ -147,13 +149,13 @@ def file_stamp(path) -> list[int]:
     return [int(st.st_size), int(st.st_mtime_ns), int(st.st_ctime_ns), int(st.st_ino)]
 
 
-def hashed_with_stamp(path) -> tuple[str, list[int] | None]:
+def hashed_with_stamp(path, settle_s: float | None = None) -> tuple[str, list[int] | None]:
     """``(SHA-256, stamp)`` of ``path``; the stamp None when the file changed while it was
-    read or less than :data:`RACY_S` before (module docstring)."""
+    read or less than ``settle_s`` before (None: :data:`RACY_S`; module docstring)."""
     before = file_stamp(path)
     digest = file_sha256(path)
     after = file_stamp(path)
-    racy = time.time_ns() - after[2] < RACY_S * 1e9
+    racy = time.time_ns() - after[2] < (RACY_S if settle_s is None else settle_s) * 1e9
     return digest, (None if racy or after != before else after)
 
 
@@ -305,9 +307,9 @@ def chunk_rows(items, settings: Settings, out_dir: str) -> list[dict]:
             os.makedirs(os.path.dirname(output), exist_ok=True)
             jaxbvh.save(output, tree, frame=meshes[i].frame)
             row["output"] = output
-            # the tree was just written, by us: its stamp is taken now, without the
-            # racy wait of an input (only a second writer of the same tree could race it)
-            row["output_sha256"], row["output_stamp"] = file_sha256(output), file_stamp(output)
+            # the tree was just written, by us: its stamp stands without the settling
+            # time of an input (only a second writer of the same tree could race it)
+            row["output_sha256"], row["output_stamp"] = hashed_with_stamp(output, settle_s=0.0)
         except Exception as exc:  # noqa: BLE001
             row["error"] = f"write: {one_line(exc)}"
         seconds[i] += time.perf_counter() - t
@@ -348,9 +350,9 @@ def row_still_holds(row: dict | None, path, out_dir, options_sha: str, name: str
         if not output.is_file():
             return None
         if row.get("output_stamp") is None or file_stamp(output) != row["output_stamp"]:
-            if file_sha256(output) != row.get("output_sha256"):
+            digest, fresh["output_stamp"] = hashed_with_stamp(output, settle_s=0.0)
+            if digest != row.get("output_sha256"):
                 return None
-            fresh["output_stamp"] = file_stamp(output)
     except OSError:
         return None
     return fresh
@@ -607,4 +609,5 @@ def run_on_client(client, chunks, settings: Settings, out_dir: str, take: Callab
 
 __all__ = ["run_files", "RunResult", "Settings", "connect", "mesh_key", "output_names", "process_chunk",
            "trees_of", "chunk_items", "read_manifest", "write_manifest", "write_report", "up_to_date",
-           "MANIFEST", "DEFAULT_CHUNK_FILES", "REPORT_FIELDS"]
+           "row_still_holds", "file_stamp", "hashed_with_stamp", "quick_exit_plugin", "MANIFEST",
+           "DEFAULT_CHUNK_FILES", "REPORT_FIELDS", "RACY_S", "QUIET_WORKER"]
