@@ -12,7 +12,7 @@ process, over the whole folder, to a fresh output folder, with a warm compile ca
 * ``local:1``, ``local:2``: ``--scheduler local:N`` (a LocalCluster of N worker processes,
   started and stopped inside the timed run).
 
-Wall seconds, and CPU seconds of the process and its children (``getrusage``). The
+Wall seconds, and CPU seconds of the process and every process under it (polled). The
 engine's own cost per file is measured on empty work: :func:`jaxbvh.batch.runs.run_files`
 over the same files with a task that does nothing but return each file's row
 (``local:2``, and in-process; ``--empty-files`` names, no files needed), so what is left is the driver (names, chunks, manifest,
@@ -25,7 +25,6 @@ import argparse
 import json
 import os
 import platform
-import resource
 import shutil
 import subprocess
 import sys
@@ -48,22 +47,41 @@ def write_obj(path: Path, tri) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
-def children_cpu() -> float:
-    r = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return r.ru_utime + r.ru_stime
-
-
 def timed_cli(argv, env) -> dict:
-    cpu0, t0 = children_cpu(), time.perf_counter()
-    done = subprocess.run(argv, env=env, capture_output=True, text=True)
-    wall, cpu = time.perf_counter() - t0, children_cpu() - cpu0
-    if done.returncode not in (0, 1):
-        raise RuntimeError(f"{' '.join(map(str, argv))}: exit {done.returncode}\n{done.stderr[-3000:]}")
-    result = json.loads(done.stdout.strip().splitlines()[-1])
-    return {"wall_s": wall, "cpu_s": cpu, "written": result["written"], "failed": result["failed"]}
+    """Wall and CPU seconds of a command and every process under it. The CPU is polled
+    (psutil, every 0.1 s) rather than read from ``RUSAGE_CHILDREN``: ``local:N`` workers are
+    forked by multiprocessing's fork server, so they are not children the command waits
+    for, and their CPU would not be counted."""
+    import psutil
+
+    t0 = time.perf_counter()
+    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
+        proc = subprocess.Popen(argv, env=env, stdout=out, stderr=err, text=True)
+        root, cpu = psutil.Process(proc.pid), {}
+        while proc.poll() is None:
+            try:
+                tree = [root] + root.children(recursive=True)
+            except psutil.Error:
+                tree = []
+            for p in tree:
+                try:
+                    times = p.cpu_times()
+                    cpu[p.pid] = times.user + times.system
+                except psutil.Error:
+                    pass
+            time.sleep(0.1)
+        wall = time.perf_counter() - t0
+        out.seek(0)
+        err.seek(0)
+        stdout, stderr = out.read(), err.read()
+    if proc.returncode not in (0, 1):
+        raise RuntimeError(f"{' '.join(map(str, argv))}: exit {proc.returncode}\n{stderr[-3000:]}")
+    result = json.loads(stdout.strip().splitlines()[-1])
+    return {"wall_s": wall, "cpu_s": sum(cpu.values()), "processes": len(cpu), "written": result["written"],
+            "failed": result["failed"]}
 
 
-def empty_chunk(items, settings, out_dir):
+def empty_chunk(items, settings, out_dir, mesh_cache=None):
     """A task with no work: the row of every file, as a worker would return it."""
     return [{"mesh": path, "output": None, "worker": "empty", "seconds": 0.0} for path, _ in items]
 
@@ -118,6 +136,7 @@ def main(argv=None):
             os.pathsep)).rstrip(os.pathsep), JAXBVH_CACHE_DIR=str(work / "cache"))
         env.pop("XLA_FLAGS", None)  # the product's settings, not the test suite's
         out = {"machine": f"{platform.machine()}, {os.cpu_count()} cores", "load_before": os.getloadavg(),
+               "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                "meshes": len(named), "triangles": tris, "chunk_files": chunk, "runs": {}}
         print(f"{len(named)} meshes, {tris:,} triangles; load {os.getloadavg()}", flush=True)
         for run in args.runs:
@@ -143,7 +162,7 @@ def main(argv=None):
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "bench_cluster.json").write_text(json.dumps(out, indent=1))
     lines = [f"# jaxbvh batch build on Dask workers ({out['meshes']} meshes, {out['triangles']:,} triangles)", "",
-             f"Machine: {out['machine']}; load average before {out['load_before'][0]:.1f}, "
+             f"Machine: {out['machine']}; {out['date']}; load average before {out['load_before'][0]:.1f}, "
              f"after {out['load_after'][0]:.1f} (shared machine). Warm compile cache; "
              f"chunks of {chunk} files.", "",
              "| run | wall s | CPU s (all processes) | files/s | vs single | load |", "|---|---|---|---|---|---|"]

@@ -10,6 +10,8 @@ module             what it holds
 ``build``          every builder over a chunk of meshes: :func:`build`
 ``optimize``       every optimizer over a chunk of trees: :func:`optimize`
 ``measure``        :func:`costs`, :func:`trace` and :func:`collapse` over a batch
+``chunking``       mesh files into chunks of one capacity bucket (triangles estimated
+                   from the files): :func:`jaxbvh.batch.chunking.chunk_items`
 ``runs``           mesh *files* to tree files, here or on Dask workers, resumable:
                    :func:`jaxbvh.batch.runs.run_files` (``jaxbvh batch --scheduler``)
 =================  =====================================================================

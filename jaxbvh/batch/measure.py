@@ -25,7 +25,7 @@ from jaxbvh.batch import devices as batch_devices
 from jaxbvh.batch.layout import TreeBatch
 from jaxbvh.rays.traversal import check_rays, intersect_triangle, stack_capacity, trace_batch
 from jaxbvh.tree.cost import goldsmith_salmon_cost, ng_trifonov_cost, sah
-from jaxbvh.tree.layout import to_jax
+from jaxbvh.tree.layout import to_numpy
 from jaxbvh.wide.collapse import collapse as collapse_one
 
 COSTS = ("sah", "ng_trifonov", "goldsmith_salmon")
@@ -41,15 +41,21 @@ def costs(trees: TreeBatch, ct: float = 1.0, ci: float = 1.0, *, devices=None) -
     devs = batch_devices.resolve(devices)
     out = {name: np.full(trees.size, np.nan) for name in COSTS}
     for group in trees.groups:
-        t = to_jax(group.trees)
         rows, pad = _padded_rows(len(group), len(devs))
-        t = jax.tree_util.tree_map(lambda a: a[rows], t)
+        t = host_rows(group.trees, rows)
         dt = t.lo.dtype
-        ct_r, ci_r = jnp.full(rows.size, ct, dt), jnp.full(rows.size, ci, dt)
+        ct_r, ci_r = np.full(rows.size, ct, dt), np.full(rows.size, ci, dt)
         values = jax.device_get(batch_devices.on_devices(_cost_rows, (t, ct_r, ci_r), devs))
         for name, v in zip(COSTS, values):
             out[name][group.index] = np.asarray(v, np.float64)[: len(group)]
     return out
+
+
+def host_rows(trees, rows):
+    """The stacked ``trees`` at ``rows`` [R], picked on the host (NumPy): JAX indexing
+    would compile a gather per array and shape, which costs more than the pick itself
+    in a process that has to load every program anew (a cluster worker)."""
+    return jax.tree_util.tree_map(lambda a: np.asarray(a)[rows], to_numpy(trees))
 
 
 def _padded_rows(count: int, devices: int):
@@ -88,7 +94,7 @@ def trace(trees: TreeBatch, triangles, origin, direction, *, mode: str = "closes
         singles = [group.tree(r, own=False) for r in range(len(group))]
         capacity = max(stack_capacity(t) for t in singles)
         rows, _ = _padded_rows(len(group), len(devs))
-        t = jax.tree_util.tree_map(lambda a: jnp.asarray(a)[rows], to_jax(group.trees))
+        t = host_rows(group.trees, rows)
         dt = np.dtype(t.lo.dtype)
         tri = np.zeros((rows.size, group.capacity, 3, 3), dt)
         for k, r in enumerate(rows):

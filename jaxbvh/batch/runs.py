@@ -3,14 +3,16 @@
 :func:`jaxbvh.batch.build` and :func:`jaxbvh.batch.optimize` work on meshes in memory.
 This module runs a whole folder of mesh files to tree files, the way ``jaxbvh batch``
 does, on many processes or hosts: the files are cut into *chunks* (``chunk_files``
-files of neighbouring sizes, so a chunk holds few capacity buckets), and each chunk is
+files of one estimated capacity bucket, :mod:`jaxbvh.batch.chunking`), and each chunk is
 one task: a worker loads its meshes, builds them with :func:`jaxbvh.batch.build` (one
-compiled call per capacity bucket in the chunk), optimizes them with
+compiled call per capacity bucket in the chunk: one, unless an estimate was off), optimizes them with
 :func:`jaxbvh.batch.optimize`, validates every tree against its mesh and writes it
 atomically (:func:`jaxbvh.save`). A worker compiles each program once, then reuses it
 for every later chunk of that shape; workers that share a disk share the persistent
 compile cache (:mod:`jaxbvh.compile_cache`), so a program compiled by one is loaded by
-the others.
+the others. A worker reads meshes through the driver's parsed-mesh cache
+(:func:`jaxbvh.io.use_mesh_cache`; the command line's is on), as the single-process
+command does.
 
 Engines (``client``): None runs the chunks here, one after another; a
 :class:`distributed.Client`, or an address (``"tcp://host:8786"``, a running Dask
@@ -21,12 +23,19 @@ started for the run), runs them on Dask workers. Dask is an optional extra
 Nothing lost, nothing twice. Every output is written atomically (a temporary file in
 the output folder, then a rename). The run keeps a manifest, ``OUT/`` :data:`MANIFEST`:
 per file its input path and content hash (SHA-256), the options' hash, its output and
-the output's hash, seconds, worker and error; it is rewritten atomically as chunks
-finish (at most every :data:`MANIFEST_EVERY_S` seconds, less often when it is big, and at
-the end). With
-``resume=True`` a file whose manifest row has no error, the same options, the same
-input hash and an output whose hash still matches is skipped; every other file is
-(re)done. A worker that dies mid-chunk (killed, out of memory) loses only its chunk:
+the output's hash, seconds, worker and error, and the *stamps* of the input and output
+(:func:`file_stamp`: size, modification and change times in ns, inode); it is rewritten
+atomically as chunks finish (at most every :data:`MANIFEST_EVERY_S` seconds, less often
+when it is big, and at the end). With ``resume=True`` a file whose manifest row has no
+error, the same options, the same input hash and an output whose hash still matches is
+skipped; every other file is (re)done. The hashes are read again only where a stamp
+changed (:func:`row_still_holds`): a file whose size, times and inode are all what they
+were when it was hashed has the same bytes (the rule of ``make``, ``rsync`` and git's
+index; any write sets the change time, which no tool can set back). An input changed
+less than :data:`RACY_S` before it was hashed gets no stamp (a second write in the same
+clock tick would leave the stamp as it was), so it is hashed again on resume.
+
+A worker that dies mid-chunk (killed, out of memory) loses only its chunk:
 the scheduler gives the chunk to another worker (Dask's ``allowed-failures``); a
 chunk that fails again (a mesh that crashes its worker) is split and each file run
 alone, so a bad mesh fails alone. Each file's row is taken once, from the first result
@@ -56,13 +65,14 @@ import numpy as np
 
 import jaxbvh
 from jaxbvh.batch.build import build, builder_config
+from jaxbvh.batch.chunking import chunk_items
 from jaxbvh.batch.measure import costs
 from jaxbvh.batch.optimize import optimize
 from jaxbvh.batch.plan import BatchConfig
 from jaxbvh.builders.configs import TRIANGLE_BUILDERS
 from jaxbvh.cli.command_kit import seed_key  # any integer seed, as the command line takes it
 from jaxbvh.files import atomic_write
-from jaxbvh.io import load_mesh
+from jaxbvh.io import load_mesh, mesh_cache_folder, use_mesh_cache
 from jaxbvh.optimize import DEFAULT_METHOD, make_config
 from jaxbvh.tree.interchange import compact
 
@@ -80,6 +90,10 @@ MANIFEST_WAIT_RATIO = 10.0
 DEFAULT_CHUNK_FILES = 32
 #: prefix of an address that starts a LocalCluster of N worker processes
 LOCAL = "local:"
+#: Dask settings of the workers a run starts itself (``local:N``): no statistical profiler
+#: (it samples the running task's stack every 10 ms, a fifth of a worker's CPU on our
+#: chunks, bench/bench_cluster.py) and no GIL monitor; nothing here reads what they gather
+QUIET_WORKER = {"distributed.worker.profile.enabled": False, "distributed.admin.system-monitor.gil.enabled": False}
 #: the fields of a report row, in the CSV's column order
 REPORT_FIELDS = ("mesh", "output", "triangles", "builder", "optimizer", "sah_built", "sah", "seconds", "worker",
                  "input_sha256", "output_sha256", "skipped", "error")
@@ -120,6 +134,29 @@ def output_names(paths) -> list[str]:
             raise ValueError(f"{first[name]} and {path} would both be written to {name}")
         first[name] = path
     return names
+
+
+#: an input whose change time is less than this before it is read (seconds) gets no stamp
+#: and is hashed again on resume: a write in the same clock tick as the read would leave
+#: its stamp unchanged. Also covers a file server's clock running ahead of the worker's.
+RACY_S = 2.0
+
+
+def file_stamp(path) -> list[int]:
+    """``[size, st_mtime_ns, st_ctime_ns, st_ino]`` of a file (module docstring: what makes
+    a stamp stand for the bytes). ``OSError`` as :func:`os.stat`."""
+    st = os.stat(path)
+    return [int(st.st_size), int(st.st_mtime_ns), int(st.st_ctime_ns), int(st.st_ino)]
+
+
+def hashed_with_stamp(path, settle_s: float | None = None) -> tuple[str, list[int] | None]:
+    """``(SHA-256, stamp)`` of ``path``; the stamp None when the file changed while it was
+    read or less than ``settle_s`` before (None: :data:`RACY_S`; module docstring)."""
+    before = file_stamp(path)
+    digest = file_sha256(path)
+    after = file_stamp(path)
+    racy = time.time_ns() - after[2] < (RACY_S if settle_s is None else settle_s) * 1e9
+    return digest, (None if racy or after != before else after)
 
 
 def file_sha256(path) -> str:
@@ -217,10 +254,21 @@ def trees_of(meshes, names, settings: Settings, on_chunk=None) -> tuple[list, li
     return trees, rows
 
 
-def process_chunk(items, settings: Settings, out_dir: str) -> list[dict]:
+def process_chunk(items, settings: Settings, out_dir: str, mesh_cache: str | None = None) -> list[dict]:
     """One task: the files ``items`` (``[(path, name), ...]``) to trees in ``out_dir``
     (``out_dir/name``, written atomically); returns a report row per file (module
-    docstring). Runs on a worker (or in this process); raises nothing for a bad mesh."""
+    docstring). Runs on a worker (or in this process); raises nothing for a bad mesh.
+    ``mesh_cache``: the folder of parsed meshes to read and fill (None: parse every file)."""
+    before = mesh_cache_folder()
+    use_mesh_cache(mesh_cache)
+    try:
+        return chunk_rows(items, settings, out_dir)
+    finally:
+        use_mesh_cache(before)
+
+
+def chunk_rows(items, settings: Settings, out_dir: str) -> list[dict]:
+    """:func:`process_chunk` under the mesh cache it set."""
     worker = worker_name()
     rows, meshes, seconds = [], [], np.zeros(len(items))
     for path, name in items:
@@ -228,7 +276,7 @@ def process_chunk(items, settings: Settings, out_dir: str) -> list[dict]:
                "optimizer": settings.method if settings.action == "optimize" else None, "worker": worker}
         t = time.perf_counter()
         try:
-            row["input_sha256"] = file_sha256(path)
+            row["input_sha256"], row["input_stamp"] = hashed_with_stamp(path)
             mesh = load_mesh(path)
             row["triangles"] = int(mesh.n_triangles)
         except Exception as exc:  # noqa: BLE001 (any load failure is that mesh's row)
@@ -259,30 +307,15 @@ def process_chunk(items, settings: Settings, out_dir: str) -> list[dict]:
             os.makedirs(os.path.dirname(output), exist_ok=True)
             jaxbvh.save(output, tree, frame=meshes[i].frame)
             row["output"] = output
-            row["output_sha256"] = file_sha256(output)
+            # the tree was just written, by us: its stamp stands without the settling
+            # time of an input (only a second writer of the same tree could race it)
+            row["output_sha256"], row["output_stamp"] = hashed_with_stamp(output, settle_s=0.0)
         except Exception as exc:  # noqa: BLE001
             row["error"] = f"write: {one_line(exc)}"
         seconds[i] += time.perf_counter() - t
     for row, s in zip(rows, seconds):
         row["seconds"] = float(s)
     return rows
-
-
-def chunk_items(items, chunk_files: int) -> list[list]:
-    """``items`` (``[(path, name), ...]``) cut into chunks of at most ``chunk_files``,
-    sorted by file size first so that a chunk holds meshes of like size (few capacity
-    buckets, so few compiled calls and programs per chunk)."""
-    if chunk_files < 1:
-        raise ValueError(f"chunk_files must be >= 1, got {chunk_files}")
-
-    def size(item):
-        try:
-            return os.path.getsize(item[0])
-        except OSError:
-            return -1
-
-    ordered = sorted(items, key=size)
-    return [ordered[k:k + chunk_files] for k in range(0, len(ordered), chunk_files)]
 
 
 def read_manifest(out_dir) -> dict:
@@ -298,17 +331,36 @@ def read_manifest(out_dir) -> dict:
     return {"files": {}}
 
 
-def up_to_date(row: dict | None, path, out_dir, options_sha: str, name: str) -> bool:
-    """Whether a manifest ``row`` still stands for ``path`` (``--resume``): made without error
-    under the same options, from the same input bytes, and its output unchanged."""
+def row_still_holds(row: dict | None, path, out_dir, options_sha: str, name: str) -> dict | None:
+    """The manifest ``row`` of ``path`` if it still stands (``--resume``: made without
+    error under the same options, from the same input bytes, its output unchanged), with
+    any stamp it lacked or that changed refreshed; None when the file must be redone.
+
+    Cheap where nothing changed: an input and an output whose :func:`file_stamp` equals
+    the row's are not read; any other is hashed and compared (module docstring)."""
     if not row or row.get("error") or row.get("options_sha256") != options_sha:
-        return False
+        return None
     output = Path(out_dir) / name
+    fresh = dict(row)
     try:
-        return (row.get("input_sha256") == file_sha256(path) and output.is_file()
-                and row.get("output_sha256") == file_sha256(output))
+        if row.get("input_stamp") is None or file_stamp(path) != row["input_stamp"]:
+            digest, fresh["input_stamp"] = hashed_with_stamp(path)
+            if digest != row.get("input_sha256"):
+                return None
+        if not output.is_file():
+            return None
+        if row.get("output_stamp") is None or file_stamp(output) != row["output_stamp"]:
+            digest, fresh["output_stamp"] = hashed_with_stamp(output, settle_s=0.0)
+            if digest != row.get("output_sha256"):
+                return None
     except OSError:
-        return False
+        return None
+    return fresh
+
+
+def up_to_date(row: dict | None, path, out_dir, options_sha: str, name: str) -> bool:
+    """Whether a manifest ``row`` still stands for ``path`` (:func:`row_still_holds`)."""
+    return row_still_holds(row, path, out_dir, options_sha, name) is not None
 
 
 def write_manifest(out_dir, settings_options: dict, options_sha: str, files: dict) -> None:
@@ -335,12 +387,62 @@ def write_report(rows, path) -> None:
         f.write(text)
 
 
+def quick_exit_plugin():
+    """A Dask worker plugin that ends its worker's process as soon as the worker closes.
+
+    A worker that has run JAX takes seconds to wind its interpreter down (freeing every
+    program and buffer), longer than Dask's nanny waits (it kills the process after 4 s,
+    with a warning), and the run's end waits for it. The worker has nothing left to
+    write by then (every tree is renamed into place before its task returns, the
+    manifest is the driver's), so its process may end at once. Only for the workers a
+    run starts itself (``local:N``), never on a cluster someone else runs."""
+    from distributed import WorkerPlugin
+
+    class QuickExit(WorkerPlugin):
+        name = "jaxbvh-quick-exit"
+
+        def teardown(self, worker):
+            import sys
+
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(0)
+
+    return QuickExit()
+
+
+def warm_start() -> dict:
+    """Have Dask start the workers of a ``local:N`` run by forking a server process that
+    has imported JAX and this module once (multiprocessing's ``forkserver``, where the
+    platform has it), instead of spawning fresh interpreters that each import them.
+
+    Importing JAX and jaxbvh is about 3 s of CPU a process, as much as a worker's share
+    of a small batch; a forked worker starts with it done. The server forks before any
+    JAX computation (it only imports), so no XLA thread is copied. Dask reads the method
+    from its configuration (:data:`QUIET_WORKER` is in force); this sets what the server
+    imports before it is started, and returns the Dask setting to start workers with
+    (empty where the platform has no forkserver, Windows: workers are spawned as usual)."""
+    import multiprocessing
+
+    import dask
+
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return {}
+    from distributed.utils import get_mp_context
+
+    setting = {"distributed.worker.multiprocessing-method": "forkserver"}
+    with dask.config.set(setting):
+        get_mp_context().set_forkserver_preload(["distributed", __name__])
+    return setting
+
+
 @contextlib.contextmanager
 def connect(address: str, **cluster_options):
     """A :class:`distributed.Client` for ``address``: ``"local:N"`` starts a LocalCluster of N
     worker processes (one thread each: JAX uses the cores itself) for the ``with`` block;
     anything else is a running scheduler's address (``"tcp://host:8786"``)."""
     try:
+        import dask
         from distributed import Client, LocalCluster
     except ImportError as exc:  # the optional extra
         raise ImportError("a Dask scheduler needs the 'cluster' extra: pip install 'jaxbvh[cluster]'") from exc
@@ -350,7 +452,11 @@ def connect(address: str, **cluster_options):
             raise ValueError(f"--scheduler {address}: local:N needs a worker count N >= 1")
         options = dict(n_workers=int(text), threads_per_worker=1, processes=True, dashboard_address=None)
         options.update(cluster_options)
-        with LocalCluster(**options) as cluster, Client(cluster) as client:
+        # read by the nannies as they start workers (a restarted worker is spawned as usual)
+        with dask.config.set({**QUIET_WORKER, **warm_start()}):
+            cluster = LocalCluster(**options)
+        with cluster, Client(cluster) as client:
+            client.register_plugin(quick_exit_plugin())
             yield client
     else:
         with Client(address) as client:
@@ -431,8 +537,10 @@ def run_files(paths, out, *, action: str = "build", builder=None, method: str | 
     rows: dict[str, dict] = {}
     todo = []
     for path, name in zip(paths, names):
-        if resume and up_to_date(files.get(name), path, out_dir, options_sha, name):
-            rows[name] = dict(files[name], skipped=True)
+        held = row_still_holds(files.get(name), path, out_dir, options_sha, name) if resume else None
+        if held is not None:
+            files[name] = held  # its stamps refreshed: the next resume reads nothing of it
+            rows[name] = dict(held, skipped=True)
         else:
             todo.append((path, name))
     in_the_way = [out_dir / n for _, n in todo if (out_dir / n).exists() or (out_dir / n).is_symlink()]
@@ -464,18 +572,20 @@ def run_files(paths, out, *, action: str = "build", builder=None, method: str | 
 
     index_of = dict(zip(paths, names))
     chunks = chunk_items(todo, chunk_files)
+    cache = mesh_cache_folder()
+    mesh_cache = None if cache is None else str(cache)
     workers = 1
     try:
         if on_progress is not None:
             on_progress(counts["done"], counts["failed"], len(paths) - len(rows), 0.0)
         if client is None:
             for chunk in chunks:
-                take(process_chunk(chunk, settings, str(out_dir)))
+                take(process_chunk(chunk, settings, str(out_dir), mesh_cache))
         elif isinstance(client, str):
             with connect(client) as made:
-                workers = run_on_client(made, chunks, settings, str(out_dir), take)
+                workers = run_on_client(made, chunks, settings, str(out_dir), take, mesh_cache)
         else:
-            workers = run_on_client(client, chunks, settings, str(out_dir), take)
+            workers = run_on_client(client, chunks, settings, str(out_dir), take, mesh_cache)
     finally:
         write_manifest(out_dir, options, options_sha, files)
     ordered = [rows[n] for n in names]
@@ -486,15 +596,16 @@ def run_files(paths, out, *, action: str = "build", builder=None, method: str | 
                      workers)
 
 
-def run_on_client(client, chunks, settings: Settings, out_dir: str, take: Callable) -> int:
+def run_on_client(client, chunks, settings: Settings, out_dir: str, take: Callable,
+                  mesh_cache: str | None = None) -> int:
     """Run ``chunks`` as Dask tasks, handing each result to ``take`` as it arrives; a chunk
     whose task fails (its worker died past the scheduler's retries, or it raised) is split
     and its files run alone, a file that fails alone gets the failure as its error.
-    Returns how many workers ran tasks."""
+    ``mesh_cache``: as :func:`process_chunk`'s. Returns how many workers ran tasks."""
     from distributed import as_completed
 
     def submit(chunk):
-        return client.submit(process_chunk, chunk, settings, out_dir, pure=False)
+        return client.submit(process_chunk, chunk, settings, out_dir, mesh_cache, pure=False)
 
     futures = {}
     for chunk in chunks:
@@ -524,4 +635,5 @@ def run_on_client(client, chunks, settings: Settings, out_dir: str, take: Callab
 
 __all__ = ["run_files", "RunResult", "Settings", "connect", "mesh_key", "output_names", "process_chunk",
            "trees_of", "chunk_items", "read_manifest", "write_manifest", "write_report", "up_to_date",
-           "MANIFEST", "DEFAULT_CHUNK_FILES", "REPORT_FIELDS"]
+           "row_still_holds", "file_stamp", "hashed_with_stamp", "quick_exit_plugin", "warm_start", "MANIFEST",
+           "DEFAULT_CHUNK_FILES", "REPORT_FIELDS", "RACY_S", "QUIET_WORKER"]

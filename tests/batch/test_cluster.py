@@ -25,8 +25,7 @@ BAD = ("nan.obj", "junk.obj")
 @pytest.fixture(scope="module")
 def client():
     """One LocalCluster of 2 worker processes for the module (starting one costs seconds)."""
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None) as cluster, distributed.Client(cluster) as made:
+    with runs.connect("local:2") as made:  # as `--scheduler local:2` starts it
         yield made
 
 
@@ -99,9 +98,10 @@ def test_annealing_keys_come_from_the_file_name_not_its_place(tmp_path, capsys, 
     with pytest.raises(Keys):
         run_cli(capsys, "batch", "optimize", folder, "-o", tmp_path / "a", "--method", "sa", "--seed", "7")
     single = seen.pop(0)
-    # chunks of 3, sorted by file size (the bad ones first): other positions, other chunks
+    # chunks of at most 3 files of one capacity bucket: other positions, other chunks
     runs.run_files(sorted(folder.iterdir()), tmp_path / "b", action="optimize", method="sa", seed=7, chunk_files=3)
-    assert len(seen) == 2  # a call per chunk of 3 files
+    chunks = runs.chunk_items(list(zip(map(str, sorted(folder.iterdir())), names)), 3)
+    assert len(seen) == sum(any(n.startswith("m") for _, n in c) for c in chunks) > 1  # a call per chunk of good ones
     chunked = [k for part in seen for k in part]
     good = [n for n in names if n.startswith("m")]
     want = {n: np.asarray(jax.random.key_data(runs.mesh_key(7, n))).tolist() for n in good}
@@ -176,3 +176,59 @@ def test_resume_redoes_only_what_is_missing_or_stale(tmp_path, capsys):
     # other options make every tree stale
     median = run_json(capsys, "batch", "build", folder, "-o", out, "--resume", "--builder", "median", status=1)
     assert median["skipped"] == 0 and median["written"] == GOOD
+
+
+def hashes_read(monkeypatch) -> list:
+    """The files whose bytes run_files hashes from now on (a spy on ``runs.file_sha256``)."""
+    read = []
+    real = runs.file_sha256
+
+    def spy(path):
+        read.append(os.path.basename(path))
+        return real(path)
+
+    monkeypatch.setattr(runs, "file_sha256", spy)
+    return read
+
+
+def test_resume_reads_no_file_whose_stamps_are_unchanged_and_redoes_a_changed_one(tmp_path, monkeypatch):
+    monkeypatch.setattr(runs, "RACY_S", 0.0)  # files written a moment ago count as settled
+    folder = mesh_folder(tmp_path / "in", good=2)
+    out = tmp_path / "out"
+    paths = sorted(folder.iterdir())
+    runs.run_files(paths, out, chunk_files=3)
+    recorded = json.loads((out / runs.MANIFEST).read_text())["files"]
+    assert recorded["m00.obj.npz"]["input_stamp"] == runs.file_stamp(folder / "m00.obj")
+    read = hashes_read(monkeypatch)
+    again = runs.run_files(paths, out, chunk_files=3, resume=True)
+    assert again.skipped == 2 and again.done == 0 and again.failed == len(BAD)
+    assert not [n for n in read if n.startswith("m")]  # nothing of the up-to-date files was read
+    # the same size and modification time, other bytes (two vertex lines swapped): redone
+    changed = folder / "m01.obj"
+    lines = changed.read_text().splitlines(keepends=True)
+    before = os.stat(changed)
+    assert lines[0] != lines[1] and lines[0].startswith("v") and lines[1].startswith("v")
+    changed.write_text("".join([lines[1], lines[0]] + lines[2:]))
+    os.utime(changed, ns=(before.st_atime_ns, before.st_mtime_ns))
+    assert os.stat(changed).st_size == before.st_size and os.stat(changed).st_mtime_ns == before.st_mtime_ns
+    read.clear()
+    third = runs.run_files(paths, out, chunk_files=3, resume=True)
+    redone = [os.path.basename(r["mesh"]) for r in third.rows if not r.get("skipped") and not r.get("error")]
+    assert redone == ["m01.obj"] and third.skipped == 1
+    row = next(r for r in third.rows if r["mesh"].endswith("m01.obj"))
+    assert row["input_sha256"] == runs.file_sha256(changed)
+    tree, _ = jaxbvh.load(row["output"])
+    jaxbvh.validate(tree, *jaxbvh.load_mesh(changed).local_boxes())
+
+
+def test_an_input_changed_just_before_it_was_read_is_hashed_again_on_resume(tmp_path, monkeypatch):
+    monkeypatch.setattr(runs, "RACY_S", 1e9)  # every file counts as just changed: no stamp is trusted
+    folder = mesh_folder(tmp_path / "in", good=3)
+    out = tmp_path / "out"
+    paths = sorted(folder.iterdir())
+    first = runs.run_files(paths, out)
+    assert all(r.get("input_stamp") is None for r in first.rows if not r.get("error"))
+    read = hashes_read(monkeypatch)
+    again = runs.run_files(paths, out, resume=True)
+    assert again.skipped == 3
+    assert sorted(n for n in read if n.startswith("m") and n.endswith(".obj")) == ["m00.obj", "m01.obj", "m02.obj"]
