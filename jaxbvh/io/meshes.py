@@ -335,7 +335,9 @@ def _cache_entry(path: str) -> Path | None:
         except OSError:  # a missing buffer: parsing reports it, and nothing is cached
             parts += [os.path.abspath(f), "missing"]
             continue
-        parts += [os.path.abspath(f), str(st.st_size), str(st.st_mtime_ns)]
+        # the change time and inode too: a file rewritten with its old size and its
+        # modification time put back (a copy tool, a build step) still gets a new key
+        parts += [os.path.abspath(f), str(st.st_size), str(st.st_mtime_ns), str(st.st_ctime_ns), str(st.st_ino)]
     return _mesh_cache / (hashlib.sha256("\0".join(parts).encode()).hexdigest()[:32] + ".npz")
 
 

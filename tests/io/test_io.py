@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import sys
 from pathlib import Path
 
@@ -369,6 +371,12 @@ def test_mesh_cache_notices_an_edited_file_and_ignores_damage(tmp_path, mesh_cac
     for entry in mesh_cache.glob("*.npz"):
         entry.write_bytes(b"damaged")
     assert load_mesh(path).n_triangles == 2
+    # the same size and its old modification time put back: still noticed (change time)
+    stamp = os.stat(path)
+    write(path, obj_text([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 2]], [[0, 1, 2], [0, 1, 3]]))
+    assert os.stat(path).st_size == stamp.st_size
+    os.utime(path, ns=(stamp.st_atime_ns, stamp.st_mtime_ns))
+    assert float(load_mesh(path).triangles.max()) == 2.0
     # bad files are not cached: the error comes every time
     bad = write(tmp_path / "bad.obj", "v 0 0 0\nv nan 0 0\nv 0 1 0\nf 1 2 3\n")
     for _ in range(2):
