@@ -20,9 +20,8 @@ pytree node whose ``repr`` is not a value, such as a closure) and every call mad
 tracing (inside a user's ``jit``, ``vmap`` or ``grad``) goes to plain :func:`jax.jit`,
 which gives the same results: the store is only ever a shortcut to the same program.
 
-Rules: on when jaxbvh's cache rules allow a folder (:func:`jaxbvh.compile_cache.cache_dir`
-/ ``programs``; ``JAXBVH_CACHE=off`` turns it off, with the compile cache; off in a process with several
-devices); files are
+Rules: on while jaxbvh's compilation cache is on, in ``programs/`` of its folder
+(:func:`store_dir`: off with that cache, and in a process with several devices); files are
 written atomically (:func:`jaxbvh.files.atomic_write`); an unreadable or stale file is
 replaced, never trusted; the folder is kept under :data:`MAX_STORE_FILES` files (oldest
 first out).
@@ -69,14 +68,19 @@ def _can_serialize() -> bool:
 
 
 def store_dir() -> Path | None:
-    """The folder of stored programs (None: the store is off): ``programs/`` in
-    :func:`jaxbvh.compile_cache.cache_dir`; off with ``JAXBVH_CACHE=off``."""
-    if compile_cache.switched_off() or not _can_serialize() or jax.device_count() > 1:
+    """The folder of stored programs: ``programs/`` in the folder of jaxbvh's compilation
+    cache while that cache is on (:mod:`jaxbvh.compile_cache`); None (the store is off)
+    when it is off (``JAXBVH_CACHE=off``, :func:`jaxbvh.compile_cache.disable`, or a JAX
+    cache the user configured, whose folder jaxbvh does not write to)."""
+    folder = compile_cache.status()
+    if folder["owner"] != "jaxbvh" or compile_cache.switched_off() or not _can_serialize():
+        return None
+    if jax.device_count() > 1:
         # several devices: an exported program is pinned to the devices it was exported
         # for and its outputs are committed to them, which a later program over all the
         # devices (a sharded batch) refuses; such a process compiles as usual
         return None
-    return compile_cache.cache_dir() / "programs"
+    return Path(folder["folder"]) / "programs"
 
 
 @functools.cache

@@ -3,10 +3,12 @@ keys that separate every program, damaged files replaced, and no tracing in a wa
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import hypothesis.strategies as st
 import jax
@@ -15,16 +17,27 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 
-from jaxbvh import program_store
+from jaxbvh import compile_cache, program_store
 from jaxbvh.program_store import stored_jit
+
+
+@contextlib.contextmanager
+def cache_in(folder):
+    """jaxbvh's compilation cache (and so the store) in ``folder`` for a while."""
+    before = compile_cache.status()["folder"]
+    compile_cache.enable(folder)
+    try:
+        yield Path(folder) / "programs"
+    finally:
+        compile_cache.enable(before) if before else compile_cache.disable()
 
 
 @pytest.fixture
 def store(tmp_path, monkeypatch):
     """A fresh store folder for this test."""
-    monkeypatch.setenv("JAXBVH_CACHE_DIR", str(tmp_path))
     monkeypatch.delenv("JAXBVH_CACHE", raising=False)
-    return tmp_path / "programs"
+    with cache_in(tmp_path) as folder:
+        yield folder
 
 
 def _stored_files(folder):
@@ -41,10 +54,7 @@ stored_scaled_sum = stored_jit(scaled_sum, static_argnames=("power",))
 @settings(max_examples=15, deadline=None)
 @given(rows=st.integers(1, 5), power=st.integers(1, 3), y=st.floats(-4, 4, width=32), wide=st.booleans())
 def test_stored_program_equals_plain_jit(tmp_path_factory, rows, power, y, wide):
-    folder = tmp_path_factory.mktemp("store")
-    old = os.environ.get("JAXBVH_CACHE_DIR")
-    os.environ["JAXBVH_CACHE_DIR"] = str(folder)
-    try:
+    with cache_in(tmp_path_factory.mktemp("store")) as folder:
         x = np.arange(rows * 2, dtype=np.float32).reshape(rows, 2) / 3
         if wide:
             x = x.astype(np.int32)
@@ -57,12 +67,7 @@ def test_stored_program_equals_plain_jit(tmp_path_factory, rows, power, y, wide)
             for a, b in zip(jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(want)):
                 assert a.dtype == b.dtype and a.shape == b.shape
                 np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-        assert len(_stored_files(folder / "programs")) == 1
-    finally:
-        if old is None:
-            os.environ.pop("JAXBVH_CACHE_DIR", None)
-        else:
-            os.environ["JAXBVH_CACHE_DIR"] = old
+        assert len(_stored_files(folder)) == 1
 
 
 def test_each_static_value_shape_and_dtype_is_its_own_program(store):
@@ -116,6 +121,11 @@ def test_the_switch_turns_the_store_off(store, monkeypatch):
     monkeypatch.setenv("JAXBVH_CACHE", "off")
     assert program_store.store_dir() is None
     stored_scaled_sum(np.ones((5, 2), np.float32), 1.0, power=1)
+    assert _stored_files(store) == []
+    monkeypatch.delenv("JAXBVH_CACHE")
+    compile_cache.disable()   # the store goes with jaxbvh's compilation cache
+    assert program_store.store_dir() is None
+    stored_scaled_sum(np.ones((6, 2), np.float32), 1.0, power=1)
     assert _stored_files(store) == []
 
 
