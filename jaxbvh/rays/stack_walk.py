@@ -7,10 +7,9 @@ a *primitive slot* mean differs, and that is what the two hooks say:
 * ``primitive(slot, tag) -> (t, u, v, prim)``: test the primitive in ``prim_index`` slot
   ``slot`` of the open leaf (``tag``: what the leaf was opened with) and name it;
 * ``node(ref, tag, entry, t_far) -> Node``: look at the popped node ``ref`` (entered at
-  ``entry``; ``tag`` pushed with it) and test the boxes of its children against the ray
-  interval ``[t_min, t_far]``;
-* ``parent(ref, tag) -> (ref, tag)`` (optional): the node above ``ref``, for the climb
-  below (None: no parent links; a stack that spills is then reported as an overflow).
+  ``entry``; ``tag`` pushed with it), test the boxes of its children against the ray
+  interval ``[t_min, t_far]``, and say which node is above it (``Node.parent``, for the
+  climb below; None: no parent links, and a stack that spills is then an overflow).
 
 The one-level hooks read the tree and call the primitive intersector; the two-level ones
 map the ray into an instance's frame below a top-level leaf and tag every stack entry
@@ -119,6 +118,8 @@ class Node(NamedTuple):
     tested: Any      # bool [k]: child boxes actually tested (counted as box tests)
     split: Any       # int32 [] split axis (-1: none) or None: order by entry distance only
     direction: Any   # float [3]: the ray direction in the node's frame (axis order)
+    parent: Any = None      # int32 [] or None: reference of the node above ``ref`` (None: no parent links)
+    parent_tag: Any = None  # int32 [] or None: its tag (tagged walks)
 
 
 class Hooks(NamedTuple):
@@ -126,7 +127,6 @@ class Hooks(NamedTuple):
 
     primitive: Callable  # (slot, tag) -> (t, u, v, prim id) of the primitive in prim_index slot ``slot``
     node: Callable       # (ref, tag, entry, t_far) -> Node
-    parent: Callable | None = None  # (ref, tag) -> (ref, tag) of the node above; None: no climb
 
 
 class Found(NamedTuple):
@@ -159,6 +159,8 @@ class Walk(NamedTuple):
     base: Any            # int32 []: entries below this one were overwritten (spilled); sp == base: stack empty
     last: Any            # int32 []: the node last popped, or climbed to (where a climb starts)
     last_tag: Any        # int32 [] or None: its tag
+    up: Any              # int32 []: the node above ``last`` (read with it: a climb needs no extra read)
+    up_tag: Any          # int32 [] or None: its tag
     leaf_pos: Any        # int32 []: next prim_index slot of the open leaf
     leaf_end: Any        # int32 []: end of the open leaf's run (leaf_pos == leaf_end: no leaf open)
     leaf_tag: Any        # int32 [] or None: tag the open leaf was opened with
@@ -285,7 +287,7 @@ def walk_rays(ray: Callable, n_rays: int, *, mode: str, capacity: int, max_hits:
 
     def step(_, carry):
         s, stacks = carry
-        top = jnp.maximum(s.sp - 1, 0) % capacity
+        top = jax.lax.rem(jnp.maximum(s.sp - 1, 0), I32(capacity))
         top_node = stacks.node[lane_ids, top]
         top_tag = None if stacks.tag is None else stacks.tag[lane_ids, top]
         top_entry = stacks.entry[lane_ids, top]
@@ -330,7 +332,8 @@ def _start(ray, root, root_hit, t_max, *, mode, max_hits, tagged) -> Walk:
                   ts=jnp.full(max_hits, jnp.inf, dtype) if all_hits else None)
     return Walk(
         ray=jnp.asarray(ray, I32), sp=jnp.where(root_hit, 1, 0).astype(I32), base=I32(0),
-        last=jnp.asarray(root, I32), last_tag=I32(-1) if tagged else None,
+        last=jnp.asarray(root, I32), last_tag=I32(-1) if tagged else None, up=I32(-1),
+        up_tag=I32(-1) if tagged else None,
         leaf_pos=I32(0), leaf_end=I32(0), leaf_tag=I32(0) if tagged else None,
         found=found, counts=Counts(box_tests=I32(1), prim_tests=I32(0), nodes_visited=I32(0),
                                    leaves_visited=I32(0)),
@@ -401,21 +404,18 @@ def _node_step(r: Ray, s: Walk, pop, climb, top_node, top_tag, entry, *, capacit
     kids, kid_tags, kid_entry)``: the stack writes, ``pos`` [k] the slots (``capacity``:
     none)."""
     hooks = r.hooks
-    if hooks.parent is not None:
-        up, up_tag = hooks.parent(s.last, s.last_tag)
-        at_root = s.last == r.root
-    else:  # no climbs (working() says so)
-        up, up_tag, at_root = s.last, s.last_tag, jnp.ones((), bool)
+    at_root = s.last == r.root
     ends = climb & at_root  # (not in a valid tree: a climb starts below a spill)
     climb = climb & ~at_root
     # a lane that neither pops nor climbs reads node 0 (a cache hit for all of them, see
     # _primitive_step); a climb enters skip-flagged children at t_min (module docstring)
-    ref = jnp.where(pop, top_node, jnp.where(climb, jnp.maximum(up, 0), 0))
-    tag = None if top_tag is None else jnp.where(pop, top_tag, up_tag)
+    ref = jnp.where(pop, top_node, jnp.where(climb, jnp.maximum(s.up, 0), 0))
+    tag = None if top_tag is None else jnp.where(pop, top_tag, s.up_tag)
     entry = jnp.where(pop, entry, r.t_min)
     # closest: cull against the best hit; any / all: found.t stays t_max
     visit = pop & (entry <= s.found.t)
     node = hooks.node(ref, tag, entry, s.found.t)
+    links = node.parent is not None
     counted = visit if node.assumed is None else visit & ~node.assumed
     open_leaf = visit & node.is_leaf
     expand = visit & ~node.is_leaf
@@ -428,6 +428,8 @@ def _node_step(r: Ray, s: Walk, pop, climb, top_node, top_tag, entry, *, capacit
         counts=counts,
         last=jnp.where(pop, top_node, s.last),
         last_tag=None if tag is None else jnp.where(pop, top_tag, s.last_tag),
+        up=jnp.where(pop, node.parent, s.up) if links else s.up,
+        up_tag=jnp.where(pop, node.parent_tag, s.up_tag) if links and tag is not None else s.up_tag,
         leaf_pos=jnp.where(open_leaf, node.leaf_start, s.leaf_pos),
         leaf_end=jnp.where(open_leaf, node.leaf_start + node.leaf_count, s.leaf_end),
         leaf_tag=None if s.leaf_tag is None else jnp.where(open_leaf, node.leaf_tag, s.leaf_tag))
@@ -444,11 +446,14 @@ def _node_step(r: Ray, s: Walk, pop, climb, top_node, top_tag, entry, *, capacit
     found_next = climb & jnp.any(candidate)
     # the climb moves up when no child is left; at the root the ray ends
     moved = climb & ~found_next
-    s = s._replace(last=jnp.where(moved, up, s.last),
-                   last_tag=None if tag is None else jnp.where(moved, up_tag, s.last_tag),
-                   done=s.done | ends | (moved & (up == r.root)))
+    if links:  # moving up, ``last`` becomes the node looked at, whose parent the node hook read
+        s = s._replace(last=jnp.where(moved, s.up, s.last),
+                       last_tag=None if tag is None else jnp.where(moved, s.up_tag, s.last_tag),
+                       up=jnp.where(moved, node.parent, s.up),
+                       up_tag=None if tag is None else jnp.where(moved, node.parent_tag, s.up_tag),
+                       done=s.done | ends | (moved & (s.up == r.root)))
     return _push(s, node, before, jnp.where(climb, first, node.kid_hit & expand), pop | found_next,
-                 jnp.where(pop, s.sp - 1, s.sp), capacity=capacity, links=hooks.parent is not None)
+                 jnp.where(pop, s.sp - 1, s.sp), capacity=capacity, links=links)
 
 
 def _kid_tags(node: Node):
@@ -481,7 +486,7 @@ def _push(s: Walk, node: Node, before, kid_hit, replace, top, *, capacity, links
     rank = jnp.sum(kid_hit[:, None] & before, axis=0)  # visiting position of each kid
     n_push = jnp.sum(kid_hit, dtype=I32)
     pos = top + n_push - 1 - rank  # nearest on top
-    pos = jnp.where(kid_hit & replace, pos % capacity, capacity)
+    pos = jnp.where(kid_hit & replace, jax.lax.rem(pos, I32(capacity)), capacity)  # pos >= 0
     sp = jnp.where(replace, top + n_push, s.sp)
     base = jnp.maximum(s.base, sp - capacity)
     spilled = base > s.base

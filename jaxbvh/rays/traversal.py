@@ -243,10 +243,7 @@ def _ray(tree, packed: Packed, prims, skip, origin, direction, t_min, t_max, i, 
     def node(ref, _, entry, t_far):
         return _expand(packed, skip, ref, entry, o, d, inv_dir, lo_t, t_far, binary=isinstance(tree, BVH))
 
-    def parent(ref, _):
-        return packed.meta[ref, -1], None
-
-    return Ray(Hooks(primitive, node, parent), root, root_hit, root_entry, lo_t, hi_t)
+    return Ray(Hooks(primitive, node), root, root_hit, root_entry, lo_t, hi_t)
 
 
 def _expand(packed: Packed, skip, ref, entry, origin, direction, inv_dir, t_min, t_far, *, binary) -> Node:
@@ -273,7 +270,7 @@ def _expand(packed: Packed, skip, ref, entry, origin, direction, inv_dir, t_min,
     return Node(is_leaf=count > 0, leaf_start=meta[k], leaf_count=count, leaf_tag=None,
                 assumed=assumed, kids=kids, kid_tags=None, kid_hit=kid_hit & real,
                 kid_entry=kid_entry, tested=tested, split=meta[k + 2] if binary else None,
-                direction=direction)
+                direction=direction, parent=meta[k + 3])
 
 
 @partial(jax.jit, static_argnames=("intersect", "mode", "capacity", "max_hits", "lanes", "leaf_width"))
