@@ -218,7 +218,7 @@ def lanes_for(rays: int, capacity: int, lanes: int | None = None) -> int:
 
 
 def walk_rays(ray: Callable, n_rays: int, *, mode: str, capacity: int, max_hits: int, step_limit,
-              lanes: int, leaf_width: int, tagged: bool = False) -> Hits:
+              lanes: int, leaf_width: int, tagged: bool = False, climbs: bool = True) -> Hits:
     """Trace rays ``0 .. n_rays - 1`` on ``lanes`` lanes; returns :class:`Hits` [n_rays].
 
     ``ray(i) -> Ray`` (``i`` int32 []): the hooks and root test of ray ``i`` (made
@@ -226,7 +226,8 @@ def walk_rays(ray: Callable, n_rays: int, *, mode: str, capacity: int, max_hits:
     "all"; ``capacity``: static stack size per lane (at least the tree's arity);
     ``max_hits``: all-hits list length; ``step_limit``: a ray's bound on steps (int or
     int32 []); ``leaf_width``: primitive slots tested per step (all-hits mode uses 1);
-    ``tagged``: entries carry tags.
+    ``tagged``: entries carry tags; ``climbs``: the node hook reports parents
+    (``Node.parent``), so a spilled stack climbs; else a spill is an overflow.
 
     One ``while_loop`` steps every lane at once. Before each step a lane whose ray ended
     (no work left, or at the step bound) writes the ray's :class:`Hits` and takes the
@@ -277,26 +278,42 @@ def walk_rays(ray: Callable, n_rays: int, *, mode: str, capacity: int, max_hits:
         # decided once, before the primitive step: a leaf that ends in this step must not
         # also pop (its stack may be empty; the top entry would then be stale)
         in_leaf = go & (s.leaf_pos < s.leaf_end)
-        held = s.sp > s.base
-        pop = go & ~in_leaf & held
-        climb = go & ~in_leaf & ~held  # live: only after a spill, with parent links
+        pop = go & ~in_leaf & (s.sp > s.base)
         s = _primitive_step(r.hooks, s, in_leaf, r.t_min, r.t_max, mode=mode, max_hits=max_hits,
                             width=width)
-        s = s._replace(steps=s.steps + (pop | climb).astype(I32))
-        return _node_step(r, s, pop, climb, top_node, top_tag, top_entry, capacity=capacity)
+        s = s._replace(steps=s.steps + pop.astype(I32))
+        return _node_step(r, s, pop, top_node, top_tag, top_entry, capacity=capacity, climbs=climbs)
+
+    def lane_climb(s):
+        r = ray(jnp.maximum(s.ray, 0))
+        climb = live(s) & (s.leaf_pos >= s.leaf_end) & (s.sp <= s.base)  # live: after a spill
+        s = s._replace(steps=s.steps + climb.astype(I32))
+        return _climb_step(r, s, climb, capacity=capacity)
+
+    def write(stacks, pos, kids, kid_tags, kid_entry):
+        rows = lane_ids[:, None]
+        return Stacks(node=stacks.node.at[rows, pos].set(kids, mode="drop"),
+                      tag=None if stacks.tag is None else stacks.tag.at[rows, pos].set(kid_tags, mode="drop"),
+                      entry=stacks.entry.at[rows, pos].set(kid_entry, mode="drop"))
+
+    def climb_all(s, stacks):
+        s, *writes = jax.vmap(lane_climb)(s)
+        return s, write(stacks, *writes)
 
     def step(_, carry):
         s, stacks = carry
+        if climbs:
+            # a climb step only where a stack spilled and ran empty (rare but for deep
+            # trees): its own pass, skipped when no lane needs it, so the common step
+            # stays a pop or a primitive step
+            needs = jnp.any(live(s) & (s.leaf_pos >= s.leaf_end) & (s.sp <= s.base))
+            s, stacks = jax.lax.cond(needs, climb_all, lambda s, stacks: (s, stacks), s, stacks)
         top = jax.lax.rem(jnp.maximum(s.sp - 1, 0), I32(capacity))
         top_node = stacks.node[lane_ids, top]
         top_tag = None if stacks.tag is None else stacks.tag[lane_ids, top]
         top_entry = stacks.entry[lane_ids, top]
-        s, pos, kids, kid_tags, kid_entry = jax.vmap(lane_step)(s, top_node, top_tag, top_entry)
-        rows = lane_ids[:, None]
-        stacks = Stacks(node=stacks.node.at[rows, pos].set(kids, mode="drop"),
-                        tag=None if stacks.tag is None else stacks.tag.at[rows, pos].set(kid_tags, mode="drop"),
-                        entry=stacks.entry.at[rows, pos].set(kid_entry, mode="drop"))
-        return s, stacks
+        s, *writes = jax.vmap(lane_step)(s, top_node, top_tag, top_entry)
+        return s, write(stacks, *writes)
 
     def body(carry):
         s, stacks, out, next_ray = refill(*carry)
@@ -395,27 +412,15 @@ def _record(f: Found, valid, t, u, v, prim, *, mode, max_hits) -> Found:
                       v=jnp.where(take, v, f.v))
 
 
-def _node_step(r: Ray, s: Walk, pop, climb, top_node, top_tag, entry, *, capacity):
-    """A pop (``pop``: the top entry ``top_node``, ``top_tag``, ``entry``) or a climb step
-    (``climb``: from ``s.last`` to its parent), masked out unless one of them. A popped
-    node that passes the entry test is visited: a leaf opens, an interior node pushes the
-    children the ray enters, nearest on top. A climb pushes the next child after
-    ``s.last`` that the ray enters, or moves up (module docstring). Returns ``(s, pos,
-    kids, kid_tags, kid_entry)``: the stack writes, ``pos`` [k] the slots (``capacity``:
-    none)."""
-    hooks = r.hooks
-    at_root = s.last == r.root
-    ends = climb & at_root  # (not in a valid tree: a climb starts below a spill)
-    climb = climb & ~at_root
-    # a lane that neither pops nor climbs reads node 0 (a cache hit for all of them, see
-    # _primitive_step); a climb enters skip-flagged children at t_min (module docstring)
-    ref = jnp.where(pop, top_node, jnp.where(climb, jnp.maximum(s.up, 0), 0))
-    tag = None if top_tag is None else jnp.where(pop, top_tag, s.up_tag)
-    entry = jnp.where(pop, entry, r.t_min)
+def _node_step(r: Ray, s: Walk, pop, top_node, top_tag, entry, *, capacity, climbs):
+    """Pop the top entry (``top_node``, ``top_tag``, ``entry``; masked out unless
+    ``pop``); a visited leaf opens, a visited interior node pushes the children the ray
+    enters, nearest on top. Returns ``(s, pos, kids, kid_tags, kid_entry)``: the stack
+    writes, ``pos`` [k] the slots (``capacity``: none)."""
     # closest: cull against the best hit; any / all: found.t stays t_max
     visit = pop & (entry <= s.found.t)
-    node = hooks.node(ref, tag, entry, s.found.t)
-    links = node.parent is not None
+    # a lane that does not pop reads node 0 (a cache hit for all of them, see _primitive_step)
+    node = r.hooks.node(jnp.where(pop, top_node, 0), top_tag, entry, s.found.t)
     counted = visit if node.assumed is None else visit & ~node.assumed
     open_leaf = visit & node.is_leaf
     expand = visit & ~node.is_leaf
@@ -423,37 +428,52 @@ def _node_step(r: Ray, s: Walk, pop, climb, top_node, top_tag, entry, *, capacit
     counts = c._replace(
         nodes_visited=c.nodes_visited + counted.astype(I32),
         leaves_visited=c.leaves_visited + open_leaf.astype(I32),
-        box_tests=c.box_tests + jnp.where(expand | climb, jnp.sum(node.tested, dtype=I32), 0))
+        box_tests=c.box_tests + jnp.where(expand, jnp.sum(node.tested, dtype=I32), 0))
     s = s._replace(
         counts=counts,
-        last=jnp.where(pop, top_node, s.last),
-        last_tag=None if tag is None else jnp.where(pop, top_tag, s.last_tag),
-        up=jnp.where(pop, node.parent, s.up) if links else s.up,
-        up_tag=jnp.where(pop, node.parent_tag, s.up_tag) if links and tag is not None else s.up_tag,
         leaf_pos=jnp.where(open_leaf, node.leaf_start, s.leaf_pos),
         leaf_end=jnp.where(open_leaf, node.leaf_start + node.leaf_count, s.leaf_end),
         leaf_tag=None if s.leaf_tag is None else jnp.where(open_leaf, node.leaf_tag, s.leaf_tag))
-    key = _visit_key(node)
-    k = key.shape[0]
-    slot_ids = jnp.arange(k)
-    # before[i, j]: child i comes before child j in visiting order (ties: lower slot)
-    before = (key[:, None] < key[None, :]) | ((key[:, None] == key[None, :]) & (slot_ids[:, None] < slot_ids[None, :]))
-    # climb: the children after the one we come from (by its slot) that the ray still enters
-    came = (node.kids == s.last) if tag is None else (node.kids == s.last) & (_kid_tags(node) == s.last_tag)
-    after = jnp.any(came[:, None] & before, axis=0)
-    candidate = node.kid_hit & after
+    if climbs:  # where a climb would start: the node popped and the one above it
+        s = s._replace(
+            last=jnp.where(pop, top_node, s.last), up=jnp.where(pop, node.parent, s.up),
+            last_tag=None if top_tag is None else jnp.where(pop, top_tag, s.last_tag),
+            up_tag=None if top_tag is None else jnp.where(pop, node.parent_tag, s.up_tag))
+    return _push(s, node, _order(node), node.kid_hit & expand, pop, s.sp - 1, capacity=capacity, climbs=climbs)
+
+
+def _climb_step(r: Ray, s: Walk, climb, *, capacity):
+    """A climb step (masked out unless ``climb``): look at ``s.up``, the parent of
+    ``s.last``, testing its children's boxes again; push the first child after
+    ``s.last`` in visiting order that the ray enters, or move up (the root: the ray
+    ends). A skip-flagged child is entered at ``t_min`` (module docstring). Returns
+    ``(s, pos, kids, kid_tags, kid_entry)`` as :func:`_node_step`."""
+    at_root = s.last == r.root
+    ends = climb & at_root  # (not in a valid tree: a climb starts below a spill)
+    climb = climb & ~at_root
+    node = r.hooks.node(jnp.where(climb, jnp.maximum(s.up, 0), 0), s.up_tag, r.t_min, s.found.t)
+    before = _order(node)
+    came = node.kids == s.last
+    if s.last_tag is not None:
+        came = came & (_kid_tags(node) == s.last_tag)
+    candidate = node.kid_hit & jnp.any(came[:, None] & before, axis=0)  # after ``last``, entered
     first = candidate & ~jnp.any(candidate[:, None] & before, axis=0)
-    found_next = climb & jnp.any(candidate)
-    # the climb moves up when no child is left; at the root the ray ends
-    moved = climb & ~found_next
-    if links:  # moving up, ``last`` becomes the node looked at, whose parent the node hook read
-        s = s._replace(last=jnp.where(moved, s.up, s.last),
-                       last_tag=None if tag is None else jnp.where(moved, s.up_tag, s.last_tag),
-                       up=jnp.where(moved, node.parent, s.up),
-                       up_tag=None if tag is None else jnp.where(moved, node.parent_tag, s.up_tag),
-                       done=s.done | ends | (moved & (s.up == r.root)))
-    return _push(s, node, before, jnp.where(climb, first, node.kid_hit & expand), pop | found_next,
-                 jnp.where(pop, s.sp - 1, s.sp), capacity=capacity, links=links)
+    moved = climb & ~jnp.any(candidate)
+    s = s._replace(
+        counts=s.counts._replace(box_tests=s.counts.box_tests + jnp.where(climb, jnp.sum(node.tested, dtype=I32), 0)),
+        last=jnp.where(moved, s.up, s.last), up=jnp.where(moved, node.parent, s.up),
+        last_tag=None if s.last_tag is None else jnp.where(moved, s.up_tag, s.last_tag),
+        up_tag=None if s.up_tag is None else jnp.where(moved, node.parent_tag, s.up_tag),
+        done=s.done | ends | (moved & (s.up == r.root)))
+    return _push(s, node, before, first, climb & ~moved, s.sp, capacity=capacity, climbs=True)
+
+
+def _order(node: Node):
+    """``before`` [k, k] bool: child i comes before child j in visiting order (keys of
+    :func:`_visit_key`; ties: the lower slot)."""
+    key = _visit_key(node)
+    slot_ids = jnp.arange(key.shape[0])
+    return (key[:, None] < key[None, :]) | ((key[:, None] == key[None, :]) & (slot_ids[:, None] < slot_ids[None, :]))
 
 
 def _kid_tags(node: Node):
@@ -477,7 +497,7 @@ def _visit_key(node: Node):
     return jnp.where(node.split >= 0, by_axis, by_entry)
 
 
-def _push(s: Walk, node: Node, before, kid_hit, replace, top, *, capacity, links):
+def _push(s: Walk, node: Node, before, kid_hit, replace, top, *, capacity, climbs):
     """Push the children ``kid_hit`` [k] at logical entry ``top`` up, in visiting order
     (``before`` [k, k]), nearest on top; ``replace``: the lane pushes (a pop replaces its
     entry; a climb writes on the empty stack). The ring keeps the newest ``capacity``
@@ -487,10 +507,10 @@ def _push(s: Walk, node: Node, before, kid_hit, replace, top, *, capacity, links
     n_push = jnp.sum(kid_hit, dtype=I32)
     pos = top + n_push - 1 - rank  # nearest on top
     pos = jnp.where(kid_hit & replace, jax.lax.rem(pos, I32(capacity)), capacity)  # pos >= 0
-    sp = jnp.where(replace, top + n_push, s.sp)
+    sp = jnp.where(replace, top + n_push, s.sp).astype(I32)
     base = jnp.maximum(s.base, sp - capacity)
     spilled = base > s.base
-    if not links:
+    if not climbs:
         s = s._replace(stack_overflow=s.stack_overflow | spilled)
     s = s._replace(sp=sp, base=base)
     return s, pos.astype(I32), node.kids, _kid_tags(node), node.kid_entry
