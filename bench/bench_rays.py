@@ -49,6 +49,7 @@ DATA = ROOT.parents[1] / "shared" / "data"
 MESHES = {"bunny": "meshes/stanford-bunny.obj", "legocar": "meshes/legocar.obj",
           "drone": "scenes/drone/scene.gltf", "bunny4": "meshes/stanford-bunny.obj"}
 CHAINS = (50, 500, 5000, 6320)
+DEFAULT_STACKS = (2,)
 KINDS = ("random", "camera", "bounce")
 
 
@@ -224,8 +225,8 @@ def run_child(path, args, extra):
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--rays", str(args.rays),
            "--repeat", str(args.repeat), "--chain-rays", str(args.chain_rays),
            "--meshes", *args.meshes, "--kinds", *args.kinds, "--chains", *map(str, args.chains), *extra]
-    if path == REPO:
-        cmd += ["--stacks", *map(str, args.stacks)]
+    if path == REPO:  # stack sizes are this checkout's knob
+        cmd += ["--stacks", *map(str, DEFAULT_STACKS if args.stacks is None else args.stacks)]
     out = subprocess.run(cmd, env=env, check=True, stdout=subprocess.PIPE, text=True)
     return json.loads(out.stdout)
 
@@ -238,8 +239,8 @@ def main(argv=None):
     parser.add_argument("--chains", nargs="*", type=int, default=list(CHAINS))
     parser.add_argument("--rays", type=int, default=20_000)
     parser.add_argument("--chain-rays", type=int, default=20_000)
-    parser.add_argument("--stacks", nargs="*", type=int, default=[2, 16],
-                        help="stack sizes to measure beside the default (this checkout only)")
+    parser.add_argument("--stacks", nargs="*", type=int, default=None,
+                        help=f"stack sizes to measure beside the default (this checkout only; default {DEFAULT_STACKS})")
     parser.add_argument("--repeat", type=int, default=2)
     parser.add_argument("--out", default=str(ROOT / "results" / "bench_rays"))
     # child-only options

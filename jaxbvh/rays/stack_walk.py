@@ -503,7 +503,7 @@ def _push(s: Walk, node: Node, before, kid_hit, replace, top, *, capacity, climb
     entry; a climb writes on the empty stack). The ring keeps the newest ``capacity``
     entries: older ones are spilled (``base``), an overflow unless the tree has parent
     links. Returns the new state and the stack writes (:func:`_node_step`)."""
-    rank = jnp.sum(kid_hit[:, None] & before, axis=0)  # visiting position of each kid
+    rank = jnp.sum(kid_hit[:, None] & before, axis=0, dtype=I32)  # visiting position of each kid (int32 under x64 too)
     n_push = jnp.sum(kid_hit, dtype=I32)
     pos = top + n_push - 1 - rank  # nearest on top
     pos = jnp.where(kid_hit & replace, jax.lax.rem(pos, I32(capacity)), capacity)  # pos >= 0
