@@ -9,7 +9,8 @@ a *primitive slot* mean differs, and that is what the two hooks say:
 * ``node(ref, tag, entry, t_far) -> Node``: look at the popped node ``ref`` (entered at
   ``entry``; ``tag`` pushed with it), test the boxes of its children against the ray
   interval ``[t_min, t_far]``, and say which node is above it (``Node.parent``, for the
-  climb below; None: no parent links, and a stack that spills is then an overflow).
+  climb below; walks without parent links pass ``climbs=False``: a spill is then an
+  overflow).
 
 The one-level hooks read the tree and call the primitive intersector; the two-level ones
 map the ray into an instance's frame below a top-level leaf and tag every stack entry
@@ -21,7 +22,9 @@ counters, visiting order, push with overflow flag), the step bound and the
 
 :func:`walk_rays` runs one ``while_loop`` over ``lanes`` rays at once. In every step each
 lane does one of two things for its ray, a primitive step while a leaf is open (the next
-``leaf_width`` slots), else a node step; both are computed and the other one masked out.
+``leaf_width`` slots), else a node step (a pop); both are computed and the other one
+masked out. Climb steps (below) have a pass of their own before it, run only in the
+steps where some lane needs one.
 A ray ends when its stack is empty and no leaf is open (and it has nothing left to climb),
 at the first hit in any-hit mode, or after ``step_limit`` steps (node pops, primitive
 tests and climb steps); a ray still working at the bound reports ``step_limit``.
@@ -42,9 +45,11 @@ a child assumed hit (skip flags) comes first (key ``-inf``), and in a climb it i
 at ``t_min``. A child pushed and later dropped passes the same test in the climb
 (``entry <= min(far, t_best)`` then is ``entry <= far`` at the push and
 ``entry <= t_best`` at the pop), so nodes visited, leaves visited, primitive tests, the
-hits and the all-hits list are those of an unbounded stack; a climb adds its box tests
-(the children of the parent, tested again) and a step. Without a ``parent`` hook a spill
-sets ``stack_overflow`` (hits and counts then untrustworthy).
+hits and the all-hits list are those of an unbounded stack (one exception: a skip-flagged
+child that the stack walk would cull, entered where its parent was but beyond the hit
+found since, is visited after a climb: visits can only grow); a climb adds its box tests
+(the children of the parent, tested again) and a step. Without parent links
+(``climbs=False``) a spill sets ``stack_overflow`` (hits and counts then untrustworthy).
 Every ``REFILL_EVERY`` steps the lanes whose ray ended write its :class:`Hits` and take
 the next rays (a wavefront). The stacks [lanes, capacity] are not part of the per-lane
 state that the step maps over: a step gathers each lane's top entry and scatters its
@@ -118,7 +123,7 @@ class Node(NamedTuple):
     tested: Any      # bool [k]: child boxes actually tested (counted as box tests)
     split: Any       # int32 [] split axis (-1: none) or None: order by entry distance only
     direction: Any   # float [3]: the ray direction in the node's frame (axis order)
-    parent: Any = None      # int32 [] or None: reference of the node above ``ref`` (None: no parent links)
+    parent: Any = None      # int32 [] or None: reference of the node above ``ref`` (walks that climb)
     parent_tag: Any = None  # int32 [] or None: its tag (tagged walks)
 
 
@@ -501,8 +506,8 @@ def _push(s: Walk, node: Node, before, kid_hit, replace, top, *, capacity, climb
     """Push the children ``kid_hit`` [k] at logical entry ``top`` up, in visiting order
     (``before`` [k, k]), nearest on top; ``replace``: the lane pushes (a pop replaces its
     entry; a climb writes on the empty stack). The ring keeps the newest ``capacity``
-    entries: older ones are spilled (``base``), an overflow unless the tree has parent
-    links. Returns the new state and the stack writes (:func:`_node_step`)."""
+    entries: older ones are spilled (``base``), an overflow unless the walk ``climbs``.
+    Returns the new state and the stack writes (:func:`_node_step`)."""
     rank = jnp.sum(kid_hit[:, None] & before, axis=0, dtype=I32)  # visiting position of each kid (int32 under x64 too)
     n_push = jnp.sum(kid_hit, dtype=I32)
     pos = top + n_push - 1 - rank  # nearest on top

@@ -38,8 +38,9 @@ suffice (a node step pops one entry and pushes at most ``k``); with fewer, a pus
 does not fit drops the oldest entries and, once the stack has run empty, the ray climbs
 by the tree's ``parent`` links to what they held (:mod:`jaxbvh.rays.stack_walk`): the
 hits, ``nodes_visited``, ``leaves_visited``, ``prim_tests`` and the all-hits lists are
-those of a stack of ``stack_capacity`` entries; ``box_tests`` add the boxes a climb tests
-again (the children of every parent it passes). A balanced tree under the default never
+those of a stack of ``stack_capacity`` entries (with skip flags, visits can only grow:
+see the walk's docstring); ``box_tests`` add the boxes a climb tests again (the children
+of every parent it passes). A balanced tree under the default never
 climbs. ``stack_overflow`` stays False here (it reports a spill in walks without parent
 links, :mod:`jaxbvh.twolevel.traversal`); the drivers raise on it unless
 ``allow_overflow=True``.
