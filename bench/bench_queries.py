@@ -16,6 +16,14 @@ child) and a balanced tree over the first 2,000 triangles of the first mesh, rep
 time per walk step (steps = box tests / k + primitive tests), which should not depend on
 depth. Writes ``bench/results/bench_queries.json`` and ``.md``. Run without the test
 suite's XLA_FLAGS (a plain python process).
+
+``--raycast [--before CHECKOUT]``: rays instead, :func:`jaxbvh.queries.raycast` (closest
+hit inside jit, in batches of ``--ray-batch`` rays) on the shared meshes' reference trees
+with random and camera rays, beside :func:`jaxbvh.rays.closest_hit` (the host driver)
+and Embree (embreex) on the same rays in the same process; ``--before``: the same in a
+child process that imports another checkout's ``jaxbvh`` (e.g. main). Process CPU
+seconds, median of ``--repeat`` warm runs, and the first call's CPU seconds (trace and
+compile, persistent cache off). Writes ``bench/results/bench_queries_raycast.json`` and ``.md``.
 """
 
 from __future__ import annotations
@@ -26,6 +34,8 @@ import os
 import platform
 import resource
 import statistics
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -137,6 +147,107 @@ def chain_tree(lo, hi):
                                  lo=b_lo, hi=b_hi, root=np.int32(0)))
 
 
+def raycast_rows(meshes, n_rays, batch, repeat, embree):
+    """Rows of rays/s for ``queries.raycast`` and ``rays.closest_hit`` (and Embree) with the
+    ``jaxbvh`` on ``sys.path``."""
+    from jaxbvh import rays
+
+    rows = []
+    for name in meshes:
+        if name == "spot":
+            continue
+        mesh = load_mesh(DATA / MESHES[name])
+        tri = mesh.triangles.astype(np.float32)
+        tree, _ = jaxbvh.load(DATA / "trees" / f"{name}_binned_ref.npz")
+        for kind in ("random", "camera"):
+            origin, direction = rays.make_rays(jax.random.key(0), kind, tree, tri, n_rays)
+            origin, direction = np.asarray(origin, np.float32), np.asarray(direction, np.float32)
+            n = len(origin) // batch * batch
+            o, d = origin[:n].reshape(-1, batch, 3), direction[:n].reshape(-1, batch, 3)
+            jtree, jtri = jaxbvh.tree.to_jax(tree), jax.numpy.asarray(tri)
+
+            def cast():
+                out = [queries.raycast(jtree, jtri, o[i], d[i]) for i in range(len(o))]
+                jax.block_until_ready(out)
+                return np.concatenate([np.asarray(h.prim) for h in out]), \
+                    np.concatenate([np.asarray(h.box_tests) for h in out])
+
+            c = cpu_seconds()
+            cast()
+            first = cpu_seconds() - c
+            (prim, box), _, cpu = timed(cast, repeat)
+            row = dict(mesh=name, triangles=int(len(tri)), rays=kind, n=n, raycast_rays_per_cpu_s=n / cpu,
+                       raycast_cpu_s=cpu, raycast_first_call_cpu_s=first - cpu, box_tests=float(box.mean()))
+            rays.closest_hit(tree, tri, origin[:n], direction[:n])
+            hits, _, cpu = timed(lambda: rays.closest_hit(tree, tri, origin[:n], direction[:n]), repeat)
+            row.update(closest_hit_rays_per_cpu_s=n / cpu, same_prim_as_closest_hit=float(np.mean(hits.prim == prim)))
+            if embree:
+                try:
+                    from embreex import rtcore_scene
+                    from embreex.mesh_construction import TriangleMesh
+                except ImportError:
+                    pass
+                else:
+                    scene = rtcore_scene.EmbreeScene()
+                    TriangleMesh(scene, tri)
+                    scene.run(origin[:1000], direction[:1000])
+                    out, _, cpu = timed(lambda: scene.run(origin[:n], direction[:n], output=1), repeat)
+                    row.update(embree_rays_per_cpu_s=n / cpu,
+                               same_prim_as_embree=float(np.mean(np.asarray(out["primID"]) == prim)))
+            rows.append(row)
+            print(row, file=sys.stderr, flush=True)
+    return rows
+
+
+def raycast_main(args):
+    if args.child:
+        json.dump(dict(rows=raycast_rows(args.meshes, args.rays, args.ray_batch, args.repeat, False),
+                       load=os.getloadavg()), sys.stdout)
+        return
+    runs = {}
+    env = dict(os.environ, JAXBVH_CACHE="off")  # the first call's compile is measured
+    env.pop("XLA_FLAGS", None)
+    if args.before:
+        cmd = [sys.executable, str(Path(__file__).resolve()), "--raycast", "--child", "--meshes", *args.meshes,
+               "--rays", str(args.rays), "--ray-batch", str(args.ray_batch), "--repeat", str(args.repeat)]
+        out = subprocess.run(cmd, env=dict(env, PYTHONPATH=str(args.before)), check=True, stdout=subprocess.PIPE,
+                             text=True)
+        runs["before"] = json.loads(out.stdout)
+    runs["after"] = dict(rows=raycast_rows(args.meshes, args.rays, args.ray_batch, args.repeat, True),
+                         load=os.getloadavg())
+    meta = dict(machine=platform.processor() or platform.machine(), cpus=os.cpu_count(), jax=jax.__version__,
+                ray_batch=args.ray_batch, repeat=args.repeat, before=args.before,
+                load={k: v["load"] for k, v in runs.items()})
+    out = args.out.with_name(args.out.name + "_raycast")
+    with atomic_write(out.with_suffix(".json"), "w") as f:
+        json.dump(dict(meta=meta, **runs), f, indent=1)
+    before = {(r["mesh"], r["rays"]): r for r in runs.get("before", {"rows": []})["rows"]}
+    lines = ["# Rays inside jit: jaxbvh.queries.raycast, before and after, beside rays.closest_hit and Embree", "",
+             f"CPU, {meta['cpus']} cores, load averages {meta['load']}; JAX {meta['jax']}; batches of "
+             f"{meta['ray_batch']} rays per raycast call; rays per CPU-second of the process, median of "
+             f"{meta['repeat']} warm runs. Before: {meta['before']} (raycast by the stackless parent walk, "
+             "one vmap-ed while_loop per batch); after: this checkout (raycast runs the rays' wavefront walk). "
+             "Embree: embreex `run`, its own BVH. First call: CPU s of the first call minus a warm one "
+             "(trace and compile of the raycast program).", "",
+             "| mesh | rays | raycast before rays/s | raycast after rays/s | after / before | closest_hit rays/s | "
+             "Embree rays/s | Embree / raycast | same prim (Embree) | box tests before | after | "
+             "first call CPU s before | after |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    nan = float("nan")
+    for r in runs["after"]["rows"]:
+        b = before.get((r["mesh"], r["rays"]), {})
+        emb = r.get("embree_rays_per_cpu_s", nan)
+        after_rate, before_rate = r["raycast_rays_per_cpu_s"], b.get("raycast_rays_per_cpu_s", nan)
+        lines.append(f"| {r['mesh']} ({r['triangles']:,}) | {r['rays']} | {before_rate:,.0f} | {after_rate:,.0f} | "
+                     f"{after_rate / before_rate:.1f}x | {r['closest_hit_rays_per_cpu_s']:,.0f} | {emb:,.0f} | "
+                     f"{emb / after_rate:.1f}x | {r.get('same_prim_as_embree', nan):.4f} | "
+                     f"{b.get('box_tests', nan):.1f} | {r['box_tests']:.1f} | "
+                     f"{b.get('raycast_first_call_cpu_s', nan):.1f} | {r['raycast_first_call_cpu_s']:.1f} |")
+    with atomic_write(out.with_suffix(".md"), "w") as f:
+        f.write("\n".join(lines) + "\n")
+    print(f"wrote {out.with_suffix('.md')}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--meshes", nargs="+", default=["bunny", "legocar"], choices=sorted(MESHES))
@@ -146,7 +257,14 @@ def main(argv=None):
     ap.add_argument("--depth-points", type=int, default=2_000)
     ap.add_argument("--out", type=Path, default=ROOT / "results" / "bench_queries")
     ap.add_argument("--render", action="store_true", help="only rewrite the .md from the saved .json")
+    ap.add_argument("--raycast", action="store_true", help="rays through queries.raycast instead (docstring)")
+    ap.add_argument("--before", help="with --raycast: a checkout whose jaxbvh is the 'before' (e.g. main)")
+    ap.add_argument("--rays", type=int, default=20_000)
+    ap.add_argument("--ray-batch", type=int, default=4096)
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.raycast:
+        return raycast_main(args)
     if args.render:
         saved = json.loads(args.out.with_suffix(".json").read_text())
         with atomic_write(args.out.with_suffix(".md"), "w") as f:

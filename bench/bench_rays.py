@@ -15,6 +15,10 @@ without it only this checkout is measured), on the same trees and rays:
 * depth: chains of 50, 500, 5,000 and 6,320 triangles (a binary tree that peels one
   triangle per level, depth = triangles - 1) with random rays: traversal steps per
   second (``nodes_visited + prim_tests`` per ray) must not fall with depth;
+* stack (this checkout only, ``--stacks``): the walk's stack size against the default
+  (:data:`jaxbvh.rays.stack_walk.STACK`), down to ``k`` entries, where nearly every
+  backtrack is a climb by parent links: rays/s and box tests on the first mesh's binary
+  tree and on the deepest chain;
 * compile: CPU seconds of the first call (trace, compile, run) minus a warm call, and the
   backend compile seconds JAX reports, for a binary and a 4-wide closest-hit program.
 
@@ -45,6 +49,7 @@ DATA = ROOT.parents[1] / "shared" / "data"
 MESHES = {"bunny": "meshes/stanford-bunny.obj", "legocar": "meshes/legocar.obj",
           "drone": "scenes/drone/scene.gltf", "bunny4": "meshes/stanford-bunny.obj"}
 CHAINS = (50, 500, 5000, 6320)
+DEFAULT_STACKS = (2,)
 KINDS = ("random", "camera", "bounce")
 
 
@@ -188,6 +193,28 @@ def child(args):
                      "prim_tests": float(np.mean(hits.prim_tests))})
         print(f"chain {n}: {r / cpu:,.0f} rays/cpu-s, {r * steps / cpu:,.0f} steps/cpu-s", file=sys.stderr,
               flush=True)
+        if n == max(args.chains):
+            deepest = (f"chain of {n}", tree, tri, origin, direction)
+    if args.stacks:
+        first = args.meshes[0]
+        tri = load_triangles(first)
+        tree = jaxbvh.load(args.big_tree if first == "bunny4" else DATA / "trees" / f"{first}_binned_ref.npz")[0]
+        sets = [(first, kind, tree, tri, *rays.make_rays(jax.random.key(0), kind, tree, tri, args.rays))
+                for kind in ("random", "camera")]
+        if args.chains:
+            sets.append((deepest[0], "random", *deepest[1:]))
+        for name, kind, tree, tri, origin, direction in sets:
+            for capacity in [None, *args.stacks]:
+                def go():
+                    return rays.closest_hit(tree, tri, origin, direction, capacity=capacity, **kw)
+                go()
+                cpu, wall, hits = timed(go, 1 if name.startswith("chain") else args.repeat)
+                rows.append({"section": "stack", "mesh": name, "kind": kind, "capacity": capacity or "default",
+                             "rays": len(origin), "cpu": cpu, "rays_per_cpu_s": len(origin) / cpu,
+                             "box_tests": float(np.mean(hits.box_tests)),
+                             "steps": float(np.mean(hits.nodes_visited + hits.prim_tests))})
+                print(f"stack {capacity} {name} {kind}: {len(origin) / cpu:,.0f} rays/cpu-s", file=sys.stderr,
+                      flush=True)
     json.dump({"rows": rows, "uptime": os.getloadavg()}, sys.stdout)
 
 
@@ -198,6 +225,8 @@ def run_child(path, args, extra):
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--rays", str(args.rays),
            "--repeat", str(args.repeat), "--chain-rays", str(args.chain_rays),
            "--meshes", *args.meshes, "--kinds", *args.kinds, "--chains", *map(str, args.chains), *extra]
+    if path == REPO:  # stack sizes are this checkout's knob
+        cmd += ["--stacks", *map(str, DEFAULT_STACKS if args.stacks is None else args.stacks)]
     out = subprocess.run(cmd, env=env, check=True, stdout=subprocess.PIPE, text=True)
     return json.loads(out.stdout)
 
@@ -210,6 +239,8 @@ def main(argv=None):
     parser.add_argument("--chains", nargs="*", type=int, default=list(CHAINS))
     parser.add_argument("--rays", type=int, default=20_000)
     parser.add_argument("--chain-rays", type=int, default=20_000)
+    parser.add_argument("--stacks", nargs="*", type=int, default=None,
+                        help=f"stack sizes to measure beside the default (this checkout only; default {DEFAULT_STACKS})")
     parser.add_argument("--repeat", type=int, default=2)
     parser.add_argument("--out", default=str(ROOT / "results" / "bench_rays"))
     # child-only options
@@ -217,6 +248,7 @@ def main(argv=None):
     parser.add_argument("--batch", type=int, default=None, help=argparse.SUPPRESS)
     parser.add_argument("--embree", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--few-deep", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--old-walk", action="store_true", help="--before is the walk before the wavefront")
     parser.add_argument("--big-tree", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
@@ -235,12 +267,15 @@ def main(argv=None):
             extra = ["--big-tree", str(big)]
         results = {}
         if args.before:
-            # the old walk's documented best batch; deep chains with few rays (depth x depth)
-            results["before"] = run_child(args.before, args, extra + ["--batch", "256", "--few-deep"])
+            # --old-walk: the stack-per-ray walk before the wavefront (its best batch, and
+            # deep chains with 1/100 of the rays: it costs depth x depth)
+            old = ["--batch", "256", "--few-deep"] if args.old_walk else []
+            results["before"] = run_child(args.before, args, extra + old)
         results["after"] = run_child(REPO, args, extra + ["--embree"])
 
     meta = {"machine": platform.platform(), "cpus": os.cpu_count(), "rays": args.rays,
-            "repeat": args.repeat, "before": args.before, "load": {k: v["uptime"] for k, v in results.items()}}
+            "repeat": args.repeat, "before": args.before, "old_walk": args.old_walk,
+            "load": {k: v["uptime"] for k, v in results.items()}}
     write(Path(args.out), meta, results)
 
 
@@ -252,8 +287,9 @@ def write(out, meta, results):
     lines = ["# Ray traversal throughput (closest hit), before and after\n",
              f"{meta['machine']}, {meta['cpus']} CPUs (shared: load average {meta['load']}). "
              f"{meta['rays']} rays per set; rays per CPU-second of the process (median of "
-             f"{meta['repeat']} warm runs). Before: {meta['before']} (batch 256); after: this checkout "
-             "(default batch and lanes). Embree: embreex `run` on the same rays, its own BVH.\n",
+             f"{meta['repeat']} warm runs). Before: {meta['before']}"
+             f"{' (batch 256)' if meta.get('old_walk') else ' (its defaults)'}; after: this checkout "
+             "(default batch, lanes and stack). Embree: embreex `run` on the same rays, its own BVH.\n",
              "| mesh | rays | tree | before rays/s | after rays/s | after / before | Embree rays/s | "
              "Embree / after | same prim as Embree | steps/ray | compile CPU s before | after |",
              "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
@@ -281,7 +317,16 @@ def write(out, meta, results):
                      f"{b['steps_per_cpu_s'] if b else float('nan'):,.0f} | {r['rays_per_cpu_s']:,.0f} | "
                      f"{r['steps_per_cpu_s']:,.0f} | {r['steps']:.0f} | {r['cpu']:.2f} |")
     lines.append("\nSteps per ray = nodes visited + primitive tests (the walk's work, the same "
-                 "before and after). Before traced deep chains with 1/100 of the rays.")
+                 "before and after)." + (" Before traced deep chains with 1/100 of the rays."
+                                         if meta.get("old_walk") else ""))
+    stack = [r for r in after if r["section"] == "stack"]
+    if stack:
+        lines += ["\n## Stack size (after): the default against short stacks that climb by parent links\n",
+                  "| mesh | rays | stack entries | rays/s | box tests/ray | steps/ray | CPU s |",
+                  "|---|---|---|---:|---:|---:|---:|"]
+        for r in stack:
+            lines.append(f"| {r['mesh']} | {r['kind']} | {r['capacity']} | {r['rays_per_cpu_s']:,.0f} | "
+                         f"{r['box_tests']:.1f} | {r['steps']:.1f} | {r['cpu']:.2f} |")
     with atomic_write(out.with_suffix(".json"), "w") as f:
         json.dump({"meta": meta, **results}, f, indent=1)
     with atomic_write(out.with_suffix(".md"), "w") as f:

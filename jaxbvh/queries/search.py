@@ -3,8 +3,12 @@
 Every query is a jitted function of the tree and the primitives passed as arguments
 (never closed over): one compiled program serves every tree of a capacity bucket, and
 inside your own ``jax.jit`` it is traced into your program. Queries come in batches of
-any leading shape ``[...]``; one query is one :func:`jaxbvh.queries.parent_walk.walk`
-(stackless: its cost per step does not depend on the tree's depth), ``vmap``-ed.
+any leading shape ``[...]``. A point or box query is one
+:func:`jaxbvh.queries.parent_walk.walk` (stackless: its cost per step does not depend on
+the tree's depth), ``vmap``-ed; :func:`raycast` runs the rays' own walk
+(:mod:`jaxbvh.rays.stack_walk`: a wavefront of lanes, a short stack and parent links,
+also depth-free) over the batch, so its hits and counters are those of
+:func:`jaxbvh.rays.closest_hit` / :func:`jaxbvh.rays.any_hit`.
 
 Primitives. ``triangles`` [T, 3, 3] (corners, in the tree's frame: the frame the tree's
 boxes are in, e.g. ``Mesh.local_triangles()``), or, for :func:`overlap` and
@@ -29,6 +33,7 @@ point you get the gradient of the triangle with the lower id.
 
 from __future__ import annotations
 
+import dataclasses
 from functools import partial
 from typing import Any, NamedTuple
 
@@ -37,7 +42,8 @@ import jax.numpy as jnp
 
 from jaxbvh.queries import geometry
 from jaxbvh.queries.parent_walk import Hooks, walk
-from jaxbvh.rays.traversal import inverse_direction, moller_trumbore, slab
+from jaxbvh.rays.stack_walk import Hits
+from jaxbvh.rays.traversal import trace_batch
 
 I32 = jnp.int32
 
@@ -71,23 +77,11 @@ class PointHit(NamedTuple):
     step_limit: Any
 
 
-class RayHit(NamedTuple):
-    """Result of :func:`raycast`, every array of the rays' shape ``[...]``.
-
-    ``t`` float: hit distance in units of ``|direction|`` (``inf``: a miss); ``prim``
-    int32 (-1: a miss); ``u``, ``v`` float: barycentrics of the hit (0 for a miss);
-    counters and ``step_limit`` as :class:`PointHit`.
-    """
-
-    t: Any
-    prim: Any
-    u: Any
-    v: Any
-    box_tests: Any
-    prim_tests: Any
-    nodes_visited: Any
-    leaves_visited: Any
-    step_limit: Any
+RayHit = Hits
+"""Result of :func:`raycast`: :class:`jaxbvh.rays.Hits` (the ray walk's one result type;
+this name stays for old imports), every array of the rays' shape ``[...]``: ``t``
+(``inf``: a miss), ``prim`` (-1), ``u``, ``v`` (0 for a miss), the walk's counters,
+``stack_overflow`` (always False here) and ``step_limit``."""
 
 
 class Listed(NamedTuple):
@@ -289,56 +283,37 @@ def within(tree, prims, points, radius, *, capacity: int) -> Listed:
 # ----------------------------------------------------------------------------------
 
 
-def _raycast_one(tree, triangles, first, origin, direction, t_min, t_max):
-    dtype = tree.lo.dtype
-    origin, direction, triangles = origin.astype(dtype), direction.astype(dtype), triangles.astype(dtype)
-    t_min, t_max = jnp.asarray(t_min, dtype), jnp.asarray(t_max, dtype)
-    o, d, lo_t, hi_t, tris = _frozen((origin, direction, t_min, t_max, triangles))
-    inv_dir = inverse_direction(d)
-
-    def boxes(lo, hi, found):
-        # the order key, the entry distance, does not depend on the hit found so far
-        hit, entry = slab(lo, hi, o, inv_dir[None, :], lo_t, found[0])
-        return entry, hit
-
-    def primitive(found, prim, active):
-        best, best_prim = found
-        tri = tris[jnp.maximum(prim, 0)]
-        t = moller_trumbore(tri[0], tri[1], tri[2], o, d)[0]
-        valid = active & (t > lo_t) & (t < hi_t)
-        if first:
-            take = valid & (best_prim < 0)
-        else:
-            take = valid & ((t < best) | ((t == best) & ((best_prim < 0) | (prim < best_prim))))
-        return jnp.where(take, t, best), jnp.where(take, prim, best_prim)
-
-    stop = (lambda found: found[1] >= 0) if first else None
-    (_, prim), c, limit = walk(_frozen(tree), Hooks(boxes, primitive, stop), (hi_t, I32(-1)))
-    hit = prim >= 0
-    tri = triangles[jnp.maximum(prim, 0)]
-    t, u, v = geometry.ray_triangle(origin, direction, tri[0], tri[1], tri[2])
-    zero = jnp.zeros((), dtype)
-    return RayHit(t=jnp.where(hit, t, jnp.inf), prim=prim, u=jnp.where(hit, u, zero), v=jnp.where(hit, v, zero),
-                  box_tests=c.box_tests, prim_tests=c.prim_tests, nodes_visited=c.nodes_visited,
-                  leaves_visited=c.leaves_visited, step_limit=limit)
-
-
 @partial(jax.jit, static_argnames=("first",))
-def raycast(tree, triangles, origin, direction, t_min=0.0, t_max=jnp.inf, *, first: bool = False) -> RayHit:
+def raycast(tree, triangles, origin, direction, t_min=0.0, t_max=jnp.inf, *, first: bool = False) -> Hits:
     """Closest hit (or, with ``first=True``, any hit: shadow rays) of rays ``origin``,
     ``direction`` [..., 3] against ``triangles`` [T, 3, 3] through ``tree``, inside jit;
     differentiable.
 
-    The in-program sibling of :func:`jaxbvh.rays.closest_hit` / :func:`jaxbvh.rays.any_hit`
-    (those are host drivers that batch NumPy rays): the same tests (robust slab,
-    two-sided Möller–Trumbore), the same hit rules (open interval ``(t_min, t_max)``,
-    scalars or [...]; equal ``t`` to the lower id), walked by
-    :func:`jaxbvh.queries.parent_walk.walk` (children nearest entry first; no stack, so
-    the tree's depth does not matter). ``t``, ``u``, ``v`` are recomputed on the chosen
-    triangle by :func:`jaxbvh.queries.geometry.ray_triangle`, so ``jax.grad`` / ``jax.jvp``
-    reach the origin, the direction and the corners; a miss has zero gradient. Returns
-    :class:`RayHit`.
+    The in-program form of :func:`jaxbvh.rays.closest_hit` / :func:`jaxbvh.rays.any_hit`
+    (host drivers that batch NumPy rays and raise on a broken tree): the same walk
+    (:func:`jaxbvh.rays.traversal.trace_batch` over all the rays at once), tests (robust
+    slab, two-sided Möller–Trumbore), hit rules (open interval ``(t_min, t_max)``,
+    scalars or [...]; equal ``t`` to the lower id) and counters. The search is not
+    differentiated; ``t``, ``u``, ``v`` are recomputed on the chosen triangle by
+    :func:`jaxbvh.queries.geometry.ray_triangle`, so ``jax.grad`` / ``jax.jvp`` reach
+    the origin, the direction and the corners; a miss has zero gradient. Returns
+    :class:`~jaxbvh.rays.Hits` (``RayHit``) of the rays' shape; check ``step_limit``
+    (a broken tree) yourself.
     """
-    one = partial(_raycast_one, tree, triangles, first)
-    return _batched(one, (1, 1, 0, 0), jnp.asarray(origin), jnp.asarray(direction), jnp.asarray(t_min),
-                    jnp.asarray(t_max))
+    dtype = tree.lo.dtype
+    origin, direction = jnp.asarray(origin, dtype), jnp.asarray(direction, dtype)
+    t_min, t_max = jnp.asarray(t_min, dtype), jnp.asarray(t_max, dtype)
+    shape = jnp.broadcast_shapes(origin.shape[:-1], direction.shape[:-1], t_min.shape, t_max.shape)
+    origin = jnp.broadcast_to(origin, shape + (3,)).reshape(-1, 3)
+    direction = jnp.broadcast_to(direction, shape + (3,)).reshape(-1, 3)
+    triangles = jnp.asarray(triangles).astype(dtype)
+    found = trace_batch(*_frozen((tree, triangles, origin, direction, jnp.broadcast_to(t_min, shape).reshape(-1),
+                                  jnp.broadcast_to(t_max, shape).reshape(-1))),
+                        mode="any" if first else "closest")
+    hit = found.prim >= 0
+    tri = triangles[jnp.maximum(found.prim, 0)]
+    t, u, v = geometry.ray_triangle(origin, direction, tri[:, 0], tri[:, 1], tri[:, 2])
+    zero = jnp.zeros((), dtype)
+    found = dataclasses.replace(found, t=jnp.where(hit, t, jnp.inf), u=jnp.where(hit, u, zero),
+                                v=jnp.where(hit, v, zero))
+    return jax.tree_util.tree_map(lambda a: a.reshape(shape + a.shape[1:]), found)

@@ -4,14 +4,14 @@ The walk (:mod:`jaxbvh.queries.parent_walk`'s rules: children by order key then 
 culled when the walk would enter them, one primitive or one node move per step, the same
 counters and step bound) and the per-primitive geometry (:mod:`jaxbvh.queries.geometry`'s
 formulas, written again here in NumPy scalars) are independent statements that the tests
-hold equal to the JAX code, query by query.
+hold equal to the JAX code, query by query. :func:`jaxbvh.queries.search.raycast` runs
+the rays' walk; its twin is :mod:`jaxbvh.rays.traversal_reference`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from jaxbvh.numerics import INV_BIG, robust_factor
 from jaxbvh.tree.layout import BVH, to_numpy
 
 
@@ -178,54 +178,3 @@ def within(tree, prims, point, radius, capacity):
         return key, key <= r2
 
     return _listing(tree, test, boxes, capacity)
-
-
-def moller_trumbore(a, b, c, origin, direction):
-    """``t`` of the two-sided Möller–Trumbore test (``inf``: the line misses), NumPy scalars."""
-    e1, e2 = b - a, c - a
-    p = _cross(direction, e2)
-    det = _dot(e1, p)
-    if det == 0:
-        return np.inf
-    inv = 1 / det
-    s = origin - a
-    u = _dot(s, p) * inv
-    q = _cross(s, e1)
-    v = _dot(direction, q) * inv
-    if u < 0 or u > 1 or v < 0 or u + v > 1:
-        return np.inf
-    return _dot(e2, q) * inv
-
-
-def raycast(tree, triangles, origin, direction, t_min=0.0, t_max=np.inf, first=False):
-    """Closest (``first``: first found) hit of one ray: ``(prim, t, counts, step_limit)``;
-    robust slab test (exit scaled by ``robust_factor``), children by entry distance."""
-    dtype = np.asarray(to_numpy(tree).lo).dtype
-    tri = np.asarray(triangles, dtype)
-    o, d = np.asarray(origin, dtype), np.asarray(direction, dtype)
-    lo_t, hi_t = dtype.type(t_min), dtype.type(t_max)
-    big = dtype.type(INV_BIG)
-    with np.errstate(divide="ignore"):
-        inv = np.where(d == 0, np.copysign(big, d), 1 / np.where(d == 0, 1, d)).astype(dtype)
-    factor = dtype.type(robust_factor(dtype))
-
-    def boxes(lo, hi, found):
-        t0, t1 = (lo - o) * inv, (hi - o) * inv
-        near = np.max(np.minimum(t0, t1))
-        far = np.min(np.maximum(t0, t1)) * factor
-        entry = max(near, lo_t)
-        return entry, entry <= min(far, found[0])
-
-    def primitive(found, prim):
-        t = moller_trumbore(*tri[prim], o, d)
-        if not (lo_t < t < hi_t):
-            return found
-        if first:
-            return found if found[1] >= 0 else (t, prim)
-        if t < found[0] or (t == found[0] and (found[1] < 0 or prim < found[1])):
-            return t, prim
-        return found
-
-    (t, prim), counts, limit = walk(tree, boxes, primitive, (hi_t, -1),
-                                    (lambda found: found[1] >= 0) if first else None)
-    return prim, (t if prim >= 0 else np.inf), counts, limit

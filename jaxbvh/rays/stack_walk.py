@@ -1,4 +1,4 @@
-"""The traversal loop shared by one-level and two-level trees: lanes of rays, one bounded stack each.
+"""The traversal loop shared by one-level and two-level trees: lanes of rays, a short stack each.
 
 :mod:`jaxbvh.rays.traversal` (binary and wide BVHs) and :mod:`jaxbvh.twolevel.traversal`
 (instances below a top level) walk a tree the same way; only what a *node reference* and
@@ -7,8 +7,10 @@ a *primitive slot* mean differs, and that is what the two hooks say:
 * ``primitive(slot, tag) -> (t, u, v, prim)``: test the primitive in ``prim_index`` slot
   ``slot`` of the open leaf (``tag``: what the leaf was opened with) and name it;
 * ``node(ref, tag, entry, t_far) -> Node``: look at the popped node ``ref`` (entered at
-  ``entry``; ``tag`` pushed with it) and test the boxes of its children against the ray
-  interval ``[t_min, t_far]``.
+  ``entry``; ``tag`` pushed with it), test the boxes of its children against the ray
+  interval ``[t_min, t_far]``, and say which node is above it (``Node.parent``, for the
+  climb below; walks without parent links pass ``climbs=False``: a spill is then an
+  overflow).
 
 The one-level hooks read the tree and call the primitive intersector; the two-level ones
 map the ray into an instance's frame below a top-level leaf and tag every stack entry
@@ -20,15 +22,38 @@ counters, visiting order, push with overflow flag), the step bound and the
 
 :func:`walk_rays` runs one ``while_loop`` over ``lanes`` rays at once. In every step each
 lane does one of two things for its ray, a primitive step while a leaf is open (the next
-``leaf_width`` slots), else a node step; both are computed and the other one masked out.
-A ray ends when its stack is empty and no leaf is open, at the first hit in any-hit mode,
-or after ``step_limit`` steps (node pops plus primitive tests); a ray still working at
-the bound reports ``step_limit``, a push that does not fit reports ``stack_overflow``.
+``leaf_width`` slots), else a node step (a pop); both are computed and the other one
+masked out. Climb steps (below) have a pass of their own before it, run only in the
+steps where some lane needs one.
+A ray ends when its stack is empty and no leaf is open (and it has nothing left to climb),
+at the first hit in any-hit mode, or after ``step_limit`` steps (node pops, primitive
+tests and climb steps); a ray still working at the bound reports ``step_limit``.
+
+Short stack, parent-link climb. A lane's stack holds ``capacity`` entries (a static
+:data:`STACK`, whatever the tree's depth, so the lanes' state does not grow with depth and
+one program serves trees of every depth). It is a ring: a push that does not fit
+overwrites the *oldest* entries (the bottom), which in a depth-first walk are the last
+ones it would visit. When the stack runs empty after such a spill, the work left is
+exactly those lost entries, i.e. the nodes after the last popped node in visiting
+order; the walk finds them by parent links (Hapala et al. 2011): a *climb step* looks at
+the parent of the node it stands on, tests the boxes of its children again, and pushes
+the first child after that node in visiting order whose box the ray still enters (then
+pops on as usual), or, if none is left, moves up to the parent; at the root the ray ends.
+This needs an order that can be recomputed: the visit key of a child depends only on the
+ray and the child's box (the entry distance, or the split axis), never on the hits found;
+a child assumed hit (skip flags) comes first (key ``-inf``), and in a climb it is entered
+at ``t_min``. A child pushed and later dropped passes the same test in the climb
+(``entry <= min(far, t_best)`` then is ``entry <= far`` at the push and
+``entry <= t_best`` at the pop), so nodes visited, leaves visited, primitive tests, the
+hits and the all-hits list are those of an unbounded stack (one exception: a skip-flagged
+child that the stack walk would cull, entered where its parent was but beyond the hit
+found since, is visited after a climb: visits can only grow); a climb adds its box tests
+(the children of the parent, tested again) and a step. Without parent links
+(``climbs=False``) a spill sets ``stack_overflow`` (hits and counts then untrustworthy).
 Every ``REFILL_EVERY`` steps the lanes whose ray ended write its :class:`Hits` and take
 the next rays (a wavefront). The stacks [lanes, capacity] are not part of the per-lane
 state that the step maps over: a step gathers each lane's top entry and scatters its
-pushes, so its cost does not grow with the capacity (a ``vmap``-ed ``while_loop``, the
-walk before, selected every entry of every stack in every step: depth x depth).
+pushes, so its cost does not grow with the capacity.
 
 Measured (bench/results/bench_rays.md, 2-core CPU): most of a step's time is gathers of
 scattered tree and triangle data (cache misses), hence the packed layout of
@@ -98,6 +123,8 @@ class Node(NamedTuple):
     tested: Any      # bool [k]: child boxes actually tested (counted as box tests)
     split: Any       # int32 [] split axis (-1: none) or None: order by entry distance only
     direction: Any   # float [3]: the ray direction in the node's frame (axis order)
+    parent: Any = None      # int32 [] or None: reference of the node above ``ref`` (walks that climb)
+    parent_tag: Any = None  # int32 [] or None: its tag (tagged walks)
 
 
 class Hooks(NamedTuple):
@@ -133,15 +160,20 @@ class Walk(NamedTuple):
     """Loop state of one lane (one ray at a time), its stack excepted (:class:`Stacks`)."""
 
     ray: Any             # int32 []: the ray this lane traces (-1: none)
-    sp: Any              # int32 []: stack entries in use; the top is sp - 1
+    sp: Any              # int32 []: logical stack height; the top is entry sp - 1, held in slot (sp - 1) % capacity
+    base: Any            # int32 []: entries below this one were overwritten (spilled); sp == base: stack empty
+    last: Any            # int32 []: the node last popped, or climbed to (where a climb starts)
+    last_tag: Any        # int32 [] or None: its tag
+    up: Any              # int32 []: the node above ``last`` (read with it: a climb needs no extra read)
+    up_tag: Any          # int32 [] or None: its tag
     leaf_pos: Any        # int32 []: next prim_index slot of the open leaf
     leaf_end: Any        # int32 []: end of the open leaf's run (leaf_pos == leaf_end: no leaf open)
     leaf_tag: Any        # int32 [] or None: tag the open leaf was opened with
     found: Found         # hits so far
     counts: Counts       # counters
-    stack_overflow: Any  # bool []: a push did not fit (hit and counts then untrustworthy)
-    done: Any            # bool []: any-hit mode found its hit
-    steps: Any           # int32 []: steps taken (node steps + primitive tests), bounded by step_limit
+    stack_overflow: Any  # bool []: the stack spilled and there are no parent links (hit and counts untrustworthy)
+    done: Any            # bool []: any-hit mode found its hit, or the climb reached the root
+    steps: Any           # int32 []: steps taken (node pops + primitive tests + climbs), bounded by step_limit
 
 
 class Stacks(NamedTuple):
@@ -169,9 +201,13 @@ class Ray(NamedTuple):
 LANES = 512
 """Rays in flight per call: lanes whose ray ended take the next ray (a wavefront), so a
 call runs for about (total steps / lanes), not for its slowest ray times the batches."""
+STACK = 64
+"""Default stack entries per lane, whatever the tree's depth: trees with parent links
+climb when it spills (module docstring). Balanced trees of a few million primitives
+need fewer, so for them the walk is the plain stack walk."""
 STACK_ENTRIES = 1 << 21
-"""Upper bound of lanes * stack capacity (two int32/float arrays of this size): a deep
-tree gets fewer lanes rather than a huge carry."""
+"""Upper bound of lanes * stack capacity (two int32/float arrays of this size): a caller
+that asks for a huge stack gets fewer lanes rather than a huge carry."""
 LEAF_WIDTH = 4
 """Primitive slots of an open leaf tested together in one step (closest and any hit; all
 hits test one per step, to list them in order)."""
@@ -187,14 +223,16 @@ def lanes_for(rays: int, capacity: int, lanes: int | None = None) -> int:
 
 
 def walk_rays(ray: Callable, n_rays: int, *, mode: str, capacity: int, max_hits: int, step_limit,
-              lanes: int, leaf_width: int, tagged: bool = False) -> Hits:
+              lanes: int, leaf_width: int, tagged: bool = False, climbs: bool = True) -> Hits:
     """Trace rays ``0 .. n_rays - 1`` on ``lanes`` lanes; returns :class:`Hits` [n_rays].
 
     ``ray(i) -> Ray`` (``i`` int32 []): the hooks and root test of ray ``i`` (made
     under ``vmap``, so it reads per-ray arrays by index). ``mode``: "closest", "any" or
-    "all"; ``capacity``: static stack size per lane; ``max_hits``: all-hits list length;
-    ``step_limit``: a ray's bound on steps (int or int32 []); ``leaf_width``: primitive
-    slots tested per step (all-hits mode uses 1); ``tagged``: entries carry tags.
+    "all"; ``capacity``: static stack size per lane (at least the tree's arity);
+    ``max_hits``: all-hits list length; ``step_limit``: a ray's bound on steps (int or
+    int32 []); ``leaf_width``: primitive slots tested per step (all-hits mode uses 1);
+    ``tagged``: entries carry tags; ``climbs``: the node hook reports parents
+    (``Node.parent``), so a spilled stack climbs; else a spill is an overflow.
 
     One ``while_loop`` steps every lane at once. Before each step a lane whose ray ended
     (no work left, or at the step bound) writes the ray's :class:`Hits` and takes the
@@ -206,7 +244,8 @@ def walk_rays(ray: Callable, n_rays: int, *, mode: str, capacity: int, max_hits:
 
     def fresh(i):
         r = ray(i)
-        return _start(i, r.root_hit, r.t_max, mode=mode, max_hits=max_hits, tagged=tagged), r.root, r.root_entry
+        return (_start(i, r.root, r.root_hit, r.t_max, mode=mode, max_hits=max_hits, tagged=tagged),
+                r.root, r.root_entry)
 
     s0, _, entry0 = jax.vmap(fresh)(jnp.zeros(lanes, I32))
     s0 = s0._replace(ray=jnp.full(lanes, -1, I32))
@@ -244,24 +283,42 @@ def walk_rays(ray: Callable, n_rays: int, *, mode: str, capacity: int, max_hits:
         # decided once, before the primitive step: a leaf that ends in this step must not
         # also pop (its stack may be empty; the top entry would then be stale)
         in_leaf = go & (s.leaf_pos < s.leaf_end)
-        pop = go & ~in_leaf
+        pop = go & ~in_leaf & (s.sp > s.base)
         s = _primitive_step(r.hooks, s, in_leaf, r.t_min, r.t_max, mode=mode, max_hits=max_hits,
                             width=width)
         s = s._replace(steps=s.steps + pop.astype(I32))
-        return _node_step(r.hooks, s, pop, top_node, top_tag, top_entry, capacity=capacity)
+        return _node_step(r, s, pop, top_node, top_tag, top_entry, capacity=capacity, climbs=climbs)
+
+    def lane_climb(s):
+        r = ray(jnp.maximum(s.ray, 0))
+        climb = live(s) & (s.leaf_pos >= s.leaf_end) & (s.sp <= s.base)  # live: after a spill
+        s = s._replace(steps=s.steps + climb.astype(I32))
+        return _climb_step(r, s, climb, capacity=capacity)
+
+    def write(stacks, pos, kids, kid_tags, kid_entry):
+        rows = lane_ids[:, None]
+        return Stacks(node=stacks.node.at[rows, pos].set(kids, mode="drop"),
+                      tag=None if stacks.tag is None else stacks.tag.at[rows, pos].set(kid_tags, mode="drop"),
+                      entry=stacks.entry.at[rows, pos].set(kid_entry, mode="drop"))
+
+    def climb_all(s, stacks):
+        s, *writes = jax.vmap(lane_climb)(s)
+        return s, write(stacks, *writes)
 
     def step(_, carry):
         s, stacks = carry
-        top = jnp.maximum(s.sp - 1, 0)
+        if climbs:
+            # a climb step only where a stack spilled and ran empty (rare but for deep
+            # trees): its own pass, skipped when no lane needs it, so the common step
+            # stays a pop or a primitive step
+            needs = jnp.any(live(s) & (s.leaf_pos >= s.leaf_end) & (s.sp <= s.base))
+            s, stacks = jax.lax.cond(needs, climb_all, lambda s, stacks: (s, stacks), s, stacks)
+        top = jax.lax.rem(jnp.maximum(s.sp - 1, 0), I32(capacity))
         top_node = stacks.node[lane_ids, top]
         top_tag = None if stacks.tag is None else stacks.tag[lane_ids, top]
         top_entry = stacks.entry[lane_ids, top]
-        s, pos, kids, kid_tags, kid_entry = jax.vmap(lane_step)(s, top_node, top_tag, top_entry)
-        rows = lane_ids[:, None]
-        stacks = Stacks(node=stacks.node.at[rows, pos].set(kids, mode="drop"),
-                        tag=None if stacks.tag is None else stacks.tag.at[rows, pos].set(kid_tags, mode="drop"),
-                        entry=stacks.entry.at[rows, pos].set(kid_entry, mode="drop"))
-        return s, stacks
+        s, *writes = jax.vmap(lane_step)(s, top_node, top_tag, top_entry)
+        return s, write(stacks, *writes)
 
     def body(carry):
         s, stacks, out, next_ray = refill(*carry)
@@ -282,11 +339,12 @@ def _select(mask, a, b):
 
 
 def working(s: Walk):
-    """The ray has work left (bool []): not done, and a stack entry or an open leaf."""
-    return ~s.done & ((s.sp > 0) | (s.leaf_pos < s.leaf_end))
+    """The ray has work left (bool []): not done, and a stack entry, an open leaf, or a
+    climb to make (the stack spilled, and parent links recover what it lost)."""
+    return ~s.done & ((s.sp > s.base) | (s.leaf_pos < s.leaf_end) | ((s.base > 0) & ~s.stack_overflow))
 
 
-def _start(ray, root_hit, t_max, *, mode, max_hits, tagged) -> Walk:
+def _start(ray, root, root_hit, t_max, *, mode, max_hits, tagged) -> Walk:
     dtype = t_max.dtype
     all_hits = mode == "all"
     found = Found(t=t_max, prim=I32(-1), u=jnp.zeros((), dtype), v=jnp.zeros((), dtype),
@@ -295,7 +353,9 @@ def _start(ray, root_hit, t_max, *, mode, max_hits, tagged) -> Walk:
                   prims=jnp.full(max_hits, -1, I32) if all_hits else None,
                   ts=jnp.full(max_hits, jnp.inf, dtype) if all_hits else None)
     return Walk(
-        ray=jnp.asarray(ray, I32), sp=jnp.where(root_hit, 1, 0).astype(I32),
+        ray=jnp.asarray(ray, I32), sp=jnp.where(root_hit, 1, 0).astype(I32), base=I32(0),
+        last=jnp.asarray(root, I32), last_tag=I32(-1) if tagged else None, up=I32(-1),
+        up_tag=I32(-1) if tagged else None,
         leaf_pos=I32(0), leaf_end=I32(0), leaf_tag=I32(0) if tagged else None,
         found=found, counts=Counts(box_tests=I32(1), prim_tests=I32(0), nodes_visited=I32(0),
                                    leaves_visited=I32(0)),
@@ -357,7 +417,7 @@ def _record(f: Found, valid, t, u, v, prim, *, mode, max_hits) -> Found:
                       v=jnp.where(take, v, f.v))
 
 
-def _node_step(hooks, s: Walk, pop, top_node, top_tag, entry, *, capacity):
+def _node_step(r: Ray, s: Walk, pop, top_node, top_tag, entry, *, capacity, climbs):
     """Pop the top entry (``top_node``, ``top_tag``, ``entry``; masked out unless
     ``pop``); a visited leaf opens, a visited interior node pushes the children the ray
     enters, nearest on top. Returns ``(s, pos, kids, kid_tags, kid_entry)``: the stack
@@ -365,7 +425,7 @@ def _node_step(hooks, s: Walk, pop, top_node, top_tag, entry, *, capacity):
     # closest: cull against the best hit; any / all: found.t stays t_max
     visit = pop & (entry <= s.found.t)
     # a lane that does not pop reads node 0 (a cache hit for all of them, see _primitive_step)
-    node = hooks.node(jnp.where(pop, top_node, 0), top_tag, entry, s.found.t)
+    node = r.hooks.node(jnp.where(pop, top_node, 0), top_tag, entry, s.found.t)
     counted = visit if node.assumed is None else visit & ~node.assumed
     open_leaf = visit & node.is_leaf
     expand = visit & ~node.is_leaf
@@ -379,39 +439,86 @@ def _node_step(hooks, s: Walk, pop, top_node, top_tag, entry, *, capacity):
         leaf_pos=jnp.where(open_leaf, node.leaf_start, s.leaf_pos),
         leaf_end=jnp.where(open_leaf, node.leaf_start + node.leaf_count, s.leaf_end),
         leaf_tag=None if s.leaf_tag is None else jnp.where(open_leaf, node.leaf_tag, s.leaf_tag))
-    return _push(s, node, node.kid_hit & expand, pop, jnp.maximum(s.sp - 1, 0), capacity=capacity)
+    if climbs:  # where a climb would start: the node popped and the one above it
+        s = s._replace(
+            last=jnp.where(pop, top_node, s.last), up=jnp.where(pop, node.parent, s.up),
+            last_tag=None if top_tag is None else jnp.where(pop, top_tag, s.last_tag),
+            up_tag=None if top_tag is None else jnp.where(pop, node.parent_tag, s.up_tag))
+    return _push(s, node, _order(node), node.kid_hit & expand, pop, s.sp - 1, capacity=capacity, climbs=climbs)
+
+
+def _climb_step(r: Ray, s: Walk, climb, *, capacity):
+    """A climb step (masked out unless ``climb``): look at ``s.up``, the parent of
+    ``s.last``, testing its children's boxes again; push the first child after
+    ``s.last`` in visiting order that the ray enters, or move up (the root: the ray
+    ends). A skip-flagged child is entered at ``t_min`` (module docstring). Returns
+    ``(s, pos, kids, kid_tags, kid_entry)`` as :func:`_node_step`."""
+    at_root = s.last == r.root
+    ends = climb & at_root  # (not in a valid tree: a climb starts below a spill)
+    climb = climb & ~at_root
+    node = r.hooks.node(jnp.where(climb, jnp.maximum(s.up, 0), 0), s.up_tag, r.t_min, s.found.t)
+    before = _order(node)
+    came = node.kids == s.last
+    if s.last_tag is not None:
+        came = came & (_kid_tags(node) == s.last_tag)
+    candidate = node.kid_hit & jnp.any(came[:, None] & before, axis=0)  # after ``last``, entered
+    first = candidate & ~jnp.any(candidate[:, None] & before, axis=0)
+    moved = climb & ~jnp.any(candidate)
+    s = s._replace(
+        counts=s.counts._replace(box_tests=s.counts.box_tests + jnp.where(climb, jnp.sum(node.tested, dtype=I32), 0)),
+        last=jnp.where(moved, s.up, s.last), up=jnp.where(moved, node.parent, s.up),
+        last_tag=None if s.last_tag is None else jnp.where(moved, s.up_tag, s.last_tag),
+        up_tag=None if s.up_tag is None else jnp.where(moved, node.parent_tag, s.up_tag),
+        done=s.done | ends | (moved & (s.up == r.root)))
+    return _push(s, node, before, first, climb & ~moved, s.sp, capacity=capacity, climbs=True)
+
+
+def _order(node: Node):
+    """``before`` [k, k] bool: child i comes before child j in visiting order (keys of
+    :func:`_visit_key`; ties: the lower slot)."""
+    key = _visit_key(node)
+    slot_ids = jnp.arange(key.shape[0])
+    return (key[:, None] < key[None, :]) | ((key[:, None] == key[None, :]) & (slot_ids[:, None] < slot_ids[None, :]))
+
+
+def _kid_tags(node: Node):
+    k = node.kids.shape[0]
+    return None if node.kid_tags is None else jnp.broadcast_to(node.kid_tags, (k,)).astype(I32)
 
 
 def _visit_key(node: Node):
-    """Sort key of the children [k] (smaller first): by slot along the split axis (lower
-    child first when the direction is >= 0 there), else by entry distance."""
+    """Sort key of the children [k] (smaller first; ties: lower slot): by slot along the
+    split axis (lower child first when the direction is >= 0 there), else by entry
+    distance, a child assumed hit (skip flag: hit but not tested) first. The key depends
+    only on the ray and the boxes, so a climb recomputes the order of a push."""
+    assumed = node.kid_hit & ~node.tested
+    by_entry = jnp.where(assumed, -jnp.inf, node.kid_entry)
     if node.split is None:
-        return node.kid_entry
+        return by_entry
     k = node.kid_entry.shape[0]
     slot_ids = jnp.arange(k)
     lower_first = node.direction[jnp.maximum(node.split, 0)] >= 0
     by_axis = jnp.where(lower_first, slot_ids, k - 1 - slot_ids).astype(node.kid_entry.dtype)
-    return jnp.where(node.split >= 0, by_axis, node.kid_entry)
+    return jnp.where(node.split >= 0, by_axis, by_entry)
 
 
-def _push(s: Walk, node: Node, kid_hit, pop, top, *, capacity):
-    """Replace the popped entry by the children hit, in visiting order, nearest on top;
-    children that do not fit are dropped and flagged. Returns the new state and the
-    stack writes (:func:`_node_step`)."""
-    key = _visit_key(node)
-    slot_ids = jnp.arange(key.shape[0])
-    before = (key[:, None] < key[None, :]) | (
-        (key[:, None] == key[None, :]) & (slot_ids[:, None] < slot_ids[None, :]))
-    rank = jnp.sum(kid_hit[:, None] & before, axis=0)  # visiting position of each kid
+def _push(s: Walk, node: Node, before, kid_hit, replace, top, *, capacity, climbs):
+    """Push the children ``kid_hit`` [k] at logical entry ``top`` up, in visiting order
+    (``before`` [k, k]), nearest on top; ``replace``: the lane pushes (a pop replaces its
+    entry; a climb writes on the empty stack). The ring keeps the newest ``capacity``
+    entries: older ones are spilled (``base``), an overflow unless the walk ``climbs``.
+    Returns the new state and the stack writes (:func:`_node_step`)."""
+    rank = jnp.sum(kid_hit[:, None] & before, axis=0, dtype=I32)  # visiting position of each kid (int32 under x64 too)
     n_push = jnp.sum(kid_hit, dtype=I32)
     pos = top + n_push - 1 - rank  # nearest on top
-    fits = pos < capacity
-    pos = jnp.where(kid_hit & fits, pos, capacity)
-    k = node.kids.shape[0]
-    tags = None if node.kid_tags is None else jnp.broadcast_to(node.kid_tags, (k,)).astype(I32)
-    s = s._replace(stack_overflow=s.stack_overflow | jnp.any(kid_hit & ~fits),
-                   sp=jnp.where(pop, jnp.minimum(top + n_push, capacity), s.sp))
-    return s, pos.astype(I32), node.kids, tags, node.kid_entry
+    pos = jnp.where(kid_hit & replace, jax.lax.rem(pos, I32(capacity)), capacity)  # pos >= 0
+    sp = jnp.where(replace, top + n_push, s.sp).astype(I32)
+    base = jnp.maximum(s.base, sp - capacity)
+    spilled = base > s.base
+    if not climbs:
+        s = s._replace(stack_overflow=s.stack_overflow | spilled)
+    s = s._replace(sp=sp, base=base)
+    return s, pos.astype(I32), node.kids, _kid_tags(node), node.kid_entry
 
 
 def finish(s: Walk, *, mode: str, max_hits: int) -> Hits:

@@ -1,19 +1,24 @@
 """Ray traversal of binary and wide BVHs, counting box and primitive tests (jitted).
 
-Each ray walks the tree with a fixed-capacity stack. The loop (:mod:`jaxbvh.rays.stack_walk`,
-shared with the two-level traversal; this module gives it the tree and the primitives)
-steps ``lanes`` rays at once, and a lane whose ray ended takes the next ray of the call
-(a wavefront: lanes do not idle behind the slowest ray); the stacks are read and written
-only at their tops, so a step costs the same for any stack capacity, i.e. any depth. The
-tree is read in a packed layout (a node's children and their boxes in one row, a leaf's
-triangles side by side). Every ray's walk does exactly one of two things per step:
+Each ray walks the tree with a short stack and, when that spills, parent links. The loop
+(:mod:`jaxbvh.rays.stack_walk`, shared with the two-level traversal; this module gives it
+the tree and the primitives) steps ``lanes`` rays at once, and a lane whose ray ended
+takes the next ray of the call (a wavefront: lanes do not idle behind the slowest ray);
+the stacks are read and written only at their tops, so a step costs the same for any
+stack capacity, and the capacity is a constant, so a lane's state and the compiled
+program are the same for any depth. The tree is read in a packed layout (a node's
+children, parent and child boxes in one row, a leaf's triangles side by side). Every
+ray's walk does exactly one of three things per step:
 
 * **node step** — pop ``(node, entry)``; if ``entry <= t_best`` the node is *visited*:
   a leaf opens its run of primitives, an interior node tests the boxes of all its real
   children (one *box test* each) and pushes the children it hits, nearest visited first;
 * **primitive step** — test the next ``leaf_width`` primitives of the open leaf together
   (one *primitive test* each; any-hit mode counts those up to the first hit, as one by
-  one would).
+  one would);
+* **climb step** — only after the stack spilled (below): from the node last popped, test
+  the boxes of its parent's children again (box tests) and push the next child in
+  visiting order that the ray enters, or move up to the parent.
 
 The root box is tested once before the loop. So for a binary tree
 ``box_tests = 1 + 2 * interior nodes visited``, and ``nodes_visited`` counts interior
@@ -27,19 +32,27 @@ Visiting order (front to back):
 * every other node (loaded trees have ``axis == -1``; all wide nodes): children in
   increasing box entry distance; ties go to the lower child slot.
 
-Stack. ``stack_capacity(tree) = (k - 1) * height + 1`` entries always suffice (a node
-step pops one entry and pushes at most ``k``). It is a static argument; a smaller one is
-allowed, and a ray whose pushes do not fit keeps the entries that fit and sets
-``stack_overflow`` — its hit and counts are then not trustworthy. The drivers raise
-unless ``allow_overflow=True``.
+Stack. ``capacity`` entries per ray, static, :data:`~jaxbvh.rays.stack_walk.STACK` by
+default (at least ``k``). ``stack_capacity(tree) = (k - 1) * height + 1`` entries always
+suffice (a node step pops one entry and pushes at most ``k``); with fewer, a push that
+does not fit drops the oldest entries and, once the stack has run empty, the ray climbs
+by the tree's ``parent`` links to what they held (:mod:`jaxbvh.rays.stack_walk`): the
+hits, ``nodes_visited``, ``leaves_visited``, ``prim_tests`` and the all-hits lists are
+those of a stack of ``stack_capacity`` entries (with skip flags, visits can only grow:
+see the walk's docstring); ``box_tests`` add the boxes a climb tests again (the children
+of every parent it passes). A balanced tree under the default never
+climbs. ``stack_overflow`` stays False here (it reports a spill in walks without parent
+links, :mod:`jaxbvh.twolevel.traversal`); the drivers raise on it unless
+``allow_overflow=True``.
 
-Step bound. In a valid tree a ray pops every node at most once and tests every
-primitive slot at most once, so a ray is cut off after ``N + P + 1`` steps (node pops
-plus primitive tests; node and
-``prim_index`` capacities, static): no tree file, however broken (a node listed as its
-own child, a cycle), can make it run forever. A ray that reaches the bound sets
-``step_limit``; the drivers raise :class:`~jaxbvh.tree.validate.InvalidTreeError` for it
-(the commands also check every tree they read before tracing it).
+Step bound. In a valid tree a ray pops every node at most once, tests every primitive
+slot at most once, and climbs up out of a node or pushes a node from a climb at most
+once each, so a ray is cut off after ``3 N + P + 1`` steps (node pops, primitive tests
+and climb steps; node and ``prim_index`` capacities, static): no tree file, however
+broken (a node listed as its own child, a cycle, a wrong parent), can make it run
+forever. A ray that reaches the bound sets ``step_limit``; the drivers raise
+:class:`~jaxbvh.tree.validate.InvalidTreeError` for it (the commands also check every
+tree they read before tracing it).
 
 Primitive test. :func:`intersect_triangle` is Möller–Trumbore, two-sided, in the tree's
 float dtype. It is not watertight: a ray through a shared edge can in rare cases slip
@@ -56,7 +69,8 @@ every hit is counted; the first ``max_hits`` in visiting order are listed, and
 ``hits_overflow`` says the list was too short.
 
 Skip flags (Susano Pinto 2010, section 4.3). ``skip`` [N] bool, optional: a flagged
-node's box is not tested, it is assumed hit (entered where its parent was). The node is
+node's box is not tested, it is assumed hit (entered where its parent was; in distance
+order it comes before its siblings; a climb enters it at ``t_min``). The node is
 pushed and popped like any other but counts neither as a box test nor as a visited
 node, so a binary tree with the nodes a collapse removed flagged
 (:attr:`jaxbvh.collapse.CollapseResult.skip`) makes exactly the box tests, primitive
@@ -81,7 +95,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh.numerics import INV_BIG, robust_factor
-from jaxbvh.rays.stack_walk import I32, LEAF_WIDTH, Hits, Hooks, Node, Ray, lanes_for, walk_rays
+from jaxbvh.rays.stack_walk import I32, LEAF_WIDTH, STACK, Hits, Hooks, Node, Ray, lanes_for, walk_rays
 from jaxbvh.tree.layout import BVH, depth, to_jax
 from jaxbvh.tree.validate import InvalidTreeError
 
@@ -163,24 +177,29 @@ def intersect_triangle(triangles, prim, origin, direction):
 def stack_capacity(tree) -> int:
     """Stack entries that always suffice: ``(k - 1) * height + 1`` (host, static)."""
     height = int(np.max(depth(tree)))
-    k = int(np.asarray(tree.child).shape[1]) if not isinstance(tree, BVH) else 2
-    return (k - 1) * max(height, 0) + 1
+    return (arity(tree) - 1) * max(height, 0) + 1
 
 
 def max_steps(tree) -> int:
-    """Loop steps one ray may take: ``N + P + 1`` (module docstring; static shapes)."""
-    return int(tree.prim_count.shape[0]) + int(tree.prim_index.shape[0]) + 1
+    """Loop steps one ray may take: ``3 N + P + 1`` (module docstring; static shapes)."""
+    return 3 * int(tree.prim_count.shape[0]) + int(tree.prim_index.shape[0]) + 1
+
+
+def arity(tree) -> int:
+    """Child slots per node, ``k`` (host, static)."""
+    return 2 if isinstance(tree, BVH) else int(np.asarray(tree.child).shape[1])
 
 
 class Packed(NamedTuple):
     """The arrays the traversal reads, packed so that one step reads few cache lines.
 
     A popped node reads ``meta[n]`` and its children's boxes ``kid_box[n]`` (two rows
-    instead of six scattered reads); a leaf's triangles, stored in ``prim_index`` order,
-    lie side by side (``slot_tri``, default intersector only).
+    instead of six scattered reads; a climb reads its parent in ``meta[n]`` too); a
+    leaf's triangles, stored in ``prim_index`` order, lie side by side (``slot_tri``,
+    default intersector only).
     """
 
-    meta: Any      # int32 [N, k + 3]: children (-1: none), prim_start, prim_count, split axis (-1: none)
+    meta: Any      # int32 [N, k + 4]: children (-1: none), prim_start, prim_count, split axis (-1: none), parent
     kid_box: Any   # float [N, k, 6]: each child's lo and hi (garbage where the child is -1)
     slot_tri: Any  # float [P, 3, 3] triangle of each prim_index slot, or None (another intersector)
 
@@ -190,8 +209,8 @@ def pack(tree, prims, intersect) -> Packed:
     kids = tree.child
     safe = jnp.maximum(kids, 0)
     axis = tree.axis if isinstance(tree, BVH) else jnp.full(kids.shape[0], -1, I32)
-    meta = jnp.concatenate([kids, tree.prim_start[:, None], tree.prim_count[:, None], axis[:, None]],
-                           axis=1).astype(I32)
+    meta = jnp.concatenate([kids, tree.prim_start[:, None], tree.prim_count[:, None], axis[:, None],
+                            tree.parent[:, None]], axis=1).astype(I32)
     kid_box = jnp.concatenate([tree.lo[safe], tree.hi[safe]], axis=-1)
     slot_tri = None
     if intersect is intersect_triangle:
@@ -252,18 +271,18 @@ def _expand(packed: Packed, skip, ref, entry, origin, direction, inv_dir, t_min,
     return Node(is_leaf=count > 0, leaf_start=meta[k], leaf_count=count, leaf_tag=None,
                 assumed=assumed, kids=kids, kid_tags=None, kid_hit=kid_hit & real,
                 kid_entry=kid_entry, tested=tested, split=meta[k + 2] if binary else None,
-                direction=direction)
+                direction=direction, parent=meta[k + 3])
 
 
 @partial(jax.jit, static_argnames=("intersect", "mode", "capacity", "max_hits", "lanes", "leaf_width"))
 def trace_batch(tree, prims, origin, direction, t_min, t_max, skip=None, *,
-                intersect=intersect_triangle, mode="closest", capacity=64, max_hits=16, lanes=None,
+                intersect=intersect_triangle, mode="closest", capacity=STACK, max_hits=16, lanes=None,
                 leaf_width=LEAF_WIDTH):
     """Trace rays ``origin``, ``direction`` [R, 3] (tree frame) through ``tree``; jitted.
 
     ``prims``: what ``intersect`` reads (``triangles`` [T, 3, 3] for the default);
     ``t_min``, ``t_max``: scalars or [R]; ``mode``: one of :data:`MODES`;
-    ``capacity``: static stack size; ``max_hits``: list length for ``mode="all"``;
+    ``capacity``: static stack size (at least ``k``); ``max_hits``: list length for ``mode="all"``;
     ``skip``: optional [N] bool flags (module docstring); ``lanes``: rays in flight
     (:func:`~jaxbvh.rays.stack_walk.lanes_for`); ``leaf_width``: leaf slots tested per
     step. Returns :class:`Hits` with arrays [R]. The drivers below batch, pad and check.
@@ -294,7 +313,8 @@ def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t
     ``prims``: the primitives ``intersect`` reads (triangles [T, 3, 3] in the tree's
     frame for the default); ``origin``, ``direction``: [R, 3] in the tree's frame
     (directions need not be unit; ``t`` is in units of ``|direction|``).
-    ``capacity`` defaults to :func:`stack_capacity`; ``skip``: optional [N] bool per-node
+    ``capacity``: stack entries per ray, :data:`~jaxbvh.rays.stack_walk.STACK` by default,
+    at least ``k`` (module docstring, "Stack"); ``skip``: optional [N] bool per-node
     "assume hit" flags (module docstring, "Skip flags"). The last batch is padded so every
     batch has the same shape (one compile). Within a batch ``lanes`` rays are in flight
     and a lane whose ray ended takes the next one (:data:`BATCH`); ``leaf_width``: leaf
@@ -306,8 +326,9 @@ def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     origin, direction = check_rays(origin, direction)
-    if capacity is None:
-        capacity = stack_capacity(tree)
+    capacity = STACK if capacity is None else int(capacity)
+    if capacity < arity(tree):
+        raise ValueError(f"capacity {capacity} is below the tree's {arity(tree)} children per node")
     jtree = to_jax(tree)
     dtype = np.dtype(jtree.lo.dtype)
     skip = _check_skip(skip, jtree.prim_count.shape[0])

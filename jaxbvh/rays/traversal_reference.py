@@ -1,9 +1,11 @@
 """NumPy twin of :mod:`jaxbvh.rays.traversal`, written the slow, literal way.
 
-One ray at a time, a Python list as the stack, the same visiting order, the same
-counters and the same float arithmetic (tree dtype, same operation order), so the
-counts of :func:`jaxbvh.rays.traversal.trace` must equal these ray by ray. Also the
-brute-force closest hit over every triangle, the independent check of the hits.
+One ray at a time, a Python list as the stack (with ``capacity``: the oldest entry
+dropped when a push does not fit, then a climb by parent links once the list runs
+empty), the same visiting order, the same counters and the same float arithmetic (tree
+dtype, same operation order), so the counts of :func:`jaxbvh.rays.traversal.trace` must
+equal these ray by ray. Also the brute-force closest hit over every triangle, the
+independent check of the hits.
 """
 
 from __future__ import annotations
@@ -68,6 +70,7 @@ class _Tree(NamedTuple):
     """A tree's arrays in NumPy."""
 
     child: np.ndarray       # int [N, k], -1: none
+    parent: np.ndarray      # int [N], -1: the root
     axis: Any               # int [N] split axis (binary trees) or None (wide trees)
     lo: np.ndarray          # float [N, 3]
     hi: np.ndarray          # float [N, 3]
@@ -79,7 +82,7 @@ class _Tree(NamedTuple):
 
 
 def _tree_arrays(tree, skip=None) -> _Tree:
-    return _Tree(child=np.asarray(tree.child), axis=np.asarray(tree.axis) if hasattr(tree, "axis") else None,
+    return _Tree(child=np.asarray(tree.child), parent=np.asarray(tree.parent), axis=np.asarray(tree.axis) if hasattr(tree, "axis") else None,
                  lo=np.asarray(tree.lo), hi=np.asarray(tree.hi), start=np.asarray(tree.prim_start),
                  count=np.asarray(tree.prim_count), prim_index=np.asarray(tree.prim_index),
                  root=int(np.asarray(tree.root)), skip=None if skip is None else np.asarray(skip, bool))
@@ -120,7 +123,11 @@ def trace_ray(tree, triangles, origin, direction, *, mode="closest", t_min=0.0,
     """Trace one ray; returns the same fields as :class:`jaxbvh.rays.traversal.Hits` (scalars).
 
     ``skip``: optional [N] bool, nodes whose box is not tested but assumed hit (entered
-    where the node that lists them was); they are not counted as visited.
+    where the node that lists them was); they are not counted as visited. ``capacity``:
+    stack entries (None: unbounded); a push beyond it drops the oldest entry, and when
+    the stack runs empty after that the ray climbs from the last node popped: at each
+    parent it tests the children's boxes again and goes on with the next child in
+    visiting order the ray enters, else moves up (the root: done).
     """
     a = tree if isinstance(tree, _Tree) else _tree_arrays(tree, skip)
     dtype = a.lo.dtype
@@ -129,16 +136,33 @@ def trace_ray(tree, triangles, origin, direction, *, mode="closest", t_min=0.0,
     direction = np.asarray(direction, dtype)
     ray = _Ray(origin=origin, direction=direction, inv_dir=_inverse_direction(direction), t_min=f(t_min),
                t_max=f(t_max), robust=f(robust_factor(dtype)), interval_end=f(t_max), best_t=f(t_max),
-               steps_left=a.child.shape[0] + a.prim_index.shape[0] + 1, t=f(np.inf), u=f(0), v=f(0))
+               steps_left=3 * a.child.shape[0] + a.prim_index.shape[0] + 1, t=f(np.inf), u=f(0), v=f(0))
     capacity = capacity if capacity is not None else 1 << 30
     hit, entry = ray.slab(a, a.root, ray.t_max)
     stack = [(a.root, entry)] if hit else []
-    while stack:
+    spilled = False
+    last = a.root  # the node last popped, or climbed to
+    while stack or spilled:
         ray.steps_left -= 1
         if ray.steps_left < 0:
             ray.step_limit = True
             break
+        if not stack:  # climb
+            if last == a.root:
+                break
+            up = int(a.parent[last])
+            kids = _children(a, ray, up, ray.t_min)
+            mine = next(i for i, item in enumerate(kids) if item[2] == last)
+            later = [(c, entry_c) for _, _, c, hit_c, entry_c in kids[mine + 1:] if hit_c]
+            if later:
+                stack.append(later[0])
+                continue
+            last = up
+            if up == a.root:
+                break
+            continue
         node, entry = stack.pop()
+        last = node
         if not entry <= ray.interval_end:
             continue  # entered beyond the closest hit found since it was pushed
         if a.skip is None or not a.skip[node]:
@@ -148,11 +172,12 @@ def trace_ray(tree, triangles, origin, direction, *, mode="closest", t_min=0.0,
             if _visit_leaf(a, triangles, ray, node, mode, max_hits):
                 break  # any-hit mode: the first hit ends the ray
             continue
-        for c, entry_c in reversed(_children_hit(a, ray, node, entry)):  # nearest on top
-            if len(stack) >= capacity:
-                ray.stack_overflow = True
-                continue
+        hits = [(c, entry_c) for _, _, c, hit_c, entry_c in _children(a, ray, node, entry) if hit_c]
+        for c, entry_c in reversed(hits):  # nearest on top
             stack.append((c, entry_c))
+            if len(stack) > capacity:
+                del stack[0]  # the oldest entry: the climb finds it again
+                spilled = True
     return finish(ray, mode, max_hits)
 
 
@@ -183,29 +208,32 @@ def _visit_leaf(a: _Tree, triangles, ray: _Ray, node, mode, max_hits) -> bool:
     return False
 
 
-def _children_hit(a: _Tree, ray: _Ray, node, entry) -> list:
-    """The children of ``node`` the ray enters, as ``(child, entry)`` in visiting order."""
+def _children(a: _Tree, ray: _Ray, node, entry) -> list:
+    """Every child of ``node`` as ``(key, slot, child, hit, entry)``, in visiting order.
+
+    A skip-flagged child is not tested: assumed hit, entered at ``entry`` (the node's),
+    and first in distance order (key ``-inf``).
+    """
     k = a.child.shape[1]
     kids = []
     for slot in range(k):
         c = int(a.child[node, slot])
         if c < 0:
             continue
-        if a.skip is not None and a.skip[c]:
+        assumed = a.skip is not None and a.skip[c]
+        if assumed:
             hit, entry_c = True, entry  # not tested: assumed hit where this node was
         else:
             ray.box_tests += 1
             hit, entry_c = ray.slab(a, c, ray.interval_end)
-        if not hit:
-            continue
         if a.axis is not None and a.axis[node] >= 0:
             lower_first = ray.direction[a.axis[node]] >= 0
             key = slot if lower_first else k - 1 - slot
         else:
-            key = entry_c
-        kids.append((key, slot, c, entry_c))
+            key = -np.inf if assumed else entry_c
+        kids.append((key, slot, c, hit, entry_c))
     kids.sort(key=lambda item: (item[0], item[1]))  # visiting order
-    return [(c, entry_c) for _, _, c, entry_c in kids]
+    return kids
 
 
 def finish(ray: _Ray, mode, max_hits) -> dict:

@@ -146,7 +146,7 @@ def trace_batch(tl, origin, direction, t_max, max_steps, *, capacity, lanes=None
     r = origin.shape[0]
     return walk_rays(partial(_ray, tl, origin, direction, t_max), r, mode="closest", capacity=capacity,
                      max_hits=0, step_limit=max_steps, lanes=lanes_for(r, capacity, lanes),
-                     leaf_width=leaf_width, tagged=True)
+                     leaf_width=leaf_width, tagged=True, climbs=False)
 
 
 def closest_hit(tl, origin, direction, *, batch: int = 256,

@@ -17,6 +17,8 @@ from hypothesis import strategies as st
 import jaxbvh
 from jaxbvh import queries
 from jaxbvh.queries import search_reference as ref
+from jaxbvh.rays import traversal_reference as ray_twin
+from jaxbvh.rays.stack_walk import STACK
 from jaxbvh.tree import from_interchange, pad_to, validate
 from jaxbvh.wide import collapse
 
@@ -388,17 +390,25 @@ def test_raycast_equals_brute_force_and_twin(seed, n, kind, first):
     direction = np.where(rng.random((16, 1)) < 0.5, target - origin, rng.normal(size=(16, 3))).astype(np.float32)
     direction[0] = [0, 0, 1]  # zero components: the slab's huge inverse
     got = jax.tree_util.tree_map(np.asarray, queries.raycast(tree, padded(tri), origin, direction, first=first))
-    assert not got.step_limit.any()
+    assert isinstance(got, queries.Hits) and queries.RayHit is queries.Hits  # one result type
+    assert not got.step_limit.any() and not got.stack_overflow.any()
     closest = queries.closest_hit(tree, padded(tri), origin, direction)  # jaxbvh.rays' own driver
+    mode = "any" if first else "closest"
+    twin = ray_twin.trace(tree, tri, origin, direction, mode=mode, capacity=STACK)
     for i in range(16):
-        prim, t, counts, limit = ref.raycast(tree, tri, origin[i], direction[i], first=first)
-        assert prim == got.prim[i] and not limit
-        assert_twin_counts(got, i, counts)
+        assert twin[i]["prim"] == got.prim[i] and not twin[i]["step_limit"]
+        assert_twin_counts(got, i, twin[i])
         if first:
             assert (got.prim[i] >= 0) == (closest.prim[i] >= 0)
         else:
             assert got.prim[i] == closest.prim[i]
             assert np.isclose(got.t[i], closest.t[i], rtol=1e-5) or got.t[i] == closest.t[i]
+    _, brute = ray_twin.brute_force_closest(tri, origin, direction)
+    if not first:
+        assert np.array_equal(got.prim, brute)
+    # any leading shape: [2, 8] rays give the same records, reshaped
+    square = queries.raycast(tree, padded(tri), origin.reshape(2, 8, 3), direction.reshape(2, 8, 3), first=first)
+    assert np.array_equal(np.asarray(square.prim).reshape(-1), got.prim)
 
 
 def test_raycast_gradients_match_finite_differences():

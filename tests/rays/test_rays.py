@@ -257,25 +257,28 @@ def chain_tree(triangles):
                                  prim_index=np.arange(n, dtype=np.int32), lo=lo, hi=hi, root=np.int32(0)))
 
 
-def test_deep_chain_equals_brute_force_and_twin_within_step_bound():
-    """A 199-deep chain: hits equal brute force, counters equal the twin, every ray's work
-    (node visits + primitive tests) stays within the step bound, and no ray reaches it."""
+def test_deep_chain_traces_with_a_bounded_state():
+    """A 199-deep chain traced with a stack of 2 entries (a lane's whole state is a few
+    scalars and 2 entries; the program is the one a shallow tree of the same shapes
+    compiles): hits equal brute force, counters equal the twin's with the same stack, and
+    the unbounded walk's but for the climbs' box tests; every ray stays within the step
+    bound, and deep rays do climb."""
     rng = np.random.default_rng(12)
     tri = random_triangles(rng, 200, spread=3.0, size=0.2)
     tri = tri[np.argsort(tri.mean(axis=1)[:, 0])]  # a sweep along x: deep rays
     tree = chain_tree(tri)
-    assert int(np.max(depth(tree))) == 199
+    assert int(np.max(depth(tree))) == 199 and traverse.stack_capacity(tree) == 200
     origin, direction = mixed_rays(rng, tri, 96)
-    hits = traverse.closest_hit(tree, tri, origin, direction, batch=96, lanes=16)
+    shallow = median_tree(tri)
+    run("closest_hit", shallow, tri, origin, direction, capacity=2)
+    programs = traverse.trace_batch._cache_size()
+    hits = assert_same_as_reference(tree, tri, origin, direction, "closest", capacity=2)
+    assert traverse.trace_batch._cache_size() == programs  # depth is not part of the program
     _, prim = ref.brute_force_closest(tri, origin, direction)
     assert np.array_equal(hits.prim, prim)
-    assert not hits.step_limit.any() and not hits.stack_overflow.any()
-    work = hits.nodes_visited + hits.prim_tests
-    assert work.max() <= traverse.max_steps(tree)
-    assert work.max() > 100  # some rays do walk deep
-    twin = ref.trace(tree, tri, origin, direction, mode="closest")
-    for name in COUNTERS:
-        assert np.array_equal(getattr(hits, name), [r[name] for r in twin]), name
+    climbed = assert_climbs_like_unbounded(hits, tree, tri, origin, direction, "closest")
+    assert climbed.mean() > 0.1
+    assert (hits.nodes_visited + hits.prim_tests).max() > 100  # some rays do walk deep
 
 
 def test_front_to_back_orders_differ_but_hits_agree():
@@ -329,18 +332,65 @@ def test_all_hits_list_overflow_is_flagged():
     assert np.array_equal(hits.hits_overflow, hits.hit_count > 16)
 
 
-def test_stack_overflow_is_reported_not_silent():
+UNBOUNDED_EQUAL = ("prim", "prim_tests", "nodes_visited", "leaves_visited")
+"""What a stack that spills and climbs keeps of an unbounded stack's walk (the climbs add
+box tests and steps)."""
+
+
+def assert_climbs_like_unbounded(hits, tree, triangles, origin, direction, mode, **kwargs):
+    """``hits`` (a short stack) against the twin with an unbounded stack: the same hits,
+    visits, primitive tests and lists; no fewer box tests. Returns the rays that climbed."""
+    twin = ref.trace(tree, triangles, origin, direction, mode=mode, **kwargs)
+    for name in UNBOUNDED_EQUAL:
+        np.testing.assert_array_equal(getattr(hits, name), [r[name] for r in twin], err_msg=name)
+    if mode == "all":
+        np.testing.assert_array_equal(hits.hit_count, [r["hit_count"] for r in twin])
+        for i, r in enumerate(twin):
+            assert hits.hit_prims[i, :len(r["hit_prims"])].tolist() == r["hit_prims"]
+    unbounded_box = np.array([r["box_tests"] for r in twin])
+    assert (hits.box_tests >= unbounded_box).all()
+    assert not hits.stack_overflow.any() and not hits.step_limit.any()
+    return hits.box_tests > unbounded_box
+
+
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 60), max_leaf=st.sampled_from([1, 3]),
+       shape=st.sampled_from(["binary-axis", "binary-distance", "wide4"]),
+       mode=st.sampled_from(["closest", "all"]))
+def test_short_stack_climbs_to_the_unbounded_walk(seed, n, max_leaf, shape, mode):
+    """A stack of k entries (the least allowed) spills on most trees; the climb by parent
+    links gives the twin's counters with the same stack, ray by ray, and the hits,
+    visits, primitive tests and hit lists of an unbounded stack."""
+    rng = np.random.default_rng(seed)
+    tri = random_triangles(rng, n, size=0.4)
+    tree = median_tree(tri, max_leaf)
+    if shape == "binary-distance":
+        tree = tree.replace(axis=np.full(tree.capacity, -1, np.int32))
+    elif shape == "wide4":
+        tree = widen(tree, 4)
+    k = 4 if shape == "wide4" else 2
+    origin, direction = mixed_rays(rng, tri, 64)
+    hits = assert_same_as_reference(tree, tri, origin, direction, mode, capacity=k, max_hits=16)
+    assert_climbs_like_unbounded(hits, tree, tri, origin, direction, mode, max_hits=16)
+    if mode == "closest":
+        _, prim = ref.brute_force_closest(tri, origin, direction)
+        assert np.array_equal(hits.prim, prim)
+
+
+def test_climbs_happen_and_honour_skip_flags():
+    """A distance-ordered tree with skip flags (a collapse's) on a stack of 2 entries: rays
+    do climb, and hits and counters still equal the twin's and the unbounded walk's."""
     rng = np.random.default_rng(9)
     tri = random_triangles(rng, 64, size=0.4)
-    tree = median_tree(tri)
+    tree = fixed(median_tree(tri)).replace(axis=np.full(NODES, -1, np.int32))
+    skip = collapse.optimal(tree, max_children=4).skip
+    assert np.asarray(skip).any()
     origin, direction = mixed_rays(rng, tri, 64)
-    with pytest.raises(RuntimeError, match="overflowed"):
-        run("closest_hit", tree, tri, origin, direction, capacity=2)
-    hits = assert_same_as_reference(tree, tri, origin, direction, "closest", capacity=2,
-                                    allow_overflow=True)
-    assert hits.stack_overflow.any()
-    full = run("closest_hit", tree, tri, origin, direction)
-    assert not full.stack_overflow.any()
+    for mode in ("closest", "all"):
+        hits = assert_same_as_reference(tree, tri, origin, direction, mode, capacity=2, skip=skip)
+        climbed = assert_climbs_like_unbounded(hits, tree, tri, origin, direction, mode, skip=skip)
+        assert climbed.any()
+    with pytest.raises(ValueError, match="children per node"):
+        run("closest_hit", widen(median_tree(tri), 4), tri, origin, direction, capacity=3)
 
 
 def test_stack_capacity_bound():
