@@ -167,3 +167,22 @@ def test_tests_use_public_names():
             if (isinstance(node, ast.Attribute) and node.attr.startswith("_") and not node.attr.startswith("__")
                     and isinstance(node.value, ast.Name) and node.value.id in library | {"jaxbvh"}):
                 assert node.attr == "_cache_size", f"{path.name}:{node.lineno}: {node.value.id}.{node.attr}"
+
+
+def test_every_top_level_program_is_stored():
+    """Every jitted function at a module's top level goes through
+    :func:`jaxbvh.program_store.stored_jit`, so a warm process loads it instead of tracing
+    it again (a plain ``jax.jit`` there would be traced in every process)."""
+    plain = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        if path.name == "program_store.py":
+            continue
+        tree = ast.parse(path.read_text())
+        for node in tree.body:  # top level only: programs built inside functions are per call
+            decorators = node.decorator_list if isinstance(node, ast.FunctionDef) else []
+            values = [node.value] if isinstance(node, ast.Assign) else []
+            for expr in [*decorators, *values]:
+                text = ast.unparse(expr)
+                if re.match(r"(partial\()?jax\.jit\b", text):
+                    plain.append(f"{path.relative_to(PACKAGE)}:{expr.lineno}: {text[:60]}")
+    assert not plain, "\n".join(plain)

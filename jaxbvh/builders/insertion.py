@@ -111,9 +111,9 @@ import numpy as np
 from jaxbvh.builders.inputs import prepare
 from jaxbvh.configs import integer
 from jaxbvh.numerics import TIE_TOLERANCE, half_area
+from jaxbvh.program_store import stored_jit
 from jaxbvh.tree.cost import goldsmith_salmon_cost
 from jaxbvh.tree.layout import WideBVH
-from jaxbvh.program_store import stored_jit
 
 DEFAULT_MAX_CHILDREN = 8  # see the table in the module docstring
 

@@ -49,8 +49,8 @@ from jaxbvh.builders import morton
 from jaxbvh.builders.bottom_up import Linked, to_bvh
 from jaxbvh.builders.configs import LBVHConfig
 from jaxbvh.numerics import exclusive_sum, take
-from jaxbvh.tree.layout import BVH
 from jaxbvh.program_store import stored_jit
+from jaxbvh.tree.layout import BVH
 
 SENTINEL = np.uint64(2**64 - 1)  # key "outside [0, n)": top bit set, so its prefix with any key is empty
 

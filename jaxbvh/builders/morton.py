@@ -49,6 +49,7 @@ from functools import partial
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from jaxbvh.program_store import stored_jit
 
 CODE_BITS = (30, 63)

@@ -54,8 +54,8 @@ from jaxbvh.builders import morton
 from jaxbvh.builders.bottom_up import Linked, to_bvh
 from jaxbvh.builders.configs import PLOCConfig
 from jaxbvh.numerics import TIE_TOLERANCE, exclusive_sum, half_area
-from jaxbvh.tree.layout import BVH
 from jaxbvh.program_store import stored_jit
+from jaxbvh.tree.layout import BVH
 
 SMALLEST_STAGE = 2048
 

@@ -106,9 +106,9 @@ from jaxbvh.builders import sbvh_splits as splits
 from jaxbvh.builders.configs import SBVHConfig
 from jaxbvh.builders.inputs import narrow_triangles, widen_back
 from jaxbvh.numerics import TIE_TOLERANCE, half_area, scene_scale, take, working_dtype
+from jaxbvh.program_store import stored_jit
 from jaxbvh.tree.layout import BVH, capacity_bucket
 from jaxbvh.tree.validate import few_ids
-from jaxbvh.program_store import stored_jit
 
 __all__ = ["SBVHBuild", "build_sbvh", "check_triangles", "reference_slots"]
 

@@ -81,8 +81,8 @@ import numpy as np
 from jaxbvh.builders.configs import BuilderConfig
 from jaxbvh.draws import split_uniforms
 from jaxbvh.numerics import TIE_TOLERANCE, half_area
-from jaxbvh.tree.layout import BVH, capacity_bucket
 from jaxbvh.program_store import stored_jit
+from jaxbvh.tree.layout import BVH, capacity_bucket
 
 
 class RandomSplits(NamedTuple):

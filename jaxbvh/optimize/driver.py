@@ -44,8 +44,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh.optimize.protocol import OptimizeResult, OptimizerState, StepInfo
-from jaxbvh.tree.batching import unstack_trees
 from jaxbvh.program_store import stored_jit
+from jaxbvh.tree.batching import unstack_trees
 
 #: a chunk of steps grows (doubling, up to this many) while one takes under CHUNK_SECONDS
 MAX_CHUNK = 256

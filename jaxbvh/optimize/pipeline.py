@@ -65,10 +65,10 @@ from jaxbvh.optimize.protocol import (
     record,
 )
 from jaxbvh.optimize.reinsert_rules import candidates_needed
+from jaxbvh.program_store import stored_jit
 from jaxbvh.tree.cost import sah as sah_of
 from jaxbvh.tree.layout import to_jax
 from jaxbvh.tree.split_axes import apply_split_axes
-from jaxbvh.program_store import stored_jit
 
 DEFAULT_TREELET_PASSES = 2
 DEFAULT_FIRST_TREELET_PASSES = None

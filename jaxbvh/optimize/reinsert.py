@@ -164,10 +164,10 @@ from jaxbvh.optimize.reinsert_rules import (  # noqa: F401 (DEFAULT_FIRST_FRACTI
     widening_stop,
 )
 from jaxbvh.optimize.reinsert_search import prepare, to_tree
+from jaxbvh.program_store import stored_jit
 from jaxbvh.tree.cost import sah as sah_of
 from jaxbvh.tree.layout import to_jax
 from jaxbvh.tree.split_axes import apply_split_axes
-from jaxbvh.program_store import stored_jit
 
 DEFAULT_MAX_STEPS = 1024       # search steps per node and iteration (legocar needs < 200)
 DEFAULT_MAX_ITERATIONS = 1000

@@ -127,9 +127,9 @@ from jaxbvh.optimize.protocol import (
 from jaxbvh.optimize.rotate_moves import MOVES, State, score
 from jaxbvh.optimize.rotate_passes import chain_of, forest_of, initial_state, run_pass, to_tree, tree_part
 from jaxbvh.optimize.schedules import DEFAULT_HOTTEST, KENSLER_PERIOD, KENSLER_STEPS, SCHEDULES, kensler_temperature
+from jaxbvh.program_store import stored_jit
 from jaxbvh.tree.layout import to_jax
 from jaxbvh.tree.split_axes import apply_split_axes
-from jaxbvh.program_store import stored_jit
 
 __all__ = [
     "MOVES", "DEFAULT_WINDOWS", "ANNEAL_WINDOWS", "DEFAULT_FRONTIER", "DEFAULT_HOTTEST", "score_moves",

@@ -78,12 +78,12 @@ from jaxbvh.optimize.protocol import (
     record,
 )
 from jaxbvh.optimize.reinsert import start_sah
+from jaxbvh.program_store import stored_jit
 from jaxbvh.tree.cost import sah as sah_of
 from jaxbvh.tree.layout import to_jax
 from jaxbvh.tree.refit import refit_boxes
 from jaxbvh.tree import windows as level_windows
 from jaxbvh.tree.split_axes import apply_split_axes
-from jaxbvh.program_store import stored_jit
 
 DEFAULT_LEAVES = 7
 MAX_LEAVES = 10        # 2^n subsets and 3^n splits: beyond this the DP is too large

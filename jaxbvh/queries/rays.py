@@ -12,10 +12,11 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from jaxbvh.program_store import stored_jit
 from jaxbvh.queries.geometry import ray_triangle
 
 
-@jax.jit
+@stored_jit
 def ray_hit(triangles, prim, origin, direction):
     """Hit distance and barycentrics of rays ``origin``, ``direction`` [..., 3] on
     triangles ``prim`` [...] int (``Hits.prim``; -1: a miss) of ``triangles`` [T, 3, 3];

@@ -40,6 +40,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jaxbvh.program_store import stored_jit
 from jaxbvh.queries import geometry
 from jaxbvh.queries.parent_walk import Hooks, walk
 from jaxbvh.rays.stack_walk import Hits
@@ -164,7 +165,7 @@ def _closest_one(tree, triangles, pseudonormals, max_distance, point):
                     leaves_visited=counts.leaves_visited, step_limit=limit)
 
 
-@jax.jit
+@stored_jit
 def closest_point(tree, triangles, points, pseudonormals=None, max_distance=jnp.inf) -> PointHit:
     """Closest point on a triangle mesh to each of ``points`` [..., 3]; jitted, differentiable.
 
@@ -228,7 +229,7 @@ def _overlap_one(tree, prims, capacity, q_lo, q_hi):
     return _list(tree, test, boxes, capacity)
 
 
-@partial(jax.jit, static_argnames=("capacity",))
+@partial(stored_jit, static_argnames=("capacity",))
 def overlap(tree, prims, lo, hi, *, capacity: int) -> Listed:
     """Primitives whose box overlaps the query box ``lo``, ``hi`` [..., 3] (closed boxes:
     touching counts); jitted.
@@ -264,7 +265,7 @@ def _within_one(tree, prims, capacity, point, radius):
     return _list(tree, test, boxes, capacity)
 
 
-@partial(jax.jit, static_argnames=("capacity",))
+@partial(stored_jit, static_argnames=("capacity",))
 def within(tree, prims, points, radius, *, capacity: int) -> Listed:
     """Primitives within ``radius`` (scalar or [...], tree units; the ball is closed) of
     each of ``points`` [..., 3]; jitted.
@@ -283,7 +284,7 @@ def within(tree, prims, points, radius, *, capacity: int) -> Listed:
 # ----------------------------------------------------------------------------------
 
 
-@partial(jax.jit, static_argnames=("first",))
+@partial(stored_jit, static_argnames=("first",))
 def raycast(tree, triangles, origin, direction, t_min=0.0, t_max=jnp.inf, *, first: bool = False) -> Hits:
     """Closest hit (or, with ``first=True``, any hit: shadow rays) of rays ``origin``,
     ``direction`` [..., 3] against ``triangles`` [T, 3, 3] through ``tree``, inside jit;

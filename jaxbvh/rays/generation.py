@@ -24,12 +24,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxbvh.program_store import stored_jit
+
 
 def _normalize(v):
     return v / jnp.linalg.norm(v, axis=-1, keepdims=True)
 
 
-@partial(jax.jit, static_argnames=("n", "dtype"))
+@partial(stored_jit, static_argnames=("n", "dtype"))
 def random_rays(key, lo, hi, n: int, dtype=jnp.float32):
     """``n`` rays: origins uniform in the box ``lo``, ``hi`` [3], directions uniform on S^2."""
     k_origin, k_direction = jax.random.split(key)
@@ -86,7 +88,7 @@ def _basis(normal):
     return t1, t2
 
 
-@partial(jax.jit, static_argnames=("n", "two_sided"))
+@partial(stored_jit, static_argnames=("n", "two_sided"))
 def bounce_rays(key, triangles, n: int, *, offset=1e-4, two_sided: bool = False):
     """``n`` diffuse bounce rays from the surface of ``triangles`` [T, 3, 3].
 

@@ -95,6 +95,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh.numerics import INV_BIG, robust_factor
+from jaxbvh.program_store import stored_jit
 from jaxbvh.rays.stack_walk import I32, LEAF_WIDTH, STACK, Hits, Hooks, Node, Ray, lanes_for, walk_rays
 from jaxbvh.tree.layout import BVH, depth, to_jax
 from jaxbvh.tree.validate import InvalidTreeError
@@ -274,7 +275,7 @@ def _expand(packed: Packed, skip, ref, entry, origin, direction, inv_dir, t_min,
                 direction=direction, parent=meta[k + 3])
 
 
-@partial(jax.jit, static_argnames=("intersect", "mode", "capacity", "max_hits", "lanes", "leaf_width"))
+@partial(stored_jit, static_argnames=("intersect", "mode", "capacity", "max_hits", "lanes", "leaf_width"))
 def trace_batch(tree, prims, origin, direction, t_min, t_max, skip=None, *,
                 intersect=intersect_triangle, mode="closest", capacity=STACK, max_hits=16, lanes=None,
                 leaf_width=LEAF_WIDTH):

@@ -72,8 +72,8 @@ from jaxbvh.builders import insertion
 from jaxbvh.configs import Checked, integer, knob, real
 from jaxbvh.numerics import TIE_TOLERANCE
 from jaxbvh.optimize.protocol import CompileClock, OptimizeResult, StepInfo, check_on_step
-from jaxbvh.rays.measure import make_rays, stack_capacity, trace
 from jaxbvh.program_store import stored_jit
+from jaxbvh.rays.measure import make_rays, stack_capacity, trace
 
 
 def _max_children(name, value):

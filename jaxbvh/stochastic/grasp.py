@@ -83,8 +83,8 @@ from jaxbvh.configs import Checked, integer, knob, one_of, optional, real
 from jaxbvh.draws import split_uniforms
 from jaxbvh.numerics import half_area
 from jaxbvh.optimize.protocol import CompileClock, OptimizeResult, StepInfo, check_on_step
-from jaxbvh.tree.layout import capacity_bucket, concat_ranges, to_numpy
 from jaxbvh.program_store import stored_jit
+from jaxbvh.tree.layout import capacity_bucket, concat_ranges, to_numpy
 from jaxbvh.tree.walks import levels as tree_levels
 
 OBJECTIVES = ("nt", "sah")

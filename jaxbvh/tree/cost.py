@@ -33,8 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh.numerics import extent_scale, half_area, root_exponent
-from jaxbvh.tree.layout import to_jax, to_numpy
 from jaxbvh.program_store import stored_jit
+from jaxbvh.tree.layout import to_jax, to_numpy
 
 
 def _children(tree):

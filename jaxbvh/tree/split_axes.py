@@ -13,8 +13,8 @@ import jax
 import jax.numpy as jnp
 
 from jaxbvh.numerics import none_to_oob, take
-from jaxbvh.tree.layout import BVH, to_jax
 from jaxbvh.program_store import stored_jit
+from jaxbvh.tree.layout import BVH, to_jax
 
 
 def split_axis_rule(lo_a, hi_a, lo_b, hi_b, xp=jnp):

@@ -107,11 +107,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh.numerics import take
+from jaxbvh.program_store import stored_jit
 from jaxbvh.tree.layout import BVH, capacity_bucket
 from jaxbvh.twolevel import brefs_level
 from jaxbvh.twolevel.brefs_level import SMALL_SEGMENT, Build  # noqa: F401 (SMALL_SEGMENT: public here)
 from jaxbvh.twolevel.config import DEFAULT_BINS, DEFAULT_OVERLAP, DEFAULT_ROUNDS, DEFAULT_THRESHOLD, RebraidConfig
-from jaxbvh.program_store import stored_jit
 
 DEFAULT_BUDGET = 4.0     # paper §5.2: 4 x #instances (the top-level engine's default)
 PRIMS_PER_SLOT = 1000    # paper §5.2: #primitives / 1000 for trees over objects

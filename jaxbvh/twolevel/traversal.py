@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxbvh.program_store import stored_jit
 from jaxbvh.rays.stack_walk import LEAF_WIDTH, Hits, Hooks, Node, Ray, lanes_for, walk_rays
 from jaxbvh.rays.traversal import check_rays, in_batches, inverse_direction, moller_trumbore, slab
 from jaxbvh.tree.layout import depth, to_jax, to_numpy
@@ -135,7 +136,7 @@ def _expand(tl, ray_in, ref, k, t_min, t_far) -> Node:
                 tested=real, split=jnp.where(in_forest, f.axis[fid], top.axis[tid]), direction=d_n)
 
 
-@partial(jax.jit, static_argnames=("capacity", "lanes", "leaf_width"))
+@partial(stored_jit, static_argnames=("capacity", "lanes", "leaf_width"))
 def trace_batch(tl, origin, direction, t_max, max_steps, *, capacity, lanes=None, leaf_width=LEAF_WIDTH):
     """Closest hits of rays ``origin``, ``direction`` [R, 3] (scene frame) through ``tl``.
 
@@ -193,7 +194,7 @@ def brute_force(triangles, origin, direction, *, batch: int = 1024):
     return np.concatenate(ts), np.concatenate(ps)
 
 
-@jax.jit
+@stored_jit
 def _brute_chunk(tri, origin, direction):
     t, _, _ = jax.vmap(lambda o, d: moller_trumbore(tri[:, 0], tri[:, 1], tri[:, 2], o, d))(origin, direction)
     t = jnp.where(t > 0, t, jnp.inf)

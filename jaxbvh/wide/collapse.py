@@ -89,12 +89,12 @@ import numpy as np
 
 from jaxbvh.configs import Checked, integer, knob, optional, real
 from jaxbvh.numerics import min_gain, take
+from jaxbvh.program_store import stored_jit
 from jaxbvh.tree.layout import BVH, WideBVH, to_jax
 from jaxbvh.wide import collapse_dp
 from jaxbvh.wide import levels as lv
 from jaxbvh.wide.box_tests import cost_table, node_test_cost  # noqa: F401 (public here)
 from jaxbvh.wide.collapse_layout import emit, layout, links, prices, relative_areas, schedule
-from jaxbvh.program_store import stored_jit
 
 METHODS = ("greedy", "dp", "qbvh")
 DEFAULT_MAX_CHILDREN = 8  # the DP's K when none is given (the paper used 15)

@@ -16,9 +16,9 @@ import jax
 import jax.numpy as jnp
 
 from jaxbvh.numerics import min_gain, take
+from jaxbvh.program_store import stored_jit
 from jaxbvh.wide import levels as lv
 from jaxbvh.wide.collapse_layout import links, relative_areas
-from jaxbvh.program_store import stored_jit
 
 
 def _first_near_min(candidates):

@@ -16,9 +16,9 @@ import jax
 import jax.numpy as jnp
 
 from jaxbvh.numerics import extent_scale, half_area, take
+from jaxbvh.program_store import stored_jit
 from jaxbvh.tree.layout import WideBVH
 from jaxbvh.wide import levels as lv
-from jaxbvh.program_store import stored_jit
 
 
 def relative_areas(lo, hi, root):
