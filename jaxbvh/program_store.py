@@ -130,7 +130,10 @@ class StoredFunction:
 
     def __init__(self, fun, *, static_argnums=(), static_argnames=()):
         self.fun = fun
-        self.jitted = jax.jit(fun, static_argnums=static_argnums, static_argnames=static_argnames)
+        # None, not (), for the one not given: jax.jit then finds the other from the
+        # signature, so a static argument passed by position or by name stays static
+        self.jitted = jax.jit(fun, static_argnums=None if static_argnums == () else static_argnums,
+                              static_argnames=None if static_argnames == () else static_argnames)
         functools.update_wrapper(self, fun)
         self._signature = inspect.signature(fun)
         params = list(self._signature.parameters.values())

@@ -99,6 +99,11 @@ def test_calls_while_tracing_and_unnameable_statics_use_plain_jit(store):
     grads = jax.grad(lambda v: stored_scaled_sum(v, 0.0, power=2)["sum"])(x)
     np.testing.assert_array_equal(np.asarray(grads), 2 * np.asarray(x))
     batched = jax.vmap(lambda v: stored_scaled_sum(v, 1.0, power=1)["sum"])(x[:, None, :])
+    # a static argument by position, while tracing (plain jit must still see it as static)
+    positional = stored_jit(lambda v, n: jnp.arange(n) * v.sum(), static_argnums=1)
+    np.testing.assert_array_equal(np.asarray(jax.jit(lambda v: positional(v, 3))(x)), [0.0, 8.0, 16.0])
+    named = stored_jit(lambda v, n: jnp.arange(n) * v.sum(), static_argnames=("n",))
+    np.testing.assert_array_equal(np.asarray(jax.jit(lambda v: named(v, 2))(x)), [0.0, 8.0])
     np.testing.assert_array_equal(np.asarray(batched), np.asarray(x.sum(axis=1) + 1))
     assert _stored_files(store) == []
 
