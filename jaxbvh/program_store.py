@@ -191,7 +191,7 @@ class StoredFunction:
         """The callable ``leaves -> outputs`` for this key: loaded, or exported and stored."""
         text = repr((self._name, static, str(treedef), avals))
         if " at 0x" in text:
-            return self._plain(bound)
+            return self._plain(bound, treedef)
         key = hashlib.sha256("\n".join((_fingerprint(), _environment(), text)).encode()).hexdigest()
         path = folder / f"{key[:2]}" / f"{key}{_SUFFIX}"
         loaded = _read(path)
@@ -203,7 +203,7 @@ class StoredFunction:
                     self._warned = True
                     warnings.warn(f"{self._name}: program not stored ({type(exc).__name__}: {exc}); "
                                   "compiling it as usual", RuntimeWarning, stacklevel=4)
-                return self._plain(bound)
+                return self._plain(bound, treedef)
             _write(path, loaded)
         out_treedef, blob = loaded
         exported = jax.export.deserialize(bytearray(blob))
@@ -214,30 +214,36 @@ class StoredFunction:
 
         return program
 
-    def _plain(self, bound):
+    def _rebuild(self, bound, treedef):
+        """``leaves -> (args, kwargs)`` of this call with its dynamic leaves replaced."""
         static = {k: v for k, v in bound.arguments.items() if k in self._static}
         names = list(bound.arguments)
 
-        def program(leaves, treedef=jax.tree_util.tree_structure({k: v for k, v in bound.arguments.items()
-                                                                   if k not in self._static})):
+        def rebuild(leaves):
             arguments = dict(static)
             arguments.update(jax.tree_util.tree_unflatten(treedef, leaves))
             call = inspect.BoundArguments(self._signature, {k: arguments[k] for k in names})
-            return self.jitted(*call.args, **call.kwargs)
+            return call.args, call.kwargs
+
+        return rebuild
+
+    def _plain(self, bound, treedef):
+        rebuild = self._rebuild(bound, treedef)
+
+        def program(leaves):
+            args, kwargs = rebuild(leaves)
+            return self.jitted(*args, **kwargs)
 
         return program
 
     def _export(self, bound, treedef, leaves):
         """Trace and lower this call's program; returns ``(output treedef, bytes)``."""
-        names = list(bound.arguments)
-        static = {k: v for k, v in bound.arguments.items() if k in self._static}
+        rebuild = self._rebuild(bound, treedef)
         out = []
 
         def flat(*flat_leaves):
-            arguments = dict(static)
-            arguments.update(jax.tree_util.tree_unflatten(treedef, flat_leaves))
-            call = inspect.BoundArguments(self._signature, {k: arguments[k] for k in names})
-            result_leaves, result_treedef = jax.tree_util.tree_flatten(self.fun(*call.args, **call.kwargs))
+            args, kwargs = rebuild(flat_leaves)
+            result_leaves, result_treedef = jax.tree_util.tree_flatten(self.fun(*args, **kwargs))
             out.append(result_treedef)
             return result_leaves
 

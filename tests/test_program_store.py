@@ -8,6 +8,7 @@ import functools
 import os
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import hypothesis.strategies as st
@@ -158,3 +159,19 @@ def test_a_warm_process_does_not_trace_the_builder(tmp_path):
     assert cold_sah == warm_sah
     assert "flat" in cold_traced   # exported in the cold process
     assert "flat" not in warm_traced  # loaded in the warm one
+
+
+def _with_host_callback(x):
+    return jax.pure_callback(lambda v: np.asarray(v) * 2, jax.ShapeDtypeStruct(x.shape, x.dtype), x) + 1
+
+
+def test_a_program_that_cannot_be_exported_runs_as_plain_jit_with_one_warning(store):
+    stored = stored_jit(_with_host_callback)
+    x = np.arange(3, dtype=np.float32)
+    with pytest.warns(RuntimeWarning, match="not stored"):
+        first = stored(x)
+    np.testing.assert_array_equal(np.asarray(first), [1.0, 3.0, 5.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # said once per function
+        np.testing.assert_array_equal(np.asarray(stored(x[:2])), [1.0, 3.0])
+    assert _stored_files(store) == []
