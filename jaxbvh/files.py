@@ -13,8 +13,34 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import secrets
 import stat
+
+
+def temporary_name(name: str, pid: int, tag: str) -> str:
+    """The name of :func:`atomic_write`'s temporary file for a target called ``name``
+    (``.<name>.<pid>.<tag>.tmp``; ``tag``: 8 hex digits)."""
+    return f".{name}.{pid}.{tag}.tmp"
+
+
+def remove_abandoned_temporaries(folder: str | os.PathLike, names) -> list[str]:
+    """Remove the temporary files :func:`atomic_write` left in ``folder`` for targets
+    called one of ``names`` when their writer died mid-write (killed: no ``except`` ran).
+    Call it only once no process writes those targets any more (a batch run calls it for
+    the outputs it has delivered). Only names of exactly :func:`temporary_name`'s form are
+    touched; one pass over the folder. Returns the names removed."""
+    temporary = re.compile(r"\.(.+)\.[0-9]+\.[0-9a-f]{8}\.tmp\Z")  # temporary_name's form
+    names = set(names)
+    removed = []
+    with contextlib.suppress(FileNotFoundError), os.scandir(folder) as entries:
+        for entry in entries:
+            match = temporary.match(entry.name)
+            if match and match.group(1) in names and entry.is_file(follow_symlinks=False):
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(entry.path)
+                    removed.append(entry.name)
+    return removed
 
 
 @contextlib.contextmanager
@@ -36,7 +62,7 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb"):
     path = os.fspath(path)
     target = os.path.realpath(path)  # write through a link, as open(path, "w") would
     folder, name = os.path.split(target)
-    tmp = os.path.join(folder, f".{name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+    tmp = os.path.join(folder, temporary_name(name, os.getpid(), secrets.token_hex(4)))
     try:
         # "x": never over another file; the umask applies, as for any new file
         with open(tmp, mode.replace("w", "x")) as f:

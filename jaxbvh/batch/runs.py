@@ -36,7 +36,8 @@ less than :data:`RACY_S` before it was hashed gets no stamp (a second write in t
 clock tick would leave the stamp as it was), so it is hashed again on resume.
 
 A worker that dies mid-chunk (killed, out of memory) loses only its chunk:
-the scheduler gives the chunk to another worker (Dask's ``allowed-failures``); a
+the scheduler gives the chunk to another worker (Dask's ``allowed-failures``), and the
+temporary file of a write it had begun is removed at the end of the run; a
 chunk that fails again (a mesh that crashes its worker) is split and each file run
 alone, so a bad mesh fails alone. Each file's row is taken once, from the first result
 that delivers it; the rows are in input order.
@@ -71,7 +72,7 @@ from jaxbvh.batch.optimize import optimize
 from jaxbvh.batch.plan import BatchConfig
 from jaxbvh.builders.configs import TRIANGLE_BUILDERS
 from jaxbvh.cli.command_kit import seed_key  # any integer seed, as the command line takes it
-from jaxbvh.files import atomic_write
+from jaxbvh.files import atomic_write, remove_abandoned_temporaries
 from jaxbvh.io import load_mesh, mesh_cache_folder, use_mesh_cache
 from jaxbvh.optimize import DEFAULT_METHOD, make_config
 from jaxbvh.tree.interchange import compact
@@ -588,6 +589,12 @@ def run_files(paths, out, *, action: str = "build", builder=None, method: str | 
             workers = run_on_client(client, chunks, settings, str(out_dir), take, mesh_cache)
     finally:
         write_manifest(out_dir, options, options_sha, files)
+        # a worker killed mid-write leaves its temporary file; the output was delivered by another
+        delivered: dict[Path, list[str]] = {}
+        for name in (n for n in rows if not rows[n].get("skipped")):
+            delivered.setdefault((out_dir / name).parent, []).append(Path(name).name)
+        for folder, in_folder in delivered.items():
+            remove_abandoned_temporaries(folder, in_folder)
     ordered = [rows[n] for n in names]
     failed = sum(1 for r in ordered if r.get("error"))
     if report is not None:

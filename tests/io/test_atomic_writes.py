@@ -15,7 +15,7 @@ import pytest
 from helpers import assert_one_line_error, grid_obj, run_cli, run_json, three_triangle_files
 
 import jaxbvh
-from jaxbvh.files import atomic_write
+from jaxbvh.files import atomic_write, remove_abandoned_temporaries
 
 OLD = b"the user's old file: it must survive a failed write\n" * 3
 
@@ -201,3 +201,39 @@ def test_a_batch_output_that_fails_to_write_is_its_rows_error_and_leaves_no_file
     assert row["error"].startswith("write: ") and os.strerror(errno.ENOSPC) in row["error"], row
     assert "a.obj.npz" in row["error"] or "a.npz" in row["error"]
     assert list(out.iterdir()) == []
+
+
+def test_a_writer_killed_mid_write_leaves_a_temporary_that_only_its_cleanup_removes(tmp_path):
+    """A SIGKILL runs no ``except``: the temporary stays until whoever knows the write is
+    over (a batch run, for its delivered outputs) removes it; nothing else is touched."""
+    target = tmp_path / "t.npz"
+    writer = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time\nfrom jaxbvh.files import atomic_write\n"
+        f"with atomic_write({str(target)!r}) as f:\n"
+        "    f.write(b'part'); f.flush(); print('writing', flush=True); time.sleep(60)\n")],
+        stdout=subprocess.PIPE)
+    assert writer.stdout.readline().strip() == b"writing"
+    writer.kill()
+    writer.wait()
+    (left,) = _leftovers(tmp_path)
+    assert left.startswith(".t.npz.") and left.endswith(".tmp")
+    others = [".t.npz.tmp", ".t.npz.1.notahex0.tmp", ".u.npz.1.0badbeef.tmp", ".t.npz.1.0badbeef.tmp.keep", "t.npz"]
+    for name in others:
+        (tmp_path / name).write_bytes(OLD)
+    assert remove_abandoned_temporaries(tmp_path, ["t.npz"]) == [left]
+    assert _leftovers(tmp_path) == sorted(others)
+    assert all((tmp_path / name).read_bytes() == OLD for name in others)
+
+
+def test_a_batch_run_removes_the_temporaries_of_its_outputs_and_no_others(tmp_path):
+    from jaxbvh.batch import runs
+    (tmp_path / "in").mkdir()
+    grid_obj(tmp_path / "in" / "a.obj", 2, 0)
+    out = tmp_path / "out"
+    out.mkdir()
+    dead = out / ".a.obj.npz.99999.0badbeef.tmp"  # as a writer killed mid-write left it
+    foreign = out / ".b.obj.npz.99999.0badbeef.tmp"  # not this run's output: not its to remove
+    dead.write_bytes(OLD)
+    foreign.write_bytes(OLD)
+    made = runs.run_files([tmp_path / "in" / "a.obj"], out)
+    assert made.done == 1 and not dead.exists() and foreign.read_bytes() == OLD
