@@ -6,8 +6,9 @@
   ``R`` for all), :func:`jaxbvh.rays.traversal.trace_batch` vmapped over the trees of a
   group (triangles padded to the group's capacity: padded primitive slots are never
   referenced), in slices of ``rays_per_call`` rays; every tree's hits and counts
-  equal the single-tree :func:`jaxbvh.rays.traversal.trace` (tested). The stack holds
-  the deepest tree of the group (a larger stack changes nothing but memory).
+  equal the single-tree :func:`jaxbvh.rays.traversal.trace` (tested). The stack is the
+  ray walk's fixed one (:data:`jaxbvh.rays.stack_walk.STACK`, climbing by parent links
+  where it spills), as the single trace's: one compiled program for any depth.
 * :func:`collapse`: Pinto's collapse (:func:`jaxbvh.wide.collapse`) of every tree. Its
   level schedule is made on the host from each tree's depths, so this is a loop of
   single-tree calls (one compile per capacity), not one vmapped call.
@@ -23,7 +24,8 @@ import numpy as np
 
 from jaxbvh.batch import devices as batch_devices
 from jaxbvh.batch.layout import TreeBatch
-from jaxbvh.rays.traversal import check_rays, intersect_triangle, stack_capacity, trace_batch
+from jaxbvh.rays.stack_walk import STACK
+from jaxbvh.rays.traversal import check_rays, intersect_triangle, trace_batch
 from jaxbvh.tree.cost import goldsmith_salmon_cost, ng_trifonov_cost, sah
 from jaxbvh.tree.layout import to_numpy
 from jaxbvh.wide.collapse import collapse as collapse_one
@@ -91,8 +93,7 @@ def trace(trees: TreeBatch, triangles, origin, direction, *, mode: str = "closes
         raise ValueError("trace: every mesh needs the same number of rays")
     out = [None] * trees.size
     for group in trees.groups:
-        singles = [group.tree(r, own=False) for r in range(len(group))]
-        capacity = max(stack_capacity(t) for t in singles)
+        capacity = STACK  # at least every tree's arity (binary trees)
         rows, _ = _padded_rows(len(group), len(devs))
         t = host_rows(group.trees, rows)
         dt = np.dtype(t.lo.dtype)

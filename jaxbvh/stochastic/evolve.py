@@ -73,7 +73,7 @@ from jaxbvh.configs import Checked, integer, knob, real
 from jaxbvh.numerics import TIE_TOLERANCE
 from jaxbvh.optimize.protocol import CompileClock, OptimizeResult, StepInfo, check_on_step
 from jaxbvh.program_store import stored_jit
-from jaxbvh.rays.measure import make_rays, stack_capacity, trace
+from jaxbvh.rays.measure import make_rays, trace
 
 
 def _max_children(name, value):
@@ -423,9 +423,8 @@ def ray_costs(key, trees, triangles, *, rays: int = 10000, mode: str = "any", ba
 
     trees = list(trees)
     origin, direction = make_rays(key, "random", trees[0], triangles, rays)
-    capacity = max(stack_capacity(tree) for tree in trees)  # one compile for all trees
     out = []
-    for tree in trees:
-        hits = trace(tree, triangles, origin, direction, mode=mode, batch=batch, capacity=capacity)
+    for tree in trees:  # the walk's fixed stack: one compiled program for every tree of a capacity
+        hits = trace(tree, triangles, origin, direction, mode=mode, batch=batch)
         out.append(float(np.mean(hits.box_tests.astype(np.float64) + hits.prim_tests)))
     return np.asarray(out)

@@ -293,3 +293,49 @@ def test_cpu_devices_are_fixed_once_jax_has_started():
     for bad in (0, -2, 1.5, True, "2"):
         with pytest.raises(ValueError, match="whole number"):
             batch.use_cpu_cores(bad)
+
+
+def test_batched_trace_of_a_tree_deeper_than_the_stack_equals_the_single_trace():
+    """A 99-deep chain (deeper than the walk's stack: its rays climb) beside a balanced
+    tree in one group: the batch traces both with the single trace's fixed stack, so every
+    hit and counter equals the single call's (a stack sized to the group's deepest tree
+    would count fewer box tests on the chain and compile a program per depth)."""
+    from jaxbvh.batch.layout import Group, TreeBatch
+    from jaxbvh.rays.stack_walk import STACK
+    from jaxbvh.tree.layout import capacity_bucket, depth, pad_to
+    from jaxbvh.tree.interchange import from_interchange
+
+    rng = np.random.default_rng(3)
+    n = 100
+    x = np.sort(rng.uniform(-1, 1, n)).astype(np.float32)
+    tri = np.zeros((n, 3, 3), np.float32)  # triangles across the x axis, in order along it
+    tri[:, :, 0] = x[:, None]
+    tri[:, 1, 1] = tri[:, 2, 2] = 1
+    box_lo, box_hi = tri.min(axis=1), tri.max(axis=1)
+    n_int = n - 1
+    child = np.full((2 * n - 1, 2), -1, np.int32)  # interior j: leaf of triangle j, interior j + 1
+    child[:n_int, 0] = n_int + np.arange(n_int)
+    child[:n_int, 1] = np.append(np.arange(1, n_int), 2 * n - 2)
+    node_lo = np.concatenate([[box_lo[j:].min(0) for j in range(n_int)], box_lo])
+    node_hi = np.concatenate([[box_hi[j:].max(0) for j in range(n_int)], box_hi])
+    chain = from_interchange(dict(child=child, prim_start=np.concatenate([np.zeros(n_int), np.arange(n)]).astype(np.int32),
+                                  prim_count=np.concatenate([np.zeros(n_int), np.ones(n)]).astype(np.int32),
+                                  prim_index=np.arange(n, dtype=np.int32), lo=node_lo, hi=node_hi, root=np.int32(0)))
+    jaxbvh.validate(chain, box_lo, box_hi)
+    assert int(np.max(depth(chain))) == n - 1 > STACK
+    balanced = jaxbvh.build(box_lo, box_hi)
+    slots = capacity_bucket(n)
+    padded = [jax.tree_util.tree_map(np.asarray, pad_to(t, 2 * slots, slots)) for t in (chain, balanced)]
+    stacked = jax.tree_util.tree_map(lambda *a: np.stack(a), *padded)
+    trees = TreeBatch((Group(stacked, np.arange(2), np.full(2, n, np.int64)),), 2)
+    # rays down the chain from +x: each level leaves its leaf pending (more than the stack holds)
+    origin = np.column_stack([np.full(40, 2.0), rng.uniform(0.05, 0.3, (40, 2))]).astype(np.float32)
+    direction = np.column_stack([-np.ones(40), rng.uniform(-0.01, 0.01, (40, 2))]).astype(np.float32)
+    deep = jaxbvh.rays.trace(chain, tri, origin, direction, capacity=n)
+    spilled = jaxbvh.rays.trace(chain, tri, origin, direction)
+    assert (spilled.box_tests > deep.box_tests).any()  # the rays do climb with the walk's stack
+    hits = batch.trace(trees, [tri, tri], [origin] * 2, [direction] * 2, rays_per_call=40)
+    for got, tree in zip(hits, (chain, balanced)):
+        want = jaxbvh.rays.trace(tree, tri, origin, direction)
+        for field in ("t", "prim", "box_tests", "prim_tests", "nodes_visited"):
+            np.testing.assert_array_equal(getattr(got, field), getattr(want, field), err_msg=field)
