@@ -6,7 +6,7 @@ import re
 
 import numpy as np
 import pytest
-from helpers import SHARED_DATA, canonical
+from helpers import CAPACITY, SHARED_DATA, canonical
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from strategies import box_sets
@@ -37,7 +37,7 @@ def test_capacity_bucket_refuses_a_minimum_that_cannot_grow():
 @given(data=box_sets(max_size=40), max_leaf=st.sampled_from([1, 3]), seed=st.integers(0, 2**31))
 def test_any_node_order_and_root_loads_to_the_same_tree(data, max_leaf, seed, tmp_path_factory):
     lo, hi = data
-    tree = jaxbvh.build(lo, hi, max_leaf=max_leaf)
+    tree = jaxbvh.build(lo, hi, max_leaf=max_leaf, capacity=CAPACITY)  # one program for every size
     rng = np.random.default_rng(seed)
     # node ids permuted and leaf runs moved in prim_index (the kit's renumber), and each
     # node's two children swapped half the time
