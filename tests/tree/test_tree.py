@@ -12,6 +12,8 @@ from hypothesis import strategies as st
 from strategies import box_sets
 
 import jaxbvh
+from jaxbvh.builders import topdown_reference
+from jaxbvh.builders.configs import SweepConfig
 from jaxbvh.testing.plugin import examples
 from jaxbvh.testing.trees import Choices, renumber
 from jaxbvh.tree import cost_reference as reference
@@ -209,8 +211,11 @@ def test_tinybvh_trees_load_validate_and_cost_what_tinybvh_says(name):
 
 @given(data=box_sets(max_size=30), extra=st.integers(0, 20))  # a compile per size: the profile's examples
 def test_padding_is_inert(data, extra):
+    """An unpadded tree of every drawn size, padded: the same costs, checks and tree. The
+    tree is the sweep builder's NumPy twin's (tests/builders hold it equal to the builder):
+    exactly sized, and no builder compile per size, only the costs' that this tests."""
     lo, hi = data
-    tree = jaxbvh.build(lo, hi, pad=False)
+    tree = jaxbvh.to_jax(topdown_reference.build(lo, hi, SweepConfig()))
     padded = jaxbvh.tree.pad_to(tree, tree.capacity + extra, lo.shape[0] + extra)
     jaxbvh.validate(padded, lo, hi)
     assert float(jaxbvh.sah(jaxbvh.to_jax(padded))) == float(jaxbvh.sah(tree))
