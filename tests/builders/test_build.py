@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import canonical, local_boxes
+from helpers import CAPACITY, canonical, local_boxes
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from strategies import box_sets, triangle_soups
@@ -20,11 +20,14 @@ from jaxbvh.numerics import scene_scale
 from jaxbvh.testing.plugin import examples
 
 
+# The properties build at the suite's one capacity (helpers.CAPACITY): one compiled
+# program per builder for every drawn size, shared with the other modules that build at
+# it; capacity buckets and a full capacity have tests of their own below.
 @settings(max_examples=examples(15))
 @given(tri=triangle_soups(), method=st.sampled_from(jaxbvh.BOX_BUILDERS), max_leaf=st.sampled_from([1, 2, 8]))
 def test_every_build_is_valid(tri, method, max_leaf):
     lo, hi = local_boxes(tri)
-    tree = jaxbvh.build(lo, hi, method=method, max_leaf=max_leaf, bins=8)
+    tree = jaxbvh.build(lo, hi, method=method, max_leaf=max_leaf, bins=8, capacity=CAPACITY)
     jaxbvh.validate(tree, lo, hi)
     t = jaxbvh.to_numpy(tree)
     leaf_sizes = t.prim_count[t.prim_count > 0]
@@ -37,7 +40,7 @@ def test_every_build_is_valid(tri, method, max_leaf):
        bins=st.sampled_from([4, 16]))
 def test_jax_builder_equals_reference(data, method, max_leaf, bins):
     lo, hi = data
-    got = jaxbvh.build(lo, hi, method=method, max_leaf=max_leaf, bins=bins)
+    got = jaxbvh.build(lo, hi, method=method, max_leaf=max_leaf, bins=bins, capacity=CAPACITY)
     want = reference.build(lo, hi, configs.make_config(method, max_leaf=max_leaf, bins=bins))
     jaxbvh.validate(want, lo, hi)
     assert canonical(got) == canonical(want)
@@ -47,7 +50,7 @@ def test_jax_builder_equals_reference(data, method, max_leaf, bins):
 @given(tri=triangle_soups(max_size=30), method=st.sampled_from(jaxbvh.BOX_BUILDERS))
 def test_jax_builder_equals_reference_on_extreme_soups(tri, method):
     lo, hi = local_boxes(tri)
-    got = jaxbvh.build(lo, hi, method=method, max_leaf=2, bins=8)
+    got = jaxbvh.build(lo, hi, method=method, max_leaf=2, bins=8, capacity=CAPACITY)
     want = reference.build(lo, hi, configs.make_config(method, max_leaf=2, bins=8))
     assert canonical(got) == canonical(want)
 
@@ -57,11 +60,25 @@ def test_jax_builder_equals_reference_on_extreme_soups(tri, method):
 def test_float64_builder_equals_reference(data, method):
     with jax.enable_x64(True):
         lo, hi = (a.astype(np.float64) for a in data)
-        got = jaxbvh.build(lo, hi, method=method, dtype=np.float64)
+        got = jaxbvh.build(lo, hi, method=method, dtype=np.float64, capacity=16)  # one program per builder
         assert got.lo.dtype == np.float64
         want = reference.build(lo, hi, configs.make_config(method))
         jaxbvh.validate(got, lo, hi)
         assert canonical(got) == canonical(want)
+
+
+@pytest.mark.parametrize("method", jaxbvh.BOX_BUILDERS)
+def test_a_full_capacity_equals_reference(method):
+    """Every slot real, none padding (the properties above always leave padding): the
+    suite's programs at CAPACITY, so this compiles nothing new."""
+    rng = np.random.default_rng(11)
+    lo = rng.uniform(-1, 1, (CAPACITY, 3)).astype(np.float32)
+    hi = lo + rng.uniform(0, 0.3, (CAPACITY, 3)).astype(np.float32)
+    got = jaxbvh.build(lo, hi, method=method, max_leaf=3, bins=4, capacity=CAPACITY)
+    assert got.prim_index.shape[0] == CAPACITY
+    want = reference.build(lo, hi, configs.make_config(method, max_leaf=3, bins=4))
+    jaxbvh.validate(got, lo, hi)
+    assert canonical(got) == canonical(want)
 
 
 def test_one_and_two_primitives():

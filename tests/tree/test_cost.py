@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax
 import numpy as np
 import pytest
+from helpers import CAPACITY
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from strategies import boxes, triangle_soups
@@ -19,10 +20,12 @@ FLOAT32_RTOL = 2e-5
 
 
 def built(tri, method="sweep", max_leaf=1, dtype=np.float32):
+    """The tree of ``tri`` (at most CAPACITY triangles) at the suite's one capacity: one
+    program per builder and one per cost for every drawn size."""
     lo, hi = boxes(tri)
     frame = Frame.fit(lo, hi)
     llo, lhi = frame.to_local(lo).astype(dtype), frame.to_local(hi).astype(dtype)
-    return jaxbvh.build(llo, lhi, method=method, max_leaf=max_leaf, dtype=dtype)
+    return jaxbvh.build(llo, lhi, method=method, max_leaf=max_leaf, dtype=dtype, capacity=CAPACITY)
 
 
 @settings(max_examples=examples(15))
@@ -47,7 +50,7 @@ def test_costs_equal_reference(tri, method, max_leaf, ct, ci):
 def test_float32_costs_hold_at_extreme_scales_without_a_frame(tri, exponent, offset):
     """Raw float32 coordinates at 1e+-30: areas neither overflow nor underflow."""
     lo, hi = boxes((tri + offset) * 10.0 ** exponent)
-    tree = jaxbvh.build(lo.astype(np.float32), hi.astype(np.float32))
+    tree = jaxbvh.build(lo.astype(np.float32), hi.astype(np.float32), capacity=CAPACITY)
     assert np.isfinite(float(jaxbvh.sah(tree)))
     np.testing.assert_allclose(float(jaxbvh.sah(tree)), reference.sah(tree), rtol=FLOAT32_RTOL)
 

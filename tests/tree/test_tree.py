@@ -6,12 +6,14 @@ import re
 
 import numpy as np
 import pytest
-from helpers import SHARED_DATA, canonical
+from helpers import CAPACITY, SHARED_DATA, canonical
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from strategies import box_sets
 
 import jaxbvh
+from jaxbvh.builders import topdown_reference
+from jaxbvh.builders.configs import SweepConfig
 from jaxbvh.testing.plugin import examples
 from jaxbvh.testing.trees import Choices, renumber
 from jaxbvh.tree import cost_reference as reference
@@ -37,7 +39,7 @@ def test_capacity_bucket_refuses_a_minimum_that_cannot_grow():
 @given(data=box_sets(max_size=40), max_leaf=st.sampled_from([1, 3]), seed=st.integers(0, 2**31))
 def test_any_node_order_and_root_loads_to_the_same_tree(data, max_leaf, seed, tmp_path_factory):
     lo, hi = data
-    tree = jaxbvh.build(lo, hi, max_leaf=max_leaf)
+    tree = jaxbvh.build(lo, hi, max_leaf=max_leaf, capacity=CAPACITY)  # one program for every size
     rng = np.random.default_rng(seed)
     # node ids permuted and leaf runs moved in prim_index (the kit's renumber), and each
     # node's two children swapped half the time
@@ -209,8 +211,11 @@ def test_tinybvh_trees_load_validate_and_cost_what_tinybvh_says(name):
 
 @given(data=box_sets(max_size=30), extra=st.integers(0, 20))  # a compile per size: the profile's examples
 def test_padding_is_inert(data, extra):
+    """An unpadded tree of every drawn size, padded: the same costs, checks and tree. The
+    tree is the sweep builder's NumPy twin's (tests/builders hold it equal to the builder):
+    exactly sized, and no builder compile per size, only the costs' that this tests."""
     lo, hi = data
-    tree = jaxbvh.build(lo, hi, pad=False)
+    tree = jaxbvh.to_jax(topdown_reference.build(lo, hi, SweepConfig()))
     padded = jaxbvh.tree.pad_to(tree, tree.capacity + extra, lo.shape[0] + extra)
     jaxbvh.validate(padded, lo, hi)
     assert float(jaxbvh.sah(jaxbvh.to_jax(padded))) == float(jaxbvh.sah(tree))
