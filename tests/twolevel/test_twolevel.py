@@ -729,7 +729,8 @@ def test_a_larger_array_size_cut_back_is_the_plain_top_level(mesh, size):
 
 def test_plain_and_rebraided_top_levels_share_one_program():
     """A scene whose BRef slots fall in a larger capacity bucket than its instances builds
-    both top levels with one compiled program (checked: two without the shared size)."""
+    both top levels with one compiled program (two before: one per array size,
+    bench/results/bench_compile_sbvh_twolevel.md)."""
     mesh = scenes.instanced_scene(jax.random.key(3), [small_tree(3)], 5, spread=0.3)
     trees = fm.build_objects(mesh)
     slots = twolevel.slots_of(mesh, 0.1, budget=4.0)
@@ -745,8 +746,8 @@ def test_plain_and_rebraided_top_levels_share_one_program():
 
 def test_objects_of_nearby_sizes_share_one_builder_program():
     """Objects of 22 and 30 triangles (capacity buckets 24 and 32) are built by one
-    compiled builder program, each tree equal to the one built at its own size (checked:
-    two programs without the shared capacity)."""
+    compiled builder program, each tree equal to the one built at its own size (two
+    programs before: one per capacity bucket)."""
     from jaxbvh.builders import topdown
     small, large = small_tree(1), scenes.tree_mesh(jax.random.key(2), levels=1, branches=3, sides=3, leaves=1)
     mesh = scenes.instanced_scene(jax.random.key(5), [small, large], 3)
