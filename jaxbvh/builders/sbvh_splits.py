@@ -182,73 +182,50 @@ def piece_chunk(refs: int, bins: int) -> int:
 
 
 def _on_axis(axis, coords):
-    """The coordinate on ``axis`` [P] of points given as coordinates ``coords`` [3, P]."""
+    """The coordinate on ``axis`` [P] of a point given as three coordinate arrays [P]."""
     return jnp.where(axis == 0, coords[0], jnp.where(axis == 1, coords[1], coords[2]))
-
-
-def _coordinate_rows(axis):
-    """[3, P] bool: row ``c`` marks the entries whose ``axis`` [P] is ``c``."""
-    return axis[None, :] == jnp.arange(3, dtype=jnp.int32)[:, None]
-
-
-def _crossing_boxes(v_i, v_j, a_i, a_j, plane, on_axis):
-    """Where edge ``v_i -> v_j`` ([3, P] coordinates; ``a_i``, ``a_j`` [P] its ends on
-    the split axis) strictly crosses ``plane`` [P]: ``(crosses [P], x_lo, x_hi [3, P])``,
-    the widened crossing point (on the axis, ``on_axis`` [3, P], exactly the plane).
-
-    All three coordinates at once on [3, P] rows (a leading axis of 3, not a trailing
-    one: written coordinate by coordinate, the edges' crossings were a third of the
-    level's StableHLO ops). The denominator is given its full [3, P] shape
-    (:func:`jaxbvh.builders.sbvh_rules._full`): XLA turns a division by a broadcast
-    value into a multiplication by its reciprocal, which rounds differently from the
-    twin's division."""
-    dt = plane.dtype
-    crosses = ((a_i < plane) & (a_j > plane)) | ((a_i > plane) & (a_j < plane))
-    denominator = rules._full(jnp, jnp.where(crosses, a_j - a_i, jnp.ones((), dt))[None, :], v_i)
-    x = rules.crossing_coordinate(v_i, v_j, a_i[None, :], plane[None, :], denominator)
-    margin = rules.clip_margin(v_i, v_j)
-    inf = jnp.asarray(jnp.inf, dt)
-    x_lo = jnp.where(crosses[None, :], jnp.where(on_axis, plane[None, :], x - margin), inf)
-    x_hi = jnp.where(crosses[None, :], jnp.where(on_axis, plane[None, :], x + margin), -inf)
-    return crosses, x_lo, x_hi
 
 
 def _piece_boxes(v, ref_lo, ref_hi, axis, node_lo_a, ext_a, b1, b, valid, bins):
     """What piece ``b`` (a reference's part in spatial bin ``b`` of ``axis``) adds to the
-    bins' boxes: ``(corner_lo, corner_hi, cross_lo, cross_hi)``, [3, P] each (coordinate
-    rows, one entry per piece). ``corner_*``: the box of its corners clamped to its box
-    that fall in ``b``, for bin ``b``; ``cross_*``: the clamped crossing of plane ``b +
-    1`` where its box spans it (``b < b1``), for both bins beside that plane. Bin ``b``'s
-    box (the twin's ``_bin_boxes`` for one reference and one bin) is then the corners in
-    it with the crossings of planes ``b`` and ``b + 1``: each plane's crossing is
-    computed once, by the piece below it (computing both planes per piece cost nearly
-    twice the search). ``v`` [3, 3, P]: vertex, coordinate, piece; ``ref_lo``,
-    ``ref_hi`` [3, P].
+    bins' boxes: ``(corner_lo, corner_hi, cross_lo, cross_hi)``, three coordinate arrays
+    [P] each (one entry per piece). ``corner_*``: the box of its corners clamped to its
+    box that fall in ``b``, for bin ``b``; ``cross_*``: the clamped crossing of plane
+    ``b + 1`` where its box spans it (``b < b1``), for both bins beside that plane.
+    Bin ``b``'s box (the twin's ``_bin_boxes`` for one reference and one bin) is then
+    the corners in it with the crossings of planes ``b`` and ``b + 1``: each plane's
+    crossing is computed once, by the piece below it (computing both planes per piece
+    cost nearly twice the search). ``v[k][c]``: vertex ``k``'s coordinate ``c``;
+    ``ref_lo[c]``, ``ref_hi[c]``.
 
-    Coordinates on the rows of [3, P] arrays, with no concatenation or shift: XLA on CPU
-    runs arrays with a trailing axis of 3, and fusions that mix elements, many times
-    slower (:func:`spatial_split` shifts the crossings by one lane only after they are
-    held in memory).
+    Written coordinate by coordinate on flat arrays, with no concatenation or shift:
+    XLA on CPU runs arrays with a trailing axis of 3, and fusions that mix elements,
+    many times slower (:func:`spatial_split` shifts the crossings by one lane only
+    after they are held in memory).
     """
-    dt = ref_lo.dtype
+    dt = ref_lo[0].dtype
     inf = jnp.asarray(jnp.inf, dt)
-    corner = [jnp.clip(v[k], ref_lo, ref_hi) for k in range(3)]
-    lo, hi = inf, -inf
+    corner = [[jnp.clip(v[k][c], ref_lo[c], ref_hi[c]) for c in range(3)] for k in range(3)]
+    lo, hi = [inf] * 3, [-inf] * 3
     for k in range(3):
-        inside = (valid & (rules.bin_of(_on_axis(axis, corner[k]), node_lo_a, ext_a, bins) == b))[None, :]
-        lo = jnp.minimum(lo, jnp.where(inside, corner[k], inf))
-        hi = jnp.maximum(hi, jnp.where(inside, corner[k], -inf))
+        inside = valid & (rules.bin_of(_on_axis(axis, corner[k]), node_lo_a, ext_a, bins) == b)
+        lo = [jnp.minimum(lo[c], jnp.where(inside, corner[k][c], inf)) for c in range(3)]
+        hi = [jnp.maximum(hi[c], jnp.where(inside, corner[k][c], -inf)) for c in range(3)]
     a = [_on_axis(axis, v[k]) for k in range(3)]  # the vertices on the split axis
     p = rules.plane_at(node_lo_a, ext_a, b + 1, bins)
-    on_axis = _coordinate_rows(axis)
-    x_lo, x_hi, crossed = inf, -inf, jnp.zeros(p.shape, bool)
+    x_lo, x_hi, crossed = [inf] * 3, [-inf] * 3, jnp.zeros(p.shape, bool)
     for i, k in rules.EDGES:
-        crosses, edge_lo, edge_hi = _crossing_boxes(v[i], v[k], a[i], a[k], p, on_axis)
+        crosses = ((a[i] < p) & (a[k] > p)) | ((a[i] > p) & (a[k] < p))
+        denominator = jnp.where(crosses, a[k] - a[i], jnp.ones((), dt))
         crossed = crossed | crosses
-        x_lo, x_hi = jnp.minimum(x_lo, edge_lo), jnp.maximum(x_hi, edge_hi)
-    used = (valid & (b < b1) & crossed)[None, :]
-    cross_lo = jnp.where(used, jnp.clip(x_lo, ref_lo, ref_hi), inf)
-    cross_hi = jnp.where(used, jnp.clip(x_hi, ref_lo, ref_hi), -inf)
+        for c in range(3):
+            x = rules.crossing_coordinate(v[i][c], v[k][c], a[i], p, denominator)
+            margin = rules.clip_margin(v[i][c], v[k][c])
+            x_lo[c] = jnp.minimum(x_lo[c], jnp.where(crosses, jnp.where(axis == c, p, x - margin), inf))
+            x_hi[c] = jnp.maximum(x_hi[c], jnp.where(crosses, jnp.where(axis == c, p, x + margin), -inf))
+    used = valid & (b < b1) & crossed
+    cross_lo = [jnp.where(used, jnp.clip(x_lo[c], ref_lo[c], ref_hi[c]), inf) for c in range(3)]
+    cross_hi = [jnp.where(used, jnp.clip(x_hi[c], ref_lo[c], ref_hi[c]), -inf) for c in range(3)]
     return lo, hi, cross_lo, cross_hi
 
 
@@ -302,30 +279,33 @@ def spatial_split(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
         b = b0_p + p - (ends[owner] - width[owner])
         seg_p = seg[r]
         prim = jnp.clip(ref_prim[r], 0, tri_columns.shape[1] - 1)
-        v = tri_columns[:, prim].reshape(3, 3, -1)  # [vertex, coordinate, piece]
-        piece_lo, piece_hi, x_lo, x_hi = _piece_boxes(v, lo_columns[:, r], hi_columns[:, r], axis,
-                                                      lo_r.ravel()[owner], ext_r.ravel()[owner], b1_p, b, valid,
-                                                      bins_r[r])
+        corners = [column[prim] for column in tri_columns]  # gathered column by column
+        piece_lo, piece_hi = [column[r] for column in lo_columns], [column[r] for column in hi_columns]
+        v = [corners[3 * k: 3 * k + 3] for k in range(3)]
+        piece_lo, piece_hi, x_lo, x_hi = _piece_boxes(v, piece_lo, piece_hi, axis, lo_r.ravel()[owner],
+                                                      ext_r.ravel()[owner], b1_p, b, valid, bins_r[r])
         # the crossings held in memory once: each is read by its own lane and the next
         x_lo, x_hi = jax.lax.optimization_barrier((x_lo, x_hi))
-        below = (b > b0_p)[None, 1:]  # the previous lane is this pair's piece in bin b - 1
+        below = (b > b0_p)[1:]  # the previous lane is this pair's piece in bin b - 1
         inf = jnp.asarray(jnp.inf, dt)
-        lo = jnp.minimum(jnp.minimum(piece_lo[:, 1:], x_lo[:, 1:]), jnp.where(below, x_lo[:, :-1], inf))
-        hi = jnp.maximum(jnp.maximum(piece_hi[:, 1:], x_hi[:, 1:]), jnp.where(below, x_hi[:, :-1], -inf))
+        lo = [jnp.minimum(jnp.minimum(c[1:], x[1:]), jnp.where(below, x[:-1], inf)) for c, x in zip(piece_lo, x_lo)]
+        hi = [jnp.maximum(jnp.maximum(c[1:], x[1:]), jnp.where(below, x[:-1], -inf)) for c, x in zip(piece_hi, x_hi)]
         key = jnp.where(valid, cell_key(b, seg_p, axis, slots), cells)[1:]  # cells: dropped
-        return box_lo.at[:, key].min(lo, mode="drop"), box_hi.at[:, key].max(hi, mode="drop")
+        box_lo = [c.at[key].min(x, mode="drop") for c, x in zip(box_lo, lo)]
+        box_hi = [c.at[key].max(x, mode="drop") for c, x in zip(box_hi, hi)]
+        return box_lo, box_hi
 
-    inf = jnp.full((3, cells), jnp.inf, dt)  # a row per coordinate
+    inf = jnp.full(cells, jnp.inf, dt)
     # at most ceil(3 R B / chunk) steps: the pieces are at most 3 R B
-    box_lo, box_hi = jax.lax.fori_loop(0, (total + chunk - 1) // chunk, step, (inf, -inf))
+    box_lo, box_hi = jax.lax.fori_loop(0, (total + chunk - 1) // chunk, step, ([inf] * 3, [-inf] * 3))
     # entries and exits: one per live reference and axis, counted outside the piece loop
     axes = jnp.arange(3, dtype=jnp.int32)[None, :]
     ones = jnp.ones(3 * refs, jnp.int32)
     counts = [segment(jax.ops.segment_sum, ones, jnp.where(live[:, None], cell_key(b, seg[:, None], axes, slots),
                                                             cells).ravel(), cells).reshape(bins, slots, 3)
               for b in (b0, b1)]
-    box_lo = list(box_lo.reshape(3, bins, slots, 3))
-    box_hi = list(box_hi.reshape(3, bins, slots, 3))
+    box_lo = [c.reshape(bins, slots, 3) for c in box_lo]
+    box_hi = [c.reshape(bins, slots, 3) for c in box_hi]
     return sweep_bins(counts, box_lo, box_hi, (ext > 0) & tried[:, None], scale, bins, count), Bins(b0, b1)
 
 
@@ -343,27 +323,38 @@ class Sides(NamedTuple):
 def _halfspace_boxes(v, ref_lo, ref_hi, axis, plane):
     """Boxes of the parts of triangles below and above ``plane`` [M] on ``axis`` [M]
     (the plane included in both), intersected with the reference boxes: ``(lo_l, hi_l,
-    lo_r, hi_r)``, each [3, M] (a row per coordinate); ``lo > hi`` somewhere when empty.
-    ``v`` [3, 3, M]: vertex, coordinate, reference; ``ref_lo``, ``ref_hi`` [3, M].
+    lo_r, hi_r)``, each three coordinate arrays [M]; ``lo > hi`` somewhere when empty.
+    ``v[k][c]``: vertex ``k``'s coordinate ``c`` [M]; ``ref_lo[c]``, ``ref_hi[c]`` [M].
 
-    :func:`jaxbvh.builders.sbvh_rules.halfspace_box` for both sides at once, on
-    coordinate rows (the crossings are found once for both sides; arrays with a trailing
-    axis of 3 ran several times slower on XLA's CPU backend).
+    :func:`jaxbvh.builders.sbvh_rules.halfspace_box` for both sides at once, coordinate
+    by coordinate on flat arrays (the crossings are found once for both sides; arrays
+    with a trailing axis of 3 ran several times slower on XLA's CPU backend).
     """
     dt = plane.dtype
     inf = jnp.asarray(jnp.inf, dt)
     a = [_on_axis(axis, v[k]) for k in range(3)]
-    lo_l, hi_l, lo_r, hi_r = inf, -inf, inf, -inf
+    lo_l, hi_l, lo_r, hi_r = [inf] * 3, [-inf] * 3, [inf] * 3, [-inf] * 3
     for k in range(3):  # the corners on each side (the plane included)
-        below, above = (a[k] <= plane)[None, :], (a[k] >= plane)[None, :]
-        lo_l, hi_l = jnp.minimum(lo_l, jnp.where(below, v[k], inf)), jnp.maximum(hi_l, jnp.where(below, v[k], -inf))
-        lo_r, hi_r = jnp.minimum(lo_r, jnp.where(above, v[k], inf)), jnp.maximum(hi_r, jnp.where(above, v[k], -inf))
-    on_axis = _coordinate_rows(axis)
+        below, above = a[k] <= plane, a[k] >= plane
+        lo_l = [jnp.minimum(lo_l[c], jnp.where(below, v[k][c], inf)) for c in range(3)]
+        hi_l = [jnp.maximum(hi_l[c], jnp.where(below, v[k][c], -inf)) for c in range(3)]
+        lo_r = [jnp.minimum(lo_r[c], jnp.where(above, v[k][c], inf)) for c in range(3)]
+        hi_r = [jnp.maximum(hi_r[c], jnp.where(above, v[k][c], -inf)) for c in range(3)]
     for i, k in rules.EDGES:  # the widened crossings, on both sides
-        _, x_lo, x_hi = _crossing_boxes(v[i], v[k], a[i], a[k], plane, on_axis)
-        lo_l, lo_r = jnp.minimum(lo_l, x_lo), jnp.minimum(lo_r, x_lo)
-        hi_l, hi_r = jnp.maximum(hi_l, x_hi), jnp.maximum(hi_r, x_hi)
-    return jnp.maximum(lo_l, ref_lo), jnp.minimum(hi_l, ref_hi), jnp.maximum(lo_r, ref_lo), jnp.minimum(hi_r, ref_hi)
+        crosses = ((a[i] < plane) & (a[k] > plane)) | ((a[i] > plane) & (a[k] < plane))
+        denominator = jnp.where(crosses, a[k] - a[i], jnp.ones((), dt))
+        for c in range(3):
+            x = rules.crossing_coordinate(v[i][c], v[k][c], a[i], plane, denominator)
+            margin = rules.clip_margin(v[i][c], v[k][c])
+            x_lo = jnp.where(crosses, jnp.where(axis == c, plane, x - margin), inf)
+            x_hi = jnp.where(crosses, jnp.where(axis == c, plane, x + margin), -inf)
+            lo_l[c], lo_r[c] = jnp.minimum(lo_l[c], x_lo), jnp.minimum(lo_r[c], x_lo)
+            hi_l[c], hi_r[c] = jnp.maximum(hi_l[c], x_hi), jnp.maximum(hi_r[c], x_hi)
+
+    def clamp(lo, hi):
+        return [jnp.maximum(lo[c], ref_lo[c]) for c in range(3)], [jnp.minimum(hi[c], ref_hi[c]) for c in range(3)]
+
+    return (*clamp(lo_l, hi_l), *clamp(lo_r, hi_r))
 
 
 def spatial_sides(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, split: Split, ref_bins: Bins,
@@ -384,9 +375,10 @@ def spatial_sides(tri_columns, ref_prim, ref_lo, ref_hi, seg, node_lo, node_hi, 
     ext_a = jnp.take_along_axis(take(node_hi - node_lo, seg, 0), axis_r[:, None], axis=1)[:, 0]
     plane = rules.plane_at(node_lo_a, ext_a, k_r + 1, take(node_bins, seg, bins))
     prim = jnp.clip(ref_prim, 0, tri_columns.shape[1] - 1)
-    v = tri_columns[:, prim].reshape(3, 3, -1)  # [vertex, coordinate, reference]
-    boxes = _halfspace_boxes(v, ref_lo.T, ref_hi.T, axis_r, plane)
-    lo_l, hi_l, lo_r, hi_r = (rows.T for rows in boxes)  # [R, 3] each
+    corners = [column[prim] for column in tri_columns]
+    v = [corners[3 * k: 3 * k + 3] for k in range(3)]
+    boxes = _halfspace_boxes(v, list(ref_lo.T), list(ref_hi.T), axis_r, plane)
+    lo_l, hi_l, lo_r, hi_r = (jnp.stack(coords, axis=1) for coords in boxes)  # [R, 3] each
     forced_right = straddle & jnp.any(lo_l > hi_l, axis=1)
     forced_left = straddle & jnp.any(lo_r > hi_r, axis=1) & ~forced_right
     # the paper's unsplitting: each straddler priced against the split's totals
