@@ -344,7 +344,8 @@ def build_object(vertices, faces, placement: Placement, builder: BuilderConfig |
 def build_objects(mesh, builder: BuilderConfig | None = None, *, dtype=None, world_space=True, only=None,
                   **options) -> dict[int, ObjectTree]:
     """:func:`build_object` for every object of ``mesh`` (or the ids in ``only``), with
-    ``builder`` (or the keyword form, :func:`object_builder`) and ``dtype``."""
+    ``builder`` (or the keyword form, :func:`object_builder`) and ``dtype``, all padded to
+    one capacity where :func:`shared_capacity` allows (one compiled builder program)."""
     builder = object_builder(builder, **options)
     where = placements(mesh, world_space)
     ids = list(range(len(mesh.objects)) if only is None else only)
