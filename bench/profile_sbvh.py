@@ -63,7 +63,7 @@ def profile(name, args):
     t = jnp.asarray(tri_p)
     scene = eng._Scene(t, t.reshape(refs, 9).T, jnp.float32(scale), jnp.float32(threshold), jnp.int32(args.max_leaf),
                        jnp.float32(1), jnp.float32(1))
-    state = eng._initial(scene, n)
+    state = jax.device_put(eng._initial(np.asarray(t), n))
     live = eng.live_slots(refs)
     programs = eng.level_programs(refs)
 

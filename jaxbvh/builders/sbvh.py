@@ -177,9 +177,10 @@ def build_sbvh(triangles, config: SBVHConfig | None = None, *, capacity: int | N
     threshold = dt.type(config.alpha) * half_area(lo.min(0), hi.max(0), scale)
     tri_p = np.zeros((slots, 3, 3), dt)  # padding triangles are never read: no reference names them
     tri_p[:n] = tri
-    built = engine(jnp.asarray(tri_p), jnp.int32(n), jnp.int32(config.max_leaf), jnp.asarray(config.ct, dt),
-                   jnp.asarray(config.ci, dt), jnp.asarray(scale, dt), jnp.asarray(threshold, dt), bins=config.bins,
-                   spatial_bins=config.spatial_bins)
+    # NumPy values: the engine moves them to the device (a jnp scalar made here compiled
+    # a program of its own)
+    built = engine(tri_p, n, np.int32(config.max_leaf), dt.type(config.ct), dt.type(config.ci), dt.type(scale),
+                   dt.type(threshold), bins=config.bins, spatial_bins=config.spatial_bins)
     return built._replace(tree=widen_back(built.tree, frame))
 
 
@@ -217,21 +218,24 @@ class _State(NamedTuple):
     short: Any        # bool: a spatial split was refused for want of slots
 
 
-def _initial(scene: _Scene, n) -> _State:
-    slots = scene.tri.shape[0]
+def _initial(tri: np.ndarray, n: int) -> _State:
+    """The state before the first level (root open, every triangle a reference), NumPy:
+    made on the host and moved to the device, not compiled (issue 38: it was a program
+    of its own, ~1 s of XLA on a first call)."""
+    slots = tri.shape[0]
     nodes = 2 * slots
-    dt = scene.tri.dtype
-    used = jnp.arange(slots) < n
-    ints = jnp.full(nodes, -1, jnp.int32)
+    dt = tri.dtype
+    used = np.arange(slots) < n
+    ints = np.full(nodes, -1, np.int32)
     return _State(
-        ref_prim=jnp.where(used, jnp.arange(slots, dtype=jnp.int32), -1),
-        ref_lo=jnp.where(used[:, None], scene.tri.min(1), jnp.inf),
-        ref_hi=jnp.where(used[:, None], scene.tri.max(1), -jnp.inf),
-        ref_node=jnp.where(used, 0, nodes).astype(jnp.int32), n_refs=jnp.asarray(n, jnp.int32),
-        left=ints, right=ints, parent=ints, axis=ints,
-        lo=jnp.full((nodes, 3), jnp.inf, dt), hi=jnp.full((nodes, 3), -jnp.inf, dt),
-        prim_count=jnp.zeros(nodes, jnp.int32), level_start=jnp.int32(0), next_free=jnp.int32(1),
-        spatial=jnp.int32(0), short=jnp.asarray(False))
+        ref_prim=np.where(used, np.arange(slots, dtype=np.int32), np.int32(-1)),
+        ref_lo=np.where(used[:, None], tri.min(1), np.inf).astype(dt),
+        ref_hi=np.where(used[:, None], tri.max(1), -np.inf).astype(dt),
+        ref_node=np.where(used, 0, nodes).astype(np.int32), n_refs=np.int32(n),
+        left=ints, right=ints.copy(), parent=ints.copy(), axis=ints.copy(),
+        lo=np.full((nodes, 3), np.inf, dt), hi=np.full((nodes, 3), -np.inf, dt),
+        prim_count=np.zeros(nodes, np.int32), level_start=np.int32(0), next_free=np.int32(1),
+        spatial=np.int32(0), short=np.bool_(False))
 
 
 def _no_spatial(slots, dt):
@@ -379,21 +383,26 @@ def _level(scene: _Scene, s: _State, *, bins: int, spatial_bins: int, slots: int
 
 
 def _tree(s: _State) -> BVH:
-    """The BVH of a finished state: each leaf's references one contiguous run, leaves in node order."""
+    """The BVH of a finished state (NumPy arrays): each leaf's references one contiguous
+    run, leaves in node order. On the host: a stable sort and a prefix sum, not worth a
+    compiled program (issue 38)."""
     nodes = s.left.shape[0]
-    order = jnp.argsort(s.ref_node, stable=True)  # free slots (node 2 R) last
-    prim_start = (jnp.cumsum(s.prim_count) - s.prim_count).astype(jnp.int32)
+    ref_node = np.asarray(s.ref_node)
+    prim_count = np.asarray(s.prim_count)
+    order = np.argsort(ref_node, kind="stable")  # free slots (node 2 R) last
+    prim_start = (np.cumsum(prim_count) - prim_count).astype(np.int32)
     return BVH(left=s.left, right=s.right, parent=s.parent, lo=s.lo, hi=s.hi,
-               prim_start=jnp.where(s.prim_count > 0, prim_start, 0), prim_count=s.prim_count, axis=s.axis,
-               prim_index=jnp.where(s.ref_node[order] < nodes, s.ref_prim[order], -1), root=jnp.int32(0))
+               prim_start=np.where(prim_count > 0, prim_start, np.int32(0)), prim_count=prim_count, axis=s.axis,
+               prim_index=np.where(ref_node[order] < nodes, np.asarray(s.ref_prim)[order], np.int32(-1)),
+               root=np.int32(0))
 
 
 def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int, spatial_bins: int) -> SBVHBuild:
     """The level-synchronous SBVH on prepared inputs (:func:`build_sbvh` makes them).
 
-    ``tri`` [R, 3, 3]: the triangles in their first ``n`` rows, R the reference slots;
-    ``max_leaf`` int32; ``ct``, ``ci``, ``scale``, ``threshold``: scalars in ``tri``'s
-    dtype; ``bins`` and ``spatial_bins`` (the object split's bins, the spatial split's
+    ``tri`` [R, 3, 3]: the triangles in their first ``n`` rows, R the reference slots
+    (NumPy or JAX); ``n`` int; ``max_leaf`` int32; ``ct``, ``ci``, ``scale``,
+    ``threshold``: scalars in ``tri``'s dtype; ``bins`` and ``spatial_bins`` (the object split's bins, the spatial split's
     most) static. Returns an :class:`SBVHBuild`.
 
     Driven from the host in runs of levels (:func:`_levels`), one run a loop over the
@@ -402,33 +411,28 @@ def engine(tri, n, max_leaf, ct, ci, scale, threshold, *, bins: int, spatial_bin
     compiles no other). Each level runs in the first program that holds it, so the
     trees do not depend on how the levels are grouped into runs.
     """
-    scene, state = _start(tri, n, max_leaf, ct, ci, scale, threshold)
-    programs = level_programs(tri.shape[0])
-    for _ in range(2 * tri.shape[0] + 1):  # a run takes at least one level; a tree of R slots has fewer
-        open_nodes, in_level = (int(x) for x in _size(state))  # waits for the run before
+    slots = tri.shape[0]
+    tri_host = np.asarray(tri)
+    # the scene and the first state made on the host and moved to the device, the sizes
+    # of each next level read from the run before: no compiled program but the levels'
+    scene = jax.device_put(_Scene(tri_host, tri_host.reshape(slots, 9).T.copy(), scale, threshold, max_leaf, ct,
+                                  ci))
+    state = jax.device_put(_initial(tri_host, int(n)))
+    open_nodes, in_level = 1, int(n)
+    programs = level_programs(slots)
+    for _ in range(2 * slots + 1):  # a run takes at least one level; a tree of R slots has fewer
         if open_nodes == 0:
-            return _finish(state)
+            s = jax.device_get(state)
+            return SBVHBuild(jax.device_put(_tree(s)), s.n_refs, s.spatial, s.short)
         program = _fitting(open_nodes, in_level, programs).index(True)
-        state = _levels(scene, state, bins=bins, spatial_bins=spatial_bins, program=program)
-    raise RuntimeError(f"SBVH engine: levels still open after {2 * tri.shape[0] + 1} runs (a bug: please report)")
+        state, size = _levels(scene, state, bins=bins, spatial_bins=spatial_bins, program=program)
+        open_nodes, in_level = (int(x) for x in size)  # waits for the run
+    raise RuntimeError(f"SBVH engine: levels still open after {2 * slots + 1} runs (a bug: please report)")
 
 
-@stored_jit
-def _start(tri, n, max_leaf, ct, ci, scale, threshold) -> tuple[_Scene, _State]:
-    """The scene and the state before the first level (root open, every triangle a reference)."""
-    scene = _Scene(tri, tri.reshape(tri.shape[0], 9).T, scale, threshold, max_leaf, ct, ci)
-    return scene, _initial(scene, n)
-
-
-@stored_jit
 def _size(s: _State):
     """The level's open nodes and references (int32 each)."""
     return s.next_free - s.level_start, jnp.sum(_in_level(s), dtype=jnp.int32)
-
-
-@stored_jit
-def _finish(s: _State) -> SBVHBuild:
-    return SBVHBuild(_tree(s), s.n_refs, s.spatial, s.short)
 
 
 def _fitting(open_nodes, in_level, programs) -> list:
@@ -444,9 +448,10 @@ def _fits(s: _State, programs) -> Any:
 
 
 @partial(stored_jit, static_argnames=("bins", "spatial_bins", "program"))
-def _levels(scene: _Scene, state: _State, *, bins: int, spatial_bins: int, program: int) -> _State:
+def _levels(scene: _Scene, state: _State, *, bins: int, spatial_bins: int, program: int):
     """Levels from ``state`` on, in program ``program`` of :func:`level_programs`, while
-    the tree is not finished and that program is the first that holds the level."""
+    the tree is not finished and that program is the first that holds the level:
+    ``(state, (open nodes, references))`` of the level after them (the host's next pick)."""
     programs = level_programs(scene.tri.shape[0])
     slots, live = programs[program]
     cheaper = programs[:program]
@@ -456,7 +461,8 @@ def _levels(scene: _Scene, state: _State, *, bins: int, spatial_bins: int, progr
         return here & ~jnp.any(_fits(s, cheaper)) if cheaper else here
 
     level = partial(_level, scene, bins=bins, spatial_bins=spatial_bins, slots=slots, live=live)
-    return jax.lax.while_loop(more, level, state)
+    state = jax.lax.while_loop(more, level, state)
+    return state, _size(state)
 
 
 #: reference slots up to which the engine compiles one level program (all R slots)

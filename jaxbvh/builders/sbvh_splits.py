@@ -107,8 +107,9 @@ def sweep_bins(count, box_lo, box_hi, usable, scale, bins: int, most=None) -> Sp
     def side(values, op, fill, mask):  # [B, F, 3] -> [F], over the bins of one side
         return op(jnp.where(mask, rows(values)[:, column], fill), axis=0)
 
-    def box(coords, op, fill, mask):
-        return jnp.stack([side(c, op, fill, mask) for c in coords], axis=1)
+    def box(coords, op, fill, mask):  # three [B, F, 3] -> [F, 3], the coordinates at once
+        stacked = jnp.stack(coords).reshape(3, bins, slots * 3)[:, :, column]  # [3, B, F]
+        return op(jnp.where(mask[None], stacked, fill), axis=1).T
 
     inf = jnp.asarray(jnp.inf, dt)
     return Split(best, axis, plane, box(box_lo, jnp.min, inf, left), box(box_hi, jnp.max, -inf, left),

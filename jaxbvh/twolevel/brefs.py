@@ -227,12 +227,38 @@ def launch_top_level(forest, instances, n_instances: int, *, threshold: float = 
     if n_instances < 1:
         raise ValueError("a top level needs at least one instance")
     slots = brefs_capacity(n_instances, threshold, budget, capacity)
-    cap = max(capacity_bucket(slots), array_size or 0)
+    cap = array_size_of(slots, array_size)
     dtype = np.asarray(forest.lo).dtype
     return build_levels(jax.tree_util.tree_map(jnp.asarray, without_triangles(forest)),
                         jax.tree_util.tree_map(jnp.asarray, instances), jnp.int32(n_instances),
                         jnp.int32(slots), jnp.asarray(threshold, dtype), jnp.asarray(overlap, dtype),
                         jnp.int32(rounds), cap=cap, bins=int(bins), estimate=bool(estimate))
+
+
+def array_size_of(slots: int, array_size: int | None = None) -> int:
+    """The size of a top-level build's arrays for ``slots`` BRef slots: their capacity
+    bucket, or ``array_size`` where that is larger (:func:`build_top_level`)."""
+    return max(capacity_bucket(slots), array_size or 0)
+
+
+def cut_to(result: TopLevel, cap: int) -> TopLevel:
+    """``result`` (a finished :class:`TopLevel` read to the host) with arrays of size
+    ``cap`` (node arrays ``2 cap``): the result the build at array size ``cap`` returns,
+    when it has at most ``cap`` BRefs (``ValueError`` otherwise). A larger array size
+    changes nothing but the padding: nodes are numbered level by level from the root and
+    BRefs compacted in array order, so the first ``2 cap`` nodes and ``cap`` BRefs are
+    the same."""
+    if int(result.count) > cap:
+        raise ValueError(f"cut_to: {int(result.count)} BRefs do not fit {cap} slots")
+    nodes = lambda x: np.asarray(x)[:2 * cap]  # noqa: E731
+    brefs = lambda x: np.asarray(x)[:cap]  # noqa: E731
+    t = result.top
+    top = BVH(left=nodes(t.left), right=nodes(t.right), parent=nodes(t.parent), lo=nodes(t.lo), hi=nodes(t.hi),
+              prim_start=nodes(t.prim_start), prim_count=nodes(t.prim_count), axis=nodes(t.axis),
+              prim_index=brefs(t.prim_index), root=t.root)
+    return dataclasses.replace(result, top=top, node=brefs(result.node), instance=brefs(result.instance),
+                               lo=brefs(result.lo), hi=brefs(result.hi), prims=brefs(result.prims),
+                               position=brefs(result.position))
 
 
 def finished(result: TopLevel) -> TopLevel:

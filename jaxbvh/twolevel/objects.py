@@ -311,13 +311,15 @@ def _dtype(builder: BuilderConfig, dtype) -> np.dtype:
 
 
 def build_object(vertices, faces, placement: Placement, builder: BuilderConfig | None = None, *,
-                 dtype=None, **options) -> ObjectTree:
+                 dtype=None, capacity: int | None = None, **options) -> ObjectTree:
     """BVH of one object's triangles where ``placement`` says (validated, padding stripped).
 
     ``builder``: the builder Config (None: :data:`DEFAULT_BUILDER`; or the keyword form,
     :func:`object_builder`);
     ``dtype``: float32 or float64 (needs x64) for the triangles and boxes (None: the
-    builder's, float32 unless it says float64).
+    builder's, float32 unless it says float64); ``capacity``: primitive slots the
+    builder pads to (``jaxbvh.build``'s; None: its capacity bucket). The tree does not
+    depend on it (padding is stripped), only which compiled program builds it.
     """
     builder = object_builder(builder, **options)
     dtype = _dtype(builder, dtype)
@@ -327,7 +329,7 @@ def build_object(vertices, faces, placement: Placement, builder: BuilderConfig |
         vertices = vertices @ t[:3, :3].T + t[:3, 3]
     tri = placement.frame.to_local(vertices[faces]).astype(dtype)
     lo, hi = tri.min(axis=1), tri.max(axis=1)
-    tree = to_numpy(build(lo, hi, builder.replace(dtype=dtype)))
+    tree = to_numpy(build(lo, hi, builder.replace(dtype=dtype), capacity=capacity))
     # the builder numbers nodes level by level from 0: real nodes are a prefix
     real = int(np.count_nonzero((tree.left >= 0) | (tree.prim_count > 0)))
     n = lo.shape[0]
@@ -342,17 +344,39 @@ def build_object(vertices, faces, placement: Placement, builder: BuilderConfig |
 def build_objects(mesh, builder: BuilderConfig | None = None, *, dtype=None, world_space=True, only=None,
                   **options) -> dict[int, ObjectTree]:
     """:func:`build_object` for every object of ``mesh`` (or the ids in ``only``), with
-    ``builder`` (or the keyword form, :func:`object_builder`) and ``dtype``."""
+    ``builder`` (or the keyword form, :func:`object_builder`) and ``dtype``, all padded to
+    one capacity where :func:`shared_capacity` allows (one compiled builder program)."""
     builder = object_builder(builder, **options)
     where = placements(mesh, world_space)
-    ids = range(len(mesh.objects)) if only is None else only
-    out = {}
+    ids = list(range(len(mesh.objects)) if only is None else only)
     for obj in ids:
-        vertices, faces = mesh.objects[obj]
-        if faces.shape[0] == 0:
+        if mesh.objects[obj][1].shape[0] == 0:
             raise ValueError(f"object {obj} of {mesh.name} has no triangles")
-        out[obj] = build_object(vertices, faces, where[obj], builder, dtype=dtype)
-    return out
+    capacity = shared_capacity([mesh.objects[obj][1].shape[0] for obj in ids], builder)
+    return {obj: build_object(*mesh.objects[obj], where[obj], builder, dtype=dtype, capacity=capacity)
+            for obj in ids}
+
+
+#: objects share one builder program when padding them all to the largest one's bucket
+#: at most doubles their slots in all (:func:`shared_capacity`)
+SHARED_PADDING = 2.0
+
+
+def shared_capacity(sizes, builder: BuilderConfig) -> int | None:
+    """The primitive slots the objects of ``sizes`` (triangles per object) are built
+    with: the capacity bucket of the largest, so that one compiled builder program
+    builds them all (issue 38: a by-material spot's eight objects of 615-949 triangles
+    fell in two buckets, two programs of ~860 StableHLO ops, ~9 CPU-s of XLA each), as
+    long as that at most doubles their slots in all (:data:`SHARED_PADDING`: a scene of
+    one large object and many small ones would pay in run time, a build per object at
+    the large size, more than the compiles it saves). None (each object its own bucket)
+    otherwise, or when the builder does not pad (``pad=False``). The trees do not depend
+    on it."""
+    if not sizes or not builder.pad:
+        return None
+    shared = capacity_bucket(max(sizes))
+    own = sum(capacity_bucket(n) for n in sizes)
+    return shared if shared * len(sizes) <= SHARED_PADDING * own else None
 
 
 def subtree_prims(tree) -> np.ndarray:

@@ -210,8 +210,15 @@ def _build_from(mesh, trees, config: RebraidConfig, capacity, shapes, report):
         opens = not math.isinf(threshold) and slots > n  # no spare slot: nothing can open
         braided = _brefs.launch_top_level(nodes, placed, n, threshold=threshold, capacity=slots,
                                           **top) if opens else None
-        plain = _brefs.launch_top_level(nodes, placed, n, threshold=math.inf, **top)
+        # the plain top level runs in the re-braided one's program (its arrays sized for
+        # the re-braided BRefs; the extra slots stay padding) and is cut back to its own
+        # size: one top-level program compiled per scene, not two (issue 38: each is
+        # ~2,000 StableHLO ops, ~10 CPU-s of XLA on a by-material spot)
+        plain_size = _brefs.array_size_of(n, top["array_size"])
+        shared = dict(top, array_size=_brefs.array_size_of(slots, top["array_size"])) if opens else top
+        plain = _brefs.launch_top_level(nodes, placed, n, threshold=math.inf, **shared)
         plain, braided = jax.device_get((_brefs.finished(plain), braided and _brefs.finished(braided)))
+        plain = _brefs.cut_to(plain, plain_size)
         result, kept = plain, "two-level"
         if opens:
             braided = _same_root_box(braided, plain)

@@ -218,7 +218,9 @@ def finish(tree, kept, anchor, slot, arity, table, *, leaf_count=None, leaf_star
         t, kept, anchor, slot, t.prim_count if leaf_count is None else leaf_count,
         t.prim_start if leaf_start is None else leaf_start,
         t.prim_index if prim_index is None else prim_index, table, ci, arity=arity)
-    skip = None if merged else (t.left >= 0) & ~kept
+    # on the host: as three eager JAX ops it compiled three tiny programs on a first call
+    # (~0.3 s of XLA each, issue 38)
+    skip = None if merged else jnp.asarray((np.asarray(t.left) >= 0) & ~np.asarray(kept))
     return CollapseResult(tree=wide, kept=kept, skip=skip, rcost=after, rcost_before=before,
                           leaf_cost=leaves_after, leaf_cost_before=leaves_before, objective=objective)
 

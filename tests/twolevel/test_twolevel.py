@@ -704,3 +704,69 @@ def testforest_depths_refuses_cyclic_links():
     cyclic = types.SimpleNamespace(left=np.array([1, 0, -1]), right=np.array([2, -1, -1]), root=np.array([0]))
     with pytest.raises(ValueError, match="cycle"):
         forest_depths(cyclic)
+
+
+# ----------------------------------------------------------------------------------
+# Compiled programs (issue 38): one top-level program and one builder program a scene
+# ----------------------------------------------------------------------------------
+
+
+@settings(max_examples=examples(6))
+@given(mesh=st.one_of(forest_scenes(), material_scenes()), size=st.sampled_from([16, 48]))
+def test_a_larger_array_size_cut_back_is_the_plain_top_level(mesh, size):
+    """The plain top level built at a larger array size (the re-braided one's program) and
+    cut back to its own size equals the build at its own size, array by array."""
+    trees = fm.build_objects(mesh)
+    forest, inst = fm.pack(mesh, trees)
+    n = len(mesh.instances)
+    own = jaxbvh.to_numpy(brefs.build_top_level(forest, inst, n, threshold=math.inf))
+    cap = own.node.shape[0]
+    big = brefs.cut_to(jax.device_get(brefs.build_top_level(forest, inst, n, threshold=math.inf,
+                                                            array_size=cap + size)), cap)
+    for got, want in zip(jax.tree_util.tree_leaves(big), jax.tree_util.tree_leaves(own)):
+        np.testing.assert_array_equal(got, want)
+
+
+def test_plain_and_rebraided_top_levels_share_one_program():
+    """A scene whose BRef slots fall in a larger capacity bucket than its instances builds
+    both top levels with one compiled program (two before: one per array size,
+    bench/results/bench_compile_sbvh_twolevel.md)."""
+    mesh = scenes.instanced_scene(jax.random.key(3), [small_tree(3)], 5, spread=0.3)
+    trees = fm.build_objects(mesh)
+    slots = twolevel.slots_of(mesh, 0.1, budget=4.0)
+    assert brefs.array_size_of(slots) > brefs.array_size_of(len(mesh.instances))
+    brefs.build_levels.clear_cache()
+    result = twolevel.run_from(mesh, trees, threshold=0.1, budget=4.0)
+    assert brefs.build_levels._cache_size() == 1
+    plain = twolevel.build_from(mesh, trees, threshold=math.inf)
+    if result.kept == "two-level":  # the plain top level, cut back: as built alone
+        for got, want in zip(jax.tree_util.tree_leaves(result.tree.top), jax.tree_util.tree_leaves(plain.top)):
+            np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+
+
+def test_objects_of_nearby_sizes_share_one_builder_program():
+    """Objects of 22 and 30 triangles (capacity buckets 24 and 32) are built by one
+    compiled builder program, each tree equal to the one built at its own size (two
+    programs before: one per capacity bucket)."""
+    from jaxbvh.builders import topdown
+    small, large = small_tree(1), scenes.tree_mesh(jax.random.key(2), levels=1, branches=3, sides=3, leaves=1)
+    mesh = scenes.instanced_scene(jax.random.key(5), [small, large], 3)
+    sizes = [faces.shape[0] for _, faces in mesh.objects]
+    assert len({fm.capacity_bucket(n) for n in sizes}) == 2, sizes
+    topdown.engine.clear_cache()
+    trees = fm.build_objects(mesh)
+    assert topdown.engine._cache_size() == 1
+    where = fm.placements(mesh)
+    for obj, (vertices, faces) in enumerate(mesh.objects):
+        alone = fm.build_object(vertices, faces, where[obj])
+        for got, want in zip(jax.tree_util.tree_leaves(trees[obj].tree), jax.tree_util.tree_leaves(alone.tree)):
+            np.testing.assert_array_equal(got, want)
+
+
+def test_objects_of_very_different_sizes_keep_their_own_capacity():
+    """Padding a small object to a large one's bucket past SHARED_PADDING is refused
+    (one large object and many small ones would pay in run time)."""
+    config = fm.DEFAULT_BUILDER
+    assert fm.shared_capacity([615, 742, 949], config) == fm.capacity_bucket(949)
+    assert fm.shared_capacity([10_000] + [12] * 50, config) is None
+    assert fm.shared_capacity([615, 949], config.replace(pad=False)) is None
