@@ -42,6 +42,7 @@ no twin of its own.
 from __future__ import annotations
 
 import dataclasses
+from functools import partial
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -51,6 +52,7 @@ import numpy as np
 from jaxbvh.configs import Checked, ci_knob, config_of, ct_knob, integer, knob, max_leaf_knob, optional, real, split_axes_knob
 from jaxbvh.optimize import reinsert, treelet
 from jaxbvh.optimize.leaves import merge_leaves
+from jaxbvh.optimize.driver import advance as driver_advance
 from jaxbvh.optimize.driver import run
 from jaxbvh.optimize.protocol import (
     Optimizer,
@@ -227,12 +229,16 @@ def _settle(inner: Inner, sah, params: Params, static: Static):
     return jax.lax.while_loop(cond, body, (inner, jnp.bool_(False), jnp.bool_(False)))
 
 
-@stored_jit
-def _settle_at_init(state: OptimizerState) -> OptimizerState:
+def _settled(state: OptimizerState) -> OptimizerState:
+    """``state`` with the next stage started while the current one is done (``step``'s
+    last part; at ``init``, it passes over stages with nothing to do)."""
     inner, finished, converged = _settle(state.inner, state.progress.sah, state.params, state.static)
     progress = state.progress._replace(done=state.progress.done | finished, converged=converged,
                                        stage=inner.stage)
     return state.replace(inner=inner, progress=progress)
+
+
+_settle_at_init = stored_jit(_settled)
 
 
 # ----------------------------------------------------------------------------------
@@ -292,6 +298,74 @@ def step(state: OptimizerState) -> OptimizerState:
     return keep_if_done(state, state.replace(inner=new, progress=progress))
 
 
+# ----------------------------------------------------------------------------------
+# The host loop over stages (what the driver runs for one tree)
+# ----------------------------------------------------------------------------------
+#
+# Why: ``step`` holds both stages' steps and every hand-over in one program, the
+# largest the library compiled (9,239 StableHLO ops on spot: about the treelet loop's
+# plus the reinsertion loop's; bench/results/opt_program_anatomy.md). On the host, each
+# stage runs in its own optimizer's compiled loop (driver.advance of treelet.step or
+# reinsert.step: the same programs as those optimizers', where shapes agree), and one
+# small program per stage records the steps it ran and starts the next stage. A stage
+# is one to tens of passes, so the host steps in between cost nothing measurable; the
+# state after any number of steps is the one the loop of ``step`` reaches (tested).
+
+
+@partial(stored_jit, static_argnums=3)
+def _absorb(state: OptimizerState, sub: OptimizerState, first, stage: int) -> OptimizerState:
+    """``state`` after its current stage (``stage``) ran from its step ``first`` to the
+    state ``sub``: each of those steps recorded as :func:`step` records it, then the
+    next stage started if ``sub`` is done (:func:`_settled`)."""
+    progress = state.progress
+    done_steps = sub.progress.step - first  # steps the stage ran
+    at = jnp.arange(sub.progress.history.shape[0], dtype=jnp.int32)
+    ran = (at >= first) & (at < sub.progress.step)
+    # the stage's j-th step is the pipeline's (step + j - first)-th; the rest dropped
+    to = jnp.where(ran, progress.step + at - first, progress.history.shape[0])
+    step_moves = jnp.where(ran, sub.progress.history_moves, 0)
+    steps = progress.step + done_steps
+    recorded = progress._replace(
+        step=steps, stage=jnp.int32(stage), sah=sub.progress.sah.astype(progress.sah.dtype),
+        moves=progress.moves + jnp.sum(step_moves, dtype=jnp.int32), converged=jnp.bool_(False),
+        done=steps >= progress.limit,
+        history=progress.history.at[to].set(sub.progress.history.astype(progress.history.dtype), mode="drop"),
+        history_moves=progress.history_moves.at[to].set(sub.progress.history_moves, mode="drop"),
+        history_stage=progress.history_stage.at[to].set(jnp.int32(stage), mode="drop"))
+    progress = jax.tree_util.tree_map(lambda new, old: jnp.where(done_steps > 0, new, old), recorded, progress)
+    inner = state.inner._replace(**{STAGES[stage]: sub})
+    return _settled(state.replace(inner=inner, progress=progress))
+
+
+_STAGE_OPTIMIZERS = {TREELETS: treelet.TREELET, REINSERTION: reinsert.REINSERT}
+
+
+def advance(state: OptimizerState, stop: int) -> OptimizerState:
+    """Steps until the state is done or ``stop`` steps in all, stage by stage on the host
+    (the loop of :func:`step` gives the same state); ``stop`` at or below the steps run:
+    none, but every program compiled (:class:`~jaxbvh.optimize.protocol.Optimizer`)."""
+    progress = jax.device_get((state.progress.step, state.progress.done, state.progress.stage,
+                               state.progress.limit))
+    steps, done, stage, limit = (int(x) for x in progress)
+    if stop <= steps:  # compile (or load) both stages' loops and their hand-overs
+        for index, name in enumerate(STAGES):
+            sub = getattr(state.inner, name)
+            first = sub.progress.step
+            ran = driver_advance(_STAGE_OPTIMIZERS[index].step, sub, first)
+            jax.block_until_ready(_absorb(state, ran, first, index))
+        return state
+    while not done and steps < stop:
+        sub = getattr(state.inner, STAGES[stage])
+        first = int(sub.progress.step)
+        # as many stage steps as the pipeline has left (its own limit included)
+        sub_stop = first + min(stop, limit) - steps
+        ran = driver_advance(_STAGE_OPTIMIZERS[stage].step, sub, jnp.int32(sub_stop))
+        state = _absorb(state, ran, jnp.int32(first), stage)
+        steps, done, stage = (int(x) for x in jax.device_get(
+            (state.progress.step, state.progress.done, state.progress.stage)))
+    return state
+
+
 def result(state: OptimizerState) -> OptimizeResult:
     """The optimized tree (same capacity as the input), its leaves merged where that
     pays (``max_leaf``), and the run's figures.
@@ -309,7 +383,7 @@ def result(state: OptimizerState) -> OptimizeResult:
 
 
 PIPELINE = Optimizer("pipeline", Config, init, step, result, stages=STAGES,
-                     paper="Karras & Aila 2013 and Meister & Bittner 2018, in rounds")
+                     paper="Karras & Aila 2013 and Meister & Bittner 2018, in rounds", advance=advance)
 
 
 def pipeline(tree, *, time_budget: float | None = None, on_step: Callable | None = None,
