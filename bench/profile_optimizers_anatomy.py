@@ -132,9 +132,17 @@ def programs_of(method: str, tree):
     config = make_config(method, None, **FIRST_PASS[method])
     state = opt.init(tree, config, None)
     stop = jnp.int32(0)
-    return [("advance", lambda s, n: driver._advance(opt.step, s, n), (state, stop)),
-            ("step", opt.step, (state,)),
-            ("finish", opt.result, (state,))]
+    out = [("step loop", lambda s, n: driver._advance(opt.step, s, n), (state, stop))]
+    if opt.advance is not None:  # the pipeline: what its host loop runs instead
+        from jaxbvh.optimize import pipeline
+        for index, name in enumerate(pipeline.STAGES):
+            sub = getattr(state.inner, name)
+            step = pipeline._STAGE_OPTIMIZERS[index].step
+            out.append((f"{name} stage loop", lambda s, n, step=step: driver._advance(step, s, n), (sub, stop)))
+            out.append((f"{name} absorb", lambda s, t, f, index=index: pipeline._absorb.fun(s, t, f, index),
+                        (state, sub, stop)))
+        out.append(("settle", pipeline._settled, (state,)))
+    return out + [("finish", opt.result, (state,))]
 
 
 def main(argv=None):

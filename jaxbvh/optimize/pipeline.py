@@ -182,7 +182,8 @@ class Inner(NamedTuple):
 
 def _start_reinsertion(inner: Inner, params: Params, static: Static) -> Inner:
     """The reinsertion stage, started from the treelet stage's tree."""
-    tree = treelet.result(inner.treelet).tree
+    # the stages' configs never assign split axes (Config): their trees as result() gives them
+    tree = treelet.tree_of(inner.treelet)
     sub = inner.reinsert
     need = jnp.where(inner.round == 0, params.need_first, params.need_later)
     sub = reinsert.restart(sub.params._replace(need=need), tree, static.reinsert_limit)
@@ -191,7 +192,7 @@ def _start_reinsertion(inner: Inner, params: Params, static: Static) -> Inner:
 
 def _start_round(inner: Inner, sah, static: Static) -> Inner:
     """The next round's treelet stage, started from the reinsertion stage's tree."""
-    tree = reinsert.result(inner.reinsert).tree
+    tree = reinsert.tree_of(inner.reinsert)
     # traceable: it reads nothing on the host; the treelets that the last treelet stage
     # found optimal and that no reinsertion move changed are not solved again
     sub = treelet.resume(inner.treelet, tree, static.treelet)
@@ -238,6 +239,7 @@ def _settled(state: OptimizerState) -> OptimizerState:
     return state.replace(inner=inner, progress=progress)
 
 
+#: :func:`_settled` as one program: at ``init``, and after each stage run on the host
 _settle_at_init = stored_jit(_settled)
 
 
@@ -315,8 +317,8 @@ def step(state: OptimizerState) -> OptimizerState:
 @partial(stored_jit, static_argnums=3)
 def _absorb(state: OptimizerState, sub: OptimizerState, first, stage: int) -> OptimizerState:
     """``state`` after its current stage (``stage``) ran from its step ``first`` to the
-    state ``sub``: each of those steps recorded as :func:`step` records it, then the
-    next stage started if ``sub`` is done (:func:`_settled`)."""
+    state ``sub``: each of those steps recorded as :func:`step` records it (the next
+    stage is started apart, by :data:`_settle_at_init`: one program for both stages)."""
     progress = state.progress
     done_steps = sub.progress.step - first  # steps the stage ran
     at = jnp.arange(sub.progress.history.shape[0], dtype=jnp.int32)
@@ -333,8 +335,7 @@ def _absorb(state: OptimizerState, sub: OptimizerState, first, stage: int) -> Op
         history_moves=progress.history_moves.at[to].set(sub.progress.history_moves, mode="drop"),
         history_stage=progress.history_stage.at[to].set(jnp.int32(stage), mode="drop"))
     progress = jax.tree_util.tree_map(lambda new, old: jnp.where(done_steps > 0, new, old), recorded, progress)
-    inner = state.inner._replace(**{STAGES[stage]: sub})
-    return _settled(state.replace(inner=inner, progress=progress))
+    return state.replace(inner=state.inner._replace(**{STAGES[stage]: sub}), progress=progress)
 
 
 _STAGE_OPTIMIZERS = {TREELETS: treelet.TREELET, REINSERTION: reinsert.REINSERT}
@@ -353,6 +354,7 @@ def advance(state: OptimizerState, stop: int) -> OptimizerState:
             first = sub.progress.step
             ran = driver_advance(_STAGE_OPTIMIZERS[index].step, sub, first)
             jax.block_until_ready(_absorb(state, ran, first, index))
+        jax.block_until_ready(_settle_at_init(state))
         return state
     while not done and steps < stop:
         sub = getattr(state.inner, STAGES[stage])
@@ -360,7 +362,7 @@ def advance(state: OptimizerState, stop: int) -> OptimizerState:
         # as many stage steps as the pipeline has left (its own limit included)
         sub_stop = first + min(stop, limit) - steps
         ran = driver_advance(_STAGE_OPTIMIZERS[stage].step, sub, jnp.int32(sub_stop))
-        state = _absorb(state, ran, jnp.int32(first), stage)
+        state = _settle_at_init(_absorb(state, ran, jnp.int32(first), stage))
         steps, done, stage = (int(x) for x in jax.device_get(
             (state.progress.step, state.progress.done, state.progress.stage)))
     return state
@@ -374,8 +376,8 @@ def result(state: OptimizerState) -> OptimizeResult:
     holds the tree the previous one ended with).
     """
     inner = state.inner
-    out = jax.lax.cond(inner.stage == TREELETS, lambda i: treelet.result(i.treelet).tree,
-                       lambda i: reinsert.result(i.reinsert).tree, inner)
+    out = jax.lax.cond(inner.stage == TREELETS, lambda i: treelet.tree_of(i.treelet),
+                       lambda i: reinsert.tree_of(i.reinsert), inner)
     out = merge_leaves(out, state.params.max_leaf, state.params.ct, state.params.ci)
     out = jax.lax.cond(state.params.split_axes, apply_split_axes, lambda t: t, out)
     progress = state.progress._replace(sah=sah_of(out, state.params.ct, state.params.ci))

@@ -279,7 +279,7 @@ def test_pipeline_host_loop_is_the_loop_of_its_step(options):
     from jaxbvh.optimize import driver
     from jaxbvh.optimize.protocol import CompileClock
 
-    tree, plo, phi = random_tree(24, 70, 1)
+    tree, plo, phi = random_tree(24, 60, 1)
     config = make_config("pipeline", None, split_axes=False, **options)
     start = pipeline.init(tree, config)
     expected = driver.advance(pipeline.step, start, np.int32(np.iinfo(np.int32).max))
