@@ -2,7 +2,9 @@
 
 :func:`run` takes any :class:`~jaxbvh.optimize.protocol.Optimizer`: ``init``, then
 ``step`` in a compiled ``while_loop`` (:func:`advance`) until the state is done, then
-``result``. With no callback and no budget the whole run is one compiled call. With
+``result``; an optimizer with a host ``advance`` of its own (the pipeline: one compiled
+loop per stage) runs through that instead (:func:`run_steps`). With no callback and no
+budget the whole run is one call. With
 ``on_step(info)`` or ``time_budget`` it runs in *chunks* of steps (one step first, then
 doubling while a chunk takes under :data:`CHUNK_SECONDS`, up to :data:`MAX_CHUNK`): the
 host reads the progress after each chunk, calls ``on_step`` once per step with a

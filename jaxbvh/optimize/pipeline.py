@@ -34,7 +34,10 @@ that has nothing to do (two-leaf treelets, ``ct = 0``) is passed over at once; a
 round's treelet stage starts with :func:`jaxbvh.optimize.treelet.resume`, so the treelets
 the last stage found optimal and no reinsertion move changed are not solved again (speed
 only: the same trees). A round
-ends when its reinsertion stage is done. Each stage is held equal to its NumPy twin, and
+ends when its reinsertion stage is done. For one tree the driver does not compile that
+``step`` (both stages in one program, the largest the library had): :func:`advance` runs
+each stage in its own optimizer's compiled loop and hands over on the host, reaching the
+same state (tested); batches vmap ``step``. Each stage is held equal to its NumPy twin, and
 the pipeline equal to the stages chained by hand (``tests/optimize/test_optimize.py``), so it has
 no twin of its own.
 """
@@ -345,26 +348,29 @@ def advance(state: OptimizerState, stop: int) -> OptimizerState:
     """Steps until the state is done or ``stop`` steps in all, stage by stage on the host
     (the loop of :func:`step` gives the same state); ``stop`` at or below the steps run:
     none, but every program compiled (:class:`~jaxbvh.optimize.protocol.Optimizer`)."""
-    progress = jax.device_get((state.progress.step, state.progress.done, state.progress.stage,
-                               state.progress.limit))
-    steps, done, stage, limit = (int(x) for x in progress)
+
+    def position(state):  # one read from the device per stage
+        p, inner = state.progress, state.inner
+        return (int(x) for x in jax.device_get((p.step, p.done, p.stage, p.limit, inner.treelet.progress.step,
+                                                 inner.reinsert.progress.step)))
+
+    steps, done, stage, limit, *firsts = position(state)
     if stop <= steps:  # compile (or load) both stages' loops and their hand-overs
         for index, name in enumerate(STAGES):
             sub = getattr(state.inner, name)
-            first = sub.progress.step
+            first = jnp.int32(firsts[index])
             ran = driver_advance(_STAGE_OPTIMIZERS[index].step, sub, first)
             jax.block_until_ready(_absorb(state, ran, first, index))
         jax.block_until_ready(_settle_at_init(state))
         return state
     while not done and steps < stop:
         sub = getattr(state.inner, STAGES[stage])
-        first = int(sub.progress.step)
+        first = firsts[stage]
         # as many stage steps as the pipeline has left (its own limit included)
         sub_stop = first + min(stop, limit) - steps
         ran = driver_advance(_STAGE_OPTIMIZERS[stage].step, sub, jnp.int32(sub_stop))
         state = _settle_at_init(_absorb(state, ran, jnp.int32(first), stage))
-        steps, done, stage = (int(x) for x in jax.device_get(
-            (state.progress.step, state.progress.done, state.progress.stage)))
+        steps, done, stage, limit, *firsts = position(state)
     return state
 
 
