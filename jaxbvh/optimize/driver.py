@@ -2,7 +2,9 @@
 
 :func:`run` takes any :class:`~jaxbvh.optimize.protocol.Optimizer`: ``init``, then
 ``step`` in a compiled ``while_loop`` (:func:`advance`) until the state is done, then
-``result``. With no callback and no budget the whole run is one compiled call. With
+``result``; an optimizer with a host ``advance`` of its own (the pipeline: one compiled
+loop per stage) runs through that instead (:func:`run_steps`). With no callback and no
+budget the whole run is one call. With
 ``on_step(info)`` or ``time_budget`` it runs in *chunks* of steps (one step first, then
 doubling while a chunk takes under :data:`CHUNK_SECONDS`, up to :data:`MAX_CHUNK`): the
 host reads the progress after each chunk, calls ``on_step`` once per step with a
@@ -99,6 +101,18 @@ def _advance(step: Callable, state: OptimizerState, stop) -> OptimizerState:
 #: function and state shape)
 advance = stored_jit(_advance, static_argnums=0)
 
+_NO_STOP = int(np.iinfo(np.int32).max)
+
+
+def run_steps(optimizer, state: OptimizerState, stop: int) -> OptimizerState:
+    """``optimizer``'s steps on one state until it is done or ``stop`` steps in all: its
+    own host ``advance`` where it has one (:class:`~jaxbvh.optimize.protocol.Optimizer`),
+    else ``step`` in the compiled loop :data:`advance`."""
+    stop = min(int(stop), _NO_STOP)
+    if optimizer.advance is not None:
+        return optimizer.advance(state, stop)
+    return advance(optimizer.step, state, jnp.int32(stop))
+
 
 @partial(stored_jit, static_argnums=0)
 def finish(result: Callable, state: OptimizerState):
@@ -129,7 +143,7 @@ def run(optimizer, tree, config=None, *, key=None, time_budget: float | None = N
     compile_seconds = time.perf_counter() - clock
     budget.start()  # the search's clock: init and compiling are reported apart
     if on_step is None and time_budget is None:  # one call to the end
-        state = advance(optimizer.step, state, jnp.int32(np.iinfo(np.int32).max))
+        state = run_steps(optimizer, state, _NO_STOP)
     else:
         state = drive(optimizer, state, budget=budget, on_step=on_step, trace=trace, clock=clock)
     out = jax.device_get(finish(optimizer.result, state))
@@ -143,7 +157,7 @@ def compile_loop(optimizer, state: OptimizerState) -> float:
     shapes and settings, by running zero steps of them; returns the seconds it took,
     ``init`` excluded (about 0 when this process has compiled them already)."""
     started = time.perf_counter()
-    jax.block_until_ready(advance(optimizer.step, state, jnp.int32(0)))
+    jax.block_until_ready(run_steps(optimizer, state, 0))
     jax.block_until_ready(finish(optimizer.result, state))
     return time.perf_counter() - started
 
@@ -159,7 +173,7 @@ def drive(optimizer, state: OptimizerState, *, budget: TimeBudget, on_step: Call
     done_steps, chunk = int(state.progress.step), 1
     while True:
         started = time.perf_counter()
-        state = advance(optimizer.step, state, jnp.int32(done_steps + chunk))
+        state = run_steps(optimizer, state, done_steps + chunk)
         # whole (small) arrays to the host: slicing on the device would compile a program
         # per slice shape
         progress = jax.device_get(state.progress)

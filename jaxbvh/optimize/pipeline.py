@@ -34,7 +34,10 @@ that has nothing to do (two-leaf treelets, ``ct = 0``) is passed over at once; a
 round's treelet stage starts with :func:`jaxbvh.optimize.treelet.resume`, so the treelets
 the last stage found optimal and no reinsertion move changed are not solved again (speed
 only: the same trees). A round
-ends when its reinsertion stage is done. Each stage is held equal to its NumPy twin, and
+ends when its reinsertion stage is done. For one tree the driver does not compile that
+``step`` (both stages in one program, the largest the library had): :func:`advance` runs
+each stage in its own optimizer's compiled loop and hands over on the host, reaching the
+same state (tested); batches vmap ``step``. Each stage is held equal to its NumPy twin, and
 the pipeline equal to the stages chained by hand (``tests/optimize/test_optimize.py``), so it has
 no twin of its own.
 """
@@ -42,6 +45,7 @@ no twin of its own.
 from __future__ import annotations
 
 import dataclasses
+from functools import partial
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -51,6 +55,7 @@ import numpy as np
 from jaxbvh.configs import Checked, ci_knob, config_of, ct_knob, integer, knob, max_leaf_knob, optional, real, split_axes_knob
 from jaxbvh.optimize import reinsert, treelet
 from jaxbvh.optimize.leaves import merge_leaves
+from jaxbvh.optimize.driver import advance as driver_advance
 from jaxbvh.optimize.driver import run
 from jaxbvh.optimize.protocol import (
     Optimizer,
@@ -180,7 +185,8 @@ class Inner(NamedTuple):
 
 def _start_reinsertion(inner: Inner, params: Params, static: Static) -> Inner:
     """The reinsertion stage, started from the treelet stage's tree."""
-    tree = treelet.result(inner.treelet).tree
+    # the stages' configs never assign split axes (Config): their trees as result() gives them
+    tree = treelet.tree_of(inner.treelet)
     sub = inner.reinsert
     need = jnp.where(inner.round == 0, params.need_first, params.need_later)
     sub = reinsert.restart(sub.params._replace(need=need), tree, static.reinsert_limit)
@@ -189,7 +195,7 @@ def _start_reinsertion(inner: Inner, params: Params, static: Static) -> Inner:
 
 def _start_round(inner: Inner, sah, static: Static) -> Inner:
     """The next round's treelet stage, started from the reinsertion stage's tree."""
-    tree = reinsert.result(inner.reinsert).tree
+    tree = reinsert.tree_of(inner.reinsert)
     # traceable: it reads nothing on the host; the treelets that the last treelet stage
     # found optimal and that no reinsertion move changed are not solved again
     sub = treelet.resume(inner.treelet, tree, static.treelet)
@@ -227,12 +233,17 @@ def _settle(inner: Inner, sah, params: Params, static: Static):
     return jax.lax.while_loop(cond, body, (inner, jnp.bool_(False), jnp.bool_(False)))
 
 
-@stored_jit
-def _settle_at_init(state: OptimizerState) -> OptimizerState:
+def _settled(state: OptimizerState) -> OptimizerState:
+    """``state`` with the next stage started while the current one is done (``step``'s
+    last part; at ``init``, it passes over stages with nothing to do)."""
     inner, finished, converged = _settle(state.inner, state.progress.sah, state.params, state.static)
     progress = state.progress._replace(done=state.progress.done | finished, converged=converged,
                                        stage=inner.stage)
     return state.replace(inner=inner, progress=progress)
+
+
+#: :func:`_settled` as one program: at ``init``, and after each stage run on the host
+_settle_at_init = stored_jit(_settled)
 
 
 # ----------------------------------------------------------------------------------
@@ -292,6 +303,77 @@ def step(state: OptimizerState) -> OptimizerState:
     return keep_if_done(state, state.replace(inner=new, progress=progress))
 
 
+# ----------------------------------------------------------------------------------
+# The host loop over stages (what the driver runs for one tree)
+# ----------------------------------------------------------------------------------
+#
+# Why: ``step`` holds both stages' steps and every hand-over in one program, the
+# largest the library compiled (9,239 StableHLO ops on spot: about the treelet loop's
+# plus the reinsertion loop's; bench/results/opt_program_anatomy.md). On the host, each
+# stage runs in its own optimizer's compiled loop (driver.advance of treelet.step or
+# reinsert.step: the same programs as those optimizers', where shapes agree), and one
+# small program per stage records the steps it ran and starts the next stage. A stage
+# is one to tens of passes, so the host steps in between cost nothing measurable; the
+# state after any number of steps is the one the loop of ``step`` reaches (tested).
+
+
+@partial(stored_jit, static_argnums=3)
+def _absorb(state: OptimizerState, sub: OptimizerState, first, stage: int) -> OptimizerState:
+    """``state`` after its current stage (``stage``) ran from its step ``first`` to the
+    state ``sub``: each of those steps recorded as :func:`step` records it (the next
+    stage is started apart, by :data:`_settle_at_init`: one program for both stages)."""
+    progress = state.progress
+    done_steps = sub.progress.step - first  # steps the stage ran
+    at = jnp.arange(sub.progress.history.shape[0], dtype=jnp.int32)
+    ran = (at >= first) & (at < sub.progress.step)
+    # the stage's j-th step is the pipeline's (step + j - first)-th; the rest dropped
+    to = jnp.where(ran, progress.step + at - first, progress.history.shape[0])
+    step_moves = jnp.where(ran, sub.progress.history_moves, 0)
+    steps = progress.step + done_steps
+    recorded = progress._replace(
+        step=steps, stage=jnp.int32(stage), sah=sub.progress.sah.astype(progress.sah.dtype),
+        moves=progress.moves + jnp.sum(step_moves, dtype=jnp.int32), converged=jnp.bool_(False),
+        done=steps >= progress.limit,
+        history=progress.history.at[to].set(sub.progress.history.astype(progress.history.dtype), mode="drop"),
+        history_moves=progress.history_moves.at[to].set(sub.progress.history_moves, mode="drop"),
+        history_stage=progress.history_stage.at[to].set(jnp.int32(stage), mode="drop"))
+    progress = jax.tree_util.tree_map(lambda new, old: jnp.where(done_steps > 0, new, old), recorded, progress)
+    return state.replace(inner=state.inner._replace(**{STAGES[stage]: sub}), progress=progress)
+
+
+_STAGE_OPTIMIZERS = {TREELETS: treelet.TREELET, REINSERTION: reinsert.REINSERT}
+
+
+def advance(state: OptimizerState, stop: int) -> OptimizerState:
+    """Steps until the state is done or ``stop`` steps in all, stage by stage on the host
+    (the loop of :func:`step` gives the same state); ``stop`` at or below the steps run:
+    none, but every program compiled (:class:`~jaxbvh.optimize.protocol.Optimizer`)."""
+
+    def position(state):  # one read from the device per stage
+        p, inner = state.progress, state.inner
+        return (int(x) for x in jax.device_get((p.step, p.done, p.stage, p.limit, inner.treelet.progress.step,
+                                                 inner.reinsert.progress.step)))
+
+    steps, done, stage, limit, *firsts = position(state)
+    if stop <= steps:  # compile (or load) both stages' loops and their hand-overs
+        for index, name in enumerate(STAGES):
+            sub = getattr(state.inner, name)
+            first = jnp.int32(firsts[index])
+            ran = driver_advance(_STAGE_OPTIMIZERS[index].step, sub, first)
+            jax.block_until_ready(_absorb(state, ran, first, index))
+        jax.block_until_ready(_settle_at_init(state))
+        return state
+    while not done and steps < stop:
+        sub = getattr(state.inner, STAGES[stage])
+        first = firsts[stage]
+        # as many stage steps as the pipeline has left (its own limit included)
+        sub_stop = first + min(stop, limit) - steps
+        ran = driver_advance(_STAGE_OPTIMIZERS[stage].step, sub, jnp.int32(sub_stop))
+        state = _settle_at_init(_absorb(state, ran, jnp.int32(first), stage))
+        steps, done, stage, limit, *firsts = position(state)
+    return state
+
+
 def result(state: OptimizerState) -> OptimizeResult:
     """The optimized tree (same capacity as the input), its leaves merged where that
     pays (``max_leaf``), and the run's figures.
@@ -300,8 +382,8 @@ def result(state: OptimizerState) -> OptimizeResult:
     holds the tree the previous one ended with).
     """
     inner = state.inner
-    out = jax.lax.cond(inner.stage == TREELETS, lambda i: treelet.result(i.treelet).tree,
-                       lambda i: reinsert.result(i.reinsert).tree, inner)
+    out = jax.lax.cond(inner.stage == TREELETS, lambda i: treelet.tree_of(i.treelet),
+                       lambda i: reinsert.tree_of(i.reinsert), inner)
     out = merge_leaves(out, state.params.max_leaf, state.params.ct, state.params.ci)
     out = jax.lax.cond(state.params.split_axes, apply_split_axes, lambda t: t, out)
     progress = state.progress._replace(sah=sah_of(out, state.params.ct, state.params.ci))
@@ -309,7 +391,7 @@ def result(state: OptimizerState) -> OptimizeResult:
 
 
 PIPELINE = Optimizer("pipeline", Config, init, step, result, stages=STAGES,
-                     paper="Karras & Aila 2013 and Meister & Bittner 2018, in rounds")
+                     paper="Karras & Aila 2013 and Meister & Bittner 2018, in rounds", advance=advance)
 
 
 def pipeline(tree, *, time_budget: float | None = None, on_step: Callable | None = None,

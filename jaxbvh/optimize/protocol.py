@@ -207,7 +207,14 @@ class Optimizer:
     """One optimizer: ``Config`` and the three functions of the protocol (module docstring).
 
     ``stages``: names of the stages its steps belong to (``(name,)`` for one).
-    ``paper``: where the method comes from.
+    ``paper``: where the method comes from. ``advance``: None (the driver runs ``step``
+    in one compiled ``while_loop``), or a host function ``advance(state, stop) -> state``
+    that the driver calls instead for one tree: it runs steps until the state is done or
+    ``stop`` (an int) steps in all, exactly as that loop of ``step`` would (the same
+    state), through programs of its own (the pipeline: one loop per stage, shared with
+    that stage's optimizer, instead of one program holding both stages); given ``stop``
+    at or below the steps already run, it runs none but compiles (or loads) every
+    program it could run. Batches (:func:`~jaxbvh.optimize.driver.run_batch`) always vmap ``step``.
     """
 
     name: str
@@ -217,6 +224,7 @@ class Optimizer:
     result: Callable
     stages: tuple = ()
     paper: str = ""
+    advance: Callable | None = None
 
     def __post_init__(self):
         if not self.stages:

@@ -327,9 +327,15 @@ def step(state: OptimizerState) -> OptimizerState:
     return keep_if_done(state, state.replace(inner=inner, progress=progress))
 
 
+def tree_of(state: OptimizerState):
+    """The state's tree (same capacity as the input), without :func:`result`'s split-axis
+    pass and SAH (traceable; what the pipeline hands to its next stage)."""
+    return to_tree(state.tree, state.inner.tree)
+
+
 def result(state: OptimizerState) -> OptimizeResult:
     """The optimized tree (same capacity as the input) and the run's figures."""
-    out = to_tree(state.tree, state.inner.tree)
+    out = tree_of(state)
     out = jax.lax.cond(state.params.split_axes, apply_split_axes, lambda t: t, out)
     progress = state.progress._replace(sah=sah_of(out, state.params.ct, state.params.ci))
     return make_result(out, progress)

