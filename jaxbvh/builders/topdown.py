@@ -274,12 +274,13 @@ def _segment_bounds(lo, hi, seg, nodes):
 _SCAN_BLOCK = 32  # positions per block of the segmented box scan (run time measured alike for 16 to 64)
 
 
-def _segmented_box_scan(lo, hi, offset, longest):
+def segmented_box_scan(lo, hi, offset, longest):
     """Inclusive running box along axis 1 of [S, P, 3] boxes, each run restarting.
 
     ``offset``: [S, P] int32, each position's distance from the first of its run;
     ``longest``: int32, no run is longer. One scan serves many sequences at once (all
-    axes, forward and backward).
+    axes, forward and backward). The one segmented box scan of the package (the
+    two-level top level's sweeps use it too, :mod:`jaxbvh.twolevel.brefs_segments`).
 
     ``lax.associative_scan`` unrolls ``2 log2 P`` levels of slices, which was most of
     the engine's compile time; this scan has a fixed small program instead: the
@@ -348,7 +349,7 @@ def _split_costs(scene: _Scene, orders, runs: _Runs):
     from_end = runs.count - 1 - runs.offset  # a position's offset in the backward sweep
     offset = jnp.concatenate([jnp.broadcast_to(runs.offset, (axes,) + runs.offset.shape),
                               jnp.broadcast_to(from_end[::-1], (axes,) + from_end.shape)])
-    run_lo, run_hi = _segmented_box_scan(seq_lo, seq_hi, offset, jnp.max(jnp.where(runs.active, runs.count, 0)))
+    run_lo, run_hi = segmented_box_scan(seq_lo, seq_hi, offset, jnp.max(jnp.where(runs.active, runs.count, 0)))
     fwd_lo, fwd_hi = run_lo[:axes], run_hi[:axes]
     # the right side of a split after p is the backward run starting at p + 1
     empty = jnp.full((axes, 1, 3), jnp.inf, lo_pos.dtype)

@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxbvh.numerics import TIE_TOLERANCE, half_area, take
+from jaxbvh.builders.topdown import segmented_box_scan
 
 
 def segment(op, data, ids, n):
@@ -78,16 +79,17 @@ def _sort_in_blocks(major, block, start, size, stride: int):
 
 
 def _scan(starts, lo, hi, prims):
-    """Inclusive running (box, primitive count) along axis 1, restarting where ``starts``."""
-
-    def combine(a, b):
-        fa, la, ha, pa = a
-        fb, lb, hb, pb = b
-        keep = fb[..., None]
-        return (fa | fb, jnp.where(keep, lb, jnp.minimum(la, lb)), jnp.where(keep, hb, jnp.maximum(ha, hb)),
-                jnp.where(fb, pb, pa + pb))
-
-    return jax.lax.associative_scan(combine, (starts, lo, hi, prims), axis=1)[1:]
+    """Inclusive running (box, primitive count) along axis 1 of [S, P] rows, restarting
+    where ``starts`` (``starts[:, 0]`` True): the builders' segmented box scan
+    (:func:`jaxbvh.builders.topdown.segmented_box_scan`: a small program, where
+    ``lax.associative_scan`` unrolls ``2 log2 P`` levels) and a sum since each run's start
+    (integers: exact)."""
+    pos = jnp.arange(starts.shape[1], dtype=jnp.int32)
+    run_start = jax.lax.cummax(jnp.where(starts, pos, 0), axis=1)
+    offset = pos - run_start
+    run_lo, run_hi = segmented_box_scan(lo, hi, offset, jnp.max(offset) + 1)
+    total = jnp.cumsum(prims, axis=1)
+    return run_lo, run_hi, total - jnp.take_along_axis(total - prims, run_start, axis=1)
 
 
 def best_planes(sid, bin_p, lo, hi, prims, *, bins, cap):
