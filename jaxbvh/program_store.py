@@ -182,6 +182,11 @@ class StoredFunction:
             jitted.clear_cache()
 
     def __call__(self, *args, **kwargs):
+        if not _top_level():
+            # inside a transformation (a user's jit, vmap, grad, or one of our programs):
+            # traced into that program, which has its own options (JAX refuses
+            # compiler options on a nested jit)
+            return self._jit_for(())(*args, **kwargs)
         options = _options_key(self.compiler_options())
         jitted = self._jit_for(options)
         if self._plain_only:
@@ -194,7 +199,7 @@ class StoredFunction:
         dynamic = {k: v for k, v in bound.arguments.items() if k not in self._static}
         leaves, treedef = jax.tree_util.tree_flatten(dynamic)
         if any(isinstance(x, jax.core.Tracer) for x in leaves):
-            return jitted(*args, **kwargs)  # inside someone's transformation
+            return self._jit_for(())(*args, **kwargs)  # inside someone's transformation
         if any(isinstance(x, jax.Array) and not isinstance(x.sharding, jax.sharding.SingleDeviceSharding)
                for x in leaves):
             return jitted(*args, **kwargs)  # a program over several devices: compiled as usual
@@ -291,6 +296,14 @@ def stored_jit(fun=None, *, static_argnums=(), static_argnames=(), family=None):
         return functools.partial(stored_jit, static_argnums=static_argnums, static_argnames=static_argnames,
                                  family=family)
     return StoredFunction(fun, static_argnums=static_argnums, static_argnames=static_argnames, family=family)
+
+
+def _top_level() -> bool:
+    """True outside every JAX transformation (no trace in progress)."""
+    from jax._src import core  # no public spelling in JAX 0.10; without it, tracers are the test
+
+    clean = getattr(core, "trace_state_clean", None)
+    return True if clean is None else clean()
 
 
 def _options_key(options: dict) -> tuple:
