@@ -60,6 +60,7 @@ Run (2 shared cores: the full run takes tens of minutes)::
     python bench/bench_compile.py --baseline bench/results/bench_compile_before.json
     python bench/bench_compile.py --repeat 3           # medians of 3 cold + warm pairs
     python bench/bench_compile.py --render bench/results/bench_compile.json --baseline OLD.json
+    python bench/bench_compile.py --policy xla         # XLA's default options (jaxbvh.compile_policy)
 
 Results: ``bench/results/bench_compile.json`` and ``.md`` (``--out`` to change; ``--quick``
 and ``--only`` write ``bench_compile_partial.*`` unless ``--out`` is given).
@@ -428,7 +429,8 @@ def markdown(results: dict, baseline: dict | None) -> str:
              + (f"; every figure is the median of {results['repeat']} cold + warm pairs"
                 if results.get("repeat", 1) > 1 else "; one cold + warm pair per entry") + ".", "",
              "Each entry runs in a fresh process with an empty persistent compilation cache (cold), then in "
-             "a second fresh process that loads every program from that cache (warm); no XLA_FLAGS. "
+             "a second fresh process that loads every program from that cache (warm); no XLA_FLAGS; jaxbvh's "
+             f"compile policy `{results.get('policy', 'default')}` (jaxbvh.compile_policy). "
              "CPU s: `getrusage` user + sys of the call alone (setup excluded), all threads. programs: "
              "programs XLA compiled in the cold call (+ N again: sent to XLA a second time in that process "
              "and found in the persistent cache, i.e. the in-memory jit cache missed); warm compiled / hits: "
@@ -541,6 +543,8 @@ def main(argv=None) -> None:
     parser.add_argument("--timeout", type=float, default=1800, help="seconds per child process")
     parser.add_argument("--repeat", type=int, default=1,
                         help="cold + warm pairs per entry (each with a new cache); the tables show medians")
+    parser.add_argument("--policy", default=None,
+                        help="the children's JAXBVH_COMPILE_POLICY (jaxbvh.compile_policy; default: jaxbvh's default)")
     parser.add_argument("--list", action="store_true", help="print the entry names and exit")
     parser.add_argument("--render", default=None, metavar="FILE.json",
                         help="measure nothing: write FILE.md from FILE.json (with --baseline if given)")
@@ -580,6 +584,8 @@ def main(argv=None) -> None:
 
     work = Path(tempfile.mkdtemp(prefix="jaxbvh-bench-compile-"))
     env = child_env(str(ROOT))
+    if args.policy:
+        env["JAXBVH_COMPILE_POLICY"] = args.policy
     prepared = {}
     for tag, path in meshes:
         # the sweep tree and the rays, for the entries that read them (a build reads neither)
@@ -599,6 +605,7 @@ def main(argv=None) -> None:
                "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
                "commit": commit(), "machine": machine(), "python": platform.python_version(),
                "load_start": load(), "load_end": None, "repeat": args.repeat, "jax": None, "rays": RAYS,
+               "policy": args.policy or "default",
                "first_pass": FIRST_PASS,
                "meshes": {tag: {"path": path, "triangles": prepared.get(path, {}).get("triangles")}
                           for tag, path in meshes},

@@ -20,6 +20,12 @@ pytree node whose ``repr`` is not a value, such as a closure) and every call mad
 tracing (inside a user's ``jit``, ``vmap`` or ``grad``) goes to plain :func:`jax.jit`,
 which gives the same results: the store is only ever a shortcut to the same program.
 
+Each program is compiled with the XLA options of its family under jaxbvh's compile policy
+(:mod:`jaxbvh.compile_policy`; ``stored_jit(..., family=...)``, else by module): the
+plain jit and the deserialized program alike, each option set its own program in memory
+and in JAX's persistent cache (whose key includes the options). The stored file is the
+lowered program, which the options do not change, so its key leaves them out.
+
 Rules: on while jaxbvh's compilation cache is on, in ``programs/`` of its folder
 (:func:`store_dir`: off with that cache, and in a process with several devices); files are
 written atomically (:func:`jaxbvh.files.atomic_write`); an unreadable or stale file is
