@@ -1,21 +1,26 @@
 """Which XLA compiler options each of jaxbvh's compiled programs gets: the one place.
 
-On a CPU, compiling is most of a first call (issue 38), and two XLA options buy most of
-it back: ``xla_cpu_use_fusion_emitters=False`` (XLA's older loop emitters for fusions
-instead of its MLIR fusion emitters) and ``xla_backend_optimization_level=0`` (LLVM's
-optimizations off). The first costs the compiled code little; the second makes it
-several times slower. So the programs are sorted into two *families* by how long their
-compiled code runs, and each family gets its own options
-(``bench/results/bench_compile_policy.md`` has the measurements behind the table):
+On a CPU, compiling is most of a first call (issue 38). Two XLA options make it cheaper:
+``xla_cpu_use_fusion_emitters=False`` (XLA's older loop emitters for fusions instead of
+its MLIR fusion emitters) and ``xla_backend_optimization_level=0`` (LLVM's optimizations
+off). Measured on spot (``bench/results/bench_compile_policy.md``, CPU seconds, 2 shared
+cores): the old emitters cut a first call's compile by 25-45% for the builders, SBVH,
+collapse, hill climbing and the ray trace (7% for the pipeline's large loop), and the
+compiled code runs 0-37% slower; level 0 cuts compile by another third to a half but the
+code runs 4.5-6.5 times slower, which a warm process (programs loaded from the
+persistent cache, :mod:`jaxbvh.compile_cache`) pays at every call. Level 1 or 2 compile
+no cheaper than XLA's default 3. So the programs are sorted into two *families* by how
+long their compiled code runs:
 
 ``"once"``
     a program that runs once per call of the user's (the builders, SBVH, collapse, the
-    two-level build, costs, ray generation): its compile is most of what the call costs.
+    two-level build, costs, ray generation): a first call is mostly its compile, and a
+    new mesh size is a new program. Default: the old emitters.
 ``"loop"``
-    a program whose compiled code runs for long or many times over (an optimizer's loop
-    of steps, a batch of rays traced, a query batch): its run time is what the user
-    waits for, a first call's compile is paid once per machine (the persistent cache,
-    :mod:`jaxbvh.compile_cache`).
+    a program whose compiled code runs long or many times over (an optimizer's loop of
+    steps, a batch of rays traced, a query batch, the stochastic searches): its speed is
+    what a time budget buys and what every later call pays, and its compile is paid once
+    per machine. Default: XLA's own options (the fastest code).
 
 Every top-level program of the package goes through
 :func:`jaxbvh.program_store.stored_jit`, which asks :func:`options` for its family's
@@ -24,20 +29,23 @@ own compiled program, in memory and in JAX's persistent cache, whose key include
 options). A program's family is ``stored_jit(..., family=...)``, else
 :func:`family_of` its module (:data:`LOOP_MODULES`).
 
-Policies (:data:`POLICIES`): ``"default"`` (the table above, :data:`DEFAULT_POLICY`),
-``"xla"`` (no options: XLA's defaults, fastest code, slowest compile) and
-``"fast-compile"`` (the cheapest compile everywhere: the test suite's choice). Choose one
-with ``JAXBVH_COMPILE_POLICY=<name>`` in the environment, or in a running process with
+Policies (:data:`POLICIES`): ``"default"`` (the families above, :data:`DEFAULT_POLICY`),
+``"xla"`` (no options anywhere: XLA's defaults, the fastest code, the dearest compile)
+and ``"fast-compile"`` (both options everywhere: the cheapest compile and the slowest
+code; the test suite's choice, through ``XLA_FLAGS``). Choose one with
+``JAXBVH_COMPILE_POLICY=<name>`` in the environment, or in a running process with
 :func:`set_policy` (a name, or a mapping ``{family: {option: value}}`` of your own).
 
 Rules:
 
 1. An option named in ``XLA_FLAGS`` is never set per program: the user's flags win
-   (per-program options would otherwise override them, since XLA applies a program's
-   options over the flags). The test suite's ``XLA_FLAGS`` (``tests/helpers.py``
-   ``UNOPTIMIZED_XLA``) so stay in force for every program.
-2. Programs outside :func:`stored_jit` (JAX's own eager operations, a user's ``jit``
-   around jaxbvh's functions, which traces them into the user's program) get no options.
+   (XLA applies a program's options over the flags, so setting it would override
+   them). The test suite's ``XLA_FLAGS`` (``tests/helpers.py`` ``UNOPTIMIZED_XLA``) so
+   stay in force for every program.
+2. Programs outside a top-level :func:`stored_jit` call get no options: JAX's own eager
+   operations, and a jaxbvh function called inside a user's ``jit``, ``vmap`` or
+   ``grad``, which is traced into the user's program (JAX takes compiler options only
+   on a top-level ``jit``).
 3. The options change the compiled code, never the results' meaning: XLA keeps IEEE
    semantics under all of them, but a float reduction may be summed in another order,
    so a float sum can differ in its last bits between policies (trees do not, tested).
@@ -56,16 +64,16 @@ __all__ = ["DEFAULT_POLICY", "FAMILIES", "LOOP_MODULES", "POLICIES", "POLICY_VAR
 FAMILIES = ("once", "loop")
 
 #: XLA's two cheap-compile options (module docstring)
-_OLD_EMITTERS = {"xla_cpu_use_fusion_emitters": False}
-_CHEAP = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
+_OLD_EMITTERS = types.MappingProxyType({"xla_cpu_use_fusion_emitters": False})
+_CHEAP = types.MappingProxyType({"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False})
 
-#: jaxbvh's policy: family -> XLA options (bench/results/bench_compile_policy.md)
-DEFAULT_POLICY = types.MappingProxyType({"once": _CHEAP, "loop": _OLD_EMITTERS})
+#: jaxbvh's policy: family -> XLA options (module docstring, bench/results/bench_compile_policy.md)
+DEFAULT_POLICY = types.MappingProxyType({"once": _OLD_EMITTERS, "loop": types.MappingProxyType({})})
 
 #: name -> policy
 POLICIES = types.MappingProxyType({
     "default": DEFAULT_POLICY,
-    "xla": types.MappingProxyType({"once": {}, "loop": {}}),
+    "xla": types.MappingProxyType({"once": types.MappingProxyType({}), "loop": types.MappingProxyType({})}),
     "fast-compile": types.MappingProxyType({"once": _CHEAP, "loop": _CHEAP}),
 })
 
