@@ -6,12 +6,11 @@ session) runs twice, each time in a fresh Python process started without the tes
 suite's ``XLA_FLAGS`` (``XLA_FLAGS``, ``JAX_*`` and ``JAXBVH_*`` are removed from the
 child's environment):
 
-1. **cold**: JAX's persistent compilation cache points at a new, empty folder
-   (``jax_compilation_cache_dir``, with ``jax_persistent_cache_min_compile_time_secs = 0``
-   and ``jax_persistent_cache_min_entry_size_bytes = 0`` so every program is written), so
-   every program is compiled (and written to the folder);
-2. **warm**: a second fresh process with the same folder: every program is traced and
-   lowered again (to find its cache key) and loaded from disk, not compiled.
+1. **cold**: jaxbvh's compilation cache (:mod:`jaxbvh.compile_cache`: JAX's persistent
+   cache, every program written, and jaxbvh's program store beside it) in a new, empty
+   folder (``JAXBVH_CACHE_DIR``), so every program is compiled (and written to the folder);
+2. **warm**: a second fresh process with the same folder: every program is loaded from
+   disk, not compiled (jaxbvh's programs also skip tracing and lowering: the store).
 
 Measured in each child, for the call only (setup such as loading the mesh, a tree or rays
 is done before and not counted; the inputs are prepared once by a separate process and
@@ -114,9 +113,9 @@ import jax
 import jax.monitoring
 c_jax = cpu() - c0
 if spec["cache_dir"]:
-    jax.config.update("jax_compilation_cache_dir", spec["cache_dir"])
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    # jaxbvh's own cache in that folder (set at import jaxbvh: every program written, and
+    # its program store on, which a cache configured in JAX directly would turn off)
+    os.environ["JAXBVH_CACHE_DIR"] = spec["cache_dir"]
 
 phase = ["import"]
 local = threading.local()

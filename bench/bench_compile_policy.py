@@ -26,6 +26,7 @@ Run (2 shared cores: a full run takes most of an hour)::
     python bench/bench_compile_policy.py
     python bench/bench_compile_policy.py --only build:sweep,optimize:hc --configs xla,both
     python bench/bench_compile_policy.py --mesh ../shared/data/meshes/rocker-arm.obj --only optimize:hc
+    python bench/bench_compile_policy.py --append --only build:sbvh --configs policy   # add rows
 
 Results: ``bench/results/bench_compile_policy.json`` and ``.md`` (``--out`` to change).
 """
@@ -147,6 +148,8 @@ def markdown(results: dict) -> str:
              "Configs: " + "; ".join(f"`{c}` = " + (f"`{CONFIGS[c]}`" if CONFIGS[c] else
                                                      ("XLA defaults" if CONFIGS[c] == "" else "jaxbvh's policy"))
                                      for c in configs) + ".", ""]
+    if results.get("notes"):
+        lines += ["## What the numbers say", ""] + [f"- {note}" for note in results["notes"]] + [""]
     header = "| entry (work per call) | " + " | ".join(f"{c} first / run" for c in configs) + " | load |"
     lines += ["## CPU seconds: first call / one hot call", "", header, "|---|" + "---:|" * (len(configs) + 1)]
     for row in results["rows"]:
@@ -195,7 +198,11 @@ def main(argv=None) -> None:
     parser.add_argument("--out", default=str(RESULTS / "bench_compile_policy"), help="results path without suffix")
     parser.add_argument("--append", action="store_true", help="add rows to the --out JSON instead of replacing it")
     parser.add_argument("--timeout", type=float, default=1800, help="seconds per child process")
+    parser.add_argument("--render", action="store_true", help="measure nothing: rewrite the --out .md from its .json")
     args = parser.parse_args(argv)
+    if args.render:
+        write(Path(args.out), json.loads(Path(args.out).with_suffix(".json").read_text()))
+        return
     from jaxbvh.io import bundled_mesh_path
 
     mesh = str(Path(args.mesh).resolve()) if args.mesh else str(bundled_mesh_path())
