@@ -5,8 +5,9 @@ On a CPU, compiling is most of a first call (issue 38). Two XLA options make it 
 its MLIR fusion emitters) and ``xla_backend_optimization_level=0`` (LLVM's optimizations
 off). Measured on spot (``bench/results/bench_compile_policy.md``, CPU seconds, 2 shared
 cores): the old emitters cut a first call's compile by 25-45% for the builders, SBVH,
-collapse, hill climbing and the ray trace (7% for the pipeline's large loop), and the
-compiled code runs 0-37% slower; level 0 cuts compile by another third to a half but the
+collapse, hill climbing and the ray trace (nothing for the pipeline's large loop, whose
+steps then run ~20% slower), and the compiled code runs 0-37% slower (it also loads
+from the persistent cache a little slower: SBVH's warm call 0.97 -> 1.35 CPU s); level 0 cuts compile by another third to a half but the
 code runs 4.5-6.5 times slower, which a warm process (programs loaded from the
 persistent cache, :mod:`jaxbvh.compile_cache`) pays at every call. Level 1 or 2 compile
 no cheaper than XLA's default 3. So the programs are sorted into two *families* by how
