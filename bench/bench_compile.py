@@ -6,12 +6,11 @@ session) runs twice, each time in a fresh Python process started without the tes
 suite's ``XLA_FLAGS`` (``XLA_FLAGS``, ``JAX_*`` and ``JAXBVH_*`` are removed from the
 child's environment):
 
-1. **cold**: JAX's persistent compilation cache points at a new, empty folder
-   (``jax_compilation_cache_dir``, with ``jax_persistent_cache_min_compile_time_secs = 0``
-   and ``jax_persistent_cache_min_entry_size_bytes = 0`` so every program is written), so
-   every program is compiled (and written to the folder);
-2. **warm**: a second fresh process with the same folder: every program is traced and
-   lowered again (to find its cache key) and loaded from disk, not compiled.
+1. **cold**: jaxbvh's compilation cache (:mod:`jaxbvh.compile_cache`: JAX's persistent
+   cache, every program written, and jaxbvh's program store beside it) in a new, empty
+   folder (``JAXBVH_CACHE_DIR``), so every program is compiled (and written to the folder);
+2. **warm**: a second fresh process with the same folder: every program is loaded from
+   disk, not compiled (jaxbvh's programs also skip tracing and lowering: the store).
 
 Measured in each child, for the call only (setup such as loading the mesh, a tree or rays
 is done before and not counted; the inputs are prepared once by a separate process and
@@ -60,6 +59,7 @@ Run (2 shared cores: the full run takes tens of minutes)::
     python bench/bench_compile.py --baseline bench/results/bench_compile_before.json
     python bench/bench_compile.py --repeat 3           # medians of 3 cold + warm pairs
     python bench/bench_compile.py --render bench/results/bench_compile.json --baseline OLD.json
+    python bench/bench_compile.py --policy xla         # XLA's default options (jaxbvh.compile_policy)
 
 Results: ``bench/results/bench_compile.json`` and ``.md`` (``--out`` to change; ``--quick``
 and ``--only`` write ``bench_compile_partial.*`` unless ``--out`` is given).
@@ -113,9 +113,9 @@ import jax
 import jax.monitoring
 c_jax = cpu() - c0
 if spec["cache_dir"]:
-    jax.config.update("jax_compilation_cache_dir", spec["cache_dir"])
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    # jaxbvh's own cache in that folder (set at import jaxbvh: every program written, and
+    # its program store on, which a cache configured in JAX directly would turn off)
+    os.environ["JAXBVH_CACHE_DIR"] = spec["cache_dir"]
 
 phase = ["import"]
 local = threading.local()
@@ -428,7 +428,8 @@ def markdown(results: dict, baseline: dict | None) -> str:
              + (f"; every figure is the median of {results['repeat']} cold + warm pairs"
                 if results.get("repeat", 1) > 1 else "; one cold + warm pair per entry") + ".", "",
              "Each entry runs in a fresh process with an empty persistent compilation cache (cold), then in "
-             "a second fresh process that loads every program from that cache (warm); no XLA_FLAGS. "
+             "a second fresh process that loads every program from that cache (warm); no XLA_FLAGS; jaxbvh's "
+             f"compile policy `{results.get('policy', 'default')}` (jaxbvh.compile_policy). "
              "CPU s: `getrusage` user + sys of the call alone (setup excluded), all threads. programs: "
              "programs XLA compiled in the cold call (+ N again: sent to XLA a second time in that process "
              "and found in the persistent cache, i.e. the in-memory jit cache missed); warm compiled / hits: "
@@ -541,6 +542,8 @@ def main(argv=None) -> None:
     parser.add_argument("--timeout", type=float, default=1800, help="seconds per child process")
     parser.add_argument("--repeat", type=int, default=1,
                         help="cold + warm pairs per entry (each with a new cache); the tables show medians")
+    parser.add_argument("--policy", default=None,
+                        help="the children's JAXBVH_COMPILE_POLICY (jaxbvh.compile_policy; default: jaxbvh's default)")
     parser.add_argument("--list", action="store_true", help="print the entry names and exit")
     parser.add_argument("--render", default=None, metavar="FILE.json",
                         help="measure nothing: write FILE.md from FILE.json (with --baseline if given)")
@@ -580,6 +583,8 @@ def main(argv=None) -> None:
 
     work = Path(tempfile.mkdtemp(prefix="jaxbvh-bench-compile-"))
     env = child_env(str(ROOT))
+    if args.policy:
+        env["JAXBVH_COMPILE_POLICY"] = args.policy
     prepared = {}
     for tag, path in meshes:
         # the sweep tree and the rays, for the entries that read them (a build reads neither)
@@ -599,6 +604,7 @@ def main(argv=None) -> None:
                "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
                "commit": commit(), "machine": machine(), "python": platform.python_version(),
                "load_start": load(), "load_end": None, "repeat": args.repeat, "jax": None, "rays": RAYS,
+               "policy": args.policy or "default",
                "first_pass": FIRST_PASS,
                "meshes": {tag: {"path": path, "triangles": prepared.get(path, {}).get("triangles")}
                           for tag, path in meshes},

@@ -20,6 +20,12 @@ pytree node whose ``repr`` is not a value, such as a closure) and every call mad
 tracing (inside a user's ``jit``, ``vmap`` or ``grad``) goes to plain :func:`jax.jit`,
 which gives the same results: the store is only ever a shortcut to the same program.
 
+Each program is compiled with the XLA options of its family under jaxbvh's compile policy
+(:mod:`jaxbvh.compile_policy`; ``stored_jit(..., family=...)``, else by module): the
+plain jit and the deserialized program alike, each option set its own program in memory
+and in JAX's persistent cache (whose key includes the options). The stored file is the
+lowered program, which the options do not change, so its key leaves them out.
+
 Rules: on while jaxbvh's compilation cache is on, in ``programs/`` of its folder
 (:func:`store_dir`: off with that cache, and in a process with several devices); files are
 written atomically (:func:`jaxbvh.files.atomic_write`); an unreadable or stale file is
@@ -42,7 +48,7 @@ from pathlib import Path
 
 import jax
 
-from jaxbvh import compile_cache
+from jaxbvh import compile_cache, compile_policy
 from jaxbvh.files import atomic_write
 
 __all__ = ["MAX_STORE_FILES", "StoredFunction", "clear_memory", "store_dir", "stored_jit"]
@@ -128,12 +134,16 @@ class StoredFunction:
     """A jitted function whose lowered programs are kept in :func:`store_dir` (module
     docstring). Call it as the function; ``.jitted`` is the plain :func:`jax.jit`."""
 
-    def __init__(self, fun, *, static_argnums=(), static_argnames=()):
+    def __init__(self, fun, *, static_argnums=(), static_argnames=(), family=None):
         self.fun = fun
+        #: the program family, which names its XLA options (:mod:`jaxbvh.compile_policy`)
+        self.family = compile_policy.family_of(fun.__module__) if family is None else family
+        compile_policy.options(self.family)  # an unknown family fails here, not at the first call
         # None, not (), for the one not given: jax.jit then finds the other from the
         # signature, so a static argument passed by position or by name stays static
-        self.jitted = jax.jit(fun, static_argnums=None if static_argnums == () else static_argnums,
+        self._jit_args = dict(static_argnums=None if static_argnums == () else static_argnums,
                               static_argnames=None if static_argnames == () else static_argnames)
+        self._jits: dict = {}  # options key -> plain jax.jit with those compiler options
         functools.update_wrapper(self, fun)
         self._signature = inspect.signature(fun)
         params = list(self._signature.parameters.values())
@@ -146,52 +156,82 @@ class StoredFunction:
         self._warned = False
         _ALL.add(self)
 
+    def compiler_options(self) -> dict:
+        """The XLA options this function's programs get now (:func:`jaxbvh.compile_policy.options`)."""
+        return compile_policy.options(self.family)
+
+    @property
+    def jitted(self):
+        """The plain :func:`jax.jit` of the function, with the compiler options in force."""
+        return self._jit_for(_options_key(self.compiler_options()))
+
+    def _jit_for(self, options: tuple):
+        jitted = self._jits.get(options)
+        if jitted is None:
+            jitted = jax.jit(self.fun, compiler_options=dict(options) or None, **self._jit_args)
+            self._jits[options] = jitted
+        return jitted
+
     def lower(self, *args, **kwargs):
         """:meth:`jax.stages.Wrapped.lower` of the plain jit."""
         return self.jitted.lower(*args, **kwargs)
 
     def _cache_size(self) -> int:
         """Programs this process holds for the function (stored ones and plain jit's)."""
-        return len(self._memo) + self.jitted._cache_size()
+        return len(self._memo) + sum(j._cache_size() for j in self._jits.values())
 
     def clear_cache(self) -> None:
         """Forget the programs held in memory (the stored files stay: a test that
         changes a constant read at trace time sets ``JAXBVH_CACHE=off`` as well)."""
         self._memo.clear()
-        self.jitted.clear_cache()
+        for jitted in self._jits.values():
+            jitted.clear_cache()
 
     def __call__(self, *args, **kwargs):
+        if not _top_level():
+            # inside a transformation (a user's jit, vmap, grad, or one of our programs):
+            # traced into that program, which has its own options (JAX refuses
+            # compiler options on a nested jit)
+            return self._jit_for(())(*args, **kwargs)
+        options = _options_key(self.compiler_options())
+        jitted = self._jit_for(options)
         if self._plain_only:
-            return self.jitted(*args, **kwargs)
+            return jitted(*args, **kwargs)
         folder = store_dir()
         if folder is None:
-            return self.jitted(*args, **kwargs)
+            return jitted(*args, **kwargs)
         bound = self._signature.bind(*args, **kwargs)
         bound.apply_defaults()
         dynamic = {k: v for k, v in bound.arguments.items() if k not in self._static}
         leaves, treedef = jax.tree_util.tree_flatten(dynamic)
         if any(isinstance(x, jax.core.Tracer) for x in leaves):
-            return self.jitted(*args, **kwargs)  # inside someone's transformation
+            return self._jit_for(())(*args, **kwargs)  # inside someone's transformation
         if any(isinstance(x, jax.Array) and not isinstance(x.sharding, jax.sharding.SingleDeviceSharding)
                for x in leaves):
-            return self.jitted(*args, **kwargs)  # a program over several devices: compiled as usual
+            return jitted(*args, **kwargs)  # a program over several devices: compiled as usual
         try:
             static = tuple((k, _value_repr(v)) for k, v in bound.arguments.items() if k in self._static)
             avals = tuple(str(jax.typeof(x)) for x in leaves)
-            memo_key = (treedef, avals, static)
+            # the options too: each option set is its own compiled program
+            memo_key = (treedef, avals, static, options)
         except (_Unkeyable, TypeError):
-            return self.jitted(*args, **kwargs)
+            return jitted(*args, **kwargs)
         program = self._memo.get(memo_key)
         if program is None:
-            program = self._program(folder, bound, treedef, leaves, avals, static)
+            program = self._program(folder, bound, treedef, leaves, avals, static, options)
             self._memo[memo_key] = program
         return program(leaves)
 
-    def _program(self, folder: Path, bound, treedef, leaves, avals, static):
-        """The callable ``leaves -> outputs`` for this key: loaded, or exported and stored."""
+    def _program(self, folder: Path, bound, treedef, leaves, avals, static, options: tuple):
+        """The callable ``leaves -> outputs`` for this key: loaded, or exported and stored.
+
+        The file's key leaves the compiler options out on purpose: the stored artifact is
+        the lowered program, the same under every option set; the options are given
+        to the jit that compiles it here, and JAX's persistent cache keys its compiled
+        code by them (its key includes the compile options and ``XLA_FLAGS``)."""
         text = repr((self._name, static, str(treedef), avals))
         if " at 0x" in text:
-            return self._plain(bound, treedef)
+            return self._plain(bound, treedef, options)
         key = hashlib.sha256("\n".join((_fingerprint(), _environment(), text)).encode()).hexdigest()
         path = folder / f"{key[:2]}" / f"{key}{_SUFFIX}"
         loaded = _read(path)
@@ -203,11 +243,11 @@ class StoredFunction:
                     self._warned = True
                     warnings.warn(f"{self._name}: program not stored ({type(exc).__name__}: {exc}); "
                                   "compiling it as usual", RuntimeWarning, stacklevel=4)
-                return self._plain(bound, treedef)
+                return self._plain(bound, treedef, options)
             _write(path, loaded)
         out_treedef, blob = loaded
         exported = jax.export.deserialize(bytearray(blob))
-        call = jax.jit(exported.call)
+        call = jax.jit(exported.call, compiler_options=dict(options) or None)
 
         def program(leaves):
             return jax.tree_util.tree_unflatten(out_treedef, call(*leaves))
@@ -227,12 +267,13 @@ class StoredFunction:
 
         return rebuild
 
-    def _plain(self, bound, treedef):
+    def _plain(self, bound, treedef, options: tuple):
         rebuild = self._rebuild(bound, treedef)
+        jitted = self._jit_for(options)
 
         def program(leaves):
             args, kwargs = rebuild(leaves)
-            return self.jitted(*args, **kwargs)
+            return jitted(*args, **kwargs)
 
         return program
 
@@ -251,12 +292,29 @@ class StoredFunction:
         return out[0], bytes(exported.serialize())
 
 
-def stored_jit(fun=None, *, static_argnums=(), static_argnames=()):
+def stored_jit(fun=None, *, static_argnums=(), static_argnames=(), family=None):
     """:func:`jax.jit` with the lowered programs kept on disk (module docstring); use as
-    ``@stored_jit`` or ``@partial(stored_jit, static_argnames=(...))``."""
+    ``@stored_jit`` or ``@partial(stored_jit, static_argnames=(...))``. ``family``: the
+    program family that names its XLA options, ``"once"`` or ``"loop"``
+    (:mod:`jaxbvh.compile_policy`; None: by the function's module,
+    :func:`jaxbvh.compile_policy.family_of`)."""
     if fun is None:
-        return functools.partial(stored_jit, static_argnums=static_argnums, static_argnames=static_argnames)
-    return StoredFunction(fun, static_argnums=static_argnums, static_argnames=static_argnames)
+        return functools.partial(stored_jit, static_argnums=static_argnums, static_argnames=static_argnames,
+                                 family=family)
+    return StoredFunction(fun, static_argnums=static_argnums, static_argnames=static_argnames, family=family)
+
+
+def _top_level() -> bool:
+    """True outside every JAX transformation (no trace in progress)."""
+    from jax._src import core  # no public spelling in JAX 0.10; without it, tracers are the test
+
+    clean = getattr(core, "trace_state_clean", None)
+    return True if clean is None else clean()
+
+
+def _options_key(options: dict) -> tuple:
+    """Compiler options as a sorted tuple of items (a dict key)."""
+    return tuple(sorted(options.items()))
 
 
 def clear_memory() -> None:
