@@ -28,7 +28,9 @@ import argparse
 import collections
 import os
 import sys
+from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 os.environ.setdefault("JAXBVH_CACHE", "off")
 
 import jax  # noqa: E402
@@ -38,14 +40,7 @@ import numpy as np  # noqa: E402
 
 _SKIP = {"builtin.module", "func.func", "func.return", "stablehlo.return"}
 
-#: as bench_compile.FIRST_PASS
-FIRST_PASS = {
-    "hc": {"max_passes": 1},
-    "sa": {"steps": 1, "max_quench": 1},
-    "reinsert": {"max_iterations": 1},
-    "treelet": {"max_passes": 1},
-    "pipeline": {"max_rounds": 1},
-}
+from bench.bench_compile import FIRST_PASS  # noqa: E402 (each optimizer stopped after its first pass)
 
 
 def hlo_ops(lowered) -> int:
@@ -69,17 +64,6 @@ def _subjaxprs(eqn):
                 yield v.jaxpr
             elif isinstance(v, jcore.Jaxpr):
                 yield v
-
-
-def _frames(eqn):
-    from jax._src import source_info_util
-    tb = eqn.source_info.traceback
-    if tb is None:
-        return []
-    frames = []
-    for f in source_info_util.user_frames(tb) if hasattr(source_info_util, "user_frames") else []:
-        frames.append(f)
-    return frames
 
 
 def _jaxbvh_stack(eqn):
