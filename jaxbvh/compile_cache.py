@@ -26,8 +26,9 @@ Rules, in order (one place: :func:`enable_default`):
 
 The cache is process-wide JAX state: while it is on, the user's own JAX programs are
 cached in the same folder. :func:`disable` turns jaxbvh's cache off again in a running
-process; :func:`status` says what is in force. The command line uses the same rules and
-keeps parsed meshes beside the programs (:func:`mesh_cache_dir`).
+process; :func:`status` says what is in force. While it is on, parsed meshes are kept
+beside the programs too (:func:`mesh_cache_dir`, :func:`jaxbvh.io.mesh_cache_folder`), so a
+warm script does not parse its mesh files (nor import trimesh) again.
 """
 
 from __future__ import annotations
@@ -67,7 +68,8 @@ def cache_dir() -> Path:
 
 
 def mesh_cache_dir() -> Path:
-    """The folder of parsed meshes the command line keeps: ``meshes/`` in :func:`cache_dir`."""
+    """The folder of parsed meshes kept while jaxbvh's cache is on: ``meshes/`` in
+    :func:`cache_dir` (:func:`jaxbvh.io.mesh_cache_folder`)."""
     return cache_dir() / "meshes"
 
 

@@ -260,8 +260,7 @@ def process_chunk(items, settings: Settings, out_dir: str, mesh_cache: str | Non
     (``out_dir/name``, written atomically); returns a report row per file (module
     docstring). Runs on a worker (or in this process); raises nothing for a bad mesh.
     ``mesh_cache``: the folder of parsed meshes to read and fill (None: parse every file)."""
-    before = mesh_cache_folder()
-    use_mesh_cache(mesh_cache)
+    before = use_mesh_cache(mesh_cache)
     try:
         return chunk_rows(items, settings, out_dir)
     finally:

@@ -76,22 +76,21 @@ def enable_compilation_cache() -> Path | None:
     """Turn on the caches a command uses: JAX's compilation cache by the library's rules
     (:func:`jaxbvh.compile_cache.enable_default`: never over a cache configured in JAX,
     off with ``JAXBVH_CACHE=off``) and, with it, the parsed-mesh cache in its
-    ``meshes/`` folder. Returns the compilation cache's folder, None when it is off."""
-    path = compile_cache.enable_default()
-    if path is not None:
-        use_mesh_cache(compile_cache.mesh_cache_dir())
-    return path
+    ``meshes/`` folder (the library's default, :func:`jaxbvh.io.mesh_cache_folder`).
+    Returns the compilation cache's folder, None when it is off."""
+    return compile_cache.enable_default()
 
 
 @contextlib.contextmanager
 def compilation_cache_on():
     """The tool's caches (:func:`enable_compilation_cache`) for the duration of one command.
 
-    The mesh cache is put back as it was on exit; JAX's compilation cache stays as
+    The mesh cache follows the compilation cache (the library's default) during the
+    command and is put back as it was on exit; JAX's compilation cache stays as
     ``import jaxbvh`` leaves it (on by default), so calling :func:`main` from Python
     changes nothing a library user would not have had anyway.
     """
-    meshes_before = io.mesh_cache_folder()
+    meshes_before = use_mesh_cache(io.FOLLOW_COMPILE_CACHE)
     try:
         yield enable_compilation_cache()
     finally:

@@ -298,34 +298,62 @@ def _degenerate_count(triangles: np.ndarray) -> int:
 
 
 # ----------------------------------------------------------------------------------
-# Cache of parsed meshes (the command line tool's; off for library use)
+# Cache of parsed meshes (on beside jaxbvh's compilation cache, library and tool alike)
 # ----------------------------------------------------------------------------------
 
-_mesh_cache: Path | None = None
+
+class _FollowCompileCache:
+    def __repr__(self) -> str:
+        return "FOLLOW_COMPILE_CACHE"
+
+
+#: :func:`use_mesh_cache`'s default: parsed meshes go beside jaxbvh's compilation cache
+FOLLOW_COMPILE_CACHE = _FollowCompileCache()
+
+#: FOLLOW_COMPILE_CACHE, the folder :func:`use_mesh_cache` set, or None (switched off)
+_mesh_cache: "Path | _FollowCompileCache | None" = FOLLOW_COMPILE_CACHE
 _CACHE_FORMAT = "1"
 
+#: the cache of parsed meshes is kept under this size (bytes); the entries read longest
+#: ago go first. A parsed mesh takes ~60 bytes a triangle (spot: 0.3 MB).
+MAX_MESH_CACHE_BYTES = 2 * 1024 ** 3
 
-def use_mesh_cache(folder: str | os.PathLike | None) -> None:
-    """Keep every mesh :func:`load_mesh` parses in ``folder`` (``None``: no cache, the default).
 
-    Parsing a mesh file costs far more than reading back its arrays (and trimesh's
-    import alone takes a third of a second), so the ``jaxbvh`` tool turns this on next
-    to JAX's compilation cache. An entry is keyed by the file's absolute path, size
-    and modification time (for a glTF, also those of the other files in its folder:
-    its buffers), so an edited file is parsed again. Only meshes that loaded without
-    error are kept; a damaged entry is ignored and parsed anew.
+def use_mesh_cache(folder: "str | os.PathLike | _FollowCompileCache | None"):
+    """Keep every mesh :func:`load_mesh` parses in ``folder`` (``None``: no cache;
+    :data:`FOLLOW_COMPILE_CACHE`: the default, below). Returns the setting before, to
+    restore it with.
+
+    Parsing a mesh file costs far more than reading back its arrays (trimesh's import
+    alone takes 0.3 to 1.4 s, most of a warm script's start), so by default the cache is
+    on wherever jaxbvh's compilation cache is (:func:`mesh_cache_folder`); call this to
+    move it or, with ``None``, to switch it off. An entry is keyed by the file's absolute
+    path, size, modification and change times and inode (for a glTF, also those of the
+    files it names: its buffers), so an edited file is parsed again. Only meshes that
+    loaded without error are kept; a damaged entry is ignored and parsed anew; the folder
+    is kept under :data:`MAX_MESH_CACHE_BYTES`.
     """
     global _mesh_cache
-    _mesh_cache = None if folder is None else Path(folder)
+    before = _mesh_cache
+    _mesh_cache = folder if folder is None or folder is FOLLOW_COMPILE_CACHE else Path(folder)
+    return before
 
 
 def mesh_cache_folder() -> Path | None:
-    """The folder :func:`use_mesh_cache` set (``None``: no cache)."""
-    return _mesh_cache
+    """The folder parsed meshes are kept in (``None``: no cache): the one
+    :func:`use_mesh_cache` set, else ``meshes/`` in jaxbvh's compilation cache folder
+    while that cache is on (:func:`jaxbvh.compile_cache.mesh_cache_dir`; off with
+    ``JAXBVH_CACHE=off`` or when you configured JAX's cache yourself)."""
+    if _mesh_cache is not FOLLOW_COMPILE_CACHE:
+        return _mesh_cache
+    from jaxbvh import compile_cache
+
+    return compile_cache.mesh_cache_dir() if compile_cache.status()["owner"] == "jaxbvh" else None
 
 
 def _cache_entry(path: str) -> Path | None:
-    if _mesh_cache is None:
+    folder = mesh_cache_folder()
+    if folder is None:
         return None
     files = [path] + (_gltf_references(path) if path.lower().endswith(".gltf") else [])
     parts = [_CACHE_FORMAT]
@@ -338,7 +366,7 @@ def _cache_entry(path: str) -> Path | None:
         # the change time and inode too: a file rewritten with its old size and its
         # modification time put back (a copy tool, a build step) still gets a new key
         parts += [os.path.abspath(f), str(st.st_size), str(st.st_mtime_ns), str(st.st_ctime_ns), str(st.st_ino)]
-    return _mesh_cache / (hashlib.sha256("\0".join(parts).encode()).hexdigest()[:32] + ".npz")
+    return folder / (hashlib.sha256("\0".join(parts).encode()).hexdigest()[:32] + ".npz")
 
 
 def _gltf_references(path: str) -> list[str]:
@@ -378,7 +406,26 @@ def _write_cached(entry: Path, mesh: "Mesh") -> None:
         with atomic_write(entry) as f:  # a reader in another process sees all or nothing
             np.savez(f, **arrays)
     except OSError:
-        pass  # a read-only cache folder: parse every time
+        return  # a read-only cache folder: parse every time
+    _evict(entry.parent, keep=entry)
+
+
+def _evict(folder: Path, keep: Path) -> None:
+    """Remove the entries read longest ago until ``folder`` is under
+    :data:`MAX_MESH_CACHE_BYTES` (``keep``, the entry just written, stays)."""
+    try:
+        entries = [(e.stat().st_mtime_ns, e.stat().st_size, e) for e in folder.glob("*.npz")]
+    except OSError:
+        return  # an entry removed meanwhile by another process: next write tries again
+    total = sum(size for _, size, _ in entries)
+    for _, size, e in sorted(entries, key=lambda x: x[0]):
+        if total <= MAX_MESH_CACHE_BYTES:
+            break
+        if e == keep:
+            continue
+        with contextlib.suppress(OSError):
+            e.unlink()
+            total -= size
 
 
 def _read_cached(entry: Path, path: str) -> "Mesh | None":
@@ -395,6 +442,8 @@ def _read_cached(entry: Path, path: str) -> "Mesh | None":
                         skipped=skipped, path=path)
     except Exception:  # a damaged or foreign entry: parse the file again
         return None
+    with contextlib.suppress(OSError):
+        os.utime(entry)  # read now: the last to be evicted
     if skipped:
         warnings.warn(f"{path}: left out {len(skipped)} object(s) without triangles: "
                       f"{', '.join(skipped[:5])}", stacklevel=3)
@@ -405,8 +454,8 @@ def load_mesh(path: str | os.PathLike) -> Mesh:
     """Read any file trimesh reads into a world-space :class:`Mesh` (module docstring).
 
     Raises ``FileNotFoundError`` for a missing file and :class:`MeshError` for a file
-    that cannot be read or has no usable triangles. With :func:`use_mesh_cache` on, a
-    file parsed before is read back from the cache.
+    that cannot be read or has no usable triangles. A file parsed before is read back
+    from the cache of parsed meshes (:func:`mesh_cache_folder`; on by default).
     """
     path = os.fspath(path)
     if not os.path.exists(path):

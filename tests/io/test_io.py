@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 
+import subprocess
 import sys
 from pathlib import Path
 
@@ -324,9 +325,9 @@ def mesh_cache(tmp_path):
     from jaxbvh import io
 
     folder = tmp_path / "mesh-cache"
-    io.use_mesh_cache(folder)
+    before = io.use_mesh_cache(folder)
     yield folder
-    io.use_mesh_cache(None)
+    io.use_mesh_cache(before)
 
 
 def assert_same_mesh(a: Mesh, b: Mesh):
@@ -361,6 +362,62 @@ def test_cached_mesh_equals_the_parsed_one(tmp_path, mesh_cache, monkeypatch):
         cached = load_mesh(path)
     assert_same_mesh(cached, parsed)
     assert len(cached.instances) == 2 and cached.n_triangles == 24
+
+
+def test_the_mesh_cache_follows_jaxbvhs_compilation_cache(tmp_path):
+    from jaxbvh import compile_cache, io
+
+    before = io.use_mesh_cache(io.meshes.FOLLOW_COMPILE_CACHE)
+    try:
+        on = compile_cache.status()["owner"] == "jaxbvh"  # the suite's run cache, by the library's rules
+        assert on
+        assert io.mesh_cache_folder() == compile_cache.mesh_cache_dir()
+        compile_cache.disable()
+        try:
+            assert io.mesh_cache_folder() is None  # off with jaxbvh's cache (JAXBVH_CACHE=off, a user's JAX cache)
+            path = write(tmp_path / "tri.obj", obj_text([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]]))
+            assert load_mesh(path).n_triangles == 1 and io.meshes._cache_entry(str(path)) is None
+        finally:
+            compile_cache.enable_default()
+        assert io.mesh_cache_folder() == compile_cache.mesh_cache_dir()
+        assert io.use_mesh_cache(None) is io.meshes.FOLLOW_COMPILE_CACHE and io.mesh_cache_folder() is None
+    finally:
+        io.use_mesh_cache(before)
+
+
+def test_the_mesh_cache_evicts_what_was_read_longest_ago(tmp_path, mesh_cache, monkeypatch):
+    from jaxbvh import io
+
+    paths = [write(tmp_path / f"m{i}.obj", obj_text([[0, 0, 0], [1, 0, 0], [0, 1, i + 1]], [[0, 1, 2]]))
+             for i in range(3)]
+    load_mesh(paths[0])
+    entry_size = sum(e.stat().st_size for e in mesh_cache.glob("*.npz"))
+    monkeypatch.setattr(io.meshes, "MAX_MESH_CACHE_BYTES", 2 * entry_size + entry_size // 2)  # room for two
+    load_mesh(paths[1])
+    first, second = (io.meshes._cache_entry(str(p)) for p in paths[:2])
+    os.utime(first, ns=(1, 1))
+    os.utime(second, ns=(2, 2))
+    load_mesh(paths[0])  # read again: now the most recently used
+    load_mesh(paths[2])  # a third entry: the one read longest ago (paths[1]) goes
+    kept = {e.name for e in mesh_cache.glob("*.npz")}
+    assert kept == {io.meshes._cache_entry(str(p)).name for p in (paths[0], paths[2])}
+    assert load_mesh(paths[1]).n_triangles == 1  # parsed again, not lost
+
+
+def test_a_warm_load_neither_parses_nor_imports_trimesh(tmp_path):
+    script = (
+        "import sys, jaxbvh\n"
+        "from jaxbvh.io import bundled_mesh_path, load_mesh\n"
+        "n = load_mesh(bundled_mesh_path()).n_triangles\n"
+        "print(n, 'trimesh' in sys.modules)\n")
+    env = dict(os.environ, JAXBVH_CACHE_DIR=str(tmp_path / "cache"))
+    env.pop("JAXBVH_CACHE", None)
+    runs = [subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300)
+            for _ in range(2)]
+    assert [r.returncode for r in runs] == [0, 0], runs[0].stderr + runs[1].stderr
+    cold, warm = (r.stdout.split() for r in runs)
+    assert cold == [warm[0], "True"] and warm[1] == "False"
+    assert list((tmp_path / "cache" / "meshes").glob("*.npz"))
 
 
 def test_mesh_cache_notices_an_edited_file_and_ignores_damage(tmp_path, mesh_cache):
