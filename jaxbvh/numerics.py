@@ -279,3 +279,14 @@ def exclusive_sum(flags):
     """Sum [N] int32 of the ``flags`` before each position."""
     flags = flags.astype(jnp.int32)
     return inclusive_sum(flags) - flags
+
+
+def on_device(value, dtype) -> jax.Array:
+    """``value`` (a number or NumPy array) as a JAX array of ``dtype``, cast on the host.
+
+    ``jnp.asarray(2.0, jnp.float32)``, ``jnp.int32(n)`` and ``jnp.full(...)`` outside a
+    program each compile a small program (a conversion, a broadcast) in every new process
+    that meets them: 30-100 ms cold, 20-45 ms to load from the cache, a dozen of them on an
+    optimizer's first call. A NumPy array put on the device compiles nothing. Traceable
+    (a constant in a traced program); ``value`` must be concrete."""
+    return jax.device_put(np.asarray(value, dtype))

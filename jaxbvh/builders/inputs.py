@@ -23,10 +23,11 @@ import dataclasses
 import warnings
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxbvh.numerics import round_down, round_up, scene_scale, working_dtype
+from jaxbvh.numerics import on_device, round_down, round_up, scene_scale, working_dtype
 from jaxbvh.tree.layout import capacity_bucket
 from jaxbvh.tree.validate import few_ids
 
@@ -114,7 +115,9 @@ def prepare(prim_lo, prim_hi, *, pad: bool = True, capacity: int | None = None, 
     lo_p = np.full((cap, 3), np.inf, dt)
     hi_p = np.full((cap, 3), -np.inf, dt)
     lo_p[:n], hi_p[:n] = lo, hi
-    return jnp.asarray(lo_p), jnp.asarray(hi_p), jnp.int32(n), jnp.asarray(scene_scale(lo, hi), dt)
+    # on the host: jnp.int32(n) and jnp.asarray(x, dt) would each compile a conversion
+    return (jax.device_put(lo_p), jax.device_put(hi_p), on_device(n, np.int32),
+            on_device(scene_scale(lo, hi), dt))
 
 
 class TriangleFrame(NamedTuple):

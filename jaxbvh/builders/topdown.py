@@ -80,7 +80,7 @@ import numpy as np
 
 from jaxbvh.builders.configs import BuilderConfig
 from jaxbvh.draws import split_uniforms
-from jaxbvh.numerics import TIE_TOLERANCE, half_area
+from jaxbvh.numerics import TIE_TOLERANCE, half_area, on_device
 from jaxbvh.program_store import stored_jit
 from jaxbvh.tree.layout import BVH, capacity_bucket
 
@@ -116,8 +116,8 @@ def build(lo, hi, n, scale, config: BuilderConfig) -> BVH:
         raise ValueError(f"binned build of {int(n)} primitives with {bins} bins needs keys past int32; "
                          "use fewer bins")
     dt = lo.dtype
-    return engine(lo, hi, n, jnp.int32(config.max_leaf), jnp.asarray(config.ct, dt), jnp.asarray(config.ci, dt),
-                  scale, method=config.method, bins=bins)
+    return engine(lo, hi, n, on_device(config.max_leaf, np.int32), on_device(config.ct, dt),
+                  on_device(config.ci, dt), scale, method=config.method, bins=bins)
 
 
 def randomized_forest(lo, hi, n, scale, splits: RandomSplits, *, rcl: str):

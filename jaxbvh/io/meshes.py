@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxbvh import compile_cache
 from jaxbvh.files import atomic_write
 from jaxbvh.tree.frame import Frame
 from jaxbvh.tree.interchange import load
@@ -346,8 +347,6 @@ def mesh_cache_folder() -> Path | None:
     ``JAXBVH_CACHE=off`` or when you configured JAX's cache yourself)."""
     if _mesh_cache is not FOLLOW_COMPILE_CACHE:
         return _mesh_cache
-    from jaxbvh import compile_cache
-
     return compile_cache.mesh_cache_dir() if compile_cache.status()["owner"] == "jaxbvh" else None
 
 

@@ -42,6 +42,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxbvh.numerics import on_device
 from jaxbvh.tree.layout import BVH, capacity_bucket
 
 
@@ -65,10 +66,12 @@ def new_progress(sah_start, limit: int, dtype) -> Progress:
     """Progress before the first step; history length ``H`` = capacity bucket of ``limit``."""
     length = history_length(limit)
     sah_start = jnp.asarray(sah_start, dtype)
-    return Progress(step=jnp.int32(0), limit=jnp.int32(limit), done=jnp.bool_(limit <= 0),
-                    converged=jnp.bool_(False), sah=sah_start, sah_start=sah_start, moves=jnp.int32(0),
-                    stage=jnp.int32(0), history=jnp.full(length, jnp.nan, dtype),
-                    history_moves=jnp.zeros(length, jnp.int32), history_stage=jnp.zeros(length, jnp.int32))
+    zero = on_device(0, np.int32)  # numbers cast on the host: no conversion programs
+    return Progress(step=zero, limit=on_device(limit, np.int32), done=on_device(limit <= 0, bool),
+                    converged=on_device(False, bool), sah=sah_start, sah_start=sah_start, moves=zero,
+                    stage=zero, history=on_device(np.full(length, np.nan), dtype),
+                    history_moves=on_device(np.zeros(length), np.int32),
+                    history_stage=on_device(np.zeros(length), np.int32))
 
 
 def history_length(limit: int) -> int:

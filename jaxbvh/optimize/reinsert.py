@@ -139,6 +139,7 @@ import numpy as np
 
 from jaxbvh.configs import Checked, ci_knob, ct_knob, integer, knob, min_gain_knob, optional, real, split_axes_knob
 from jaxbvh.numerics import min_gain as default_min_gain
+from jaxbvh.numerics import on_device
 from jaxbvh.optimize.driver import run
 from jaxbvh.optimize.protocol import (
     Optimizer,
@@ -280,11 +281,11 @@ def init(tree, config: Config | None = None, key=None, *, sah_start=None) -> Opt
     # on the host: an eager jnp sum would compile two small programs
     nodes = int(np.count_nonzero(np.asarray(tree.parent) >= 0))
     escalate = escalate_for(nodes, config.escalate)
-    params = Params(*(jnp.asarray(x, dtype) for x in (config.ct, config.ci, min_gain, escalate)),
-                    max_steps=jnp.int32(config.max_steps),
-                    need=jnp.int32(candidates_needed(config.first_fraction, nodes)),
-                    split_axes=jnp.bool_(config.split_axes), settle=jnp.bool_(config.settle),
-                    widen_until=jnp.int32(widening_stop(config.widen_until, nodes)))
+    params = Params(*(on_device(x, dtype) for x in (config.ct, config.ci, min_gain, escalate)),
+                    max_steps=on_device(config.max_steps, np.int32),
+                    need=on_device(candidates_needed(config.first_fraction, nodes), np.int32),
+                    split_axes=on_device(config.split_axes, bool), settle=on_device(config.settle, bool),
+                    widen_until=on_device(widening_stop(config.widen_until, nodes), np.int32))
     limit = config.max_iterations if config.ct > 0 else 0  # with Ct = 0 no move changes the SAH
     return restart(params, tree, limit, sah_start)
 

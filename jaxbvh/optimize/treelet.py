@@ -62,7 +62,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh.configs import Checked, ci_knob, ct_knob, integer, knob, min_gain_knob, optional, sizes, split_axes_knob
-from jaxbvh.numerics import extent_scale, half_area, rounded, take_clipped
+from jaxbvh.numerics import extent_scale, half_area, on_device, rounded, take_clipped
 from jaxbvh.numerics import min_gain as default_min_gain
 from jaxbvh.optimize.driver import run
 from jaxbvh.optimize.protocol import (
@@ -439,8 +439,8 @@ def init(tree, config: Config | None = None, key=None, *, sah_start=None) -> Opt
                          "widen them (float16 to float32 is exact)")
     tree = to_jax(tree)
     min_gain = default_min_gain(dtype) if config.min_gain is None else config.min_gain
-    params = Params(*(jnp.asarray(x, dtype) for x in (config.ct, config.ci, min_gain)),
-                    split_axes=jnp.bool_(config.split_axes))
+    params = Params(*(on_device(x, dtype) for x in (config.ct, config.ci, min_gain)),
+                    split_axes=on_device(config.split_axes, bool))
     inner = _prepare(tree, params.ct, params.ci)
     limit = config.max_passes if config.leaves > 2 else 0  # two-leaf treelets cannot change
     sah_start = start_sah(tree, config.ct, config.ci) if sah_start is None else sah_start

@@ -84,8 +84,10 @@ def node_costs(tree, ct=1.0, ci=1.0):
     return cost
 
 
+@stored_jit
 def sah(tree, ct=1.0, ci=1.0):
-    """The tree's SAH cost (the root's ``C``), a scalar in the tree's float dtype."""
+    """The tree's SAH cost (the root's ``C``), a scalar in the tree's float dtype (one
+    program: the root picked outside one would compile five small ones)."""
     return node_costs(tree, ct, ci)[tree.root]
 
 
