@@ -281,11 +281,14 @@ def placements(mesh, world_space: bool = True) -> list[Placement]:
     return out
 
 
-#: the object BVHs' builder unless told otherwise: binned SAH, one primitive per leaf (the
-#: paper's choice; the command line's ``jaxbvh rebraid`` reads its defaults from it)
-# one primitive per leaf, as the two-level builder (re-braiding) was designed and measured with;
-# the builders' own default leaves (jaxbvh.configs.DEFAULT_MAX_LEAF) are not yet tried there
-DEFAULT_BUILDER = BinnedConfig(max_leaf=1)
+#: the object BVHs' builder unless told otherwise: binned SAH with the builders' default
+#: leaves (up to :data:`jaxbvh.configs.DEFAULT_MAX_LEAF` primitives where the SAH says a
+#: leaf costs less; the command line's ``jaxbvh rebraid`` reads its defaults from it). Against
+#: the paper's one primitive per leaf, on 7 bench scenes (by-material fandisk and cow, a pile
+#: of 12 cows, a room of 254 objects, drone, legocar, a forest of 64 instanced trees;
+#: re-braided at the default threshold): flattened SAH 2.4-12.2% lower, box tests per random
+#: ray 3.5-14% fewer, stored nodes 42-58% fewer, every hit the same (2026-12-04).
+DEFAULT_BUILDER = BinnedConfig()
 
 
 def object_builder(builder: BuilderConfig | None = None, **options) -> BuilderConfig:

@@ -49,7 +49,7 @@ def add_parser(subparsers):
                         "objects and instances are kept")
     OPTIONS.add_to(parser)
     # the builder of the object BVHs and of the single BVH: the two-level builder's
-    # (binned SAH, one primitive per leaf), not jaxbvh.build's sweep. Builders from boxes
+    # (binned SAH, the default leaves), not jaxbvh.build's sweep. Builders from boxes
     # only: the two-level BVH's objects and BRefs are built from boxes (no spatial splits)
     command_kit.add_builder_args(parser, default=fm.DEFAULT_BUILDER, methods=BOX_BUILDERS)
     parser.add_argument("--object-space", action="store_true",
