@@ -94,6 +94,7 @@ from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxbvh.configs import (
     Checked,
@@ -108,7 +109,7 @@ from jaxbvh.configs import (
     split_axes_knob,
 )
 from jaxbvh.draws import annealing_draws
-from jaxbvh.numerics import extent_scale, rounded
+from jaxbvh.numerics import extent_scale, on_device, rounded
 from jaxbvh.numerics import min_gain as default_min_gain
 from jaxbvh.optimize.driver import run
 from jaxbvh.optimize.protocol import (
@@ -356,8 +357,8 @@ def _init_state(tree, config, keys, static: Static, *, limit: int, steps: int = 
     tree = to_jax(tree)
     dtype = float_dtype(tree)
     min_gain = default_min_gain(dtype) if config.min_gain is None else config.min_gain
-    params = Params(jnp.asarray(config.ct, dtype), jnp.asarray(config.ci, dtype),
-                    jnp.asarray(min_gain, dtype), jnp.int32(steps), jnp.float32(period), jnp.float32(hottest))
+    params = Params(on_device(config.ct, dtype), on_device(config.ci, dtype), on_device(min_gain, dtype),
+                    on_device(steps, np.int32), on_device(period, np.float32), on_device(hottest, np.float32))
     inner, start_cost = _start(tree, params, keys, chains=static.chains, frontier=static.frontier,
                                keep_best=static.keep_best, history=history_length(limit))
     return OptimizerState(tree, new_progress(start_cost, limit, dtype), params, inner, static)
