@@ -20,8 +20,8 @@ Errors. With ``errors="keep"`` one bad tree fails alone and the rest is delivere
 tree whose ``init`` raises is left out with its one-line message in
 :attr:`BatchOptimizeResult.errors`, and a chunk whose compiled call raises is run
 again one tree per call, so only the tree that fails is left out (its figures NaN /
--1 / False, its tree None in ``unstack()``). ``errors="raise"`` (the default) raises
-the first error, naming the mesh's position.
+-1 / False, its tree None in ``unstack()``). ``errors="raise"`` (the default) lets the first
+error through, as the single run raises it.
 """
 
 from __future__ import annotations
@@ -64,7 +64,8 @@ def _row(trees: BVH, i: int) -> BVH:
     return jax.tree_util.tree_map(lambda a: a[i], trees)
 
 
-def _one_line(exc: BaseException) -> str:
+def one_line(exc: BaseException) -> str:
+    """An exception as one line (its message, else its type's name)."""
     return " ".join(str(exc).split()) or type(exc).__name__
 
 
@@ -77,6 +78,25 @@ def _run_chunk(optimizer, states: list, devs: tuple, mode: str, most: int):
     call = partial(batch_devices.on_devices, devices=devs) if len(devs) > 1 else None
     res = jax.device_get(run_states(optimizer, stacked, mode=mode, real=real, call=call))
     return jax.tree_util.tree_map(lambda a: np.asarray(a)[: len(states)], res)
+
+
+def _run_or_split(optimizer, rows: list, states: list, devs: tuple, mode: str, most: int, fail) -> list:
+    """``[(rows, results)]`` of one chunk (``errors="keep"``, module docstring): one call
+    for all its rows; if that call raises, one call per row, and a row whose own call
+    raises goes to ``fail(row, exc)``. ``fail`` None (``errors="raise"``): the first
+    error goes through."""
+    try:
+        return [(rows, _run_chunk(optimizer, states, devs, mode, most))]
+    except Exception:  # noqa: BLE001 (find the tree that fails: one per call)
+        if fail is None:
+            raise
+    done = []
+    for r, state in zip(rows, states):
+        try:
+            done.append(([r], _run_chunk(optimizer, [state], devs, mode, most)))
+        except Exception as exc:  # noqa: BLE001
+            fail(r, exc)
+    return done
 
 
 def optimize(trees: TreeBatch, method: str = DEFAULT_METHOD, config=None, *, keys=None,
@@ -117,8 +137,8 @@ def optimize(trees: TreeBatch, method: str = DEFAULT_METHOD, config=None, *, key
 
     def fail(position: int, exc: Exception) -> None:
         if errors == "raise":
-            raise ValueError(f"optimize: mesh {position}: {_one_line(exc)}") from exc
-        failed[position] = f"mesh {position}: {_one_line(exc)}"
+            raise exc
+        failed[position] = f"mesh {position}: {one_line(exc)}"
 
     groups = []
     for group in trees.groups:
@@ -133,28 +153,16 @@ def optimize(trees: TreeBatch, method: str = DEFAULT_METHOD, config=None, *, key
                     rows.append(r)
                 except Exception as exc:  # noqa: BLE001 (that tree's error, errors="keep")
                     fail(at, exc)
-            if not rows:
-                continue
-            try:
-                done = [(rows, _run_chunk(optimizer, states, devs, mode, most))]
-            except Exception as exc:  # noqa: BLE001 (find the tree that fails: one per call)
-                if errors == "raise":
-                    raise
-                done = []
-                for r, state in zip(rows, states):
-                    try:
-                        done.append(([r], _run_chunk(optimizer, [state], devs, mode, most)))
-                    except Exception as one:  # noqa: BLE001
-                        fail(int(group.index[r]), one)
-            for chunk_rows, res in done:
-                at = group.index[chunk_rows]
-                for field in out:
-                    out[field][at] = getattr(res, field)
-                parts.append((chunk_rows, res.tree))
-            if on_chunk is not None:
-                on_chunk(group.index[rows])
+            if rows:
+                parts += _run_or_split(optimizer, rows, states, devs, mode, most, None if errors == "raise" else
+                                       lambda r, exc, group=group: fail(int(group.index[r]), exc))
+                if on_chunk is not None:
+                    on_chunk(group.index[rows])
+        for chunk_rows, res in parts:
+            for field in out:
+                out[field][group.index[chunk_rows]] = getattr(res, field)
         if parts:
             kept = np.concatenate([np.asarray(r, np.int64) for r, _ in parts])
-            joined = jax.tree_util.tree_map(lambda *a: np.concatenate(a), *[t for _, t in parts])
+            joined = jax.tree_util.tree_map(lambda *a: np.concatenate(a), *[res.tree for _, res in parts])
             groups.append(Group(joined, group.index[kept], group.prims[kept]))
     return BatchOptimizeResult(TreeBatch(tuple(groups), m), **out, errors=dict(sorted(failed.items())))
