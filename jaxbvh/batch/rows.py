@@ -13,7 +13,9 @@ in one compiled program:
   rows, each running the *single-tree program* (its own loop lengths, only the branch
   it takes). No Python or dispatch per row; the work is the loop of single calls'
   work. Filler rows (padding the batch axis to a bucket) are passed over by a
-  ``lax.cond`` on an unbatched flag, so they cost nothing.
+  ``lax.cond`` on an unbatched flag, so they cost nothing (the optimizers' batch
+  driver, :func:`jaxbvh.optimize.driver.run_states`, runs its rows the same two ways
+  and starts its filler rows done instead, which skips them in either mode).
 
 ``"auto"`` picks ``"map"`` when every device is a CPU and ``"vmap"`` otherwise. Both
 give the same results, row for row, as the single-tree call (each row is computed by

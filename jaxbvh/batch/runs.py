@@ -68,7 +68,7 @@ import jaxbvh
 from jaxbvh.batch.build import build, builder_config
 from jaxbvh.batch.chunking import chunk_items
 from jaxbvh.batch.measure import costs
-from jaxbvh.batch.optimize import optimize
+from jaxbvh.batch.optimize import one_line, optimize
 from jaxbvh.batch.plan import BatchConfig
 from jaxbvh.builders.configs import TRIANGLE_BUILDERS
 from jaxbvh.cli.command_kit import seed_key  # any integer seed, as the command line takes it
@@ -169,11 +169,6 @@ def file_sha256(path) -> str:
     return digest.hexdigest()
 
 
-def one_line(exc: BaseException) -> str:
-    """An exception as one line (its message, else its type's name)."""
-    return " ".join(str(exc).split()) or type(exc).__name__
-
-
 @dataclasses.dataclass(frozen=True)
 class Settings:
     """What every chunk of a run does: ``action`` (``"build"`` or ``"optimize"``), the
@@ -218,7 +213,7 @@ def trees_of(meshes, names, settings: Settings, on_chunk=None) -> tuple[list, li
 
     Returns ``(trees, rows)``, one of each per mesh: a compacted tree (NumPy arrays) or
     None, and a dict with ``sah_built``, ``sah`` or ``error`` (``"build: ..."``,
-    ``"validate: ..."``). ``on_chunk(index)``: as :func:`jaxbvh.batch.build`'s, ``index``
+    ``"optimize: ..."``, ``"validate: ..."``: a mesh that fails, fails alone). ``on_chunk(index)``: as :func:`jaxbvh.batch.build`'s, ``index``
     positions in ``meshes``. Keys: :func:`mesh_key` of ``names``.
     """
     loaded = [i for i, m in enumerate(meshes) if m is not None]
@@ -240,7 +235,9 @@ def trees_of(meshes, names, settings: Settings, on_chunk=None) -> tuple[list, li
     if settings.action == "optimize" and batch_trees.groups:
         keys = [mesh_key(settings.seed, names[i]) for i in loaded]
         figures = optimize(batch_trees, settings.method, settings.optimizer, keys=keys, batch=settings.batch,
-                           on_chunk=clock)
+                           errors="keep", on_chunk=clock)
+        for k, message in figures.errors.items():  # that tree alone: the rest are delivered
+            rows[loaded[k]]["error"] = f"optimize: {message.replace(f'mesh {k}', 'mesh')}"
         batch_trees = figures.trees
     for k, tree in enumerate(batch_trees.unstack()):
         i = loaded[k]

@@ -28,11 +28,20 @@ thread, so nothing is left compiling when the call returns, and a script exits a
 as its last line is done. No host callback runs inside a compiled program, so every
 compiled piece is cached.
 
-Batches. :func:`init_batch` starts any optimizer on a batch of trees (one capacity,
-:func:`jaxbvh.tree.batching.stack_trees`): each tree's state is made by ``init`` on the
-host, and the states are stacked along a new leading axis. :func:`run_batch` then runs
-``step`` vmapped until every state is done (a done state is a fixed point of ``step``,
-so each tree gets exactly its own single-tree result) and ``result`` vmapped.
+Batches: the one batch driver. Every batch of trees runs through :func:`run_states`
+(stacked trees: :func:`run_batch`, and through it :func:`jaxbvh.optimize.rotate.optimize_batch`;
+meshes in capacity groups and chunks over devices: :func:`jaxbvh.batch.optimize`). Each
+tree's state is made by ``init`` on the host and the states are stacked along a new
+leading axis (:func:`init_batch`, :func:`stack_states`). :func:`run_rows` is the one
+compiled program: ``"vmap"`` runs ``step`` vmapped in one ``while_loop`` until every
+state is done (a done state is a fixed point of ``step``, ``keep_if_done``, so a tree
+that has converged stops changing while the others go on), then ``result`` vmapped;
+``"map"`` runs each row's own loop and ``result`` one row after another, the
+single-tree program exactly (:mod:`jaxbvh.batch.rows`: which mode suits which device).
+Either way each tree gets exactly its own single-tree result. Rows that only fill the
+batch axis (to a batch-size bucket or a device multiple) are marked done before the
+call (:func:`fill_rows`), so they run no step in either mode. A batch has no time
+budget and no per-step callback: the whole batch is one call.
 """
 
 from __future__ import annotations
@@ -219,17 +228,66 @@ def init_batch(optimizer, trees, config=None, keys=None) -> OptimizerState:
                         for i, tree in enumerate(singles))
 
 
-@partial(stored_jit, static_argnums=(0, 1))
-def _run_batch(step: Callable, result: Callable, states: OptimizerState):
-    states = jax.lax.while_loop(lambda s: ~jnp.all(s.progress.done), jax.vmap(step), states)
-    return jax.vmap(result)(states)
+def fill_rows(states: OptimizerState, real) -> OptimizerState:
+    """``states`` with every row where ``real`` (bool [B]) is False marked done, so that
+    it runs no step (a filler row: its result is dropped by the caller)."""
+    real = np.asarray(real, bool)
+    if real.all():
+        return states
+    done = np.asarray(states.progress.done) | ~real
+    return states.replace(progress=states.progress._replace(done=jnp.asarray(done)))
 
 
-def run_batch(optimizer, trees, config=None, *, keys=None):
-    """Run ``optimizer`` on a batch of trees at once (``step`` vmapped) to the end.
+def run_rows(states: OptimizerState, *, step: Callable, result: Callable, mode: str = "vmap") -> OptimizeResult:
+    """The batch program (traceable): every row's ``step`` until it is done, then its
+    ``result``; ``mode`` ``"vmap"`` or ``"map"`` (module docstring). Every leaf of
+    ``states`` and of the result has the batch axis first."""
+    if mode == "vmap":  # one loop for all rows, until the last is done (done rows are fixed points)
+        states = jax.lax.while_loop(lambda s: ~jnp.all(s.progress.done), jax.vmap(step), states)
+        return jax.vmap(result)(states)
+    if mode != "map":
+        raise ValueError(f"run_rows: mode must be 'map' or 'vmap', got {mode!r}")
 
-    ``trees``, ``keys``: as :func:`init_batch`. Returns the ``OptimizeResult`` of every
-    tree (NumPy arrays with a leading batch axis), each exactly the tree's own result.
+    def run_one(state):  # the single-tree run: its own loop, only the branches it takes
+        return result(jax.lax.while_loop(lambda s: ~s.progress.done, step, state))
+
+    return jax.lax.map(run_one, states)
+
+
+#: :func:`run_rows` compiled for the arrays' own devices (one program per step function,
+#: mode and state shape; stored, so a warm process loads it)
+_run_rows = stored_jit(run_rows, static_argnames=("step", "result", "mode"))
+
+
+def run_states(optimizer, states: OptimizerState, *, mode: str = "vmap", real=None, call=None) -> OptimizeResult:
+    """The one batch driver: ``optimizer`` run on stacked ``states`` to the end
+    (module docstring); returns the stacked ``OptimizeResult`` (JAX arrays, every row's
+    exactly its tree's single-tree result; a filler row's is to be dropped).
+
+    ``mode``: ``"vmap"`` or ``"map"``. ``real``: bool [B], False for a filler row
+    (None: every row is real). ``call``: None (the program runs where the arrays are:
+    one device, or sharded by ``jax.sharding`` along the batch axis), or a function
+    ``call(run_rows, (states,), step=..., result=..., mode=...)`` that compiles and runs
+    it (:func:`jaxbvh.batch.devices.on_devices` with its devices: the batch axis split
+    over them, each device's loop its own).
     """
-    return jax.device_get(_run_batch(optimizer.step, optimizer.result,
-                                     init_batch(optimizer, trees, config, keys)))
+    states = states if real is None else fill_rows(states, real)
+    if call is None:
+        return _run_rows(states, step=optimizer.step, result=optimizer.result, mode=mode)
+    return call(run_rows, (states,), step=optimizer.step, result=optimizer.result, mode=mode)
+
+
+def run_batch(optimizer, trees, config=None, *, keys=None, mode: str = "vmap") -> OptimizeResult:
+    """Run ``optimizer`` on a batch of stacked trees at once, to the end (:func:`run_states`).
+
+    ``trees``, ``keys``: as :func:`init_batch`; the trees' arrays may be sharded over
+    devices along the batch axis (``jax.sharding``): the states are then placed the same
+    way, and the result is sharded so. ``mode``: as :func:`run_states` (``"vmap"``: the
+    protocol's ``step`` vmapped). Returns the ``OptimizeResult`` of every tree (JAX
+    arrays with a leading batch axis), each exactly the tree's own result.
+    """
+    states = init_batch(optimizer, trees, config, keys)
+    sharding = getattr(trees.left, "sharding", None)
+    if sharding is not None and len(sharding.device_set) > 1:
+        states = jax.device_put(states, sharding)
+    return run_states(optimizer, states, mode=mode)

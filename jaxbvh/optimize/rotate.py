@@ -111,7 +111,7 @@ from jaxbvh.configs import (
 from jaxbvh.draws import annealing_draws
 from jaxbvh.numerics import extent_scale, on_device, rounded
 from jaxbvh.numerics import min_gain as default_min_gain
-from jaxbvh.optimize.driver import run
+from jaxbvh.optimize.driver import run, run_batch
 from jaxbvh.optimize.protocol import (
     Optimizer,
     OptimizeResult,
@@ -504,15 +504,9 @@ def anneal(key, tree, *, time_budget: float | None = None, on_step: Callable | N
     return run(ANNEAL, tree, AnnealConfig(**config), key=key, time_budget=time_budget, on_step=on_step)
 
 
-@partial(stored_jit, static_argnums=(0, 1))
-def _run_batch(step_fn, result_fn, states):
-    """``step_fn`` vmapped over the batch until every state is done, then ``result_fn``."""
-    states = jax.lax.while_loop(lambda s: ~jnp.all(s.progress.done), jax.vmap(step_fn), states)
-    return jax.vmap(result_fn)(states)
-
-
 def optimize_batch(trees, keys=None, *, method: str = "hc", **config) -> OptimizeResult:
-    """Optimize a batch of trees at once: the protocol's ``step`` vmapped over the batch.
+    """Optimize a batch of trees at once: the protocol's ``step`` vmapped over the batch
+    (:func:`jaxbvh.optimize.driver.run_batch`, the one batch driver).
 
     ``trees``: a :class:`~jaxbvh.tree.layout.BVH` whose arrays have a leading batch axis B
     (:func:`jaxbvh.tree.batching.stack_trees`); the arrays may be sharded over devices
@@ -529,10 +523,4 @@ def optimize_batch(trees, keys=None, *, method: str = "hc", **config) -> Optimiz
     optimizer = optimizers[method]
     if method == "sa" and keys is None:
         raise ValueError("optimize_batch: method 'sa' needs keys (one per tree)")
-    config = optimizer.Config(**config)
-    trees = to_jax(trees)
-    if keys is None:
-        states = jax.vmap(lambda tree: optimizer.init(tree, config))(trees)
-    else:
-        states = jax.vmap(lambda tree, key: optimizer.init(tree, config, key))(trees, keys)
-    return _run_batch(optimizer.step, optimizer.result, states)
+    return run_batch(optimizer, trees, optimizer.Config(**config), keys=keys)

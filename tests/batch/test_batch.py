@@ -3,6 +3,7 @@ the plan keeps its bounds; bad meshes fail alone; two devices give what one give
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import subprocess
@@ -24,6 +25,8 @@ from jaxbvh.batch.layout import own_capacity
 from jaxbvh.testing.plugin import examples
 from jaxbvh.tree.layout import capacity_bucket
 
+# the module (jaxbvh.batch.optimize is the function of the same name)
+batch_optimize = importlib.import_module("jaxbvh.batch.optimize")
 FIELDS = ("left", "right", "parent", "lo", "hi", "prim_start", "prim_count", "axis", "prim_index", "root")
 # one group for every test batch (capacity of the largest): one compiled program per list shape
 ONE_GROUP = batch.BatchConfig(max_padding=0.9)
@@ -93,6 +96,50 @@ def test_a_converged_tree_stops_while_others_go_on():
     single = jaxbvh.optimize.optimize(jaxbvh.build(*big, method="lbvh"), "hc")
     assert out.steps[0] < out.steps[1] == int(single.steps)
     assert_same_arrays(out.trees.unstack()[1], single.tree)
+
+
+def test_a_tree_that_fails_to_optimize_fails_alone(monkeypatch):
+    """errors="keep": a tree whose init raises, or whose compiled call raises, is left out
+    with its own message; every other tree is delivered, each its single run's."""
+    rng = np.random.default_rng(11)
+    meshes = []
+    for _ in range(4):  # 12 boxes each: the capacity of the batches above (programs shared)
+        lo = rng.uniform(-1, 1, (12, 3)).astype(np.float32)
+        meshes.append((lo, lo + rng.uniform(0, 0.3, (12, 3)).astype(np.float32)))
+    built = batch.build(meshes, method="lbvh", batch=ONE_GROUP).trees
+    singles = [jaxbvh.build(lo, hi, method="lbvh") for lo, hi in meshes]
+    keys = [jax.random.key(i) for i in range(4)]
+    keys[1] = "not a key"  # annealing's init of mesh 1 raises
+    with pytest.raises(TypeError):
+        batch.optimize(built, "sa", keys=keys, steps=6, period=2)
+    out = batch.optimize(built, "sa", keys=keys, steps=6, period=2, errors="keep")
+    assert list(out.errors) == [1] and out.errors[1].startswith("mesh 1: ") and "\n" not in out.errors[1]
+    trees = out.trees.unstack()
+    assert trees[1] is None and np.isnan(out.sah[1]) and out.steps[1] == -1 and not out.converged[1]
+    for i in (0, 2, 3):
+        single = jaxbvh.optimize.optimize(singles[i], "sa", key=keys[i], steps=6, period=2)
+        assert_same_arrays(trees[i], single.tree, f"mesh {i}")
+        assert out.steps[i] == int(single.steps)
+
+    # a compiled call that raises for mesh 2's tree: the chunk runs again a tree per call
+    run_chunk = batch_optimize._run_chunk
+    bad = float(jaxbvh.sah(jaxbvh.to_jax(singles[2])))
+
+    def failing(optimizer, states, *args):
+        if any(float(s.progress.sah_start) == bad for s in states):
+            raise RuntimeError("a call that fails\nover two lines")
+        return run_chunk(optimizer, states, *args)
+
+    monkeypatch.setattr(batch_optimize, "_run_chunk", failing)
+    with pytest.raises(RuntimeError):
+        batch.optimize(built, "hc")
+    seen = []
+    out = batch.optimize(built, "hc", errors="keep", on_chunk=lambda index: seen.append(sorted(index)))
+    assert out.errors == {2: "mesh 2: a call that fails over two lines"} and seen == [[0, 1, 2, 3]]
+    trees = out.trees.unstack()
+    assert trees[2] is None and out.steps[2] == -1
+    for i in (0, 1, 3):
+        assert_same_arrays(trees[i], jaxbvh.optimize.optimize(singles[i], "hc").tree, f"mesh {i}")
 
 
 # ----------------------------------------------------------------------------------

@@ -3,7 +3,9 @@
 For each: ``init``/``step``/``result`` have the contract's shapes; ``step`` jitted once
 serves every tree of one capacity; a done state is a fixed point; ``step`` vmapped over
 two different trees padded to one capacity gives each tree its own single-tree result,
-node for node; every result is a valid tree. Small trees keep the compiles short.
+node for node; every result is a valid tree. The one batch driver
+(``driver.run_states``) runs rows vmapped or mapped alike, filler rows run no step, and
+a second batch of the same shapes compiles nothing. Small trees keep the compiles short.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from helpers import random_tree
 
 import jaxbvh
 from jaxbvh.optimize import OPTIMIZERS, driver
-from jaxbvh.optimize.protocol import Optimizer, OptimizeResult, OptimizerState, Progress
+from jaxbvh.optimize.protocol import CompileClock, Optimizer, OptimizeResult, OptimizerState, Progress
 from jaxbvh.tree import stack_trees, unstack_trees
 
 #: small settings where the defaults would take long (annealing's schedule)
@@ -131,3 +133,29 @@ def test_protocol(name, trees):
     results = driver.run_batch(optimizer, batch, config, keys=keys)
     for i, single in enumerate(expected):
         assert_same_result(jax.tree_util.tree_map(lambda x, i=i: x[i], results), single)
+
+
+def test_the_batch_driver_maps_as_it_vmaps_runs_no_filler_and_does_not_retrace(trees):
+    """``run_states``, the program every batch path runs (``run_batch``,
+    ``rotate.optimize_batch``, ``jaxbvh.batch.optimize``): rows one after another
+    (``"map"``) give what rows side by side give, node for node; a filler row (``real``
+    False) runs no step; a batch of other trees of the same shapes traces nothing."""
+    optimizer, config = OPTIMIZERS["hc"], config_of("hc")
+    batch, singles, _ = trees
+    states = driver.init_batch(optimizer, batch, config)
+    vmapped = jax.device_get(driver.run_states(optimizer, states))
+    mapped = jax.device_get(driver.run_states(optimizer, states, mode="map"))
+    for i, tree in enumerate(singles):
+        alone = driver.run(optimizer, tree, config)
+        for got in (vmapped, mapped):
+            assert_same_result(jax.tree_util.tree_map(lambda x, i=i: x[i], got), alone)
+    assert min(vmapped.steps) > 0
+    filled = jax.device_get(driver.run_states(optimizer, states, mode="map", real=[True, False]))
+    assert int(filled.steps[0]) == int(vmapped.steps[0]) and int(filled.steps[1]) == 0
+    others = stack_trees([random_tree(41, 20, 2, nodes=64, prims=32)[0],
+                          random_tree(42, 45, 1, "grid", nodes=128, prims=64)[0]])
+    other_states = driver.init_batch(optimizer, others, config)
+    with CompileClock() as clock:
+        again = jax.device_get(driver.run_states(optimizer, other_states))
+    assert clock.traces == 0, clock.events
+    assert not np.array_equal(again.tree.left, vmapped.tree.left)  # really other trees
