@@ -54,6 +54,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxbvh.numerics import on_device
 from jaxbvh.optimize.protocol import OptimizeResult, OptimizerState, StepInfo
 from jaxbvh.program_store import stored_jit
 from jaxbvh.tree.batching import unstack_trees
@@ -120,7 +121,7 @@ def run_steps(optimizer, state: OptimizerState, stop: int) -> OptimizerState:
     stop = min(int(stop), _NO_STOP)
     if optimizer.advance is not None:
         return optimizer.advance(state, stop)
-    return advance(optimizer.step, state, jnp.int32(stop))
+    return advance(optimizer.step, state, on_device(stop, np.int32))
 
 
 @partial(stored_jit, static_argnums=0)

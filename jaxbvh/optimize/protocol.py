@@ -217,7 +217,8 @@ class Optimizer:
     state), through programs of its own (the pipeline: one loop per stage, shared with
     that stage's optimizer, instead of one program holding both stages); given ``stop``
     at or below the steps already run, it runs none but compiles (or loads) every
-    program it could run. Batches (:func:`~jaxbvh.optimize.driver.run_batch`) always vmap ``step``.
+    program it could run. Batches (:func:`~jaxbvh.optimize.driver.run_rows`) run ``step`` row by row,
+    mapped or vmapped, never ``advance``.
     """
 
     name: str

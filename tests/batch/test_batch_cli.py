@@ -3,6 +3,7 @@ entries fail alone with their own error, options checked before any work."""
 
 from __future__ import annotations
 
+import importlib
 import jax
 import numpy as np
 from helpers import assert_one_line_error, grid_obj, run_cli, run_json
@@ -173,3 +174,26 @@ def test_an_interrupted_batch_exits_130_and_leaves_no_output(tmp_path, capsys, m
     assert len(calls) == 2  # the first tree was written (staged) before the interrupt
     assert sorted(p.name for p in out.iterdir()) == ["b.obj.npz"]
     assert (out / "b.obj.npz").read_bytes() == b"yesterday's tree"
+
+
+def test_batch_optimize_writes_every_tree_but_the_one_whose_optimizer_fails(tmp_path, capsys, monkeypatch):
+    batch_optimize = importlib.import_module("jaxbvh.batch.optimize")  # the module, not the function
+    grid_obj(tmp_path / "a.obj", 3, 0)
+    grid_obj(tmp_path / "b.obj", 2, 1)
+    bad = jaxbvh.load_mesh(tmp_path / "b.obj").n_triangles
+    run_chunk = batch_optimize._run_chunk
+
+    def failing(optimizer, states, *args):  # the compiled call fails for b's tree alone
+        if any(int(np.sum(np.asarray(s.tree.prim_count))) == bad for s in states):
+            raise RuntimeError("a call that fails")
+        return run_chunk(optimizer, states, *args)
+
+    monkeypatch.setattr(batch_optimize, "_run_chunk", failing)
+    result = run_json(capsys, "batch", "optimize", str(tmp_path / "*.obj"), "-o", tmp_path / "out",
+                      "--method", "hc", status=1)
+    rows = {r["mesh"].rsplit("/", 1)[-1]: r for r in result["rows"]}
+    assert rows["b.obj"]["error"].startswith("optimize: ") and "a call that fails" in rows["b.obj"]["error"]
+    assert "error" not in rows["a.obj"] or not rows["a.obj"]["error"]
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["a.obj.npz"]
+    tree, _ = jaxbvh.load(tmp_path / "out" / "a.obj.npz")
+    jaxbvh.validate(tree, *jaxbvh.load_mesh(tmp_path / "a.obj").local_boxes())

@@ -220,7 +220,10 @@ def run(args) -> dict:
             bar.set_description(args.method)
             clock.last = time.perf_counter()
             keys = [runs.mesh_key(args.seed, names[i]) for i in loaded]  # the file's identity, not its place
-            figures = optimize(trees, args.method, optimizer, keys=keys, batch=batch_config, on_chunk=clock)
+            figures = optimize(trees, args.method, optimizer, keys=keys, batch=batch_config, errors="keep",
+                               on_chunk=clock)
+            for k, message in figures.errors.items():  # that tree alone: the rest are delivered
+                rows[loaded[k]]["error"] = f"optimize: {message.replace(f'mesh {k}', 'mesh')}"
             trees = figures.trees
         bar.reset(total=len(loaded))
         bar.set_description("save")
