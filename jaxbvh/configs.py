@@ -180,6 +180,21 @@ def config_of(config_class) -> Callable:
     return check
 
 
+def config_or_options(config, options: dict, config_class):
+    """A search's settings given either way: ``config`` (a ``config_class``) or keyword
+    ``options`` that make one (None and no options: the defaults); ``TypeError`` for both
+    at once or for a ``config`` of another type."""
+    if config is None:
+        return config_class(**options)
+    if options:
+        raise TypeError(f"give a {config_class.__qualname__} or keyword options, not both "
+                        "(config.replace(...) changes one)")
+    if not isinstance(config, config_class):
+        raise TypeError(f"config must be a {config_class.__module__}.{config_class.__qualname__}, "
+                        f"got {type(config).__name__}")
+    return config
+
+
 def _interval(what: str, minimum, maximum, above, below) -> str:
     """``what`` with its bounds: ``in (0, 1]``, ``>= 2``, ``< 1``, ..."""
     shown = lambda x: str(x) if isinstance(x, int) else f"{x:g}"  # noqa: E731 (no 2.14748e+09)

@@ -69,7 +69,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh.builders import insertion
-from jaxbvh.configs import Checked, integer, knob, real
+from jaxbvh.configs import Checked, config_or_options, integer, knob, real
 from jaxbvh.numerics import TIE_TOLERANCE
 from jaxbvh.optimize.protocol import CompileClock, OptimizeResult, StepInfo, check_on_step
 from jaxbvh.program_store import stored_jit
@@ -341,10 +341,7 @@ def evolve(key, prim_lo, prim_hi, config: EvolveConfig | None = None, *, devices
     Returns:
       :class:`EvolveResult`.
     """
-    if config is None:
-        config = EvolveConfig(**options)
-    elif options:
-        raise TypeError("give an EvolveConfig or keyword options, not both (config.replace(...) changes one)")
+    config = config_or_options(config, options, EvolveConfig)
     check_on_step(on_step)
     if on_generation is not None:
         warnings.warn("evolve(on_generation=...) is deprecated: use on_step(info), the optimizers' callback",

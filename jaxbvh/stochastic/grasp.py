@@ -79,7 +79,7 @@ from jaxbvh.builders.configs import SweepConfig
 from jaxbvh.builders.dispatch import build
 from jaxbvh.builders.inputs import prepare
 from jaxbvh.builders.topdown import RandomSplits, randomized_forest
-from jaxbvh.configs import Checked, integer, knob, one_of, optional, real
+from jaxbvh.configs import Checked, config_or_options, integer, knob, one_of, optional, real
 from jaxbvh.draws import split_uniforms
 from jaxbvh.numerics import half_area
 from jaxbvh.optimize.protocol import CompileClock, OptimizeResult, StepInfo, check_on_step
@@ -478,10 +478,7 @@ def grasp(key, prim_lo, prim_hi, config: GraspConfig | None = None, *,
       A :class:`GraspResult`; its tree is the best trial's (lowest objective, then lowest
       trial number), built whole.
     """
-    if config is None:
-        config = GraspConfig(**options)
-    elif options:
-        raise TypeError("give a GraspConfig or keyword options, not both (config.replace(...) changes one)")
+    config = config_or_options(config, options, GraspConfig)
     check_on_step(on_step)
     if on_chunk is not None:
         warnings.warn("grasp(on_chunk=...) is deprecated: use on_step(info), the optimizers' callback",

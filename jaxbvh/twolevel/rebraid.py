@@ -65,6 +65,7 @@ import jax
 import numpy as np
 
 from jaxbvh.builders.configs import BuilderConfig
+from jaxbvh.configs import config_or_options
 from jaxbvh.numerics import half_area
 from jaxbvh.optimize.protocol import CompileClock, OptimizeResult, StepInfo, check_on_step
 from jaxbvh.tree.cost import sah as sah_of
@@ -158,13 +159,7 @@ def run_from(mesh, trees: dict[int, ObjectTree], config: RebraidConfig | None = 
 
 def _config(config, options) -> RebraidConfig:
     """``config``, or the RebraidConfig of keyword ``options`` (not both)."""
-    if config is None:
-        return RebraidConfig(**options)
-    if options:
-        raise TypeError("give a RebraidConfig or keyword options, not both (config.replace(...) changes one)")
-    if not isinstance(config, RebraidConfig):
-        raise TypeError(f"config must be a jaxbvh.twolevel.config.RebraidConfig, got {type(config).__name__}")
-    return config
+    return config_or_options(config, options, RebraidConfig)
 
 
 def _reporter(trace: list, on_step, started: float):

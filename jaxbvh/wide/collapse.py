@@ -87,7 +87,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxbvh.configs import Checked, integer, knob, optional, real
+from jaxbvh.configs import Checked, config_or_options, integer, knob, optional, real
 from jaxbvh.numerics import min_gain, take
 from jaxbvh.program_store import stored_jit
 from jaxbvh.tree.layout import BVH, WideBVH, to_jax
@@ -370,12 +370,8 @@ def collapse(tree, method: str | CollapseConfig = "dp", **options) -> CollapseRe
     ``max_children`` None means: no limit for greedy, 8 for dp; qbvh is 4-wide by
     construction (any other value is an error). ``max_leaf`` > 1 needs ``"dp"``.
     """
-    if isinstance(method, CollapseConfig):
-        if options:
-            raise TypeError("give a CollapseConfig or keyword options, not both (config.replace(...) changes one)")
-        config = method
-    else:
-        config = CollapseConfig(method=method, **options)
+    config = (config_or_options(method, options, CollapseConfig) if isinstance(method, CollapseConfig)
+              else CollapseConfig(method=method, **options))
     if config.method == "greedy":
         return greedy(tree, max_children=config.max_children, test_cost=config.test_cost)
     if config.method == "qbvh":
