@@ -44,16 +44,23 @@ from jaxbvh.numerics import extent_scale, half_area, rounded
 from jaxbvh.program_store import stored_jit
 
 
-def _segmented_boxes(lo, hi, first):
+def _segmented_boxes(lo, hi, offset, longest):
     """Running box of each segment [S, 3] x 2: the union of the boxes from the segment's
-    first slot (``first`` [S] bool marks it) to this one."""
+    first slot to this one; ``offset`` [S] int32: slots since the segment's first,
+    ``longest`` [] int32: the longest segment. Hillis-Steele doubling in a loop
+    (``log2(longest)`` sweeps: a small program, where an associative scan unrolls its levels)."""
+    slots = lo.shape[0]
+    here = jnp.arange(slots, dtype=jnp.int32)
 
-    def join(a, b):
-        fa, la, ha = a
-        fb, lb, hb = b
-        return fa | fb, jnp.where(fb[:, None], lb, jnp.minimum(la, lb)), jnp.where(fb[:, None], hb, jnp.maximum(ha, hb))
+    def body(carry):
+        run_lo, run_hi, d = carry
+        take = offset >= d
+        back = jnp.maximum(here - d, 0)
+        run_lo = jnp.where(take[:, None], jnp.minimum(run_lo, run_lo[back]), run_lo)
+        run_hi = jnp.where(take[:, None], jnp.maximum(run_hi, run_hi[back]), run_hi)
+        return run_lo, run_hi, 2 * d
 
-    _, run_lo, run_hi = jax.lax.associative_scan(join, (first, lo, hi))
+    run_lo, run_hi, _ = jax.lax.while_loop(lambda c: c[2] < longest, body, (lo, hi, jnp.int32(1)))
     return run_lo, run_hi
 
 
@@ -108,9 +115,9 @@ def _split_round(tree, prim_lo, prim_hi, scale):
     start = tree.prim_start[owner]
     count = tree.prim_count[owner]
     k = here - start + 1  # slots up to and including this one
-    run_first, run_last = used & (k == 1), used & (k == count)
-    left_lo, left_hi = _segmented_boxes(blo, bhi, run_first)
-    right_lo, right_hi = _segmented_boxes(blo[::-1], bhi[::-1], run_last[::-1])
+    longest = jnp.max(jnp.where(fits, tree.prim_count, 1))
+    left_lo, left_hi = _segmented_boxes(blo, bhi, jnp.where(splitting, k - 1, 0), longest)
+    right_lo, right_hi = _segmented_boxes(blo[::-1], bhi[::-1], jnp.where(splitting, count - k, 0)[::-1], longest)
     # the right half of the cut after this slot starts at the next slot
     right_lo = jnp.concatenate([right_lo[::-1][1:], jnp.full((1, 3), inf)])
     right_hi = jnp.concatenate([right_hi[::-1][1:], jnp.full((1, 3), -inf)])
