@@ -55,6 +55,7 @@ import numpy as np
 from jaxbvh.configs import Checked, ci_knob, config_of, ct_knob, integer, knob, max_leaf_knob, optional, real, split_axes_knob
 from jaxbvh.optimize import reinsert, treelet
 from jaxbvh.optimize.leaves import merge_leaves
+from jaxbvh.optimize.split import split_leaves
 from jaxbvh.optimize.driver import advance as driver_advance
 from jaxbvh.optimize.driver import run
 from jaxbvh.optimize.protocol import (
@@ -251,16 +252,24 @@ _settle_at_init = stored_jit(_settled)
 # ----------------------------------------------------------------------------------
 
 
-def init(tree, config: Config | None = None, key=None) -> OptimizerState:
+def init(tree, config: Config | None = None, key=None, *, prims=None) -> OptimizerState:
     """The state before the first step: both stages' states, the first one current.
 
     ``tree``: a :class:`~jaxbvh.tree.layout.BVH` (NumPy or JAX arrays, any capacity,
-    leaves of any size). ``key``: unused (the method is deterministic).
+    leaves of any size). ``key``: unused (the method is deterministic). ``prims``: the
+    primitives' boxes ``(lo, hi)`` [n, 3] that ``prim_index`` names, or None; given,
+    every leaf of several primitives is first split into one-primitive leaves
+    (:func:`jaxbvh.optimize.split.split_leaves`), so that the stages move single
+    primitives and the final merge (``max_leaf``) makes the leaves; a capacity below
+    ``2P - 1`` leaves some leaves whole.
     """
     del key
     check_tree(tree)
     config = check_config(config, Config, "pipeline")
     tree = to_jax(tree)
+    if prims is not None:
+        prim_lo, prim_hi = (jnp.asarray(p) for p in prims)
+        tree, _ = split_leaves(tree, prim_lo, prim_hi)
     dtype = float_dtype(tree)
     # one SAH for the three progress records (each stage's config has the pipeline's ct, ci)
     sah_start = reinsert.start_sah(tree, config.ct, config.ci)
@@ -394,12 +403,15 @@ PIPELINE = Optimizer("pipeline", Config, init, step, result, stages=STAGES,
                      paper="Karras & Aila 2013 and Meister & Bittner 2018, in rounds", advance=advance)
 
 
-def pipeline(tree, *, time_budget: float | None = None, on_step: Callable | None = None,
+def pipeline(tree, *, prims=None, time_budget: float | None = None, on_step: Callable | None = None,
              **config) -> OptimizeResult:
     """Rounds of treelets and reinsertion until a round gains little (module docstring).
 
-    ``config``: fields of :class:`Config` (``treelet``, ``reinsert``: stage configs or
-    dicts of their fields). ``time_budget``, ``on_step(info)``: as
+    ``prims``: the primitives' boxes ``(lo, hi)``, to split the leaves first
+    (:func:`init`). ``config``: fields of :class:`Config` (``treelet``, ``reinsert``:
+    stage configs or dicts of their fields). ``time_budget``, ``on_step(info)``: as
     :func:`jaxbvh.optimize.driver.run` (``info.stage`` names the stage of each step).
     """
-    return run(PIPELINE, tree, Config(**config), time_budget=time_budget, on_step=on_step)
+    config = Config(**config)
+    state = init(tree, config, prims=prims) if prims is not None else None
+    return run(PIPELINE, tree, config, time_budget=time_budget, on_step=on_step, state=state)

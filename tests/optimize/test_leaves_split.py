@@ -111,3 +111,22 @@ def test_a_tree_with_references_stays_valid():
     assert_same_tree(got, want, fields=ALL)
     assert not overflow
     jaxbvh.validate(got, lo, hi, references=True, triangles=tri)
+
+
+def test_the_pipeline_given_the_primitives_optimizes_the_split_tree():
+    """``prims`` given: the pipeline runs on the split tree (the same result as on the twin's
+    split tree by hand), and its final merge makes every leaf, at most ``max_leaf``, even
+    where the input's leaves were larger."""
+    from jaxbvh.optimize import optimize, pipeline
+    from jaxbvh.testing import random_tree
+
+    tree, lo, hi = random_tree(3, 40, 8)
+    t = jaxbvh.to_numpy(tree)
+    assert int(np.max(t.prim_count)) > 2  # the case under test: leaves above the limit
+    got = pipeline.pipeline(tree, prims=(lo, hi), max_leaf=2)
+    by_hand = optimize(split_reference.split_leaves(tree, lo, hi)[0], "pipeline", max_leaf=2)
+    assert_same_tree(got.tree, by_hand.tree, fields=ALL)
+    jaxbvh.validate(got.tree, lo, hi)
+    out = jaxbvh.to_numpy(got.tree)
+    assert np.all(out.prim_count[out.left < 0] <= 2)
+    assert float(got.sah) <= float(jaxbvh.sah(t)) * (1 + 1e-6)  # this poor tree: far above
