@@ -22,17 +22,6 @@ other still finds gains, and together they end below either alone
 includes every rotation at their root). Starting with treelets gave the lower SAH on the
 tinybvh trees.
 
-Leaves
-======
-The stages move subtrees and never look inside a leaf. The run ends with the exact
-bottom-up merge (``max_leaf``, :mod:`jaxbvh.optimize.leaves`), so leaves can grow; given
-the primitives' boxes (``init(..., prims=(lo, hi))``, :func:`pipeline`), :func:`init`
-first splits every leaf of several primitives into one-primitive leaves
-(:mod:`jaxbvh.optimize.split`), so that the stages move single primitives and the merge
-decides every leaf afresh: leaves change both ways. Measured (``bench/results/leaves.md``,
-split section) it ends lower on every bench input; the tree .npz alone (no primitive
-boxes) keeps its leaves until the merge.
-
 On the protocol
 ===============
 :data:`PIPELINE` is an optimizer of :mod:`jaxbvh.optimize.protocol` whose stages are
@@ -263,25 +252,12 @@ _settle_at_init = stored_jit(_settled)
 # ----------------------------------------------------------------------------------
 
 
-def _primitives(prims):
-    """``(lo, hi, triangles)`` JAX arrays of ``prims`` (:func:`init`; triangles None for boxes)."""
-    if isinstance(prims, (tuple, list)):
-        lo, hi = prims
-        return jnp.asarray(lo), jnp.asarray(hi), None
-    tri = jnp.asarray(prims)
-    if tri.ndim != 3 or tri.shape[1:] != (3, 3):
-        raise ValueError(f"prims must be boxes (lo, hi) or triangles [n, 3, 3], got shape {tri.shape}")
-    return tri.min(axis=1), tri.max(axis=1), tri
-
-
 def init(tree, config: Config | None = None, key=None, *, prims=None) -> OptimizerState:
     """The state before the first step: both stages' states, the first one current.
 
     ``tree``: a :class:`~jaxbvh.tree.layout.BVH` (NumPy or JAX arrays, any capacity,
     leaves of any size). ``key``: unused (the method is deterministic). ``prims``: the
-    primitives that ``prim_index`` names, as boxes ``(lo, hi)`` [n, 3] or as triangles
-    [n, 3, 3] (each then clipped to its leaf: the tight start for a tree with spatial
-    splits), or None; given,
+    primitives' boxes ``(lo, hi)`` [n, 3] that ``prim_index`` names, or None; given,
     every leaf of several primitives is first split into one-primitive leaves
     (:func:`jaxbvh.optimize.split.split_leaves`), so that the stages move single
     primitives and the final merge (``max_leaf``) makes the leaves; a capacity below
@@ -292,7 +268,8 @@ def init(tree, config: Config | None = None, key=None, *, prims=None) -> Optimiz
     config = check_config(config, Config, "pipeline")
     tree = to_jax(tree)
     if prims is not None:
-        tree, _ = split_leaves(tree, *_primitives(prims))
+        prim_lo, prim_hi = (jnp.asarray(p) for p in prims)
+        tree, _ = split_leaves(tree, prim_lo, prim_hi)
     dtype = float_dtype(tree)
     # one SAH for the three progress records (each stage's config has the pipeline's ct, ci)
     sah_start = reinsert.start_sah(tree, config.ct, config.ci)
@@ -430,8 +407,8 @@ def pipeline(tree, *, prims=None, time_budget: float | None = None, on_step: Cal
              **config) -> OptimizeResult:
     """Rounds of treelets and reinsertion until a round gains little (module docstring).
 
-    ``prims``: the primitives' boxes ``(lo, hi)`` or triangles [n, 3, 3], to split the
-    leaves first (:func:`init`). ``config``: fields of :class:`Config` (``treelet``, ``reinsert``:
+    ``prims``: the primitives' boxes ``(lo, hi)``, to split the leaves first
+    (:func:`init`). ``config``: fields of :class:`Config` (``treelet``, ``reinsert``:
     stage configs or dicts of their fields). ``time_budget``, ``on_step(info)``: as
     :func:`jaxbvh.optimize.driver.run` (``info.stage`` names the stage of each step).
     """

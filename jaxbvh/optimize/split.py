@@ -12,9 +12,7 @@ The split
 In rounds, while a leaf holds several primitives, every such leaf at once:
 
 1. its primitives' boxes, clipped to the leaf's box (a spatial split's reference is the part
-   of a triangle inside its leaf; with whole primitives the clip changes nothing); given the
-   triangles, each is cut by the six faces of the leaf's box (:func:`~jaxbvh.optimize.split_rules.clip_to_leaf`): a long
-   triangle through a leaf has a box much smaller than the leaf's;
+   of a triangle inside its leaf; with whole primitives the clip changes nothing);
 2. the axis of the largest extent of their centres (the first of equal ones); its run of
    ``prim_index`` sorted by centre along it (stable: equal centres keep their order);
 3. the cut of the sorted run of the binned-free SAH sweep, lowest ``A(left) N(left) +
@@ -43,7 +41,6 @@ import jax
 import jax.numpy as jnp
 
 from jaxbvh.numerics import extent_scale, half_area, rounded
-from jaxbvh.optimize.split_rules import clip_to_leaf
 from jaxbvh.program_store import stored_jit
 
 
@@ -79,7 +76,7 @@ def _owners(tree, leaf):
     return owner, used
 
 
-def _split_round(tree, prim_lo, prim_hi, triangles, scale):
+def _split_round(tree, prim_lo, prim_hi, scale):
     """One round (module docstring): every leaf of several primitives split once, while
     free ids last. ``(tree, overflow)``."""
     cap, slots = tree.left.shape[0], tree.prim_index.shape[0]
@@ -103,8 +100,6 @@ def _split_round(tree, prim_lo, prim_hi, triangles, scale):
     splitting = used & fits[owner]
     blo = jnp.maximum(prim_lo[prim].astype(dtype), tree.lo[owner])
     bhi = jnp.minimum(prim_hi[prim].astype(dtype), tree.hi[owner])
-    if triangles is not None:
-        blo, bhi = clip_to_leaf(triangles[prim].astype(dtype), blo, bhi, tree.lo[owner], tree.hi[owner])
     centre = blo + bhi
     inf = jnp.asarray(jnp.inf, dtype)
     c_lo = jnp.full((cap, 3), inf).at[jnp.where(splitting, owner, cap)].min(centre, mode="drop")
@@ -159,14 +154,12 @@ def _split_round(tree, prim_lo, prim_hi, triangles, scale):
 
 
 @stored_jit
-def split_leaves(tree, prim_lo, prim_hi, triangles=None):
+def split_leaves(tree, prim_lo, prim_hi):
     """``(tree, overflow)``: every leaf of several primitives of ``tree`` (a
     :class:`~jaxbvh.tree.layout.BVH` of JAX arrays) made a binary subtree of
     one-primitive leaves (module docstring). ``prim_lo``, ``prim_hi``: [n, 3] boxes of
-    the primitives that ``prim_index`` names; ``triangles`` [n, 3, 3] or None: theirs, to
-    clip each to its leaf's box (:func:`~jaxbvh.optimize.split_rules.clip_to_leaf`; for trees whose leaves hold clipped
-    references, after spatial splits). The same capacity; ``overflow`` [] bool: free ids
-    ran out, the leaves left whole are still leaves of a valid tree."""
+    the primitives that ``prim_index`` names. The same capacity; ``overflow`` [] bool:
+    free ids ran out, the leaves left whole are still leaves of a valid tree."""
     scale = extent_scale(tree.lo[tree.root], tree.hi[tree.root])
 
     def more(carry):
@@ -176,7 +169,7 @@ def split_leaves(tree, prim_lo, prim_hi, triangles=None):
     def body(carry):
         t, over, _ = carry
         before = jnp.sum((t.left >= 0).astype(jnp.int32))
-        t, overflow = _split_round(t, prim_lo, prim_hi, triangles, scale)
+        t, overflow = _split_round(t, prim_lo, prim_hi, scale)
         return t, over | overflow, jnp.sum((t.left >= 0).astype(jnp.int32)) > before
 
     out, overflow, _ = jax.lax.while_loop(more, body, (tree, jnp.bool_(False), jnp.bool_(True)))

@@ -11,7 +11,6 @@ from __future__ import annotations
 import numpy as np
 
 from jaxbvh.numerics import half_area, scale_for_extent
-from jaxbvh.optimize.split_rules import clip_to_leaf
 from jaxbvh.tree.layout import to_numpy
 
 
@@ -28,11 +27,11 @@ def _cut(boxes_lo, boxes_hi, count: int, scale):
     return best_j
 
 
-def split_leaves(tree, prim_lo, prim_hi, triangles=None):
+def split_leaves(tree, prim_lo, prim_hi):
     """``(tree, overflow)``: ``tree`` (binary BVH; NumPy arrays) with every leaf of several
     primitives made a binary subtree of one-primitive leaves (see
     :mod:`jaxbvh.optimize.split`); ``overflow``: the capacity ran out (the leaves left
-    whole where no free ids were left). ``triangles``: as there."""
+    whole where no free ids were left)."""
     t = to_numpy(tree)
     out = {k: np.array(v) for k, v in vars(t).items() if k != "root"}
     plo, phi = np.asarray(prim_lo), np.asarray(prim_hi)
@@ -61,9 +60,6 @@ def split_leaves(tree, prim_lo, prim_hi, triangles=None):
             # clipped triangle: its part in this leaf)
             blo = np.maximum(plo[run].astype(dtype), out["lo"][node])
             bhi = np.minimum(phi[run].astype(dtype), out["hi"][node])
-            if triangles is not None:
-                here = np.broadcast_to(out["lo"][node], blo.shape), np.broadcast_to(out["hi"][node], bhi.shape)
-                blo, bhi = clip_to_leaf(np.asarray(triangles)[run].astype(dtype), blo, bhi, *here)
             centre = blo + bhi
             axis = int(np.argmax(centre.max(0) - centre.min(0)))
             order = np.argsort(centre[:, axis], kind="stable")
