@@ -73,7 +73,7 @@ from jaxbvh.optimize.protocol import (
 from jaxbvh.optimize.reinsert_rules import candidates_needed
 from jaxbvh.program_store import stored_jit
 from jaxbvh.tree.cost import sah as sah_of
-from jaxbvh.tree.layout import to_jax
+from jaxbvh.tree.layout import capacity_bucket, pad_to, to_jax
 from jaxbvh.tree.split_axes import apply_split_axes
 
 DEFAULT_TREELET_PASSES = 2
@@ -252,6 +252,17 @@ _settle_at_init = stored_jit(_settled)
 # ----------------------------------------------------------------------------------
 
 
+def _split(tree, prims):
+    """``tree`` with every leaf split (:func:`init`), in a capacity that holds the split."""
+    counts = np.asarray(tree.prim_count)
+    need = 2 * int(counts[np.asarray(tree.left) < 0].sum()) - 1  # one leaf per reference
+    if tree.left.shape[0] < need:
+        tree = pad_to(tree, capacity_bucket(need), tree.prim_index.shape[0])
+    prim_lo, prim_hi = (jnp.asarray(p) for p in prims)
+    split, _ = split_leaves(to_jax(tree), prim_lo, prim_hi)  # no overflow: the capacity fits
+    return split
+
+
 def init(tree, config: Config | None = None, key=None, *, prims=None) -> OptimizerState:
     """The state before the first step: both stages' states, the first one current.
 
@@ -260,16 +271,17 @@ def init(tree, config: Config | None = None, key=None, *, prims=None) -> Optimiz
     primitives' boxes ``(lo, hi)`` [n, 3] that ``prim_index`` names, or None; given,
     every leaf of several primitives is first split into one-primitive leaves
     (:func:`jaxbvh.optimize.split.split_leaves`), so that the stages move single
-    primitives and the final merge (``max_leaf``) makes the leaves; a capacity below
-    ``2P - 1`` leaves some leaves whole.
+    primitives and the final merge (``max_leaf``) makes the leaves. A tree of ``P``
+    references then needs ``2P - 1`` nodes: a smaller capacity (a compact or loaded
+    tree) grows to :func:`~jaxbvh.tree.layout.capacity_bucket` of that, and so does the
+    result's.
     """
     del key
     check_tree(tree)
     config = check_config(config, Config, "pipeline")
-    tree = to_jax(tree)
     if prims is not None:
-        prim_lo, prim_hi = (jnp.asarray(p) for p in prims)
-        tree, _ = split_leaves(tree, prim_lo, prim_hi)
+        tree = _split(tree, prims)
+    tree = to_jax(tree)
     dtype = float_dtype(tree)
     # one SAH for the three progress records (each stage's config has the pipeline's ct, ci)
     sah_start = reinsert.start_sah(tree, config.ct, config.ci)

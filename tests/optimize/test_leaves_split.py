@@ -130,3 +130,22 @@ def test_the_pipeline_given_the_primitives_optimizes_the_split_tree():
     out = jaxbvh.to_numpy(got.tree)
     assert np.all(out.prim_count[out.left < 0] <= 2)
     assert float(got.sah) <= float(jaxbvh.sah(t)) * (1 + 1e-6)  # this poor tree: far above
+
+
+def test_the_pipeline_grows_a_compact_tree_to_hold_the_split():
+    """A compact tree (a saved one: capacity of its own node count) cannot hold one leaf
+    per primitive; given ``prims`` the pipeline grows it and splits every leaf: with
+    ``max_leaf`` 1 (no merge) every leaf of the result holds one primitive."""
+    from jaxbvh.optimize import pipeline
+    from jaxbvh.testing import random_tree
+    from jaxbvh.tree.interchange import compact
+
+    tree, lo, hi = random_tree(5, 40, 6)
+    small = compact(tree)
+    t = jaxbvh.to_numpy(small)
+    leaf = t.left < 0
+    assert t.left.shape[0] < 2 * int(t.prim_count[leaf].sum()) - 1  # the case under test
+    got = pipeline.pipeline(small, prims=(lo, hi), max_leaf=1)
+    out = jaxbvh.to_numpy(got.tree)
+    jaxbvh.validate(out, lo, hi)
+    assert np.all(out.prim_count[(out.left < 0) & (out.prim_count > 0)] == 1)
