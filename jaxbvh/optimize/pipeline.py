@@ -22,6 +22,19 @@ other still finds gains, and together they end below either alone
 includes every rotation at their root). Starting with treelets gave the lower SAH on the
 tinybvh trees.
 
+Leaves
+======
+The stages move subtrees and never look inside a leaf; the run ends with the exact
+bottom-up merge (``max_leaf``, :mod:`jaxbvh.optimize.leaves`), so leaves can only grow.
+Given the primitives' boxes (``init(..., prims=(lo, hi))``, :func:`pipeline`), :func:`init`
+first splits every leaf of several primitives into one-primitive leaves
+(:mod:`jaxbvh.optimize.split`): the stages then move single primitives and the merge
+decides every leaf afresh, so leaves change both ways. Measured
+(``bench/results/leaves.md``, split section): lower on every bench input for trees of the
+sweep builder (the same tree as building with ``max_leaf`` 1), mixed after spatial splits
+(SBVH: lower on the small meshes, higher on legocar and the interior), so it is the
+caller's choice; a tree alone (no primitive boxes) keeps its leaves until the merge.
+
 On the protocol
 ===============
 :data:`PIPELINE` is an optimizer of :mod:`jaxbvh.optimize.protocol` whose stages are
