@@ -108,8 +108,12 @@ def markdown(meta: dict) -> str:
         s, b, t = r["ours"]["sweep"], r["ours"]["sbvh"], r["tinybvh"]
         peer = min(t["hq"]["sah"], t["optimize"]["sah"])
         best = min(s["split"]["sah"], b["split"]["sah"])
-        lines.append(f"| {r['input']} | {r['triangles']:,} | {s['plain']['sah']:.3f} | **{s['split']['sah']:.3f}** | "
-                     f"{s['rebuilt']['sah']:.3f} | {b['plain']['sah']:.3f} | **{b['split']['sah']:.3f}** | "
+        def pair(x):  # the lower of plain and split in bold
+            p, q = x["plain"]["sah"], x["split"]["sah"]
+            return (f"**{p:.3f}**" if p < q else f"{p:.3f}") + " | " + (f"**{q:.3f}**" if q < p else f"{q:.3f}")
+
+        lines.append(f"| {r['input']} | {r['triangles']:,} | {pair(s)} | "
+                     f"{s['rebuilt']['sah']:.3f} | {pair(b)} | "
                      f"{b['rebuilt']['sah']:.3f} | {t['binned']['sah']:.3f} | {t['hq']['sah']:.3f} | "
                      f"{t['optimize']['sah']:.3f} | {s['split']['sah'] / t['optimize']['sah']:.4f} | "
                      f"{best / peer:.4f} | {s['plain']['cpu_s']:.0f} / {s['split']['cpu_s']:.0f} | "
