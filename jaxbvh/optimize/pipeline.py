@@ -22,6 +22,19 @@ other still finds gains, and together they end below either alone
 includes every rotation at their root). Starting with treelets gave the lower SAH on the
 tinybvh trees.
 
+Leaves
+======
+The stages move subtrees and never look inside a leaf; the run ends with the exact
+bottom-up merge (``max_leaf``, :mod:`jaxbvh.optimize.leaves`), so leaves can only grow.
+Given the primitives' boxes (``init(..., prims=(lo, hi))``, :func:`pipeline`), :func:`init`
+first splits every leaf of several primitives into one-primitive leaves
+(:mod:`jaxbvh.optimize.split`): the stages then move single primitives and the merge
+decides every leaf afresh, so leaves change both ways. Measured
+(``bench/results/leaves.md``, split section): lower on every bench input for trees of the
+sweep builder (the same tree as building with ``max_leaf`` 1), mixed after spatial splits
+(SBVH: lower on the small meshes, higher on legocar and the interior), so it is the
+caller's choice; a tree alone (no primitive boxes) keeps its leaves until the merge.
+
 On the protocol
 ===============
 :data:`PIPELINE` is an optimizer of :mod:`jaxbvh.optimize.protocol` whose stages are
@@ -55,6 +68,7 @@ import numpy as np
 from jaxbvh.configs import Checked, ci_knob, config_of, ct_knob, integer, knob, max_leaf_knob, optional, real, split_axes_knob
 from jaxbvh.optimize import reinsert, treelet
 from jaxbvh.optimize.leaves import merge_leaves
+from jaxbvh.optimize.split import split_leaves
 from jaxbvh.optimize.driver import advance as driver_advance
 from jaxbvh.optimize.driver import run
 from jaxbvh.optimize.protocol import (
@@ -72,7 +86,7 @@ from jaxbvh.optimize.protocol import (
 from jaxbvh.optimize.reinsert_rules import candidates_needed
 from jaxbvh.program_store import stored_jit
 from jaxbvh.tree.cost import sah as sah_of
-from jaxbvh.tree.layout import to_jax
+from jaxbvh.tree.layout import capacity_bucket, pad_to, to_jax
 from jaxbvh.tree.split_axes import apply_split_axes
 
 DEFAULT_TREELET_PASSES = 2
@@ -251,15 +265,35 @@ _settle_at_init = stored_jit(_settled)
 # ----------------------------------------------------------------------------------
 
 
-def init(tree, config: Config | None = None, key=None) -> OptimizerState:
+def _split(tree, prims):
+    """``tree`` with every leaf split (:func:`init`), in a capacity that holds the split."""
+    counts = np.asarray(tree.prim_count)
+    need = 2 * int(counts[np.asarray(tree.left) < 0].sum()) - 1  # one leaf per reference
+    if tree.left.shape[0] < need:
+        tree = pad_to(tree, capacity_bucket(need), tree.prim_index.shape[0])
+    prim_lo, prim_hi = (jnp.asarray(p) for p in prims)
+    split, _ = split_leaves(to_jax(tree), prim_lo, prim_hi)  # no overflow: the capacity fits
+    return split
+
+
+def init(tree, config: Config | None = None, key=None, *, prims=None) -> OptimizerState:
     """The state before the first step: both stages' states, the first one current.
 
     ``tree``: a :class:`~jaxbvh.tree.layout.BVH` (NumPy or JAX arrays, any capacity,
-    leaves of any size). ``key``: unused (the method is deterministic).
+    leaves of any size). ``key``: unused (the method is deterministic). ``prims``: the
+    primitives' boxes ``(lo, hi)`` [n, 3] that ``prim_index`` names, or None; given,
+    every leaf of several primitives is first split into one-primitive leaves
+    (:func:`jaxbvh.optimize.split.split_leaves`), so that the stages move single
+    primitives and the final merge (``max_leaf``) makes the leaves. A tree of ``P``
+    references then needs ``2P - 1`` nodes: a smaller capacity (a compact or loaded
+    tree) grows to :func:`~jaxbvh.tree.layout.capacity_bucket` of that, and so does the
+    result's.
     """
     del key
     check_tree(tree)
     config = check_config(config, Config, "pipeline")
+    if prims is not None:
+        tree = _split(tree, prims)
     tree = to_jax(tree)
     dtype = float_dtype(tree)
     # one SAH for the three progress records (each stage's config has the pipeline's ct, ci)
@@ -394,12 +428,15 @@ PIPELINE = Optimizer("pipeline", Config, init, step, result, stages=STAGES,
                      paper="Karras & Aila 2013 and Meister & Bittner 2018, in rounds", advance=advance)
 
 
-def pipeline(tree, *, time_budget: float | None = None, on_step: Callable | None = None,
+def pipeline(tree, *, prims=None, time_budget: float | None = None, on_step: Callable | None = None,
              **config) -> OptimizeResult:
     """Rounds of treelets and reinsertion until a round gains little (module docstring).
 
-    ``config``: fields of :class:`Config` (``treelet``, ``reinsert``: stage configs or
-    dicts of their fields). ``time_budget``, ``on_step(info)``: as
+    ``prims``: the primitives' boxes ``(lo, hi)``, to split the leaves first
+    (:func:`init`). ``config``: fields of :class:`Config` (``treelet``, ``reinsert``:
+    stage configs or dicts of their fields). ``time_budget``, ``on_step(info)``: as
     :func:`jaxbvh.optimize.driver.run` (``info.stage`` names the stage of each step).
     """
-    return run(PIPELINE, tree, Config(**config), time_budget=time_budget, on_step=on_step)
+    config = Config(**config)
+    state = init(tree, config, prims=prims) if prims is not None else None
+    return run(PIPELINE, tree, config, time_budget=time_budget, on_step=on_step, state=state)
