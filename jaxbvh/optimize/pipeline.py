@@ -66,11 +66,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh.configs import Checked, ci_knob, config_of, ct_knob, integer, knob, max_leaf_knob, optional, real, split_axes_knob
+from jaxbvh.numerics import on_device
 from jaxbvh.optimize import reinsert, treelet
-from jaxbvh.optimize.leaves import merge_leaves
-from jaxbvh.optimize.split import split_leaves
 from jaxbvh.optimize.driver import advance as driver_advance
 from jaxbvh.optimize.driver import run
+from jaxbvh.optimize.leaves import merge_leaves
 from jaxbvh.optimize.protocol import (
     Optimizer,
     OptimizeResult,
@@ -84,6 +84,7 @@ from jaxbvh.optimize.protocol import (
     record,
 )
 from jaxbvh.optimize.reinsert_rules import candidates_needed
+from jaxbvh.optimize.split import split_leaves
 from jaxbvh.program_store import stored_jit
 from jaxbvh.tree.cost import sah as sah_of
 from jaxbvh.tree.layout import capacity_bucket, pad_to, to_jax
@@ -303,16 +304,17 @@ def init(tree, config: Config | None = None, key=None, *, prims=None) -> Optimiz
         # the first round's own pass limit (traced: the same program as later rounds')
         first = min(config.first_treelet_passes, int(treelets.progress.limit))
         treelets = treelets.replace(progress=treelets.progress._replace(
-            limit=jnp.int32(first), done=treelets.progress.done | (first <= 0)))
+            limit=on_device(first, np.int32), done=treelets.progress.done | (first <= 0)))
     reinsertion = reinsert.init(tree, config.reinsert, sah_start=sah_start)  # its params and settings; restarted later
     nodes = int(np.count_nonzero(np.asarray(tree.parent) >= 0))  # on the host: no program
-    params = Params(ct=jnp.asarray(config.ct, dtype), ci=jnp.asarray(config.ci, dtype),
-                    round_gain=jnp.asarray(config.round_gain, dtype), max_rounds=jnp.int32(config.max_rounds),
-                    need_first=reinsertion.params.need, need_later=jnp.int32(candidates_needed(1.0, nodes)),
-                    split_axes=jnp.bool_(config.split_axes), max_leaf=jnp.int32(config.max_leaf))
+    # numbers cast on the host (numerics.on_device): no conversion programs
+    params = Params(ct=on_device(config.ct, dtype), ci=on_device(config.ci, dtype),
+                    round_gain=on_device(config.round_gain, dtype), max_rounds=on_device(config.max_rounds, np.int32),
+                    need_first=reinsertion.params.need, need_later=on_device(candidates_needed(1.0, nodes), np.int32),
+                    split_axes=on_device(config.split_axes, bool), max_leaf=on_device(config.max_leaf, np.int32))
     treelet_limit, reinsert_limit = int(treelets.progress.limit), int(reinsertion.progress.limit)
     progress = new_progress(sah_start, config.max_rounds * (treelet_limit + reinsert_limit), dtype)
-    inner = Inner(treelets, reinsertion, jnp.int32(TREELETS), jnp.int32(0), progress.sah_start)
+    inner = Inner(treelets, reinsertion, on_device(TREELETS, np.int32), on_device(0, np.int32), progress.sah_start)
     static = Static(config.treelet, reinsert_limit)
     return _settle_at_init(OptimizerState(tree, progress, params, inner, static))
 
@@ -392,7 +394,7 @@ def advance(state: OptimizerState, stop: int) -> OptimizerState:
     if stop <= steps:  # compile (or load) both stages' loops and their hand-overs
         for index, name in enumerate(STAGES):
             sub = getattr(state.inner, name)
-            first = jnp.int32(firsts[index])
+            first = on_device(firsts[index], np.int32)
             ran = driver_advance(_STAGE_OPTIMIZERS[index].step, sub, first)
             jax.block_until_ready(_absorb(state, ran, first, index))
         jax.block_until_ready(_settle_at_init(state))
@@ -402,8 +404,8 @@ def advance(state: OptimizerState, stop: int) -> OptimizerState:
         first = firsts[stage]
         # as many stage steps as the pipeline has left (its own limit included)
         sub_stop = first + min(stop, limit) - steps
-        ran = driver_advance(_STAGE_OPTIMIZERS[stage].step, sub, jnp.int32(sub_stop))
-        state = _settle_at_init(_absorb(state, ran, jnp.int32(first), stage))
+        ran = driver_advance(_STAGE_OPTIMIZERS[stage].step, sub, on_device(sub_stop, np.int32))
+        state = _settle_at_init(_absorb(state, ran, on_device(first, np.int32), stage))
         steps, done, stage, limit, *firsts = position(state)
     return state
 
