@@ -27,18 +27,21 @@ below it the object's own nodes follow, in the object's frame.
 
 Traversal (:mod:`jaxbvh.twolevel.traversal`)
 =========================================
-:func:`closest_hit` runs one ``while_loop`` per ray whose stack holds ``(node,
-instance)`` pairs: top-level nodes (instance -1) are tested with the world ray; below a
-top-level leaf the ray is mapped into the instance's object frame (``to_object``; the
-direction is not normalised, so ``t`` is the same in both frames) and the object's nodes
-and triangles are tested there. Each step is a node step or a primitive step, counted
-as in :mod:`jaxbvh.rays.traversal` (whose loop, :mod:`jaxbvh.rays.stack_walk`, and slab
-and Möller-Trumbore tests it reuses): the root box test is one box test, an interior
-node adds one per child. The loop is bounded by
-the number of steps a ray can take at most (every node and primitive of the flattened
-tree once, plus one); a ray that would need more, or whose stack would overflow, is
-reported and the driver raises. Primitive ids are world triangle ids (``Mesh.triangles``
-order); equal ``t`` goes to the lower id.
+:func:`closest_hit` runs one ``while_loop`` per ray whose stack holds ``(node, tag)``
+pairs: top-level nodes (tag -1) are tested with the world ray; below a top-level leaf the
+ray is mapped into the instance of that leaf's BRef (the tag: the leaf it entered
+through; ``to_object``; the direction is not normalised, so ``t`` is the same in both
+frames) and the object's nodes and triangles are tested there. Each step is a node step,
+a primitive step or a climb step, counted as in :mod:`jaxbvh.rays.traversal` (whose loop,
+:mod:`jaxbvh.rays.stack_walk`, and slab and Möller-Trumbore tests it reuses): the root box
+test is one box test, an interior node adds one per child. The stack is short and fixed
+(``STACK`` entries, whatever the depth); a ray whose stack spilled climbs by parent links,
+from an object's subtree back to the top-level leaf it entered through and on up the top
+level. The loop is bounded by the number of steps a ray can take at most (every node of
+the flattened tree popped, climbed out of and pushed from a climb at most once, every
+primitive once, plus one); a ray that would need more is reported and the driver raises.
+Primitive ids are world triangle ids (``Mesh.triangles`` order); equal ``t`` goes to the
+lower id.
 
 Flattening and costs
 ====================

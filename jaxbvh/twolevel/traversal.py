@@ -1,7 +1,10 @@
 """Closest-hit traversal of two-level BVHs through instance transforms (jitted).
 
-The algorithm, the stack of ``(node, instance)`` pairs and the step bound are described
-in :mod:`jaxbvh.twolevel.rebraid` (section "Traversal"); the tree is a
+The algorithm and the stack of ``(node, tag)`` pairs are described in
+:mod:`jaxbvh.twolevel.rebraid` (section "Traversal"); the stack is short and fixed
+(:data:`~jaxbvh.rays.stack_walk.STACK` entries, whatever the depth), and a ray whose stack
+spilled climbs by parent links: the top level's, the forest's, and from an object's
+subtree back to the top-level leaf it was entered through (the tag); the tree is a
 :class:`jaxbvh.twolevel.rebraid.TwoLevelBVH`. The loop is :func:`jaxbvh.rays.stack_walk.walk_rays`,
 the one-level traversal's own, with this module's hooks (``_primitive``, ``_expand``);
 slab and Möller-Trumbore tests, ray checks and batching come from
@@ -17,13 +20,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxbvh.program_store import stored_jit
-from jaxbvh.rays.stack_walk import LEAF_WIDTH, Hits, Hooks, Node, Ray, lanes_for, walk_rays
+from jaxbvh.rays.stack_walk import LEAF_WIDTH, STACK, Hits, Hooks, Node, Ray, lanes_for, walk_rays
 from jaxbvh.rays.traversal import check_rays, in_batches, inverse_direction, moller_trumbore, slab
 from jaxbvh.tree.layout import depth, to_jax, to_numpy
 
 
 def stack_capacity(tl) -> int:
-    """Stack entries that always suffice: top-level height + tallest object tree + 1."""
+    """Stack entries with which no ray ever climbs: top-level height + tallest object
+    tree + 1 (the walk's default is :data:`~jaxbvh.rays.stack_walk.STACK`, whatever the
+    depth: a spill climbs by parent links)."""
     t = to_numpy(tl)
     top_height = int(np.max(depth(t.top)))
     f = t.forest
@@ -42,7 +47,9 @@ def stack_capacity(tl) -> int:
 
 
 def step_bound(tl) -> int:
-    """Most loop steps a ray can take: every node and primitive of the flattened tree once, + 1."""
+    """Most loop steps a ray can take: every node of the flattened tree popped, climbed
+    out of and pushed from a climb at most once each, every primitive tested once, + 1
+    (as :func:`jaxbvh.rays.traversal.max_steps`)."""
     t = to_numpy(tl)
     f = t.forest
     # object trees are contiguous blocks of the forest starting at their roots
@@ -56,15 +63,17 @@ def step_bound(tl) -> int:
     n = int(t.n_instances)
     used = t.instances.object[:n]
     top = int(np.count_nonzero((t.top.left >= 0) | (t.top.prim_count > 0)))
-    return int(top + obj_nodes[used].sum() + obj_prims[used].sum() + 1)
+    return int(3 * (top + obj_nodes[used].sum()) + obj_prims[used].sum() + 1)
 
 
 def _ray(tl, origin, direction, t_max, i) -> Ray:
     """Ray ``i`` of ``origin``, ``direction`` [R, 3], ``t_max`` [R] through the
     two-level tree ``tl`` (scene frame): its hooks and root test.
 
-    Stack entries are ``(reference, instance)``: a reference below ``n_top`` is a
-    top-level node (instance -1), ``n_top + f`` is forest node ``f`` under the instance.
+    Stack entries are ``(reference, tag)``: a reference below ``n_top`` is a top-level
+    node (tag -1), ``n_top + f`` is forest node ``f`` entered through the top-level leaf
+    ``tag`` (its BRef names the instance, hence the frame, and the forest node the leaf
+    stands for: the way back up, for the parent-link climb).
     """
     dtype = tl.top.lo.dtype
     inst = tl.instances
@@ -82,21 +91,28 @@ def _ray(tl, origin, direction, t_max, i) -> Ray:
         m = to_object[jnp.where(k >= 0, k, n_inst)]
         return m[:, :3] @ o + m[:, 3], m[:, :3] @ d
 
-    def primitive(slot, k):
-        return _primitive(tl, ray_in, slot, k)
+    def primitive(slot, leaf):
+        return _primitive(tl, ray_in, slot, leaf)
 
-    def node(ref, k, entry, t_far):
-        return _expand(tl, ray_in, ref, k, t_min, t_far)
+    def node(ref, leaf, entry, t_far):
+        return _expand(tl, ray_in, ref, leaf, t_min, t_far)
 
     top = tl.top
     root_hit, root_entry = slab(top.lo[top.root], top.hi[top.root], o, inverse_direction(d), t_min, hi_t)
     return Ray(Hooks(primitive, node), top.root, root_hit, root_entry, t_min, hi_t)
 
 
-def _primitive(tl, ray_in, slot, k):
-    """The ``primitive`` hook: forest ``prim_index`` slot ``slot`` under instance ``k``,
-    tested in the object frame; returns ``(t, u, v, world triangle id)``."""
+def _bref_of(tl, leaf):
+    """The BRef of top-level leaf ``leaf`` (-1: none, read as leaf 0)."""
+    top = tl.top
+    return top.prim_index[top.prim_start[jnp.maximum(leaf, 0)]]
+
+
+def _primitive(tl, ray_in, slot, leaf):
+    """The ``primitive`` hook: forest ``prim_index`` slot ``slot`` reached through the
+    top-level leaf ``leaf`` (its instance's frame); returns ``(t, u, v, world triangle id)``."""
     f = tl.forest
+    k = tl.bref_instance[_bref_of(tl, leaf)]
     o_k, d_k = ray_in(k)
     g = f.prim_index[jnp.minimum(slot, f.prim_index.shape[0] - 1)]
     tri = f.triangles[jnp.maximum(g, 0)]
@@ -104,19 +120,22 @@ def _primitive(tl, ray_in, slot, k):
     return t, u, v, g + tl.instances.prim_shift[k]
 
 
-def _expand(tl, ray_in, ref, k, t_min, t_far) -> Node:
+def _expand(tl, ray_in, ref, leaf, t_min, t_far) -> Node:
     """The ``node`` hook: a top-level node (tested with the scene ray), or a forest node
-    under instance ``k`` (tested in its object frame). A top-level leaf stands for the
-    forest node of its BRef under the BRef's instance."""
+    reached through the top-level leaf ``leaf`` (tested in its instance's object frame).
+    A top-level leaf stands for the forest node of its BRef under the BRef's instance.
+    The parent: a top-level node's (tag -1); a forest node's, or the top-level leaf it
+    was entered through when its parent is the node that leaf stands for."""
     top, f = tl.top, tl.forest
     n_top = top.left.shape[0]
     is_top = ref < n_top
     tid = jnp.where(is_top, ref, 0)
     top_leaf = is_top & (top.prim_count[tid] > 0)
-    b = top.prim_index[top.prim_start[tid]]
+    entered = jnp.where(top_leaf, tid, leaf)  # the top-level leaf this forest node is reached through
+    b = _bref_of(tl, entered)
     fid = jnp.where(is_top, jnp.where(top_leaf, tl.bref_node[b], 0), ref - n_top)
-    k = jnp.where(top_leaf, tl.bref_instance[b], jnp.where(is_top, -1, k))
     in_forest = ~is_top | top_leaf
+    k = jnp.where(in_forest, tl.bref_instance[b], -1)
     fid = jnp.maximum(fid, 0)
     f_count = f.prim_count[fid]
 
@@ -128,12 +147,16 @@ def _expand(tl, ray_in, ref, k, t_min, t_far) -> Node:
                        top.lo[jnp.minimum(safe, n_top - 1)])
     box_hi = jnp.where(in_forest, f.hi[jnp.minimum(safe, f.hi.shape[0] - 1)],
                        top.hi[jnp.minimum(safe, n_top - 1)])
-    o_n, d_n = ray_in(jnp.where(in_forest, k, -1))
+    o_n, d_n = ray_in(k)
     kid_hit, kid_entry = slab(box_lo, box_hi, o_n, inverse_direction(d_n)[None, :], t_min, t_far)
+    up = f.parent[fid]
+    back_to_top = is_top | (up == tl.bref_node[b]) | (up < 0)
+    parent = jnp.where(is_top, top.parent[tid], jnp.where(back_to_top, entered, n_top + up))
     return Node(is_leaf=in_forest & (f_count > 0), leaf_start=f.prim_start[fid], leaf_count=f_count,
-                leaf_tag=k, assumed=None, kids=jnp.where(in_forest, kids + n_top, kids),
-                kid_tags=jnp.where(in_forest, k, -1), kid_hit=kid_hit & real, kid_entry=kid_entry,
-                tested=real, split=jnp.where(in_forest, f.axis[fid], top.axis[tid]), direction=d_n)
+                leaf_tag=entered, assumed=None, kids=jnp.where(in_forest, kids + n_top, kids),
+                kid_tags=jnp.where(in_forest, entered, -1), kid_hit=kid_hit & real, kid_entry=kid_entry,
+                tested=real, split=jnp.where(in_forest, f.axis[fid], top.axis[tid]), direction=d_n,
+                parent=parent, parent_tag=jnp.where(back_to_top, -1, entered))
 
 
 @partial(stored_jit, static_argnames=("capacity", "lanes", "leaf_width"))
@@ -141,13 +164,14 @@ def trace_batch(tl, origin, direction, t_max, max_steps, *, capacity, lanes=None
     """Closest hits of rays ``origin``, ``direction`` [R, 3] (scene frame) through ``tl``.
 
     ``t_max`` [R]; ``max_steps``: loop bound (:func:`step_bound`); ``capacity``: static
-    stack size (:func:`stack_capacity`). Returns :class:`~jaxbvh.rays.traversal.Hits` (``step_limit``:
+    stack size (:data:`~jaxbvh.rays.stack_walk.STACK` by default in :func:`closest_hit`:
+    a spilled stack climbs by parent links, so one program serves every depth). Returns :class:`~jaxbvh.rays.traversal.Hits` (``step_limit``:
     the ray was still busy at the bound).
     """
     r = origin.shape[0]
     return walk_rays(partial(_ray, tl, origin, direction, t_max), r, mode="closest", capacity=capacity,
                      max_hits=0, step_limit=max_steps, lanes=lanes_for(r, capacity, lanes),
-                     leaf_width=leaf_width, tagged=True, climbs=False)
+                     leaf_width=leaf_width, tagged=True, climbs=True)
 
 
 def closest_hit(tl, origin, direction, *, batch: int = 256,
@@ -155,11 +179,13 @@ def closest_hit(tl, origin, direction, *, batch: int = 256,
     """Closest hit of every ray through the two-level tree (module docstring); NumPy :class:`Hits`.
 
     ``origin``, ``direction``: [R, 3] float, in the scene frame (``Mesh.frame``); ``t`` in
-    units of ``|direction|``, ``prim`` a world triangle id (-1: miss). Raises
-    ``RuntimeError`` if a ray overflows its stack or its step bound.
+    units of ``|direction|``, ``prim`` a world triangle id (-1: miss). ``capacity``: stack
+    entries per ray (:data:`~jaxbvh.rays.stack_walk.STACK`: whatever the depth; a ray whose
+    stack spills climbs by parent links, with the same hits and primitive tests). Raises
+    ``RuntimeError`` if a ray passes its step bound (a malformed tree).
     """
     origin, direction = check_rays(origin, direction)
-    capacity = stack_capacity(tl) if capacity is None else capacity
+    capacity = STACK if capacity is None else int(capacity)
     bound = np.int32(step_bound(tl))
     jtl = to_jax(tl)
 

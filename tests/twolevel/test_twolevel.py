@@ -230,6 +230,28 @@ def test_flattened_tree_is_valid_and_traversal_finds_the_closest_hits(mesh, opti
     assert (hits.box_tests >= 1).all() and (hits.prim_tests >= (hits.prim >= 0)).all()
 
 
+@settings(max_examples=examples(6))
+@given(mesh=st.one_of(random_scenes(), forest_scenes()), options=OPTIONS)
+def test_a_short_stack_climbs_to_the_same_hits_and_primitive_tests(mesh, options):
+    """A stack of 2 entries spills on almost every ray: the parent-link climb (through the
+    forest, back to the top-level leaf a ray entered by, up the top level) finds the
+    same closest hits with the same primitive tests as a stack that never spills."""
+    trees = fm.build_objects(mesh)
+    tl = twolevel.build_from(mesh, trees, threshold=options["threshold"], budget=options["budget"],
+                             overlap=options["overlap"], estimate=options["estimate"], rounds=options["rounds"],
+                             shapes=SHAPES)
+    flat = jaxbvh.tree.pad_to(twolevel.flatten(tl, pad=False), *FLAT)
+    origin, direction = jaxbvh.rays.make_rays(jax.random.key(1), "random", flat, None, 200)
+    roomy = twolevel.closest_hit(tl, origin, direction, capacity=twolevel.stack_capacity(tl))
+    short = twolevel.closest_hit(tl, origin, direction, capacity=2)
+    # two compiled programs (stack sizes): the instance transform may round apart in the last bit
+    np.testing.assert_allclose(short.t, roomy.t, rtol=1e-5)
+    np.testing.assert_array_equal(short.prim, roomy.prim)
+    np.testing.assert_array_equal(short.prim_tests, roomy.prim_tests)
+    assert (short.box_tests >= roomy.box_tests).all()  # a climb tests its parent's children again
+    assert not short.stack_overflow.any() and not short.step_limit.any()
+
+
 # ----------------------------------------------------------------------------------
 # Properties of the pieces
 # ----------------------------------------------------------------------------------
