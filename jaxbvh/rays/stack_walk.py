@@ -62,9 +62,8 @@ Measured (bench/results/ray_anatomy.md, 2-core CPU): a step costs about 60 us pl
 0.35-0.5 us per lane, so its time is per-lane work, not the loop's overhead; that work
 is spread over ~160 compiled kernels per step, of which the two row reads (the node's
 row, the leaf run's rows; cache misses) are a third. Hence the packed layout of
-:mod:`jaxbvh.rays.traversal` (one read per node, one per leaf run), the row indices
-made apart from the reads (:func:`computed_once`) and lanes that do not pop reading one
-fixed node.
+:mod:`jaxbvh.rays.traversal` (one read per node, one per leaf run, their indices made
+apart from the reads) and lanes that do not pop reading one fixed node.
 """
 
 from __future__ import annotations
@@ -346,23 +345,6 @@ def walk_rays(ray: Callable, n_rays: int, *, mode: str, capacity: int, max_hits:
     return out
 
 
-def computed_once(x):
-    """``x`` itself, computed once per lane and stored, apart from the operations that use it.
-
-    XLA's CPU compiler fuses cheap elementwise operations into each of their users and
-    recomputes them there: the ops that make a row index, into every element of the row
-    read with it (bench/results/ray_anatomy.md). A reduce is never fused into its users,
-    so ``x`` is passed through one: the maximum of ``x`` and the lowest value of its type
-    (the logical or with False), which is ``x``. Used for the two row reads of a step;
-    applied to the step's shared tests as well it measured no faster and cost ~10% more
-    compile (ray_anatomy.md).
-    """
-    if x.dtype == jnp.bool_:
-        return jnp.any(jnp.stack([x, jnp.zeros_like(x)]), axis=0)
-    lowest = -jnp.inf if jnp.issubdtype(x.dtype, jnp.floating) else jnp.iinfo(x.dtype).min
-    return jnp.max(jnp.stack([x, jnp.full_like(x, lowest)]), axis=0)
-
-
 def _select(mask, a, b):
     """``where(mask, a, b)`` with ``mask`` [L] broadcast over the trailing axes of ``a``."""
     return jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - 1)), a, b)
@@ -406,35 +388,19 @@ def _primitive_step(hooks, s: Walk, in_leaf, t_min, t_max, *, mode, max_hits, wi
     else:
         t, u, v, prim = jax.vmap(hooks.primitive, in_axes=(0, None))(jnp.where(tested, slots, 0), s.leaf_tag)
     valid = tested & (t > t_min) & (t < t_max)
-    # the ``width`` slots folded one by one, not reduced: XLA fuses the fold with the
-    # tests, where each reduce would be a pass of its own over every lane
-    n_tested = tested[0].astype(I32)
-    for i in range(1, width):
-        n_tested = n_tested + tested[i].astype(I32)
+    n_tested = jnp.sum(tested, dtype=I32)  # int32 under x64 too (a loop carry)
     if mode == "all":  # width 1: list in order
         found = _record(s.found, valid[0], t[0], u[0], v[0], prim[0], mode=mode, max_hits=max_hits)
     else:
-        # the kept slot: any, the first valid one (and only the tests up to it count);
-        # closest, the smallest (t, id) among the valid ones (the earlier slot on a full tie)
-        def slot(i):
-            return valid[i], t[i], u[i], v[i], prim[i]
-
-        def pick(take, new, old):
-            return tuple(jnp.where(take, a, b) for a, b in zip(new, old))
-
-        if mode == "any":  # scanned from the back: the earliest valid slot is picked last
-            keep = slot(width - 1)
-            first = jnp.where(valid[width - 1], width, n_tested)
-            for i in range(width - 2, -1, -1):
-                keep = pick(valid[i], slot(i), keep)
-                first = jnp.where(valid[i], i + 1, first)
-            n_tested = first.astype(I32)
+        if mode == "any":
+            j = jnp.argmax(valid)
+            n_tested = jnp.where(valid[j], j + 1, n_tested).astype(I32)
         else:
-            keep = slot(0)
-            for i in range(1, width):
-                take = valid[i] & (~keep[0] | (t[i] < keep[1]) | ((t[i] == keep[1]) & (prim[i] < keep[4])))
-                keep = pick(take, slot(i), keep)
-        found = _record(s.found, *keep, mode=mode, max_hits=max_hits)
+            t_best = jnp.min(jnp.where(valid, t, jnp.inf))
+            at_best = valid & (t == t_best)
+            p_best = jnp.min(jnp.where(at_best, prim, jnp.iinfo(jnp.int32).max))
+            j = jnp.argmax(at_best & (prim == p_best))
+        found = _record(s.found, valid[j], t[j], u[j], v[j], prim[j], mode=mode, max_hits=max_hits)
     counts = s.counts._replace(prim_tests=s.counts.prim_tests + n_tested)
     return s._replace(found=found, counts=counts, leaf_pos=s.leaf_pos + n_tested,
                       steps=s.steps + n_tested,
@@ -482,7 +448,7 @@ def _node_step(r: Ray, s: Walk, pop, top_node, top_tag, entry, *, capacity, clim
     counts = c._replace(
         nodes_visited=c.nodes_visited + counted.astype(I32),
         leaves_visited=c.leaves_visited + open_leaf.astype(I32),
-        box_tests=c.box_tests + jnp.where(expand, _count(list(node.tested)), 0))
+        box_tests=c.box_tests + jnp.where(expand, jnp.sum(node.tested, dtype=I32), 0))
     s = s._replace(
         counts=counts,
         leaf_pos=jnp.where(open_leaf, node.leaf_start, s.leaf_pos),
@@ -522,16 +488,6 @@ def _climb_step(r: Ray, s: Walk, climb, *, capacity):
     return _push(s, node, before, first, climb & ~moved, s.sp, capacity=capacity, climbs=True)
 
 
-def _count(flags):
-    """How many of ``flags`` (a list of bool arrays) hold, int32 (under x64 too: a loop
-    carry), summed one by one: XLA fuses the sum with its operands, where a reduce over a
-    small axis would be a pass of its own over every lane (bench/results/ray_anatomy.md)."""
-    total = flags[0].astype(I32)
-    for flag in flags[1:]:
-        total = total + flag.astype(I32)
-    return total
-
-
 def _order(node: Node):
     """``before`` [k, k] bool: child i comes before child j in visiting order (keys of
     :func:`_visit_key`; ties: the lower slot)."""
@@ -567,9 +523,8 @@ def _push(s: Walk, node: Node, before, kid_hit, replace, top, *, capacity, climb
     entry; a climb writes on the empty stack). The ring keeps the newest ``capacity``
     entries: older ones are spilled (``base``), an overflow unless the walk ``climbs``.
     Returns the new state and the stack writes (:func:`_node_step`)."""
-    k = kid_hit.shape[0]
-    rank = _count([kid_hit[i] & before[i] for i in range(k)])  # visiting position of each kid
-    n_push = _count([kid_hit[i] for i in range(k)])
+    rank = jnp.sum(kid_hit[:, None] & before, axis=0, dtype=I32)  # visiting position of each kid (int32 under x64 too)
+    n_push = jnp.sum(kid_hit, dtype=I32)
     pos = top + n_push - 1 - rank  # nearest on top
     pos = jnp.where(kid_hit & replace, jax.lax.rem(pos, I32(capacity)), capacity)  # pos >= 0
     sp = jnp.where(replace, top + n_push, s.sp).astype(I32)

@@ -96,8 +96,7 @@ import numpy as np
 
 from jaxbvh.numerics import INV_BIG, robust_factor
 from jaxbvh.program_store import stored_jit
-from jaxbvh.rays.stack_walk import (I32, LEAF_WIDTH, STACK, Hits, Hooks, Node, Ray, computed_once, lanes_for,
-                                   walk_rays)
+from jaxbvh.rays.stack_walk import I32, LEAF_WIDTH, STACK, Hits, Hooks, Node, Ray, lanes_for, walk_rays
 from jaxbvh.tree.layout import BVH, depth, to_jax
 from jaxbvh.tree.validate import InvalidTreeError
 
@@ -128,12 +127,8 @@ def slab(lo, hi, origin, inv_dir, t_min, t_max):
     """
     t0 = (lo - origin) * inv_dir
     t1 = (hi - origin) * inv_dir
-    lower = jnp.minimum(t0, t1)
-    upper = jnp.maximum(t0, t1)
-    # the three axes written out, not reduced: XLA fuses these with what follows, where
-    # a reduce would be a pass of its own over every lane (bench/results/ray_anatomy.md)
-    near = jnp.maximum(jnp.maximum(lower[..., 0], lower[..., 1]), lower[..., 2])
-    far = jnp.minimum(jnp.minimum(upper[..., 0], upper[..., 1]), upper[..., 2]) * robust_factor(lo.dtype)
+    near = jnp.max(jnp.minimum(t0, t1), axis=-1)
+    far = jnp.min(jnp.maximum(t0, t1), axis=-1) * robust_factor(lo.dtype)
     entry = jnp.maximum(near, t_min)
     return entry <= jnp.minimum(far, t_max), entry
 
@@ -264,6 +259,13 @@ def _ray(tree, packed: Packed, prims, skip, origin, direction, t_min, t_max, i, 
     root = tree.root
     root_hit, root_entry = slab(tree.lo[root], tree.hi[root], o, inv_dir, lo_t, hi_t)
     n_slots = tree.prim_index.shape[0]
+    def apart(index):
+        # the index made apart from the read (XLA never fuses a reduce into its user):
+        # left to XLA, the cheap ops that make it are fused into the read and recomputed
+        # for every element of the row (measured: the two reads took a third of a step,
+        # bench/results/ray_anatomy.md). max(index, -1) is the index (indices are >= 0).
+        return jnp.max(jnp.stack([index, jnp.full_like(index, -1)]), axis=0)
+
     def primitive(slot, _):
         slot = jnp.minimum(slot, n_slots - 1)
         prim = tree.prim_index[slot]
@@ -272,13 +274,13 @@ def _ray(tree, packed: Packed, prims, skip, origin, direction, t_min, t_max, i, 
 
     def run(start, _, width):
         # one contiguous read of the run's rows (padded: a run from a real slot fits)
-        rows = jax.lax.dynamic_slice_in_dim(packed.slot_tri, computed_once(start), width, axis=0)
+        rows = jax.lax.dynamic_slice_in_dim(packed.slot_tri, apart(start), width, axis=0)
         t, u, v = moller_trumbore_edges(rows[:, 0:3], rows[:, 3:6], rows[:, 6:9], o, d)
         prim = jax.lax.bitcast_convert_type(rows[:, 9], _int_view(rows.dtype)).astype(I32)
         return t, u, v, prim
 
     def node(ref, _, entry, t_far):
-        return _expand(packed, skip, computed_once(ref), entry, o, d, inv_dir, lo_t, t_far, binary=isinstance(tree, BVH))
+        return _expand(packed, skip, apart(ref), entry, o, d, inv_dir, lo_t, t_far, binary=isinstance(tree, BVH))
 
     return Ray(Hooks(primitive, node, run if packed.slot_tri is not None else None), root, root_hit,
                root_entry, lo_t, hi_t)
