@@ -55,9 +55,15 @@ the next rays (a wavefront). The stacks [lanes, capacity] are not part of the pe
 state that the step maps over: a step gathers each lane's top entry and scatters its
 pushes, so its cost does not grow with the capacity.
 
-Measured (bench/results/bench_rays.md, 2-core CPU): most of a step's time is gathers of
-scattered tree and triangle data (cache misses), hence the packed layout of
-:mod:`jaxbvh.rays.traversal` and lanes that do not pop reading one fixed node.
+In one step a lane makes its node step first and then its primitive step, so a leaf
+popped in a step is tested in it too: a step costs one pop, not a pop and a test.
+
+Measured (bench/results/ray_anatomy.md, 2-core CPU): a step costs about 60 us plus
+0.35-0.5 us per lane, so its time is per-lane work, not the loop's overhead; that work
+is spread over ~160 compiled kernels per step, of which the two row reads (the node's
+row, the leaf run's rows; cache misses) are a third. Hence the packed layout of
+:mod:`jaxbvh.rays.traversal` (one read per node, one per leaf run, their indices made
+apart from the reads) and lanes that do not pop reading one fixed node.
 """
 
 from __future__ import annotations
@@ -128,10 +134,13 @@ class Node(NamedTuple):
 
 
 class Hooks(NamedTuple):
-    """The two tree-specific functions of a walk (module docstring)."""
+    """The tree-specific functions of a walk (module docstring)."""
 
     primitive: Callable  # (slot, tag) -> (t, u, v, prim id) of the primitive in prim_index slot ``slot``
     node: Callable       # (ref, tag, entry, t_far) -> Node
+    # optional (start, tag, width) -> (t, u, v, prim id) [width] of slots start .. start + width - 1
+    # read as one run (slots past the leaf are masked by the walk); None: ``primitive`` per slot
+    run: Callable | None = None
 
 
 class Found(NamedTuple):
@@ -280,14 +289,17 @@ def walk_rays(ray: Callable, n_rays: int, *, mode: str, capacity: int, max_hits:
     def lane_step(s, top_node, top_tag, top_entry):
         r = ray(jnp.maximum(s.ray, 0))
         go = live(s)
-        # decided once, before the primitive step: a leaf that ends in this step must not
-        # also pop (its stack may be empty; the top entry would then be stale)
-        in_leaf = go & (s.leaf_pos < s.leaf_end)
-        pop = go & ~in_leaf & (s.sp > s.base)
+        # the node step first, then the primitive step: a leaf popped in this step is
+        # tested in it too (one iteration per pop, not two). A leaf still open from the
+        # last step blocks the pop: the order of the walk's steps is the one-ray order.
+        pop = go & (s.leaf_pos >= s.leaf_end) & (s.sp > s.base)
+        s = s._replace(steps=s.steps + pop.astype(I32))
+        s, *writes = _node_step(r, s, pop, top_node, top_tag, top_entry, capacity=capacity, climbs=climbs)
+        # the bound holds per step: a ray that reached it with this pop tests nothing more
+        in_leaf = go & (s.leaf_pos < s.leaf_end) & (s.steps < step_limit)
         s = _primitive_step(r.hooks, s, in_leaf, r.t_min, r.t_max, mode=mode, max_hits=max_hits,
                             width=width)
-        s = s._replace(steps=s.steps + pop.astype(I32))
-        return _node_step(r, s, pop, top_node, top_tag, top_entry, capacity=capacity, climbs=climbs)
+        return (s, *writes)
 
     def lane_climb(s):
         r = ray(jnp.maximum(s.ray, 0))
@@ -371,7 +383,10 @@ def _primitive_step(hooks, s: Walk, in_leaf, t_min, t_max, *, mode, max_hits, wi
     tested = in_leaf & (slots < s.leaf_end)
     # slots not tested read slot 0: the same address in every lane, a cache hit, where a
     # stale slot would be a cache miss (gathers of scattered triangles dominate a step)
-    t, u, v, prim = jax.vmap(hooks.primitive, in_axes=(0, None))(jnp.where(tested, slots, 0), s.leaf_tag)
+    if hooks.run is not None:  # one read of the run's rows (one gather per lane, not width)
+        t, u, v, prim = hooks.run(jnp.where(in_leaf, s.leaf_pos, 0), s.leaf_tag, width)
+    else:
+        t, u, v, prim = jax.vmap(hooks.primitive, in_axes=(0, None))(jnp.where(tested, slots, 0), s.leaf_tag)
     valid = tested & (t > t_min) & (t < t_max)
     n_tested = jnp.sum(tested, dtype=I32)  # int32 under x64 too (a loop carry)
     if mode == "all":  # width 1: list in order

@@ -149,8 +149,12 @@ def moller_trumbore(v0, v1, v2, origin, direction):
     ``t = inf`` where the ray's line misses the triangle, is parallel to it, or the
     triangle is degenerate; otherwise ``t`` may be negative (behind the origin).
     """
-    e1 = v1 - v0
-    e2 = v2 - v0
+    return moller_trumbore_edges(v0, v1 - v0, v2 - v0, origin, direction)
+
+
+def moller_trumbore_edges(v0, e1, e2, origin, direction):
+    """:func:`moller_trumbore` of the triangle with corner ``v0`` and edges ``e1 = v1 - v0``,
+    ``e2 = v2 - v0`` [..., 3] (the packed layout stores the edges: the same numbers)."""
     p = _cross(direction, e2)
     det = _dot(e1, p)
     ok = det != 0
@@ -192,31 +196,55 @@ def arity(tree) -> int:
 
 
 class Packed(NamedTuple):
-    """The arrays the traversal reads, packed so that one step reads few cache lines.
+    """The arrays the traversal reads, packed so that a step makes one read per node and
+    one per leaf run.
 
-    A popped node reads ``meta[n]`` and its children's boxes ``kid_box[n]`` (two rows
-    instead of six scattered reads; a climb reads its parent in ``meta[n]`` too); a
-    leaf's triangles, stored in ``prim_index`` order, lie side by side (``slot_tri``,
-    default intersector only).
+    A popped node reads one row of ``node``: its children's boxes, then its children,
+    ``prim_start``, ``prim_count``, split axis and parent, stored bit for bit in the
+    float dtype (``int32`` in ``float32``, ``int64`` in ``float64``; :func:`node_fields`
+    reads them back); a climb reads its parent there too. A leaf's triangles lie in
+    ``prim_index`` order, one row per slot (first corner, the two edges from it, the
+    primitive id stored bit for bit), with ``leaf_width - 1`` rows of padding so that
+    any run of ``leaf_width`` slots from a real slot is one contiguous read.
     """
 
-    meta: Any      # int32 [N, k + 4]: children (-1: none), prim_start, prim_count, split axis (-1: none), parent
-    kid_box: Any   # float [N, k, 6]: each child's lo and hi (garbage where the child is -1)
-    slot_tri: Any  # float [P, 3, 3] triangle of each prim_index slot, or None (another intersector)
+    node: Any      # float [N, 6 k + k + 4]: child lo, hi (k x 6; garbage where the child is -1), then meta
+    slot_tri: Any  # float [P + leaf_width - 1, 10] v0, v1 - v0, v2 - v0, prim id; or None (another intersector)
 
 
-def pack(tree, prims, intersect) -> Packed:
+def _int_view(dtype):
+    """The integer type as wide as float ``dtype`` (the meta fields' bit-for-bit storage)."""
+    return jnp.int32 if jnp.dtype(dtype).itemsize == 4 else jnp.int64
+
+
+def pack(tree, prims, intersect, leaf_width: int = 1) -> Packed:
     """:class:`Packed` arrays of ``tree`` (traced inside the jitted call: O(N k + P))."""
     kids = tree.child
+    k = kids.shape[1]
+    dtype = tree.lo.dtype
     safe = jnp.maximum(kids, 0)
     axis = tree.axis if isinstance(tree, BVH) else jnp.full(kids.shape[0], -1, I32)
     meta = jnp.concatenate([kids, tree.prim_start[:, None], tree.prim_count[:, None], axis[:, None],
-                            tree.parent[:, None]], axis=1).astype(I32)
-    kid_box = jnp.concatenate([tree.lo[safe], tree.hi[safe]], axis=-1)
+                            tree.parent[:, None]], axis=1).astype(_int_view(dtype))
+    kid_box = jnp.concatenate([tree.lo[safe], tree.hi[safe]], axis=-1).reshape(-1, 6 * k)
+    node = jnp.concatenate([kid_box, jax.lax.bitcast_convert_type(meta, dtype)], axis=1)
     slot_tri = None
     if intersect is intersect_triangle:
-        slot_tri = prims[jnp.clip(tree.prim_index, 0, prims.shape[0] - 1)]
-    return Packed(meta, kid_box, slot_tri)
+        prim = jnp.clip(tree.prim_index, 0, prims.shape[0] - 1)
+        tri = prims[prim]  # in the triangles' own dtype, as ``intersect_triangle`` reads them
+        ids = jax.lax.bitcast_convert_type(tree.prim_index.astype(_int_view(tri.dtype)), tri.dtype)
+        rows = jnp.concatenate([tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], ids[:, None]], axis=1)
+        slot_tri = jnp.pad(rows, ((0, max(int(leaf_width), 1) - 1), (0, 0)))
+    return Packed(node, slot_tri)
+
+
+def node_fields(packed: Packed, ref, k: int):
+    """Node ``ref``'s row of ``packed.node``: ``(lo [k, 3], hi [k, 3], kids [k], prim_start,
+    prim_count, split axis, parent)`` (ints int32)."""
+    row = packed.node[ref]
+    box = row[:6 * k].reshape(k, 6)
+    meta = jax.lax.bitcast_convert_type(row[6 * k:], _int_view(row.dtype)).astype(I32)
+    return box[:, :3], box[:, 3:], meta[:k], meta[k], meta[k + 1], meta[k + 2], meta[k + 3]
 
 
 def _ray(tree, packed: Packed, prims, skip, origin, direction, t_min, t_max, i, *, intersect) -> Ray:
@@ -231,21 +259,31 @@ def _ray(tree, packed: Packed, prims, skip, origin, direction, t_min, t_max, i, 
     root = tree.root
     root_hit, root_entry = slab(tree.lo[root], tree.hi[root], o, inv_dir, lo_t, hi_t)
     n_slots = tree.prim_index.shape[0]
+    def apart(index):
+        # the index made apart from the read (XLA never fuses a reduce into its user):
+        # left to XLA, the cheap ops that make it are fused into the read and recomputed
+        # for every element of the row (measured: the two reads took a third of a step,
+        # bench/results/ray_anatomy.md). max(index, -1) is the index (indices are >= 0).
+        return jnp.max(jnp.stack([index, jnp.full_like(index, -1)]), axis=0)
 
     def primitive(slot, _):
         slot = jnp.minimum(slot, n_slots - 1)
         prim = tree.prim_index[slot]
-        if packed.slot_tri is not None:
-            tri = packed.slot_tri[slot]
-            t, u, v = moller_trumbore(tri[0], tri[1], tri[2], o, d)
-        else:
-            t, u, v = intersect(prims, prim, o, d)
+        t, u, v = intersect(prims, prim, o, d)
+        return t, u, v, prim
+
+    def run(start, _, width):
+        # one contiguous read of the run's rows (padded: a run from a real slot fits)
+        rows = jax.lax.dynamic_slice_in_dim(packed.slot_tri, apart(start), width, axis=0)
+        t, u, v = moller_trumbore_edges(rows[:, 0:3], rows[:, 3:6], rows[:, 6:9], o, d)
+        prim = jax.lax.bitcast_convert_type(rows[:, 9], _int_view(rows.dtype)).astype(I32)
         return t, u, v, prim
 
     def node(ref, _, entry, t_far):
-        return _expand(packed, skip, ref, entry, o, d, inv_dir, lo_t, t_far, binary=isinstance(tree, BVH))
+        return _expand(packed, skip, apart(ref), entry, o, d, inv_dir, lo_t, t_far, binary=isinstance(tree, BVH))
 
-    return Ray(Hooks(primitive, node), root, root_hit, root_entry, lo_t, hi_t)
+    return Ray(Hooks(primitive, node, run if packed.slot_tri is not None else None), root, root_hit,
+               root_entry, lo_t, hi_t)
 
 
 def _expand(packed: Packed, skip, ref, entry, origin, direction, inv_dir, t_min, t_far, *, binary) -> Node:
@@ -254,13 +292,10 @@ def _expand(packed: Packed, skip, ref, entry, origin, direction, inv_dir, t_min,
     With skip flags a flagged child is not tested but assumed hit, entered where this
     node was; a flagged node's own visit is not counted.
     """
-    meta = packed.meta[ref]
-    k = packed.kid_box.shape[1]
-    kids = meta[:k]
-    count = meta[k + 1]
+    k = 2 if binary else (packed.node.shape[1] - 4) // 7
+    lo, hi, kids, start, count, split, parent = node_fields(packed, ref, k)
     real = kids >= 0
-    box = packed.kid_box[ref]
-    kid_hit, kid_entry = slab(box[:, :3], box[:, 3:], origin, inv_dir[None, :], t_min, t_far)
+    kid_hit, kid_entry = slab(lo, hi, origin, inv_dir[None, :], t_min, t_far)
     tested = real
     assumed = None
     if skip is not None:
@@ -269,10 +304,10 @@ def _expand(packed: Packed, skip, ref, entry, origin, direction, inv_dir, t_min,
         kid_hit = kid_hit | skipped
         kid_entry = jnp.where(skipped, entry, kid_entry)
         tested = real & ~skipped
-    return Node(is_leaf=count > 0, leaf_start=meta[k], leaf_count=count, leaf_tag=None,
+    return Node(is_leaf=count > 0, leaf_start=start, leaf_count=count, leaf_tag=None,
                 assumed=assumed, kids=kids, kid_tags=None, kid_hit=kid_hit & real,
-                kid_entry=kid_entry, tested=tested, split=meta[k + 2] if binary else None,
-                direction=direction, parent=meta[k + 3])
+                kid_entry=kid_entry, tested=tested, split=split if binary else None,
+                direction=direction, parent=parent)
 
 
 @partial(stored_jit, static_argnames=("intersect", "mode", "capacity", "max_hits", "lanes", "leaf_width"))
@@ -292,7 +327,7 @@ def trace_batch(tree, prims, origin, direction, t_min, t_max, skip=None, *,
     dtype = tree.lo.dtype
     t_min = jnp.broadcast_to(jnp.asarray(t_min, dtype), (r,))
     t_max = jnp.broadcast_to(jnp.asarray(t_max, dtype), (r,))
-    ray = partial(_ray, tree, pack(tree, prims, intersect), prims, skip, origin, direction, t_min, t_max,
+    ray = partial(_ray, tree, pack(tree, prims, intersect, leaf_width), prims, skip, origin, direction, t_min, t_max,
                   intersect=intersect)
     return walk_rays(ray, r, mode=mode, capacity=capacity, max_hits=max_hits,
                      step_limit=max_steps(tree), lanes=lanes_for(r, capacity, lanes),
