@@ -412,10 +412,13 @@ def _write_cached(entry: Path, mesh: "Mesh") -> None:
 def _evict(folder: Path, keep: Path) -> None:
     """Remove the entries read longest ago until ``folder`` is under
     :data:`MAX_MESH_CACHE_BYTES` (``keep``, the entry just written, stays)."""
-    try:
-        entries = [(e.stat().st_mtime_ns, e.stat().st_size, e) for e in folder.glob("*.npz")]
-    except OSError:
-        return  # an entry removed meanwhile by another process: next write tries again
+    entries = []
+    for e in folder.glob("*.npz"):
+        try:
+            st = e.stat()  # once: its time and size
+        except OSError:
+            continue  # removed meanwhile by another process
+        entries.append((st.st_mtime_ns, st.st_size, e))
     total = sum(size for _, size, _ in entries)
     for _, size, e in sorted(entries, key=lambda x: x[0]):
         if total <= MAX_MESH_CACHE_BYTES:
