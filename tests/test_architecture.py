@@ -138,9 +138,10 @@ def test_every_twin_sits_beside_its_module():
 
 TESTS = Path(__file__).resolve().parent
 # the package's shape, its notebooks, its documentation site and the examples on its pages,
-# the compilation cache that `import jaxbvh` turns on
+# the compilation cache that `import jaxbvh` turns on, the engine rule every query follows
 WHOLE_PACKAGE_TESTS = {"test_architecture.py", "test_notebooks.py", "test_docs.py", "test_docs_examples.py",
-                       "test_compile_cache.py", "test_compile_policy.py", "test_program_store.py"}
+                       "test_compile_cache.py", "test_compile_policy.py", "test_program_store.py",
+                       "test_native.py"}
 
 
 def test_tests_follow_the_packages():
