@@ -1,4 +1,5 @@
-"""Writing files so that a failed write loses nothing: :func:`atomic_write`.
+"""Writing files so that a failed write loses nothing: :func:`atomic_write`; keeping a
+cache folder under a size: :func:`trim_least_recent`.
 
 Every file the library and the ``jaxbvh`` tool write (trees, hits, images, batch
 outputs, cached meshes) goes through :func:`atomic_write`: the bytes go to a temporary
@@ -7,6 +8,12 @@ A write that fails part-way (a full disk, a file size limit, an exception in the
 producing the bytes) leaves the old file byte-for-byte as it was and no temporary
 behind. (A module of its own, below :mod:`jaxbvh.tree` and :mod:`jaxbvh.io`, because
 both write files and :mod:`jaxbvh.io` imports :mod:`jaxbvh.tree`.)
+
+The caches jaxbvh keeps beside JAX's compiled programs (parsed meshes,
+:mod:`jaxbvh.io.meshes`; traced programs, :mod:`jaxbvh.program_store`) follow one rule,
+:func:`trim_least_recent`: a reader touches an entry's modification time when it reads it,
+and after each write the entries read or written longest ago go first until the folder's
+entries are under the cache's size in bytes.
 """
 
 from __future__ import annotations
@@ -78,3 +85,28 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb"):
         if isinstance(exc, OSError) and exc.filename != path:
             raise OSError(exc.errno, exc.strerror or str(exc), path) from exc
         raise
+
+
+def trim_least_recent(paths, max_bytes: int, keep=None) -> int:
+    """Remove the files of ``paths`` (an iterable of paths: one cache's entries) used
+    longest ago (oldest modification time first: readers touch what they read) until the
+    rest take at most ``max_bytes`` bytes; ``keep`` (the entry just written) stays. A file
+    removed meanwhile by another process is skipped, one that cannot be removed is left.
+    Returns the bytes the remaining entries take."""
+    entries = []
+    for path in paths:
+        try:
+            st = os.stat(path)  # once: its time and size together
+        except OSError:
+            continue  # removed meanwhile by another process
+        entries.append((st.st_mtime_ns, st.st_size, path))
+    total = sum(size for _, size, _ in entries)
+    for _, size, path in sorted(entries, key=lambda e: e[0]):
+        if total <= max_bytes:
+            break
+        if keep is not None and os.fspath(path) == os.fspath(keep):
+            continue
+        with contextlib.suppress(OSError):
+            os.unlink(path)
+            total -= size
+    return total

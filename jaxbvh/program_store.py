@@ -29,8 +29,8 @@ lowered program, which the options do not change, so its key leaves them out.
 Rules: on while jaxbvh's compilation cache is on, in ``programs/`` of its folder
 (:func:`store_dir`: off with that cache, and in a process with several devices); files are
 written atomically (:func:`jaxbvh.files.atomic_write`); an unreadable or stale file is
-replaced, never trusted; the folder is kept under :data:`MAX_STORE_FILES` files (oldest
-first out).
+replaced, never trusted; the folder is kept under :data:`MAX_STORE_BYTES` (the programs
+used longest ago out first: the rule of every jaxbvh cache, :func:`jaxbvh.files.trim_least_recent`).
 """
 
 from __future__ import annotations
@@ -49,12 +49,14 @@ from pathlib import Path
 import jax
 
 from jaxbvh import compile_cache, compile_policy
-from jaxbvh.files import atomic_write
+from jaxbvh.files import atomic_write, trim_least_recent
 
-__all__ = ["MAX_STORE_FILES", "StoredFunction", "clear_memory", "store_dir", "stored_jit"]
+__all__ = ["MAX_STORE_BYTES", "StoredFunction", "clear_memory", "store_dir", "stored_jit"]
 
-#: the folder keeps at most this many programs; the oldest half goes when it is full
-MAX_STORE_FILES = 4000
+#: the folder is kept under this size (bytes), the programs used longest ago out first
+#: (:func:`jaxbvh.files.trim_least_recent`). A stored program takes ~10-300 kB (a day's
+#: work here: 678 programs, 29 MB).
+MAX_STORE_BYTES = 512 * 1024 ** 2
 
 #: bump when the file layout changes
 _FORMAT = b"jaxbvh-program-store-1"
@@ -346,16 +348,8 @@ def _write(path: Path, loaded) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_write(path) as f:
             f.write(_FORMAT + pickle.dumps(loaded))
-        _evict(path.parent.parent)
+        trim_least_recent(path.parent.parent.glob(f"*/*{_SUFFIX}"), MAX_STORE_BYTES, keep=path)
     except OSError:
         pass  # a read-only or full disk: the program still runs, it is just not kept
 
 
-def _evict(folder: Path) -> None:
-    files = list(folder.glob(f"*/*{_SUFFIX}"))
-    if len(files) <= MAX_STORE_FILES:
-        return
-    files.sort(key=lambda p: p.stat().st_mtime)
-    for old in files[: len(files) // 2]:
-        with contextlib.suppress(OSError):
-            old.unlink()

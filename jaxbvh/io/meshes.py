@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxbvh import compile_cache
-from jaxbvh.files import atomic_write
+from jaxbvh.files import atomic_write, trim_least_recent
 from jaxbvh.tree.frame import Frame
 from jaxbvh.tree.interchange import load
 from jaxbvh.tree.validate import few_ids
@@ -406,28 +406,7 @@ def _write_cached(entry: Path, mesh: "Mesh") -> None:
             np.savez(f, **arrays)
     except OSError:
         return  # a read-only cache folder: parse every time
-    _evict(entry.parent, keep=entry)
-
-
-def _evict(folder: Path, keep: Path) -> None:
-    """Remove the entries read longest ago until ``folder`` is under
-    :data:`MAX_MESH_CACHE_BYTES` (``keep``, the entry just written, stays)."""
-    entries = []
-    for e in folder.glob("*.npz"):
-        try:
-            st = e.stat()  # once: its time and size
-        except OSError:
-            continue  # removed meanwhile by another process
-        entries.append((st.st_mtime_ns, st.st_size, e))
-    total = sum(size for _, size, _ in entries)
-    for _, size, e in sorted(entries, key=lambda x: x[0]):
-        if total <= MAX_MESH_CACHE_BYTES:
-            break
-        if e == keep:
-            continue
-        with contextlib.suppress(OSError):
-            e.unlink()
-            total -= size
+    trim_least_recent(entry.parent.glob("*.npz"), MAX_MESH_CACHE_BYTES, keep=entry)
 
 
 def _read_cached(entry: Path, path: str) -> "Mesh | None":

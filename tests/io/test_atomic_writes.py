@@ -12,10 +12,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from helpers import assert_one_line_error, grid_obj, run_cli, run_json, three_triangle_files
 
 import jaxbvh
-from jaxbvh.files import atomic_write, remove_abandoned_temporaries
+from jaxbvh.files import atomic_write, remove_abandoned_temporaries, trim_least_recent
 
 OLD = b"the user's old file: it must survive a failed write\n" * 3
 
@@ -237,3 +239,34 @@ def test_a_batch_run_removes_the_temporaries_of_its_outputs_and_no_others(tmp_pa
     foreign.write_bytes(OLD)
     made = runs.run_files([tmp_path / "in" / "a.obj"], out)
     assert made.done == 1 and not dead.exists() and foreign.read_bytes() == OLD
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.tuples(st.integers(1, 50), st.integers(0, 10 ** 6)), min_size=1, max_size=8,
+                unique_by=lambda entry: entry[1]),
+       st.integers(0, 200), st.data())
+def test_trim_least_recent_removes_the_oldest_until_under_size(tmp_path_factory, files, max_bytes, data):
+    """jaxbvh's one cache rule: entries used longest ago go first until the rest fit; the
+    entry just written stays; nothing newer goes while something older stays."""
+    folder = tmp_path_factory.mktemp("cache")
+    paths = []
+    for i, (size, age) in enumerate(files):
+        p = folder / f"e{i}.bin"
+        p.write_bytes(b"x" * size)
+        os.utime(p, ns=(10 ** 18 - age * 10 ** 6, 10 ** 18 - age * 10 ** 6))
+        paths.append(p)
+    keep = data.draw(st.sampled_from(paths + [None]))
+    total = trim_least_recent(folder.glob("*.bin"), max_bytes, keep=keep)
+    left = [p for p in paths if p.exists()]
+    gone = [p for p in paths if not p.exists()]
+    assert total == sum(p.stat().st_size for p in left)
+    if keep is not None:
+        assert keep.exists()
+    others = [p for p in left if p != keep]
+    assert total <= max_bytes or not others  # under the size, or only the kept entry is left
+    if gone and others:  # oldest first: every removed entry is at least as old as every kept one
+        assert max(p_mtime for p_mtime in (files[paths.index(p)][1] for p in others)) <= min(
+            files[paths.index(p)][1] for p in gone)
+    if total <= max_bytes and gone:  # no more than needed: the newest removed one would not have fit
+        newest_gone = min(gone, key=lambda p: files[paths.index(p)][1])
+        assert total + files[paths.index(newest_gone)][0] > max_bytes
