@@ -41,6 +41,7 @@ import hashlib
 import inspect
 import os
 import pickle
+import threading
 import importlib.util
 import warnings
 import weakref
@@ -250,9 +251,11 @@ class StoredFunction:
         out_treedef, blob = loaded
         exported = jax.export.deserialize(bytearray(blob))
         call = jax.jit(exported.call, compiler_options=dict(options) or None)
+        lapack_free = _LAPACK_MARK not in blob
 
         def program(leaves):
-            return jax.tree_util.tree_unflatten(out_treedef, call(*leaves))
+            with _lapack_left_alone(lapack_free):
+                return jax.tree_util.tree_unflatten(out_treedef, call(*leaves))
 
         return program
 
@@ -304,6 +307,54 @@ def stored_jit(fun=None, *, static_argnums=(), static_argnames=(), family=None):
         return functools.partial(stored_jit, static_argnums=static_argnums, static_argnames=static_argnames,
                                  family=family)
     return StoredFunction(fun, static_argnums=static_argnums, static_argnames=static_argnames, family=family)
+
+
+#: the bytes every LAPACK call of a lowered program names (its custom-call targets,
+#: ``lapack_sgetrf_ffi`` ...); a stored program without them calls no LAPACK
+_LAPACK_MARK = b"lapack"
+
+#: set while a LAPACK-free stored program is lowered (:func:`_lapack_left_alone`)
+_lapack_skip = threading.local()
+
+
+@functools.cache
+def _install_lapack_guard() -> bool:
+    """Let :func:`_lapack_left_alone` skip JAX's LAPACK set-up for our programs.
+
+    Before lowering any exported program on a CPU, JAX sets up its LAPACK kernels
+    (``jax._src.export._export._ensure_backends_initialized``), which imports
+    ``scipy.linalg`` (~270 modules, 0.3-0.5 CPU s here): a warm process paid it at its
+    first stored program, though none of ours calls LAPACK (the SBVH build's warm call
+    1.3-1.6 CPU s, of which that import 0.3-0.5). JAX's own lowering of a LAPACK
+    operation sets LAPACK up itself when it meets one, so skipping it here for a program
+    without LAPACK calls leaves every other program as it was. False (nothing changed)
+    when this JAX has no such function."""
+    try:
+        from jax._src.export import _export  # no public spelling in JAX 0.10
+        original = _export._ensure_backends_initialized
+    except (ImportError, AttributeError):
+        return False
+
+    def ensure_backends_initialized(platforms):
+        if not getattr(_lapack_skip, "on", False):
+            original(platforms)
+
+    _export._ensure_backends_initialized = ensure_backends_initialized
+    return True
+
+
+@contextlib.contextmanager
+def _lapack_left_alone(lapack_free: bool):
+    """Within: lowering a stored program skips JAX's LAPACK set-up if ``lapack_free``."""
+    if not lapack_free or not _install_lapack_guard():
+        yield
+        return
+    before = getattr(_lapack_skip, "on", False)
+    _lapack_skip.on = True
+    try:
+        yield
+    finally:
+        _lapack_skip.on = before
 
 
 def _top_level() -> bool:

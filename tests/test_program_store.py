@@ -145,6 +145,12 @@ lo = np.random.default_rng(0).random((40, 3)).astype(np.float32)
 tree = jaxbvh.build(lo, lo + 0.05, method="sweep")
 print(float(jaxbvh.sah(tree)))
 print(sorted(set(traced)))
+print("scipy" in sys.modules)  # JAX's LAPACK set-up imports it; no program of ours calls LAPACK
+import jax.numpy as jnp
+from jaxbvh.program_store import stored_jit
+solve = stored_jit(lambda a, b: jnp.linalg.solve(a, b))  # a stored program that calls LAPACK
+a = np.array([[3.0, 1.0], [1.0, 2.0]], np.float32)
+print(np.asarray(solve(a, np.array([9.0, 8.0], np.float32))).round(4).tolist())
 """
 
 
@@ -155,10 +161,15 @@ def test_a_warm_process_does_not_trace_the_builder(tmp_path):
                            timeout=300) for _ in range(2)]
     for run in runs:
         assert run.returncode == 0, run.stderr
-    (cold_sah, cold_traced), (warm_sah, warm_traced) = (r.stdout.split("\n")[:2] for r in runs)
+    (cold_sah, cold_traced, _, cold_x), (warm_sah, warm_traced, warm_scipy, warm_x) = (
+        r.stdout.split("\n")[:4] for r in runs)
     assert cold_sah == warm_sah
     assert "flat" in cold_traced   # exported in the cold process
     assert "flat" not in warm_traced  # loaded in the warm one
+    # loading our stored programs left JAX's LAPACK set-up (and its scipy import) alone ...
+    assert warm_scipy == "False"
+    # ... and a stored program that does call LAPACK still gets it
+    assert cold_x == warm_x == "[2.0, 3.0]"
 
 
 def _with_host_callback(x):
