@@ -220,10 +220,13 @@ def ct_knob():
 
 
 #: the largest leaf, by default, of every builder (SAH leaf test) and of the pipeline's final
-#: leaf merge (jaxbvh.optimize.leaves): the one place this default is set. Measured in
-#: bench/results/leaves.md (issue 40): 1 (one primitive per leaf) ... 16 on the shared
-#: meshes and the procedural interior.
-DEFAULT_MAX_LEAF = 4
+#: leaf merge (jaxbvh.optimize.leaves): the one place this default is set. A cap only: the
+#: SAH leaf test decides each leaf. Measured in bench/results/leaves.md (issue 40), sweep
+#: build then the pipeline, limits 4 / 8 / 16: the same SAH on spot, cow, teapot, fandisk,
+#: rocker-arm and the bunny; 16 lowest on the drone (12.796 / 12.704 / 12.682: 4 left it
+#: above tinybvh's Optimize(200), 12.763), legocar (26.677 / 26.650 / 26.650) and the
+#: interior (63.588 / 63.583 / 63.583). Leaves of one primitive (1) were 1.5-18% worse.
+DEFAULT_MAX_LEAF = 16
 
 
 def max_leaf_knob():

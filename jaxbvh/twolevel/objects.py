@@ -281,14 +281,20 @@ def placements(mesh, world_space: bool = True) -> list[Placement]:
     return out
 
 
-#: the object BVHs' builder unless told otherwise: binned SAH with the builders' default
-#: leaves (up to :data:`jaxbvh.configs.DEFAULT_MAX_LEAF` primitives where the SAH says a
-#: leaf costs less; the command line's ``jaxbvh rebraid`` reads its defaults from it). Against
-#: the paper's one primitive per leaf, on 7 bench scenes (by-material fandisk and cow, a pile
-#: of 12 cows, a room of 254 objects, drone, legocar, a forest of 64 instanced trees;
-#: re-braided at the default threshold): flattened SAH 2.4-12.2% lower, box tests per random
-#: ray 3.5-14% fewer, stored nodes 42-58% fewer, every hit the same (2026-12-04).
-DEFAULT_BUILDER = BinnedConfig()
+#: the object BVHs' largest leaf: 4, below the builders' :data:`jaxbvh.configs.DEFAULT_MAX_LEAF`
+#: (16). Re-braiding opens object *nodes*; a small object that the SAH packs into one leaf
+#: of up to 16 leaves nothing to open (piles of 22-triangle trees then kept the plain top
+#: level, tests/twolevel), and the leaves study below measured 4.
+OBJECT_MAX_LEAF = 4
+
+#: the object BVHs' builder unless told otherwise: binned SAH with leaves of up to
+#: :data:`OBJECT_MAX_LEAF` primitives where the SAH says a leaf costs less (the command
+#: line's ``jaxbvh rebraid`` reads its defaults from it). Against the paper's one primitive
+#: per leaf, on 7 bench scenes (by-material fandisk and cow, a pile of 12 cows, a room of
+#: 254 objects, drone, legocar, a forest of 64 instanced trees; re-braided at the default
+#: threshold): flattened SAH 2.4-12.2% lower, box tests per random ray 3.5-14% fewer, stored
+#: nodes 42-58% fewer, every hit the same (2026-12-04, bench/results/rebraid_leaves.md).
+DEFAULT_BUILDER = BinnedConfig(max_leaf=OBJECT_MAX_LEAF)
 
 
 def object_builder(builder: BuilderConfig | None = None, **options) -> BuilderConfig:
