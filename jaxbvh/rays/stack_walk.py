@@ -404,7 +404,9 @@ def _primitive_step(hooks, s: Walk, in_leaf, t_min, t_max, *, mode, max_hits, wi
     counts = s.counts._replace(prim_tests=s.counts.prim_tests + n_tested)
     return s._replace(found=found, counts=counts, leaf_pos=s.leaf_pos + n_tested,
                       steps=s.steps + n_tested,
-                      done=found.prim >= 0 if mode == "any" else s.done)
+                      # or, not instead of: a climb may have ended the ray in this step (the
+                      # masked primitive step must not revive it; it would climb to the bound)
+                      done=s.done | (found.prim >= 0) if mode == "any" else s.done)
 
 
 def _record(f: Found, valid, t, u, v, prim, *, mode, max_hits) -> Found:

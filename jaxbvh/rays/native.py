@@ -1,0 +1,229 @@
+"""The native CPU engine of the ray queries: the same walk as a compiled scalar loop (numba).
+
+:func:`jaxbvh.rays.trace` (and ``closest_hit``, ``any_hit``, ``all_hits``, ``measure``)
+runs on one of two engines, chosen by ``engine=``:
+
+* ``"jax"``: the array program of :mod:`jaxbvh.rays.stack_walk` (lanes of rays, one
+  ``while_loop``), always available; the engine for a GPU and the one whose functions
+  live inside JAX programs (:func:`jaxbvh.queries.raycast` for ``jit`` / ``vmap`` /
+  ``grad``);
+* ``"native"``: :mod:`jaxbvh.rays.native_kernels`, the same walk one ray at a time in a
+  loop compiled by numba (no per-step kernels over lanes: ``bench/results/ray_anatomy.md``
+  measured that the array program's step costs ~270 ns per lane under XLA's CPU compiler,
+  ``bench/results/bench_rays_native.md`` what the loop costs). Needs numba and concrete
+  (not traced) arrays; rays are split into :data:`THREADS` chunks run on threads (the
+  kernel releases the GIL);
+* ``"auto"`` (default): :func:`choose_engine`, the one place that decides.
+
+Both engines make the same walk with the same rules (visiting order, the
+``entry <= t_best`` cull, the robust slab test, Möller–Trumbore in the tree's dtype, ties
+to the lower id, any-hit stop, all-hits lists, the short ring stack of ``capacity``
+entries with its parent-link climb, the step bound ``3 N + P + 1``), so every counter and
+every hit is the same ray by ray (``tests/rays/test_native.py``). What differs: hit
+distances may differ in their last bits (XLA contracts multiply-adds, numba does not: the
+native engine equals the NumPy twin :mod:`jaxbvh.rays.traversal_reference` bit for bit);
+triangles are read in the tree's dtype (the JAX walk promotes a float32 tree's rays to
+float64 triangles under x64); ``lanes`` and ``batch`` change nothing here but the
+progress callback's steps.
+
+First-call cost. numba compiles :func:`~jaxbvh.rays.native_kernels.trace_rays` once per
+float dtype (a few CPU seconds). numba is imported on the first native trace, never by
+``import jaxbvh``; compiled kernels are kept on disk in ``numba/`` beside the programs of
+jaxbvh's compilation cache (:mod:`jaxbvh.compile_cache`) while that cache is jaxbvh's
+(``$NUMBA_CACHE_DIR``, if you set it, wins); with jaxbvh's cache off, or a JAX cache of
+your own, nothing is written and each process compiles again.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Callable
+
+import jax
+import numpy as np
+
+from jaxbvh.numerics import INV_BIG, robust_factor
+from jaxbvh.rays.stack_walk import LEAF_WIDTH, Hits
+from jaxbvh.tree.layout import BVH
+
+ENGINES = ("auto", "jax", "native")
+
+THREADS = max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
+"""Threads a native call splits its rays over (the CPUs this process may use)."""
+MIN_RAYS_PER_THREAD = 256
+"""Fewer rays than this per thread run on one thread (a thread's start costs ~50 us)."""
+
+CACHE_KERNELS = False
+"""Whether numba keeps the compiled kernels on disk (set by :func:`kernels` before the import)."""
+
+
+def native_available() -> bool:
+    """numba can be imported (checked without importing it)."""
+    return importlib.util.find_spec("numba") is not None
+
+
+def is_traced(*trees) -> bool:
+    """Some leaf of ``trees`` is a JAX tracer (the call is inside ``jit`` / ``vmap`` / ``grad``)."""
+    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(trees))
+
+
+def choose_engine(engine: str, *arrays, intersect: Callable | None = None) -> str:
+    """``"jax"`` or ``"native"`` for a call with ``arrays`` (any pytrees) and ``intersect``.
+
+    ``"auto"`` picks native when numba imports, JAX's default backend is the CPU, no
+    argument is traced and the primitives are triangles (``intersect`` the default);
+    else jax. ``"native"`` raises when it cannot run: ``TypeError`` for traced arguments
+    or another intersector, ``ImportError`` without numba.
+    """
+    from jaxbvh.rays.traversal import intersect_triangle
+
+    if engine not in ENGINES:
+        raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")
+    if engine == "jax":
+        return "jax"
+    triangles = intersect is None or intersect is intersect_triangle
+    traced = is_traced(arrays)
+    if engine == "native":
+        if traced:
+            raise TypeError("engine='native' traces concrete arrays on the host and cannot run inside "
+                            "jax.jit / vmap / grad; use engine='jax' there (or jaxbvh.queries.raycast)")
+        if not triangles:
+            raise TypeError("engine='native' tests triangles only; use engine='jax' for another intersect")
+        if not native_available():
+            raise ImportError("engine='native' needs numba (pip install numba); engine='jax' runs without it")
+        return "native"
+    native = triangles and not traced and jax.default_backend() == "cpu" and native_available()
+    return "native" if native else "jax"
+
+
+def numba_cache_folder() -> Path | None:
+    """Where numba keeps compiled kernels: ``numba/`` in jaxbvh's compilation cache
+    folder while jaxbvh owns JAX's cache, else None (nothing written). A user's
+    ``$NUMBA_CACHE_DIR`` is left as it is (numba then caches there)."""
+    from jaxbvh import compile_cache
+
+    state = compile_cache.status()
+    if state["owner"] != "jaxbvh":
+        return None
+    return Path(state["folder"]) / "numba"
+
+
+_kernels = {}
+
+
+def kernels():
+    """:mod:`jaxbvh.rays.native_kernels`, imported (with numba) on first use, its disk
+    cache set up first (module docstring)."""
+    if "module" not in _kernels:
+        global CACHE_KERNELS
+        if os.environ.get("NUMBA_CACHE_DIR"):
+            CACHE_KERNELS = True
+        else:
+            folder = numba_cache_folder()
+            if folder is not None:
+                os.environ["NUMBA_CACHE_DIR"] = str(folder)
+                import numba  # noqa: E402: numba reads NUMBA_CACHE_DIR at import, or here if imported already
+
+                numba.config.CACHE_DIR = str(folder)
+                CACHE_KERNELS = True
+        from jaxbvh.rays import native_kernels
+
+        _kernels["module"] = native_kernels
+    return _kernels["module"]
+
+
+def _c(x, dtype):
+    """``x`` as a C-contiguous, writable array of ``dtype``: numba types read-only arrays
+    (NumPy views of JAX arrays) apart, and each type would be one more compile."""
+    a = np.ascontiguousarray(x, dtype)
+    return a if a.flags.writeable else a.copy()
+
+
+class _Arrays:
+    """A tree and its triangles as the kernel reads them (C-contiguous, int32, tree dtype)."""
+
+    def __init__(self, tree, triangles, dtype):
+        i32 = np.int32
+        if isinstance(tree, BVH):
+            child = np.stack([np.asarray(tree.left), np.asarray(tree.right)], axis=1)
+            axis = np.asarray(tree.axis)
+        else:
+            child = np.asarray(tree.child)
+            axis = np.full(child.shape[0], -1, i32)  # wide nodes: distance order
+        self.child = _c(child, i32)
+        self.axis = _c(axis, i32)
+        self.parent = _c(tree.parent, i32)
+        self.lo = _c(tree.lo, dtype)
+        self.hi = _c(tree.hi, dtype)
+        self.prim_start = _c(tree.prim_start, i32)
+        self.prim_count = _c(tree.prim_count, i32)
+        self.root = int(np.asarray(tree.root))
+        prim_index = np.asarray(tree.prim_index, i32)
+        tri = np.asarray(triangles, dtype)
+        # one row per prim_index slot, as traversal.pack: first corner, the two edges from it
+        t = tri[np.clip(prim_index, 0, tri.shape[0] - 1)]
+        self.slot_tri = _c(np.concatenate([t[:, 0], t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]], axis=1), dtype)
+        self.slot_prim = _c(prim_index, i32)
+        self.consts = np.array([1, robust_factor(dtype), INV_BIG], dtype)
+
+
+def trace(tree, triangles, origin, direction, t_min, t_max, *, dtype, mode: str, capacity: int, max_hits: int,
+          step_limit: int, skip=None, leaf_width: int = LEAF_WIDTH, batch: int | None = None,
+          on_batch: Callable[[int], None] | None = None) -> Hits:
+    """The native engine of :func:`jaxbvh.rays.traversal.trace` (checked arguments):
+    :class:`Hits` of NumPy arrays [R], the dtypes of the JAX engine's.
+
+    ``tree`` (NumPy or JAX arrays), ``triangles`` [T, 3, 3], ``origin``, ``direction``
+    [R, 3]; ``t_min``, ``t_max`` scalars or [R]; ``dtype``: the tree's float dtype as the
+    JAX engine sees it (float32 unless x64); ``skip``: [N] bool or None. ``batch``: rays
+    between ``on_batch(n)`` calls (None: one call for all).
+    """
+    from jaxbvh.rays.traversal import MODES
+
+    k = kernels()
+    a = _Arrays(tree, triangles, dtype)
+    r = origin.shape[0]
+    n_nodes = a.child.shape[0]
+    skip = np.zeros(n_nodes, np.bool_) if skip is None else _c(skip, np.bool_)
+    o = _c(origin, dtype)
+    d = _c(direction, dtype)
+    lo_t = _c(np.broadcast_to(np.asarray(t_min, dtype), (r,)), dtype)
+    hi_t = _c(np.broadcast_to(np.asarray(t_max, dtype), (r,)), dtype)
+    all_hits = mode == "all"
+    h = max_hits if all_hits else 0
+    out = dict(t=np.empty(r, dtype), u=np.empty(r, dtype), v=np.empty(r, dtype), prim=np.empty(r, np.int32),
+               counts=np.empty((r, 4), np.int32), limit=np.empty(r, np.bool_), hit_count=np.zeros(r, np.int32),
+               hit_prims=np.full((r, h), -1, np.int32), hit_t=np.full((r, h), np.inf, dtype))
+    code = MODES.index(mode)
+
+    def run(first, stop):
+        k.trace_rays(a.child, a.parent, a.axis, a.lo, a.hi, a.prim_start, a.prim_count, skip, a.slot_tri,
+                     a.slot_prim, a.root, o, d, lo_t, hi_t, a.consts, code, int(capacity), int(h),
+                     int(step_limit), int(max(1, leaf_width)), first, stop, out["t"], out["u"], out["v"],
+                     out["prim"], out["counts"], out["limit"], out["hit_count"], out["hit_prims"], out["hit_t"])
+
+    step = r if batch is None else max(1, int(batch))
+    for start in range(0, r, step):
+        stop = min(start + step, r)
+        threads = max(1, min(THREADS, (stop - start) // MIN_RAYS_PER_THREAD))
+        if threads == 1:
+            run(start, stop)
+        else:
+            # interleaved chunks would balance better, but contiguous ones keep each thread's
+            # rays (and so its writes) apart; rays of a set are shuffled enough in practice
+            edges = np.linspace(start, stop, threads + 1).astype(int)
+            with ThreadPoolExecutor(threads) as pool:
+                list(pool.map(run, edges[:-1], edges[1:]))
+        if on_batch is not None:
+            on_batch(stop - start)
+    extra = {}
+    if all_hits:
+        extra = dict(hit_count=out["hit_count"], hit_prims=out["hit_prims"], hit_t=out["hit_t"],
+                     hits_overflow=out["hit_count"] > max_hits)
+    c = out["counts"]
+    return Hits(t=out["t"], prim=out["prim"], u=out["u"], v=out["v"], box_tests=c[:, 0].copy(),
+                prim_tests=c[:, 1].copy(), nodes_visited=c[:, 2].copy(), leaves_visited=c[:, 3].copy(),
+                stack_overflow=np.zeros(r, np.bool_), step_limit=out["limit"], **extra)
