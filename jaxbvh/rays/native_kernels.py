@@ -32,40 +32,38 @@ CLOSEST, ANY, ALL = 0, 1, 2
 """``mode`` codes: one kernel for the three modes (one compile, not three)."""
 
 _jit = numba.njit(cache=CACHE_KERNELS, nogil=True, error_model="numpy")
+_inline = numba.njit(cache=CACHE_KERNELS, nogil=True, error_model="numpy", inline="always")
 
 
-@_jit
-def _children(child, lo, hi, skip, axis, ref, entry, t_min, t_far, ox, oy, oz, ix, iy, iz,
-              dx, dy, dz, robust, kid_hit, kid_entry, key):
+@_inline
+def _children(box, meta, ref, entry, t_min, t_far, ox, oy, oz, ix, iy, iz, dx, dy, dz, robust,
+              kid_hit, kid_entry, key):
     """The ``node`` hook (``traversal._expand``) and ``stack_walk._visit_key`` for node
     ``ref``: fills ``kid_hit``, ``kid_entry``, ``key`` [k]; returns the boxes tested."""
-    k = child.shape[1]
-    n = child.shape[0]
-    split = axis[ref]
+    k = box.shape[1]
+    split = meta[ref, 2 * k + 2]
     lower_first = False
     if split >= 0:
         lower_first = (dx if split == 0 else (dy if split == 1 else dz)) >= 0
     tested = 0
     for j in range(k):
-        c = child[ref, j]
-        real = c >= 0
-        b = min(max(c, 0), n - 1)
-        skipped = real and skip[b]
+        real = meta[ref, j] >= 0
+        skipped = real and meta[ref, k + j] != 0
         if skipped:
             hit = True
             e = entry
         else:
             # slab test (traversal.slab): the far side scaled by 1 + 2 gamma(3)
-            t0 = (lo[b, 0] - ox) * ix
-            t1 = (hi[b, 0] - ox) * ix
+            t0 = (box[ref, j, 0] - ox) * ix
+            t1 = (box[ref, j, 3] - ox) * ix
             near = min(t0, t1)
             far = max(t0, t1)
-            t0 = (lo[b, 1] - oy) * iy
-            t1 = (hi[b, 1] - oy) * iy
+            t0 = (box[ref, j, 1] - oy) * iy
+            t1 = (box[ref, j, 4] - oy) * iy
             near = max(near, min(t0, t1))
             far = min(far, max(t0, t1))
-            t0 = (lo[b, 2] - oz) * iz
-            t1 = (hi[b, 2] - oz) * iz
+            t0 = (box[ref, j, 2] - oz) * iz
+            t1 = (box[ref, j, 5] - oz) * iz
             near = max(near, min(t0, t1))
             far = min(far, max(t0, t1)) * robust
             e = max(near, t_min)
@@ -83,17 +81,17 @@ def _children(child, lo, hi, skip, axis, ref, entry, t_min, t_far, ox, oy, oz, i
     return tested
 
 
-@_jit
+@_inline
 def _before(key, i, j):
     """Child slot ``i`` comes before slot ``j`` (``stack_walk._order``: key, then slot)."""
     return key[i] < key[j] or (key[i] == key[j] and i < j)
 
 
-@_jit
-def _push(child, ref, mask, key, kid_entry, top, capacity, stack_node, stack_entry):
+@_inline
+def _push(meta, ref, mask, key, kid_entry, top, capacity, stack_node, stack_entry):
     """``stack_walk._push``: write the children ``mask`` [k] at logical entries ``top``
     up, nearest on top, into the ring; returns the new ``sp``."""
-    k = child.shape[1]
+    k = mask.shape[0]
     n_push = 0
     for j in range(k):
         if mask[j]:
@@ -105,30 +103,32 @@ def _push(child, ref, mask, key, kid_entry, top, capacity, stack_node, stack_ent
                 if mask[i] and _before(key, i, j):
                     rank += 1
             slot = (top + n_push - 1 - rank) % capacity
-            stack_node[slot] = child[ref, j]
+            stack_node[slot] = meta[ref, j]
             stack_entry[slot] = kid_entry[j]
     return top + n_push
 
 
 @_jit
-def trace_rays(child, parent, axis, lo, hi, prim_start, prim_count, skip, slot_tri, slot_prim, root,
+def trace_rays(box, meta, root_box, slot_tri, slot_prim, root,
                origin, direction, t_lo, t_hi, consts, mode, capacity, max_hits, step_limit, leaf_width,
                first, stop, out_t, out_u, out_v, out_prim, out_counts, out_limit, out_hit_count,
                out_hit_prims, out_hit_t):
     """Trace rays ``first .. stop - 1``; writes their results into the ``out_*`` arrays.
 
-    Tree: ``child`` [N, k] int32 (binary: left, right), ``parent``, ``axis`` (-1: order
-    by distance; wide trees all -1), ``prim_start``, ``prim_count`` [N] int32, ``lo``,
-    ``hi`` [N, 3], ``skip`` [N] bool (all False: no flags), ``slot_tri`` [P, 9] (per
-    ``prim_index`` slot: v0, v1 - v0, v2 - v0), ``slot_prim`` [P] int32 (the id).
+    Tree, packed as :class:`jaxbvh.rays.traversal.Packed` (a node's children's boxes in
+    its own row: a node costs two row reads): ``box`` [N, k, 6] (child ``j``'s lo, hi),
+    ``meta`` [N, 2 k + 5] int32 (children (-1: none), the children's skip flags,
+    ``prim_start``, ``prim_count``, split axis (-1: by distance; wide trees), parent, the
+    node's own skip flag), ``root_box`` [6], ``slot_tri`` [P, 9] (per ``prim_index``
+    slot: v0, v1 - v0, v2 - v0), ``slot_prim`` [P] int32 (the id).
     Rays: ``origin``, ``direction`` [R, 3], ``t_lo``, ``t_hi`` [R] (open interval).
     ``consts`` [3]: 1, the robust factor, the huge inverse of a zero component, all in
     the tree's dtype. Out: ``out_counts`` [R, 4] int32 (box, primitive tests, nodes,
     leaves visited), ``out_limit`` [R] bool (the ray reached ``step_limit``), the lists
     ``out_hit_prims`` [R, H] (filled with -1) and ``out_hit_t`` [R, H] (inf) for ``ALL``.
     """
-    k = child.shape[1]
-    n_nodes = child.shape[0]
+    k = box.shape[1]
+    n_nodes = box.shape[0]
     n_slots = slot_prim.shape[0]
     one = consts[0]
     robust = consts[1]
@@ -136,12 +136,12 @@ def trace_rays(child, parent, axis, lo, hi, prim_start, prim_count, skip, slot_t
     zero = one - one
     inf = one / zero
     stack_node = np.zeros(capacity, np.int64)
-    stack_entry = np.zeros(capacity, lo.dtype)
+    stack_entry = np.zeros(capacity, box.dtype)
     kid_hit = np.zeros(k, np.bool_)
     candidate = np.zeros(k, np.bool_)
     first_kid = np.zeros(k, np.bool_)
-    kid_entry = np.zeros(k, lo.dtype)
-    key = np.zeros(k, lo.dtype)
+    kid_entry = np.zeros(k, box.dtype)
+    key = np.zeros(k, box.dtype)
     width = 1 if mode == ALL else leaf_width
     for i in range(first, stop):
         ox, oy, oz = origin[i, 0], origin[i, 1], origin[i, 2]
@@ -179,16 +179,16 @@ def trace_rays(child, parent, axis, lo, hi, prim_start, prim_count, skip, slot_t
         nodes_visited = 0
         leaves_visited = 0
         # the root box (traversal._ray)
-        t0 = (lo[root, 0] - ox) * ix
-        t1 = (hi[root, 0] - ox) * ix
+        t0 = (root_box[0] - ox) * ix
+        t1 = (root_box[3] - ox) * ix
         near = min(t0, t1)
         far = max(t0, t1)
-        t0 = (lo[root, 1] - oy) * iy
-        t1 = (hi[root, 1] - oy) * iy
+        t0 = (root_box[1] - oy) * iy
+        t1 = (root_box[4] - oy) * iy
         near = max(near, min(t0, t1))
         far = min(far, max(t0, t1))
-        t0 = (lo[root, 2] - oz) * iz
-        t1 = (hi[root, 2] - oz) * iz
+        t0 = (root_box[2] - oz) * iz
+        t1 = (root_box[5] - oz) * iz
         near = max(near, min(t0, t1))
         far = min(far, max(t0, t1)) * robust
         root_entry = max(near, t_min)
@@ -273,19 +273,19 @@ def trace_rays(child, parent, axis, lo, hi, prim_start, prim_count, skip, slot_t
                 entry = stack_entry[slot]
                 ref = min(max(node, 0), n_nodes - 1)
                 last = node
-                up = parent[ref]
+                up = meta[ref, 2 * k + 3]
                 sp = top
                 if entry <= found_t:  # closest: cull against the best hit; any / all: t_max
-                    if not skip[ref]:
+                    if meta[ref, 2 * k + 4] == 0:
                         nodes_visited += 1
-                    if prim_count[ref] > 0:
+                    if meta[ref, 2 * k + 1] > 0:
                         leaves_visited += 1
-                        leaf_pos = prim_start[ref]
-                        leaf_end = prim_start[ref] + prim_count[ref]
+                        leaf_pos = meta[ref, 2 * k]
+                        leaf_end = leaf_pos + meta[ref, 2 * k + 1]
                     else:
-                        box_tests += _children(child, lo, hi, skip, axis, ref, entry, t_min, found_t, ox, oy,
-                                               oz, ix, iy, iz, dx, dy, dz, robust, kid_hit, kid_entry, key)
-                        sp = _push(child, ref, kid_hit, key, kid_entry, top, capacity, stack_node, stack_entry)
+                        box_tests += _children(box, meta, ref, entry, t_min, found_t, ox, oy, oz, ix, iy, iz,
+                                               dx, dy, dz, robust, kid_hit, kid_entry, key)
+                        sp = _push(meta, ref, kid_hit, key, kid_entry, top, capacity, stack_node, stack_entry)
                         base = max(base, sp - capacity)
             else:
                 # stack_walk._climb_step: the stack spilled and ran empty
@@ -294,15 +294,15 @@ def trace_rays(child, parent, axis, lo, hi, prim_start, prim_count, skip, slot_t
                     done = True
                     continue
                 ref = min(max(up, 0), n_nodes - 1)
-                box_tests += _children(child, lo, hi, skip, axis, ref, t_min, t_min, found_t, ox, oy, oz,
-                                       ix, iy, iz, dx, dy, dz, robust, kid_hit, kid_entry, key)
+                box_tests += _children(box, meta, ref, t_min, t_min, found_t, ox, oy, oz, ix, iy, iz, dx, dy,
+                                       dz, robust, kid_hit, kid_entry, key)
                 # candidates: children after ``last`` in visiting order that the ray enters;
                 # push the first of them (all with no candidate before them, as the JAX walk)
                 for j in range(k):
                     candidate[j] = False
                     if kid_hit[j]:
                         for c in range(k):
-                            if child[ref, c] == last and _before(key, c, j):
+                            if meta[ref, c] == last and _before(key, c, j):
                                 candidate[j] = True
                 moved = True
                 for j in range(k):
@@ -316,9 +316,9 @@ def trace_rays(child, parent, axis, lo, hi, prim_start, prim_count, skip, slot_t
                     if up == root:
                         done = True
                     last = up
-                    up = parent[ref]
+                    up = meta[ref, 2 * k + 3]
                 else:
-                    sp = _push(child, ref, first_kid, key, kid_entry, sp, capacity, stack_node, stack_entry)
+                    sp = _push(meta, ref, first_kid, key, kid_entry, sp, capacity, stack_node, stack_entry)
                     base = max(base, sp - capacity)
         hit = hit_prim >= 0
         out_prim[i] = hit_prim
@@ -331,3 +331,36 @@ def trace_rays(child, parent, axis, lo, hi, prim_start, prim_count, skip, slot_t
         out_counts[i, 3] = leaves_visited
         out_limit[i] = (not done) and (sp > base or leaf_pos < leaf_end or base > 0)
         out_hit_count[i] = count
+
+
+@_jit
+def pack(child, lo, hi, prim_start, prim_count, axis, parent, skip, prim_index, triangles, box, meta,
+         slot_tri, slot_prim):
+    """Fill the packed arrays :func:`trace_rays` reads (``box``, ``meta``, ``slot_tri``,
+    ``slot_prim``) from a tree's arrays (``child`` [N, k], ``skip`` [N] int32) and
+    ``triangles`` [T, 3, 3]; indices out of range are clamped (as XLA's gathers clamp
+    them: a broken tree reads some node, the step bound ends its rays)."""
+    n, k = child.shape
+    for i in range(n):
+        for j in range(k):
+            c = child[i, j]
+            b = min(max(c, 0), n - 1)
+            for a in range(3):
+                box[i, j, a] = lo[b, a]
+                box[i, j, 3 + a] = hi[b, a]
+            meta[i, j] = c
+            meta[i, k + j] = skip[b] if c >= 0 else 0
+        meta[i, 2 * k] = prim_start[i]
+        meta[i, 2 * k + 1] = prim_count[i]
+        meta[i, 2 * k + 2] = axis[i]
+        meta[i, 2 * k + 3] = parent[i]
+        meta[i, 2 * k + 4] = skip[i]
+    n_tri = triangles.shape[0]
+    for s in range(prim_index.shape[0]):
+        p = min(max(prim_index[s], 0), n_tri - 1)
+        slot_prim[s] = prim_index[s]
+        for a in range(3):
+            v0 = triangles[p, 0, a]
+            slot_tri[s, a] = v0
+            slot_tri[s, 3 + a] = triangles[p, 1, a] - v0
+            slot_tri[s, 6 + a] = triangles[p, 2, a] - v0
