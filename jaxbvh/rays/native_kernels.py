@@ -88,9 +88,11 @@ def _before(key, i, j):
 
 
 @_inline
-def _push(meta, ref, mask, key, kid_entry, top, capacity, stack_node, stack_entry):
-    """``stack_walk._push``: write the children ``mask`` [k] at logical entries ``top``
-    up, nearest on top, into the ring; returns the new ``sp``."""
+def _push(meta, ref, mask, key, kid_entry, top_slot, capacity, stack_node, stack_entry):
+    """``stack_walk._push``: write the children ``mask`` [k] from ring slot ``top_slot``
+    (the slot of logical entry ``top``) up, nearest on top; returns how many. Ring
+    positions wrap by one subtraction (at most ``k <= capacity`` past ``top_slot``), not
+    a modulo: an integer division per push cost more than the rest of a step."""
     k = mask.shape[0]
     n_push = 0
     for j in range(k):
@@ -102,10 +104,12 @@ def _push(meta, ref, mask, key, kid_entry, top, capacity, stack_node, stack_entr
             for i in range(k):
                 if mask[i] and _before(key, i, j):
                     rank += 1
-            slot = (top + n_push - 1 - rank) % capacity
+            slot = top_slot + n_push - 1 - rank
+            if slot >= capacity:
+                slot -= capacity
             stack_node[slot] = meta[ref, j]
             stack_entry[slot] = kid_entry[j]
-    return top + n_push
+    return n_push
 
 
 @_jit
@@ -167,6 +171,7 @@ def trace_rays(box, meta, root_box, slot_tri, slot_prim, root,
         count = 0
         # stack_walk.Walk
         sp = 0
+        sp_slot = 0  # sp % capacity, kept apart (no division per step)
         base = 0
         last = root
         up = -1
@@ -194,6 +199,7 @@ def trace_rays(box, meta, root_box, slot_tri, slot_prim, root,
         root_entry = max(near, t_min)
         if root_entry <= min(far, t_max):
             sp = 1
+            sp_slot = 1 if capacity > 1 else 0
             stack_node[0] = root
             stack_entry[0] = root_entry
         while True:
@@ -268,13 +274,14 @@ def trace_rays(box, meta, root_box, slot_tri, slot_prim, root,
                 # stack_walk._node_step: pop the top entry
                 steps += 1
                 top = sp - 1
-                slot = top % capacity
+                slot = sp_slot - 1 if sp_slot > 0 else capacity - 1  # top % capacity
                 node = stack_node[slot]
                 entry = stack_entry[slot]
                 ref = min(max(node, 0), n_nodes - 1)
                 last = node
                 up = meta[ref, 2 * k + 3]
                 sp = top
+                sp_slot = slot
                 if entry <= found_t:  # closest: cull against the best hit; any / all: t_max
                     if meta[ref, 2 * k + 4] == 0:
                         nodes_visited += 1
@@ -285,7 +292,11 @@ def trace_rays(box, meta, root_box, slot_tri, slot_prim, root,
                     else:
                         box_tests += _children(box, meta, ref, entry, t_min, found_t, ox, oy, oz, ix, iy, iz,
                                                dx, dy, dz, robust, kid_hit, kid_entry, key)
-                        sp = _push(meta, ref, kid_hit, key, kid_entry, top, capacity, stack_node, stack_entry)
+                        n_push = _push(meta, ref, kid_hit, key, kid_entry, slot, capacity, stack_node, stack_entry)
+                        sp = top + n_push
+                        sp_slot = slot + n_push
+                        if sp_slot >= capacity:
+                            sp_slot -= capacity
                         base = max(base, sp - capacity)
             else:
                 # stack_walk._climb_step: the stack spilled and ran empty
@@ -318,7 +329,11 @@ def trace_rays(box, meta, root_box, slot_tri, slot_prim, root,
                     last = up
                     up = meta[ref, 2 * k + 3]
                 else:
-                    sp = _push(meta, ref, first_kid, key, kid_entry, sp, capacity, stack_node, stack_entry)
+                    n_push = _push(meta, ref, first_kid, key, kid_entry, sp_slot, capacity, stack_node, stack_entry)
+                    sp += n_push
+                    sp_slot += n_push
+                    if sp_slot >= capacity:
+                        sp_slot -= capacity
                     base = max(base, sp - capacity)
         hit = hit_prim >= 0
         out_prim[i] = hit_prim
