@@ -53,21 +53,7 @@ def _children(box, meta, ref, entry, t_min, t_far, ox, oy, oz, ix, iy, iz, dx, d
             hit = True
             e = entry
         else:
-            # slab test (traversal.slab): the far side scaled by 1 + 2 gamma(3)
-            t0 = (box[ref, j, 0] - ox) * ix
-            t1 = (box[ref, j, 3] - ox) * ix
-            near = min(t0, t1)
-            far = max(t0, t1)
-            t0 = (box[ref, j, 1] - oy) * iy
-            t1 = (box[ref, j, 4] - oy) * iy
-            near = max(near, min(t0, t1))
-            far = min(far, max(t0, t1))
-            t0 = (box[ref, j, 2] - oz) * iz
-            t1 = (box[ref, j, 5] - oz) * iz
-            near = max(near, min(t0, t1))
-            far = min(far, max(t0, t1)) * robust
-            e = max(near, t_min)
-            hit = e <= min(far, t_far)
+            hit, e = _slab(box, ref, j, t_min, t_far, ox, oy, oz, ix, iy, iz, robust)
             if real:
                 tested += 1
         kid_hit[j] = hit and real
@@ -79,6 +65,26 @@ def _children(box, meta, ref, entry, t_min, t_far, ox, oy, oz, ix, iy, iz, dx, d
         else:
             key[j] = e
     return tested
+
+
+@_inline
+def _slab(box, ref, j, t_min, t_far, ox, oy, oz, ix, iy, iz, robust):
+    """Robust slab test (``traversal.slab``) of child slot ``j``'s box in node ``ref``'s
+    row: ``(hit, entry)``, the far side scaled by 1 + 2 gamma(3)."""
+    t0 = (box[ref, j, 0] - ox) * ix
+    t1 = (box[ref, j, 3] - ox) * ix
+    near = min(t0, t1)
+    far = max(t0, t1)
+    t0 = (box[ref, j, 1] - oy) * iy
+    t1 = (box[ref, j, 4] - oy) * iy
+    near = max(near, min(t0, t1))
+    far = min(far, max(t0, t1))
+    t0 = (box[ref, j, 2] - oz) * iz
+    t1 = (box[ref, j, 5] - oz) * iz
+    near = max(near, min(t0, t1))
+    far = min(far, max(t0, t1)) * robust
+    e = max(near, t_min)
+    return e <= min(far, t_far), e
 
 
 @_inline
@@ -289,6 +295,43 @@ def trace_rays(box, meta, root_box, slot_tri, slot_prim, root,
                         leaves_visited += 1
                         leaf_pos = meta[ref, 2 * k]
                         leaf_end = leaf_pos + meta[ref, 2 * k + 1]
+                    elif k == 2 and meta[ref, 2] == 0 and meta[ref, 3] == 0:
+                        # a binary node without skip flags, written out (the common case; the
+                        # loops over k below cost about twice as much): the same tests, order, push
+                        c0 = meta[ref, 0]
+                        c1 = meta[ref, 1]
+                        h0 = False
+                        h1 = False
+                        e0 = zero
+                        e1 = zero
+                        if c0 >= 0:
+                            box_tests += 1
+                            h0, e0 = _slab(box, ref, 0, t_min, found_t, ox, oy, oz, ix, iy, iz, robust)
+                        if c1 >= 0:
+                            box_tests += 1
+                            h1, e1 = _slab(box, ref, 1, t_min, found_t, ox, oy, oz, ix, iy, iz, robust)
+                        split = meta[ref, 6]
+                        if split >= 0:  # by axis: the lower child first where the direction is >= 0
+                            zero_first = (dx if split == 0 else (dy if split == 1 else dz)) >= 0
+                        else:  # by entry; ties: the lower slot
+                            zero_first = not (e1 < e0)
+                        n_push = 0
+                        if h0 and h1:
+                            upper = slot + 1 if slot + 1 < capacity else 0
+                            stack_node[upper] = c0 if zero_first else c1  # nearest on top
+                            stack_entry[upper] = e0 if zero_first else e1
+                            stack_node[slot] = c1 if zero_first else c0
+                            stack_entry[slot] = e1 if zero_first else e0
+                            n_push = 2
+                        elif h0 or h1:
+                            stack_node[slot] = c0 if h0 else c1
+                            stack_entry[slot] = e0 if h0 else e1
+                            n_push = 1
+                        sp = top + n_push
+                        sp_slot = slot + n_push
+                        if sp_slot >= capacity:
+                            sp_slot -= capacity
+                        base = max(base, sp - capacity)
                     else:
                         box_tests += _children(box, meta, ref, entry, t_min, found_t, ox, oy, oz, ix, iy, iz,
                                                dx, dy, dz, robust, kid_hit, kid_entry, key)
