@@ -38,7 +38,7 @@ _jit = numba.njit(cache=CACHE_KERNELS, nogil=True, error_model="numpy")
 _inline = numba.njit(cache=CACHE_KERNELS, nogil=True, error_model="numpy", inline="always")
 
 
-@_jit
+@_inline
 def _children(box, meta, ref, entry, t_min, t_far, ox, oy, oz, ix, iy, iz, dx, dy, dz, robust,
               kid_hit, kid_entry, key):
     """The ``node`` hook (``traversal._expand``) and ``stack_walk._visit_key`` for node
@@ -153,6 +153,7 @@ def trace_rays(box, meta, root_box, slot_tri, slot_prim, root,
     kid_hit = np.zeros(k, np.bool_)
     candidate = np.zeros(k, np.bool_)
     first_kid = np.zeros(k, np.bool_)
+    order = np.zeros(k, np.int64)
     kid_entry = np.zeros(k, box.dtype)
     key = np.zeros(k, box.dtype)
     width = 1 if mode == ALL else leaf_width
@@ -338,7 +339,23 @@ def trace_rays(box, meta, root_box, slot_tri, slot_prim, root,
                     else:
                         box_tests += _children(box, meta, ref, entry, t_min, found_t, ox, oy, oz, ix, iy, iz,
                                                dx, dy, dz, robust, kid_hit, kid_entry, key)
-                        n_push = _push(meta, ref, kid_hit, key, kid_entry, slot, capacity, stack_node, stack_entry)
+                        # the hit children in visiting order (key, then slot: an insertion sort,
+                        # stable), nearest on top: the ranks of stack_walk._push
+                        n_push = 0
+                        for j in range(k):
+                            if kid_hit[j]:
+                                pos = n_push
+                                while pos > 0 and key[order[pos - 1]] > key[j]:
+                                    order[pos] = order[pos - 1]
+                                    pos -= 1
+                                order[pos] = j
+                                n_push += 1
+                        for rank in range(n_push):
+                            at = slot + n_push - 1 - rank
+                            if at >= capacity:
+                                at -= capacity
+                            stack_node[at] = meta[ref, order[rank]]
+                            stack_entry[at] = kid_entry[order[rank]]
                         sp = top + n_push
                         sp_slot = slot + n_push
                         if sp_slot >= capacity:
