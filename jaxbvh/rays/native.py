@@ -142,10 +142,20 @@ def _c(x, dtype):
     return a if a.flags.writeable else a.copy()
 
 
+def _aligned_rows(n: int, width: int, dtype):
+    """An uninitialised [n, width] array of ``dtype`` starting on a 64-byte boundary (a
+    binary float32 node row is 64 bytes: one cache line) and its integer view."""
+    itemsize = np.dtype(dtype).itemsize
+    raw = np.empty(n * width * itemsize + 64, np.uint8)
+    offset = -raw.ctypes.data % 64
+    rows = raw[offset:offset + n * width * itemsize].view(dtype).reshape(n, width)
+    return rows, rows.view(np.int32 if itemsize == 4 else np.int64)
+
+
 class _Arrays:
     """A tree and its triangles packed as the kernel reads them
     (:func:`~jaxbvh.rays.native_kernels.trace_rays`; :func:`~jaxbvh.rays.native_kernels.pack`
-    fills them: O(N k + P), about a ms per 100k triangles)."""
+    fills them: O(N k + P), a few ms per 100k triangles)."""
 
     def __init__(self, kernels, tree, triangles, skip, dtype):
         i32 = np.int32
@@ -156,17 +166,17 @@ class _Arrays:
             child = _c(tree.child, i32)
             axis = np.full(child.shape[0], -1, i32)  # wide nodes: distance order
         n, k = child.shape
+        self.has_skip = skip is not None and bool(np.any(skip))
         skip = np.zeros(n, i32) if skip is None else _c(skip, i32)
         prim_index = _c(tree.prim_index, i32)
         self.root = int(np.asarray(tree.root))
-        self.box = np.empty((n, k, 6), dtype)
-        self.meta = np.empty((n, 2 * k + 5), i32)
-        self.slot_tri = np.empty((prim_index.shape[0], 9), dtype)
-        self.slot_prim = np.empty(prim_index.shape[0], i32)
+        self.parent = _c(tree.parent, i32)
+        self.rows, self.irows = _aligned_rows(n, 7 * k + 2, dtype)
+        self.flags = np.empty(n, i32)
+        self.slot_rows, self.slot_irows = _aligned_rows(prim_index.shape[0], 10, dtype)
         lo, hi = _c(tree.lo, dtype), _c(tree.hi, dtype)
-        kernels.pack(child, lo, hi, _c(tree.prim_start, i32), _c(tree.prim_count, i32), axis,
-                     _c(tree.parent, i32), skip, prim_index, _c(triangles, dtype), self.box, self.meta,
-                     self.slot_tri, self.slot_prim)
+        kernels.pack(child, lo, hi, _c(tree.prim_start, i32), _c(tree.prim_count, i32), axis, skip, prim_index,
+                     _c(triangles, dtype), self.rows, self.irows, self.flags, self.slot_rows, self.slot_irows)
         self.root_box = np.concatenate([lo[self.root], hi[self.root]])
         self.consts = np.array([1, robust_factor(dtype), INV_BIG], dtype)
 
@@ -199,7 +209,7 @@ def trace(tree, triangles, origin, direction, t_min, t_max, *, dtype, mode: str,
     code = MODES.index(mode)
 
     def run(first, stop):
-        k.trace_rays(a.box, a.meta, a.root_box, a.slot_tri, a.slot_prim, a.root, o, d, lo_t, hi_t, a.consts, code, int(capacity), int(h),
+        k.trace_rays(a.rows, a.irows, a.flags, a.has_skip, a.parent, a.root_box, a.slot_rows, a.slot_irows, a.root, o, d, lo_t, hi_t, a.consts, code, int(capacity), int(h),
                      int(step_limit), int(max(1, leaf_width)), first, stop, out["t"], out["u"], out["v"],
                      out["prim"], out["counts"], out["limit"], out["hit_count"], out["hit_prims"], out["hit_t"])
 

@@ -39,24 +39,24 @@ _inline = numba.njit(cache=CACHE_KERNELS, nogil=True, error_model="numpy", inlin
 
 
 @_inline
-def _children(box, meta, ref, entry, t_min, t_far, ox, oy, oz, ix, iy, iz, dx, dy, dz, robust,
+def _children(rows, irows, flags, has_skip, ref, entry, t_min, t_far, ox, oy, oz, ix, iy, iz, dx, dy, dz, robust,
               kid_hit, kid_entry, key):
     """The ``node`` hook (``traversal._expand``) and ``stack_walk._visit_key`` for node
     ``ref``: fills ``kid_hit``, ``kid_entry``, ``key`` [k]; returns the boxes tested."""
-    k = box.shape[1]
-    split = meta[ref, 2 * k + 2]
+    k = kid_hit.shape[0]
+    split = irows[ref, 7 * k + 1]
     lower_first = False
     if split >= 0:
         lower_first = (dx if split == 0 else (dy if split == 1 else dz)) >= 0
     tested = 0
     for j in range(k):
-        real = meta[ref, j] >= 0
-        skipped = real and meta[ref, k + j] != 0
+        real = irows[ref, 6 * k + j] >= 0
+        skipped = real and has_skip and ((flags[ref] >> (1 + j)) & 1) != 0
         if skipped:
             hit = True
             e = entry
         else:
-            hit, e = _slab(box, ref, j, t_min, t_far, ox, oy, oz, ix, iy, iz, robust)
+            hit, e = _slab(rows, ref, j, t_min, t_far, ox, oy, oz, ix, iy, iz, robust)
             if real:
                 tested += 1
         kid_hit[j] = hit and real
@@ -71,19 +71,19 @@ def _children(box, meta, ref, entry, t_min, t_far, ox, oy, oz, ix, iy, iz, dx, d
 
 
 @_inline
-def _slab(box, ref, j, t_min, t_far, ox, oy, oz, ix, iy, iz, robust):
+def _slab(rows, ref, j, t_min, t_far, ox, oy, oz, ix, iy, iz, robust):
     """Robust slab test (``traversal.slab``) of child slot ``j``'s box in node ``ref``'s
     row: ``(hit, entry)``, the far side scaled by 1 + 2 gamma(3)."""
-    t0 = (box[ref, j, 0] - ox) * ix
-    t1 = (box[ref, j, 3] - ox) * ix
+    t0 = (rows[ref, 6 * j + 0] - ox) * ix
+    t1 = (rows[ref, 6 * j + 3] - ox) * ix
     near = min(t0, t1)
     far = max(t0, t1)
-    t0 = (box[ref, j, 1] - oy) * iy
-    t1 = (box[ref, j, 4] - oy) * iy
+    t0 = (rows[ref, 6 * j + 1] - oy) * iy
+    t1 = (rows[ref, 6 * j + 4] - oy) * iy
     near = max(near, min(t0, t1))
     far = min(far, max(t0, t1))
-    t0 = (box[ref, j, 2] - oz) * iz
-    t1 = (box[ref, j, 5] - oz) * iz
+    t0 = (rows[ref, 6 * j + 2] - oz) * iz
+    t1 = (rows[ref, 6 * j + 5] - oz) * iz
     near = max(near, min(t0, t1))
     far = min(far, max(t0, t1)) * robust
     e = max(near, t_min)
@@ -97,7 +97,7 @@ def _before(key, i, j):
 
 
 @_jit
-def _push(meta, ref, mask, key, kid_entry, top_slot, capacity, stack_node, stack_entry):
+def _push(irows, ref, mask, key, kid_entry, top_slot, capacity, stack_node, stack_entry):
     """``stack_walk._push``: write the children ``mask`` [k] from ring slot ``top_slot``
     (the slot of logical entry ``top``) up, nearest on top; returns how many. Ring
     positions wrap by one subtraction (at most ``k <= capacity`` past ``top_slot``), not
@@ -116,46 +116,49 @@ def _push(meta, ref, mask, key, kid_entry, top_slot, capacity, stack_node, stack
             slot = top_slot + n_push - 1 - rank
             if slot >= capacity:
                 slot -= capacity
-            stack_node[slot] = meta[ref, j]
+            stack_node[slot] = irows[ref, 6 * k + j]
             stack_entry[slot] = kid_entry[j]
     return n_push
 
 
 @_jit
-def trace_rays(box, meta, root_box, slot_tri, slot_prim, root,
+def trace_rays(rows, irows, flags, has_skip, parent, root_box, slot_rows, slot_irows, root,
                origin, direction, t_lo, t_hi, consts, mode, capacity, max_hits, step_limit, leaf_width,
                first, stop, out_t, out_u, out_v, out_prim, out_counts, out_limit, out_hit_count,
                out_hit_prims, out_hit_t):
     """Trace rays ``first .. stop - 1``; writes their results into the ``out_*`` arrays.
 
     Tree, packed as :class:`jaxbvh.rays.traversal.Packed` (a node's children's boxes in
-    its own row: a node costs two row reads): ``box`` [N, k, 6] (child ``j``'s lo, hi),
-    ``meta`` [N, 2 k + 5] int32 (children (-1: none), the children's skip flags,
-    ``prim_start``, ``prim_count``, split axis (-1: by distance; wide trees), parent, the
-    node's own skip flag), ``root_box`` [6], ``slot_tri`` [P, 9] (per ``prim_index``
-    slot: v0, v1 - v0, v2 - v0), ``slot_prim`` [P] int32 (the id).
+    its own row: a node costs one row read, 64 bytes for a binary float32 tree): ``rows``
+    [N, 7 k + 2] float and ``irows``, an integer view of the same memory; row ``n``: child
+    ``j``'s lo, hi at ``6 j``, the children at ``6 k`` (-1: none), ``prim_count`` at
+    ``7 k``, then ``prim_start`` (a leaf) or the split axis (-1: by distance; wide trees);
+    ``flags`` [N] int32 skip flags (bit 0 the node's own, bit ``1 + j`` child ``j``'s; read
+    only when ``has_skip``), ``parent`` [N] int32 (read by climbs), ``root_box`` [6];
+    ``slot_rows`` [P, 10] per ``prim_index`` slot: v0, v1 - v0, v2 - v0, and the
+    primitive id (in ``slot_irows``, the integer view).
     Rays: ``origin``, ``direction`` [R, 3], ``t_lo``, ``t_hi`` [R] (open interval).
     ``consts`` [3]: 1, the robust factor, the huge inverse of a zero component, all in
     the tree's dtype. Out: ``out_counts`` [R, 4] int32 (box, primitive tests, nodes,
     leaves visited), ``out_limit`` [R] bool (the ray reached ``step_limit``), the lists
     ``out_hit_prims`` [R, H] (filled with -1) and ``out_hit_t`` [R, H] (inf) for ``ALL``.
     """
-    k = box.shape[1]
-    n_nodes = box.shape[0]
-    n_slots = slot_prim.shape[0]
+    k = (rows.shape[1] - 2) // 7
+    n_nodes = rows.shape[0]
+    n_slots = slot_rows.shape[0]
     one = consts[0]
     robust = consts[1]
     big = consts[2]
     zero = one - one
     inf = one / zero
     stack_node = np.zeros(capacity, np.int64)
-    stack_entry = np.zeros(capacity, box.dtype)
+    stack_entry = np.zeros(capacity, rows.dtype)
     kid_hit = np.zeros(k, np.bool_)
     candidate = np.zeros(k, np.bool_)
     first_kid = np.zeros(k, np.bool_)
     order = np.zeros(k, np.int64)
-    kid_entry = np.zeros(k, box.dtype)
-    key = np.zeros(k, box.dtype)
+    kid_entry = np.zeros(k, rows.dtype)
+    key = np.zeros(k, rows.dtype)
     width = 1 if mode == ALL else leaf_width
     for i in range(first, stop):
         ox, oy, oz = origin[i, 0], origin[i, 1], origin[i, 2]
@@ -184,7 +187,6 @@ def trace_rays(box, meta, root_box, slot_tri, slot_prim, root,
         sp_slot = 0  # sp % capacity, kept apart (no division per step)
         base = 0
         last = root
-        up = -1
         leaf_pos = 0
         leaf_end = 0
         done = False
@@ -227,17 +229,17 @@ def trace_rays(box, meta, root_box, slot_tri, slot_prim, root,
                 for s in range(n_tested):
                     slot = min(max(leaf_pos + s, 0), n_slots - 1)
                     # Moller-Trumbore, traversal.moller_trumbore_edges (same operation order)
-                    e1x, e1y, e1z = slot_tri[slot, 3], slot_tri[slot, 4], slot_tri[slot, 5]
-                    e2x, e2y, e2z = slot_tri[slot, 6], slot_tri[slot, 7], slot_tri[slot, 8]
+                    e1x, e1y, e1z = slot_rows[slot, 3], slot_rows[slot, 4], slot_rows[slot, 5]
+                    e2x, e2y, e2z = slot_rows[slot, 6], slot_rows[slot, 7], slot_rows[slot, 8]
                     px = dy * e2z - dz * e2y
                     py = dz * e2x - dx * e2z
                     pz = dx * e2y - dy * e2x
                     det = e1x * px + e1y * py + e1z * pz
                     ok = det != 0
                     inv_det = one / (det if ok else one)
-                    sx = ox - slot_tri[slot, 0]
-                    sy = oy - slot_tri[slot, 1]
-                    sz = oz - slot_tri[slot, 2]
+                    sx = ox - slot_rows[slot, 0]
+                    sy = oy - slot_rows[slot, 1]
+                    sz = oz - slot_rows[slot, 2]
                     u = (sx * px + sy * py + sz * pz) * inv_det
                     qx = sy * e1z - sz * e1y
                     qy = sz * e1x - sx * e1z
@@ -248,7 +250,7 @@ def trace_rays(box, meta, root_box, slot_tri, slot_prim, root,
                         t = inf
                     if not (t > t_min and t < t_max):
                         continue
-                    prim = slot_prim[slot]
+                    prim = slot_irows[slot, 9]
                     if mode == ALL:
                         # stack_walk._record, all hits: a primitive listed already is the same hit
                         listed = False
@@ -288,33 +290,33 @@ def trace_rays(box, meta, root_box, slot_tri, slot_prim, root,
                 node = stack_node[slot]
                 entry = stack_entry[slot]
                 ref = min(max(node, 0), n_nodes - 1)
-                last = node
-                up = meta[ref, 2 * k + 3]
+                last = node  # (its parent is read when a climb starts from it)
                 sp = top
                 sp_slot = slot
                 if entry <= found_t:  # closest: cull against the best hit; any / all: t_max
-                    if meta[ref, 2 * k + 4] == 0:
+                    if not (has_skip and (flags[ref] & 1) != 0):
                         nodes_visited += 1
-                    if meta[ref, 2 * k + 1] > 0:
+                    n_prims = irows[ref, 7 * k]
+                    if n_prims > 0:
                         leaves_visited += 1
-                        leaf_pos = meta[ref, 2 * k]
-                        leaf_end = leaf_pos + meta[ref, 2 * k + 1]
-                    elif k == 2 and meta[ref, 2] == 0 and meta[ref, 3] == 0:
+                        leaf_pos = irows[ref, 7 * k + 1]
+                        leaf_end = leaf_pos + n_prims
+                    elif k == 2 and not (has_skip and (flags[ref] & 6) != 0):
                         # a binary node without skip flags, written out (the common case; the
                         # loops over k below cost about twice as much): the same tests, order, push
-                        c0 = meta[ref, 0]
-                        c1 = meta[ref, 1]
+                        c0 = irows[ref, 12]
+                        c1 = irows[ref, 13]
                         h0 = False
                         h1 = False
                         e0 = zero
                         e1 = zero
                         if c0 >= 0:
                             box_tests += 1
-                            h0, e0 = _slab(box, ref, 0, t_min, found_t, ox, oy, oz, ix, iy, iz, robust)
+                            h0, e0 = _slab(rows, ref, 0, t_min, found_t, ox, oy, oz, ix, iy, iz, robust)
                         if c1 >= 0:
                             box_tests += 1
-                            h1, e1 = _slab(box, ref, 1, t_min, found_t, ox, oy, oz, ix, iy, iz, robust)
-                        split = meta[ref, 6]
+                            h1, e1 = _slab(rows, ref, 1, t_min, found_t, ox, oy, oz, ix, iy, iz, robust)
+                        split = irows[ref, 15]
                         if split >= 0:  # by axis: the lower child first where the direction is >= 0
                             zero_first = (dx if split == 0 else (dy if split == 1 else dz)) >= 0
                         else:  # by entry; ties: the lower slot
@@ -337,8 +339,8 @@ def trace_rays(box, meta, root_box, slot_tri, slot_prim, root,
                             sp_slot -= capacity
                         base = max(base, sp - capacity)
                     else:
-                        box_tests += _children(box, meta, ref, entry, t_min, found_t, ox, oy, oz, ix, iy, iz,
-                                               dx, dy, dz, robust, kid_hit, kid_entry, key)
+                        box_tests += _children(rows, irows, flags, has_skip, ref, entry, t_min, found_t, ox, oy,
+                                               oz, ix, iy, iz, dx, dy, dz, robust, kid_hit, kid_entry, key)
                         # the hit children in visiting order (key, then slot: an insertion sort,
                         # stable), nearest on top: the ranks of stack_walk._push
                         n_push = 0
@@ -354,7 +356,7 @@ def trace_rays(box, meta, root_box, slot_tri, slot_prim, root,
                             at = slot + n_push - 1 - rank
                             if at >= capacity:
                                 at -= capacity
-                            stack_node[at] = meta[ref, order[rank]]
+                            stack_node[at] = irows[ref, 6 * k + order[rank]]
                             stack_entry[at] = kid_entry[order[rank]]
                         sp = top + n_push
                         sp_slot = slot + n_push
@@ -367,16 +369,17 @@ def trace_rays(box, meta, root_box, slot_tri, slot_prim, root,
                 if last == root:
                     done = True
                     continue
+                up = parent[min(max(last, 0), n_nodes - 1)]  # the JAX walk reads it with ``last``
                 ref = min(max(up, 0), n_nodes - 1)
-                box_tests += _children(box, meta, ref, t_min, t_min, found_t, ox, oy, oz, ix, iy, iz, dx, dy,
-                                       dz, robust, kid_hit, kid_entry, key)
+                box_tests += _children(rows, irows, flags, has_skip, ref, t_min, t_min, found_t, ox, oy, oz, ix,
+                                       iy, iz, dx, dy, dz, robust, kid_hit, kid_entry, key)
                 # candidates: children after ``last`` in visiting order that the ray enters;
                 # push the first of them (all with no candidate before them, as the JAX walk)
                 for j in range(k):
                     candidate[j] = False
                     if kid_hit[j]:
                         for c in range(k):
-                            if meta[ref, c] == last and _before(key, c, j):
+                            if irows[ref, 6 * k + c] == last and _before(key, c, j):
                                 candidate[j] = True
                 moved = True
                 for j in range(k):
@@ -390,9 +393,8 @@ def trace_rays(box, meta, root_box, slot_tri, slot_prim, root,
                     if up == root:
                         done = True
                     last = up
-                    up = meta[ref, 2 * k + 3]
                 else:
-                    n_push = _push(meta, ref, first_kid, key, kid_entry, sp_slot, capacity, stack_node, stack_entry)
+                    n_push = _push(irows, ref, first_kid, key, kid_entry, sp_slot, capacity, stack_node, stack_entry)
                     sp += n_push
                     sp_slot += n_push
                     if sp_slot >= capacity:
@@ -412,33 +414,33 @@ def trace_rays(box, meta, root_box, slot_tri, slot_prim, root,
 
 
 @_jit
-def pack(child, lo, hi, prim_start, prim_count, axis, parent, skip, prim_index, triangles, box, meta,
-         slot_tri, slot_prim):
-    """Fill the packed arrays :func:`trace_rays` reads (``box``, ``meta``, ``slot_tri``,
-    ``slot_prim``) from a tree's arrays (``child`` [N, k], ``skip`` [N] int32) and
-    ``triangles`` [T, 3, 3]; indices out of range are clamped (as XLA's gathers clamp
-    them: a broken tree reads some node, the step bound ends its rays)."""
+def pack(child, lo, hi, prim_start, prim_count, axis, skip, prim_index, triangles, rows, irows, flags, slot_rows,
+         slot_irows):
+    """Fill the packed arrays :func:`trace_rays` reads (``rows`` / ``irows``, ``flags``,
+    ``slot_rows`` / ``slot_irows``) from a tree's arrays (``child`` [N, k], ``skip`` [N]
+    int32) and ``triangles`` [T, 3, 3]; indices out of range are clamped (as XLA's
+    gathers clamp them: a broken tree reads some node, the step bound ends its rays)."""
     n, k = child.shape
     for i in range(n):
+        f = 1 if skip[i] != 0 else 0
         for j in range(k):
             c = child[i, j]
             b = min(max(c, 0), n - 1)
             for a in range(3):
-                box[i, j, a] = lo[b, a]
-                box[i, j, 3 + a] = hi[b, a]
-            meta[i, j] = c
-            meta[i, k + j] = skip[b] if c >= 0 else 0
-        meta[i, 2 * k] = prim_start[i]
-        meta[i, 2 * k + 1] = prim_count[i]
-        meta[i, 2 * k + 2] = axis[i]
-        meta[i, 2 * k + 3] = parent[i]
-        meta[i, 2 * k + 4] = skip[i]
+                rows[i, 6 * j + a] = lo[b, a]
+                rows[i, 6 * j + 3 + a] = hi[b, a]
+            irows[i, 6 * k + j] = c
+            if c >= 0 and skip[b] != 0:
+                f |= 1 << (1 + j)
+        irows[i, 7 * k] = prim_count[i]
+        irows[i, 7 * k + 1] = prim_start[i] if prim_count[i] > 0 else axis[i]
+        flags[i] = f
     n_tri = triangles.shape[0]
     for s in range(prim_index.shape[0]):
         p = min(max(prim_index[s], 0), n_tri - 1)
-        slot_prim[s] = prim_index[s]
         for a in range(3):
             v0 = triangles[p, 0, a]
-            slot_tri[s, a] = v0
-            slot_tri[s, 3 + a] = triangles[p, 1, a] - v0
-            slot_tri[s, 6 + a] = triangles[p, 2, a] - v0
+            slot_rows[s, a] = v0
+            slot_rows[s, 3 + a] = triangles[p, 1, a] - v0
+            slot_rows[s, 6 + a] = triangles[p, 2, a] - v0
+        slot_irows[s, 9] = prim_index[s]
