@@ -280,7 +280,7 @@ def native_child(args):
     origin, direction = rays.make_rays(jax.random.key(0), "random", tree, tri, args.rays)
     threads = native.THREADS
     for _ in range(2):  # alternated
-        for n in (1, threads):
+        for n in (1, max(2, len(os.sched_getaffinity(0)))):
             native.THREADS = n
             cpu, wall, _ = timed(lambda: rays.closest_hit(tree, tri, origin, direction, engine="native"), args.repeat)
             rows.append({"section": "threads", "mesh": args.meshes[0], "threads": n, "rays": len(origin),

@@ -11,8 +11,7 @@ runs on one of two engines, chosen by ``engine=``:
   loop compiled by numba (no per-step kernels over lanes: ``bench/results/ray_anatomy.md``
   measured that the array program's step costs ~270 ns per lane under XLA's CPU compiler,
   ``bench/results/bench_rays_native.md`` what the loop costs). Needs numba and concrete
-  (not traced) arrays; rays are split into :data:`THREADS` chunks run on threads (the
-  kernel releases the GIL);
+  (not traced) arrays; rays run on :data:`THREADS` threads (the kernel releases the GIL);
 * ``"auto"`` (default): :func:`choose_engine`, the one place that decides.
 
 Both engines make the same walk with the same rules (visiting order, the
@@ -51,8 +50,11 @@ from jaxbvh.tree.layout import BVH
 
 ENGINES = ("auto", "jax", "native")
 
-THREADS = max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
-"""Threads a native call splits its rays over (the CPUs this process may use)."""
+THREADS = 1
+"""Threads a native call splits its rays over (the kernel releases the GIL). One: on the
+2-core shared machine two threads gave ~25% more rays per wall second but ~20% fewer per
+CPU second (bench/results/bench_rays_native.md, "Threads"); raise it for wall time on
+an idle machine with more cores."""
 MIN_RAYS_PER_THREAD = 256
 """Fewer rays than this per thread run on one thread (a thread's start costs ~50 us)."""
 

@@ -32,13 +32,13 @@ CLOSEST, ANY, ALL = 0, 1, 2
 """``mode`` codes: one kernel for the three modes (one compile, not three)."""
 
 _jit = numba.njit(cache=CACHE_KERNELS, nogil=True, error_model="numpy")
-# numba-level inlining for the slab test of the binary fast path (measured: 25% more rays/s
-# there); the generic k-ary helpers are left to LLVM (inlining them too cost 1.5 CPU s more
-# compile for ~10% on 4-wide trees)
+# numba-level inlining for the slab test only (the binary fast path: measured 25% more
+# rays/s there); the k-ary helpers are left to LLVM: inlining _children too cost 2.5 CPU s
+# more compile (9.2 against 6.7, load 0.8) for ~15% more rays/s on 4-wide trees
 _inline = numba.njit(cache=CACHE_KERNELS, nogil=True, error_model="numpy", inline="always")
 
 
-@_inline
+@_jit
 def _children(rows, irows, flags, has_skip, ref, entry, t_min, t_far, ox, oy, oz, ix, iy, iz, dx, dy, dz, robust,
               kid_hit, kid_entry, key):
     """The ``node`` hook (``traversal._expand``) and ``stack_walk._visit_key`` for node
