@@ -44,8 +44,9 @@ from typing import Callable
 import jax
 import numpy as np
 
+from jaxbvh import compile_cache
 from jaxbvh.numerics import INV_BIG, robust_factor
-from jaxbvh.rays.stack_walk import LEAF_WIDTH, Hits
+from jaxbvh.rays.stack_walk import LEAF_WIDTH, MODES, Hits
 from jaxbvh.tree.layout import BVH
 
 ENGINES = ("auto", "jax", "native")
@@ -72,21 +73,19 @@ def is_traced(*trees) -> bool:
     return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(trees))
 
 
-def choose_engine(engine: str, *arrays, intersect: Callable | None = None) -> str:
-    """``"jax"`` or ``"native"`` for a call with ``arrays`` (any pytrees) and ``intersect``.
+def choose_engine(engine: str, *arrays, triangles: bool = True) -> str:
+    """``"jax"`` or ``"native"`` for a call with ``arrays`` (any pytrees); ``triangles``:
+    the primitives are triangles (the default ``intersect``).
 
     ``"auto"`` picks native when numba imports, JAX's default backend is the CPU, no
-    argument is traced and the primitives are triangles (``intersect`` the default);
-    else jax. ``"native"`` raises when it cannot run: ``TypeError`` for traced arguments
-    or another intersector, ``ImportError`` without numba.
+    argument is traced and the primitives are triangles; else jax. ``"native"`` raises
+    when it cannot run: ``TypeError`` for traced arguments or another intersector,
+    ``ImportError`` without numba.
     """
-    from jaxbvh.rays.traversal import intersect_triangle
-
     if engine not in ENGINES:
         raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")
     if engine == "jax":
         return "jax"
-    triangles = intersect is None or intersect is intersect_triangle
     traced = is_traced(arrays)
     if engine == "native":
         if traced:
@@ -105,8 +104,6 @@ def numba_cache_folder() -> Path | None:
     """Where numba keeps compiled kernels: ``numba/`` in jaxbvh's compilation cache
     folder while jaxbvh owns JAX's cache, else None (nothing written). A user's
     ``$NUMBA_CACHE_DIR`` is left as it is (numba then caches there)."""
-    from jaxbvh import compile_cache
-
     state = compile_cache.status()
     if state["owner"] != "jaxbvh":
         return None
@@ -131,6 +128,8 @@ def kernels():
 
                 numba.config.CACHE_DIR = str(folder)
                 CACHE_KERNELS = True
+        # the one library import inside a function (tests/test_architecture.py,
+        # DEFERS_IMPORTS): it imports numba, which `import jaxbvh` must not
         from jaxbvh.rays import native_kernels
 
         _kernels["module"] = native_kernels
@@ -194,8 +193,6 @@ def trace(tree, triangles, origin, direction, t_min, t_max, *, dtype, mode: str,
     JAX engine sees it (float32 unless x64); ``skip``: [N] bool or None. ``batch``: rays
     between ``on_batch(n)`` calls (None: one call for all).
     """
-    from jaxbvh.rays.traversal import MODES
-
     k = kernels()
     a = _Arrays(k, tree, triangles, skip, dtype)
     r = origin.shape[0]

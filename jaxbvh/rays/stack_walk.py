@@ -206,6 +206,9 @@ class Ray(NamedTuple):
     t_max: Any       # float []: open interval end
 
 
+MODES = ("closest", "any", "all")
+"""The walk's modes: closest hit, any hit (stops at the first), all hits (lists them)."""
+
 # One source of truth for the walk's throughput knobs (static: each value is a compile).
 LANES = 512
 """Rays in flight per call: lanes whose ray ended take the next ray (a wavefront), so a

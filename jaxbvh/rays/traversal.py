@@ -98,11 +98,10 @@ from jaxbvh.numerics import INV_BIG, robust_factor
 from jaxbvh.program_store import stored_jit
 from jaxbvh.rays import native
 from jaxbvh.rays.native import choose_engine
-from jaxbvh.rays.stack_walk import I32, LEAF_WIDTH, STACK, Hits, Hooks, Node, Ray, lanes_for, walk_rays
+from jaxbvh.rays.stack_walk import I32, LEAF_WIDTH, MODES, STACK, Hits, Hooks, Node, Ray, lanes_for, walk_rays
 from jaxbvh.tree.layout import BVH, depth, to_jax
 from jaxbvh.tree.validate import InvalidTreeError
 
-MODES = ("closest", "any", "all")
 BATCH = 16384
 """Rays per jitted call (the last call padded): lanes refill from the call's rays
 (:func:`~jaxbvh.rays.stack_walk.walk_rays`), so a big call keeps them busy; the padding
@@ -367,7 +366,7 @@ def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t
     """
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-    engine = choose_engine(engine, tree, prims, origin, direction, intersect=intersect)
+    engine = choose_engine(engine, tree, prims, origin, direction, triangles=intersect is intersect_triangle)
     origin, direction = check_rays(origin, direction)
     capacity = STACK if capacity is None else int(capacity)
     if capacity < arity(tree):
