@@ -78,6 +78,12 @@ tests and visits of the wide tree, ray by ray, for all-hits queries (closest and
 hit visit in another order, so their counts may differ; their hits do not). The root's
 box is always tested.
 
+Engines. :func:`trace` runs this walk as a JAX program (``engine="jax"``) or as the same
+walk compiled by numba for the CPU (``engine="native"``, :mod:`jaxbvh.rays.native`: the
+same hits and counters ray by ray, many times the rays per CPU second);
+``engine="auto"`` picks native for concrete arrays on the CPU
+(:func:`~jaxbvh.rays.native.choose_engine`).
+
 Plugging in other primitives. The traversal never looks at triangles itself: it calls
 ``intersect(prims, prim_id, origin, direction) -> (t, u, v)`` (``t = inf`` for a miss)
 with ``prims`` any pytree passed through ``jit``. A two-level tree needs more than a
