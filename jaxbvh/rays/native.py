@@ -212,7 +212,7 @@ def trace(tree, triangles, origin, direction, t_min, t_max, *, dtype, mode: str,
                      int(step_limit), int(max(1, leaf_width)), first, stop, out["t"], out["u"], out["v"],
                      out["prim"], out["counts"], out["limit"], out["hit_count"], out["hit_prims"], out["hit_t"])
 
-    step = r if batch is None else max(1, int(batch))
+    step = max(1, r if batch is None else int(batch))
     for start in range(0, r, step):
         stop = min(start + step, r)
         threads = max(1, min(THREADS, (stop - start) // MIN_RAYS_PER_THREAD))

@@ -232,3 +232,5 @@ def test_binary_and_wide_inputs_as_jax_arrays():
                          jnp.asarray(direction), engine="native")
     for name in COUNTERS + ("prim", "t"):
         assert np.array_equal(getattr(a, name), getattr(b, name))
+    none = rays.all_hits(tree, tri, origin[:0], direction[:0], max_hits=3, engine="native")
+    assert none.prim.shape == (0,) and none.hit_prims.shape == (0, 3)
