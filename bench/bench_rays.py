@@ -2,6 +2,13 @@
 
     python bench/bench_rays.py [--before /path/to/old/checkout] [--meshes bunny legocar drone bunny4]
                                [--rays 20000] [--kinds random camera bounce]
+    python bench/bench_rays.py --native   # the native engine beside the JAX walk and Embree
+
+``--native`` measures, in one process, the native engine (:mod:`jaxbvh.rays.native`), the
+JAX walk and Embree on the same trees and rays (rays per CPU s; hits and counters of the
+two engines compared), the chains (CPU and wall s, steps per CPU s), one thread against
+all, and the first call of a fresh process with empty and warm caches; it writes
+``bench/results/bench_rays_native.json`` and ``.md``. Without it:
 
 Every measurement runs in a child process per implementation (``--before``: a checkout
 whose ``jaxbvh`` is imported instead of this one, e.g. the main branch before the change;
@@ -218,6 +225,203 @@ def child(args):
     json.dump({"rows": rows, "uptime": os.getloadavg()}, sys.stdout)
 
 
+def native_child(args):
+    """The native engine beside the JAX walk and Embree on the same trees and rays, in one
+    process; prints one JSON document (``--native``)."""
+    import jax
+
+    import jaxbvh
+    from jaxbvh import rays
+    from jaxbvh.rays import native
+    from jaxbvh.rays import traversal_reference as ref
+    from jaxbvh.rays.stack_walk import STACK
+    from jaxbvh.wide import collapse
+
+    rows = []
+
+    def both(tree, tri, o, d, jax_rays=None):
+        """Warm CPU and wall seconds of each engine (JAX on the first ``jax_rays`` rays)."""
+        n_jax = len(o) if jax_rays is None else min(jax_rays, len(o))
+        rays.closest_hit(tree, tri, o[:256], d[:256], engine="native")
+        rays.closest_hit(tree, tri, o[:n_jax], d[:n_jax], engine="jax")  # the same batch shape: compiled
+        nat_cpu, nat_wall, nat = timed(lambda: rays.closest_hit(tree, tri, o, d, engine="native"), args.repeat)
+        jax_cpu, jax_wall, jx = timed(lambda: rays.closest_hit(tree, tri, o[:n_jax], d[:n_jax], engine="jax"), 1)
+        names = ("prim", "box_tests", "prim_tests", "nodes_visited", "leaves_visited")
+        differ = np.flatnonzero(np.any([getattr(nat, name)[:n_jax] != getattr(jx, name) for name in names], axis=0))
+        # XLA contracts multiply-adds (numba does not): a hit distance an ulp apart can cull
+        # a box differently; the NumPy twin (no contraction) decides who follows the rules
+        checked = differ[:50]
+        twin = ref.trace(tree, tri, o[checked], d[checked], capacity=STACK) if checked.size else []
+        same = {"rays_differing_from_jax": int(differ.size), "twin_checked": int(checked.size),
+                "equal_to_twin": bool(all(r[name] == getattr(nat, name)[i] for i, r in zip(checked, twin)
+                                          for name in names))}
+        return {"rays": int(len(o)), "native_cpu": nat_cpu, "native_wall": nat_wall,
+                "native_rays_per_cpu_s": len(o) / nat_cpu, "jax_rays": int(n_jax), "jax_cpu": jax_cpu,
+                "jax_wall": jax_wall, "jax_rays_per_cpu_s": n_jax / jax_cpu,
+                "native_over_jax": (len(o) / nat_cpu) / (n_jax / jax_cpu), "equal_to_jax": same,
+                "steps": float(np.mean(nat.nodes_visited + nat.prim_tests)),
+                "box_tests": float(np.mean(nat.box_tests))}, nat
+
+    for name in args.meshes:
+        tri = load_triangles(name)
+        if name == "bunny4":
+            ref_tree, _ = jaxbvh.load(args.big_tree)
+            trees = {"binary (jaxbvh.build binned)": ref_tree}
+        else:
+            ref_tree, _ = jaxbvh.load(DATA / "trees" / f"{name}_binned_ref.npz")
+            trees = {"binary (tinybvh)": ref_tree,
+                     "4-wide (collapse of tinybvh)": collapse.optimal(ref_tree, max_children=4).tree}
+        for kind in args.kinds:
+            origin, direction = rays.make_rays(jax.random.key(0), kind, ref_tree, tri, args.rays)
+            embree = embree_run(tri, origin, direction, args.repeat)
+            for label, tree in trees.items():
+                row, hits = both(tree, tri, origin, direction)
+                row.update(section="mesh", mesh=name, triangles=int(tri.shape[0]), kind=kind, tree=label)
+                if embree is not None:
+                    row["embree_rays_per_cpu_s"] = len(origin) / embree["cpu"]
+                    row["same_prim_as_embree"] = float(np.mean(hits.prim == embree["prim"]))
+                rows.append(row)
+                print(f"{name} {kind} {label}: native {row['native_rays_per_cpu_s']:,.0f}, jax "
+                      f"{row['jax_rays_per_cpu_s']:,.0f} rays/cpu-s", file=sys.stderr, flush=True)
+    # threads: rays per CPU s of one thread against THREADS (the kernel releases the GIL)
+    tri = load_triangles(args.meshes[0])
+    tree, _ = jaxbvh.load(DATA / "trees" / f"{args.meshes[0]}_binned_ref.npz")
+    origin, direction = rays.make_rays(jax.random.key(0), "random", tree, tri, args.rays)
+    threads = native.THREADS
+    for _ in range(2):  # alternated
+        for n in (1, max(2, len(os.sched_getaffinity(0)))):
+            native.THREADS = n
+            cpu, wall, _ = timed(lambda: rays.closest_hit(tree, tri, origin, direction, engine="native"), args.repeat)
+            rows.append({"section": "threads", "mesh": args.meshes[0], "threads": n, "rays": len(origin),
+                         "cpu": cpu, "wall": wall, "rays_per_cpu_s": len(origin) / cpu,
+                         "rays_per_wall_s": len(origin) / wall})
+    native.THREADS = threads
+    bunny = load_triangles("bunny")
+    rng = np.random.default_rng(0)
+    for n in args.chains:
+        tri = bunny[np.sort(rng.choice(len(bunny), n, replace=False))]
+        tree = chain_tree(tri)
+        origin, direction = rays.make_rays(jax.random.key(1), "random", tree, tri, args.chain_rays)
+        # the JAX walk runs ~500 rays per CPU s through the deep chains: a fifth of the rays
+        row, hits = both(tree, tri, origin, direction, jax_rays=args.chain_rays if n <= 500 else args.chain_rays // 5)
+        row.update(section="depth", mesh=f"chain of {n}", triangles=n, kind="random",
+                   tree=f"binary chain, depth {n - 1}",
+                   native_steps_per_cpu_s=len(origin) * row["steps"] / row["native_cpu"],
+                   jax_steps_per_cpu_s=row["jax_rays"] * row["steps"] / row["jax_cpu"])
+        rows.append(row)
+        print(f"chain {n}: native {row['native_cpu']:.2f} CPU s, {row['native_wall']:.2f} wall s", file=sys.stderr,
+              flush=True)
+    json.dump({"rows": rows, "uptime": os.getloadavg()}, sys.stdout)
+
+
+FIRST_CALL = """
+import resource, time, sys
+def cpu():
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+c, w = cpu(), time.perf_counter()
+import jax, jaxbvh
+from jaxbvh import rays
+from jaxbvh.io import bundled_mesh_path, load_mesh
+mesh = load_mesh(bundled_mesh_path())
+tri = mesh.local_triangles()
+tree = jaxbvh.build(*mesh.local_boxes())
+o, d = rays.make_rays(jax.random.key(0), "random", tree, tri, 1000)
+ready = cpu()
+rays.closest_hit(tree, tri, o, d, engine=sys.argv[1])
+print(cpu() - ready, cpu() - c)
+"""
+
+
+def first_calls():
+    """CPU s of a process's first closest-hit call (spot, 1,000 rays) per engine, with empty
+    caches (cold) and in a second process (warm: the kernels loaded from jaxbvh's cache)."""
+    out = []
+    with tempfile.TemporaryDirectory() as tmp:
+        env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "NUMBA_CACHE_DIR", "JAXBVH_CACHE")}
+        env["JAXBVH_CACHE_DIR"] = tmp
+        env["PYTHONPATH"] = str(REPO)
+        for engine in ("native", "jax"):
+            for state in ("cold", "warm"):
+                done = subprocess.run([sys.executable, "-c", FIRST_CALL, engine], env=env, check=True,
+                                      stdout=subprocess.PIPE, text=True)
+                call, process = map(float, done.stdout.split())
+                out.append({"engine": engine, "cache": state, "first_call_cpu": call, "process_cpu": process,
+                            "load": os.getloadavg()[0]})
+                print(out[-1], file=sys.stderr, flush=True)
+            # the next engine starts cold too: its programs are not in the folder yet
+    return out
+
+
+def native_main(args, extra):
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env.pop("XLA_FLAGS", None)
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--native", "--rays", str(args.rays),
+           "--repeat", str(args.repeat), "--chain-rays", str(args.chain_rays), "--meshes", *args.meshes,
+           "--kinds", *args.kinds, "--chains", *map(str, args.chains), *extra]
+    result = json.loads(subprocess.run(cmd, env=env, check=True, stdout=subprocess.PIPE, text=True).stdout)
+    result["first_calls"] = first_calls()
+    meta = {"machine": platform.platform(), "cpus": os.cpu_count(), "rays": args.rays, "repeat": args.repeat,
+            "chain_rays": args.chain_rays}
+    write_native(Path(args.out), meta, result)
+
+
+def equal(row):
+    """The ``equal`` cell: rays whose hits or counters differ from JAX's, and the twin's verdict."""
+    e = row["equal_to_jax"]
+    if not e["rays_differing_from_jax"]:
+        return "yes"
+    return f"all but {e['rays_differing_from_jax']} (= twin: {'yes' if e['equal_to_twin'] else 'NO'})"
+
+
+def write_native(out, meta, result):
+    from jaxbvh.files import atomic_write
+
+    rows = result["rows"]
+    lines = ["# Ray traversal: the native engine beside the JAX walk and Embree (closest hit)\n",
+             f"{meta['machine']}, {meta['cpus']} CPUs, shared (load average at the end {result['uptime']}). "
+             f"{meta['rays']:,} rays per set; rays per CPU-second of the process, warm (native: median of "
+             f"{meta['repeat']} runs; JAX: one run after a warm-up; Embree: embreex `run`, its own BVH, median of "
+             f"{meta['repeat']}), all in one process on the same trees and rays. `equal`: native and JAX give the "
+             "same prim, box tests, primitive tests, nodes and leaves visited on every ray but the number "
+             "given, and on those (up to 50 checked) native equals the NumPy twin (XLA contracts multiply-adds "
+             "in Möller–Trumbore, numba and NumPy do not, so a hit distance an ulp apart can cull a box "
+             "differently).\n",
+             "| mesh | rays | tree | JAX rays/s | native rays/s | native / JAX | Embree rays/s | Embree / native | "
+             "same prim as Embree | equal | steps/ray |",
+             "|---|---|---|---:|---:|---:|---:|---:|---:|---|---:|"]
+    for r in (r for r in rows if r["section"] == "mesh"):
+        emb = r.get("embree_rays_per_cpu_s", float("nan"))
+        lines.append(f"| {r['mesh']} ({r['triangles']:,}) | {r['kind']} | {r['tree']} | {r['jax_rays_per_cpu_s']:,.0f} | "
+                     f"{r['native_rays_per_cpu_s']:,.0f} | {r['native_over_jax']:.1f}x | {emb:,.0f} | "
+                     f"{emb / r['native_rays_per_cpu_s']:.1f}x | {r.get('same_prim_as_embree', float('nan')):.4f} | "
+                     f"{equal(r)} | {r['steps']:.1f} |")
+    lines += ["\n## Depth: chains (one triangle peeled per level), random rays, warm\n",
+              "| chain | depth | rays (native) | native CPU s | native wall s | native steps/CPU s | "
+              "rays (JAX) | JAX CPU s | JAX steps/CPU s | native / JAX | equal | steps/ray |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
+    for r in (r for r in rows if r["section"] == "depth"):
+        lines.append(f"| {r['mesh']} | {r['triangles'] - 1} | {r['rays']:,} | {r['native_cpu']:.2f} | "
+                     f"{r['native_wall']:.2f} | {r['native_steps_per_cpu_s']:,.0f} | {r['jax_rays']:,} | "
+                     f"{r['jax_cpu']:.2f} | {r['jax_steps_per_cpu_s']:,.0f} | {r['native_over_jax']:.1f}x | "
+                     f"{equal(r)} | {r['steps']:.0f} |")
+    lines += ["\n## Threads (native, first mesh's binary tree, random rays; alternated)\n",
+              "| threads | rays/CPU s | rays/wall s |", "|---:|---:|---:|"]
+    for r in (r for r in rows if r["section"] == "threads"):
+        lines.append(f"| {r['threads']} | {r['rays_per_cpu_s']:,.0f} | {r['rays_per_wall_s']:,.0f} |")
+    lines += ["\n## First call (spot, 1,000 random rays, a fresh process; jaxbvh's cache in an empty folder)\n",
+              "| engine | cache | first call CPU s | process CPU s (imports, mesh, build, call) | load |",
+              "|---|---|---:|---:|---:|"]
+    for r in result["first_calls"]:
+        lines.append(f"| {r['engine']} | {r['cache']} | {r['first_call_cpu']:.2f} | {r['process_cpu']:.2f} | "
+                     f"{r['load']:.1f} |")
+    with atomic_write(out.with_suffix(".json"), "w") as f:
+        json.dump({"meta": meta, **result}, f, indent=1)
+    with atomic_write(out.with_suffix(".md"), "w") as f:
+        f.write("\n".join(lines) + "\n")
+    print(f"wrote {out.with_suffix('.json')} and {out.with_suffix('.md')}")
+
+
 def run_child(path, args, extra):
     env = dict(os.environ, PYTHONPATH=str(path))
     env.pop("XLA_FLAGS", None)
@@ -250,9 +454,11 @@ def main(argv=None):
     parser.add_argument("--few-deep", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--old-walk", action="store_true", help="--before is the walk before the wavefront")
     parser.add_argument("--big-tree", help=argparse.SUPPRESS)
+    parser.add_argument("--native", action="store_true",
+                        help="the native engine beside the JAX walk and Embree (bench/results/bench_rays_native)")
     args = parser.parse_args(argv)
     if args.child:
-        return child(args)
+        return native_child(args) if args.native else child(args)
     if not DATA.exists():
         raise SystemExit(f"shared data not found at {DATA}")
 
@@ -265,6 +471,10 @@ def main(argv=None):
             tri = load_triangles("bunny4")
             jaxbvh.save(big, jaxbvh.build(tri.min(axis=1), tri.max(axis=1), method="binned"))
             extra = ["--big-tree", str(big)]
+        if args.native:
+            out = args.out if args.out != str(ROOT / "results" / "bench_rays") else str(ROOT / "results" / "bench_rays_native")
+            args.out = out
+            return native_main(args, extra)
         results = {}
         if args.before:
             # --old-walk: the stack-per-ray walk before the wavefront (its best batch, and

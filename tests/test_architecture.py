@@ -93,7 +93,7 @@ def test_no_import_cycles(graph):
 
 #: modules whose purpose is to put off importing the library (and JAX) until it is needed:
 #: the console script's front answers --help without JAX (jaxbvh.cli.front)
-DEFERS_IMPORTS = {"jaxbvh.cli.front"}
+DEFERS_IMPORTS = {"jaxbvh.cli.front", "jaxbvh.rays.native"}  # and the native ray engine: numba on first use
 
 
 def test_no_library_import_inside_a_function():

@@ -2,7 +2,8 @@
 
 ``generation``: random, camera and bounce rays; ``traversal``: closest, any and all hits
 through a BVH (twin: ``traversal_reference``); ``stack_walk``: the bounded traversal loop
-that ``traversal`` and :mod:`jaxbvh.twolevel.traversal` share; ``measure``: traversal
+that ``traversal`` and :mod:`jaxbvh.twolevel.traversal` share; ``native``: the same walk
+compiled by numba for the CPU (``engine=`` of the traversal functions); ``measure``: traversal
 steps as an empirical cost beside the SAH.
 """
 

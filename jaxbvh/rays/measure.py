@@ -102,7 +102,8 @@ def empirical_cost(hits: Hits, *, ct: float = 1.0, ci: float = 1.0, z: float = 1
 
 def measure(tree, triangles, origin, direction, *, mode: str = "closest", ct: float = 1.0,
             ci: float = 1.0, z: float = 1.96, **trace_kwargs) -> tuple[Hits, dict]:
-    """Trace the rays and summarise: ``(hits, summary)``.
+    """Trace the rays and summarise: ``(hits, summary)``. ``trace_kwargs`` go to
+    :func:`~jaxbvh.rays.traversal.trace` (``engine=``: both engines count alike).
 
     ``summary``: the :func:`empirical_cost` entries flattened to ``<name>`` (mean) and
     ``<name>_ci`` (half-width), plus ``rays``, ``hit_fraction``, ``seconds`` (traversal

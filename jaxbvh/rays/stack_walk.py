@@ -206,6 +206,9 @@ class Ray(NamedTuple):
     t_max: Any       # float []: open interval end
 
 
+MODES = ("closest", "any", "all")
+"""The walk's modes: closest hit, any hit (stops at the first), all hits (lists them)."""
+
 # One source of truth for the walk's throughput knobs (static: each value is a compile).
 LANES = 512
 """Rays in flight per call: lanes whose ray ended take the next ray (a wavefront), so a
@@ -404,7 +407,9 @@ def _primitive_step(hooks, s: Walk, in_leaf, t_min, t_max, *, mode, max_hits, wi
     counts = s.counts._replace(prim_tests=s.counts.prim_tests + n_tested)
     return s._replace(found=found, counts=counts, leaf_pos=s.leaf_pos + n_tested,
                       steps=s.steps + n_tested,
-                      done=found.prim >= 0 if mode == "any" else s.done)
+                      # or, not instead of: a climb may have ended the ray in this step (the
+                      # masked primitive step must not revive it; it would climb to the bound)
+                      done=s.done | (found.prim >= 0) if mode == "any" else s.done)
 
 
 def _record(f: Found, valid, t, u, v, prim, *, mode, max_hits) -> Found:

@@ -78,6 +78,12 @@ tests and visits of the wide tree, ray by ray, for all-hits queries (closest and
 hit visit in another order, so their counts may differ; their hits do not). The root's
 box is always tested.
 
+Engines. :func:`trace` runs this walk as a JAX program (``engine="jax"``) or as the same
+walk compiled by numba for the CPU (``engine="native"``, :mod:`jaxbvh.rays.native`: the
+same hits and counters ray by ray, many times the rays per CPU second);
+``engine="auto"`` picks native for concrete arrays on the CPU
+(:func:`~jaxbvh.rays.native.choose_engine`).
+
 Plugging in other primitives. The traversal never looks at triangles itself: it calls
 ``intersect(prims, prim_id, origin, direction) -> (t, u, v)`` (``t = inf`` for a miss)
 with ``prims`` any pytree passed through ``jit``. A two-level tree needs more than a
@@ -96,11 +102,12 @@ import numpy as np
 
 from jaxbvh.numerics import INV_BIG, robust_factor
 from jaxbvh.program_store import stored_jit
-from jaxbvh.rays.stack_walk import I32, LEAF_WIDTH, STACK, Hits, Hooks, Node, Ray, lanes_for, walk_rays
+from jaxbvh.rays import native
+from jaxbvh.rays.native import choose_engine
+from jaxbvh.rays.stack_walk import I32, LEAF_WIDTH, MODES, STACK, Hits, Hooks, Node, Ray, lanes_for, walk_rays
 from jaxbvh.tree.layout import BVH, depth, to_jax
 from jaxbvh.tree.validate import InvalidTreeError
 
-MODES = ("closest", "any", "all")
 BATCH = 16384
 """Rays per jitted call (the last call padded): lanes refill from the call's rays
 (:func:`~jaxbvh.rays.stack_walk.walk_rays`), so a big call keeps them busy; the padding
@@ -342,7 +349,8 @@ def trace_batch(tree, prims, origin, direction, t_min, t_max, skip=None, *,
 def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t_max=np.inf,
           intersect: Callable = intersect_triangle, capacity: int | None = None,
           max_hits: int = 16, batch: int = BATCH, allow_overflow: bool = False, skip=None,
-          lanes: int | None = None, leaf_width: int = LEAF_WIDTH, on_batch: Callable[[int], None] | None = None) -> Hits:
+          lanes: int | None = None, leaf_width: int = LEAF_WIDTH, on_batch: Callable[[int], None] | None = None,
+          engine: str = "auto") -> Hits:
     """Trace any number of rays in batches of ``batch``; returns :class:`Hits` (NumPy).
 
     ``tree``: :class:`~jaxbvh.tree.layout.BVH` or :class:`~jaxbvh.tree.layout.WideBVH`;
@@ -358,27 +366,39 @@ def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t
     ``on_batch(n)`` (optional) is called after each batch with its number of rays (a
     progress bar). Raises ``RuntimeError`` on stack overflow unless ``allow_overflow``, and
     :class:`~jaxbvh.tree.validate.InvalidTreeError` when a ray reaches the step bound.
+    ``engine``: ``"auto"``, ``"jax"`` or ``"native"`` (:mod:`jaxbvh.rays.native`: the same
+    walk, hits and counters compiled by numba for the CPU; ``"auto"`` picks it where it can
+    run, :func:`~jaxbvh.rays.native.choose_engine`).
     """
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    engine = choose_engine(engine, tree, prims, origin, direction, triangles=intersect is intersect_triangle)
     origin, direction = check_rays(origin, direction)
     capacity = STACK if capacity is None else int(capacity)
     if capacity < arity(tree):
         raise ValueError(f"capacity {capacity} is below the tree's {arity(tree)} children per node")
-    jtree = to_jax(tree)
-    dtype = np.dtype(jtree.lo.dtype)
-    skip = _check_skip(skip, jtree.prim_count.shape[0])
-    jprims = jax.tree_util.tree_map(jnp.asarray, prims)
+    if engine == "native":
+        dtype = np.dtype(jax.dtypes.canonicalize_dtype(np.asarray(tree.lo).dtype))
+        hits = native.trace(tree, prims, origin, direction, t_min, t_max, dtype=dtype, mode=mode,
+                            capacity=capacity, max_hits=max_hits, step_limit=max_steps(tree),
+                            skip=None if skip is None else np.asarray(_check_skip(skip, tree.prim_count.shape[0])),
+                            leaf_width=leaf_width, batch=batch if on_batch is not None else None,
+                            on_batch=on_batch)
+    else:
+        jtree = to_jax(tree)
+        dtype = np.dtype(jtree.lo.dtype)
+        skip = _check_skip(skip, jtree.prim_count.shape[0])
+        jprims = jax.tree_util.tree_map(jnp.asarray, prims)
 
-    def run(o, d, lo_t, hi_t):
-        return trace_batch(jtree, jprims, o, d, lo_t, hi_t, skip, intersect=intersect, mode=mode,
-                           capacity=capacity, max_hits=max_hits, lanes=lanes, leaf_width=leaf_width)
+        def run(o, d, lo_t, hi_t):
+            return trace_batch(jtree, jprims, o, d, lo_t, hi_t, skip, intersect=intersect, mode=mode,
+                               capacity=capacity, max_hits=max_hits, lanes=lanes, leaf_width=leaf_width)
 
-    hits = in_batches(run, origin, direction, t_min, t_max, batch=batch, dtype=dtype, on_batch=on_batch)
+        hits = in_batches(run, origin, direction, t_min, t_max, batch=batch, dtype=dtype, on_batch=on_batch)
     if hits.step_limit.any():
         bad = np.flatnonzero(hits.step_limit)
         raise InvalidTreeError([f"traversal of {bad.size} ray(s) (first: {bad[:5].tolist()}) did not end "
-                                f"within {max_steps(jtree)} steps: the tree has a cycle or a shared node"])
+                                f"within {max_steps(tree)} steps: the tree has a cycle or a shared node"])
     if not allow_overflow and hits.stack_overflow.any():
         bad = np.flatnonzero(hits.stack_overflow)
         raise RuntimeError(f"traversal stack of {capacity} entries overflowed on {bad.size} "

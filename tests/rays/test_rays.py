@@ -136,8 +136,10 @@ def widen(tree, k):
 
 
 def run(kind, tree, tri, origin, direction, **kwargs):
-    """``rays.<kind>`` with the shared shapes (see NODES)."""
+    """``rays.<kind>`` with the shared shapes (see NODES), on the JAX walk (this module's
+    subject; the native engine is held equal to it in test_native.py)."""
     kwargs.setdefault("capacity", CAP)
+    kwargs.setdefault("engine", "jax")
     return getattr(rays, kind)(fixed(tree), padded(tri), origin, direction, batch=BATCH, **kwargs)
 
 
@@ -157,9 +159,10 @@ def mixed_rays(rng, triangles, n):
 
 def assert_same_as_reference(tree, triangles, origin, direction, mode, **kwargs):
     kwargs.setdefault("capacity", CAP)
+    kwargs.setdefault("engine", "jax")
     hits = traverse.trace(fixed(tree), padded(triangles), origin, direction, mode=mode,
                           batch=BATCH, **kwargs)
-    for walk_only in ("allow_overflow", "lanes", "leaf_width"):
+    for walk_only in ("allow_overflow", "lanes", "leaf_width", "engine"):
         kwargs.pop(walk_only, None)
     twin = ref.trace(tree, triangles, origin, direction, mode=mode, **kwargs)
     for name in COUNTERS + ("prim", "stack_overflow"):

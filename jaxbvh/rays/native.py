@@ -1,0 +1,239 @@
+"""The native CPU engine of the ray queries: the same walk as a compiled scalar loop (numba).
+
+:func:`jaxbvh.rays.trace` (and ``closest_hit``, ``any_hit``, ``all_hits``, ``measure``)
+runs on one of two engines, chosen by ``engine=``:
+
+* ``"jax"``: the array program of :mod:`jaxbvh.rays.stack_walk` (lanes of rays, one
+  ``while_loop``), always available; the engine for a GPU and the one whose functions
+  live inside JAX programs (:func:`jaxbvh.queries.raycast` for ``jit`` / ``vmap`` /
+  ``grad``);
+* ``"native"``: :mod:`jaxbvh.rays.native_kernels`, the same walk one ray at a time in a
+  loop compiled by numba (no per-step kernels over lanes: ``bench/results/ray_anatomy.md``
+  measured that the array program's step costs ~270 ns per lane under XLA's CPU compiler,
+  ``bench/results/bench_rays_native.md`` what the loop costs). Needs numba and concrete
+  (not traced) arrays; rays run on :data:`THREADS` threads (the kernel releases the GIL);
+* ``"auto"`` (default): :func:`choose_engine`, the one place that decides.
+
+Both engines make the same walk with the same rules (visiting order, the
+``entry <= t_best`` cull, the robust slab test, Möller–Trumbore in the tree's dtype, ties
+to the lower id, any-hit stop, all-hits lists, the short ring stack of ``capacity``
+entries with its parent-link climb, the step bound ``3 N + P + 1``), so every counter and
+every hit is the same ray by ray (``tests/rays/test_native.py``), with one exception:
+XLA on the CPU contracts multiply-adds in Möller–Trumbore and numba does not, so a hit
+distance may differ in its last bit, and a box entered exactly there is culled by one
+engine and not the other (1-130 of 20,000 rays on the bench meshes, counters only; on
+those the native engine equals the NumPy twin :mod:`jaxbvh.rays.traversal_reference`,
+which it matches bit for bit everywhere).
+triangles are read in the tree's dtype (the JAX walk promotes a float32 tree's rays to
+float64 triangles under x64); ``lanes`` and ``batch`` change nothing here but the
+progress callback's steps.
+
+First-call cost. numba compiles :func:`~jaxbvh.rays.native_kernels.trace_rays` once per
+float dtype (a few CPU seconds). numba is imported on the first native trace, never by
+``import jaxbvh``; compiled kernels are kept on disk in ``numba/`` beside the programs of
+jaxbvh's compilation cache (:mod:`jaxbvh.compile_cache`) while that cache is jaxbvh's
+(``$NUMBA_CACHE_DIR``, if you set it, wins); with jaxbvh's cache off, or a JAX cache of
+your own, nothing is written and each process compiles again.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Callable
+
+import jax
+import numpy as np
+
+from jaxbvh import compile_cache
+from jaxbvh.numerics import INV_BIG, robust_factor
+from jaxbvh.rays.stack_walk import LEAF_WIDTH, MODES, Hits
+from jaxbvh.tree.layout import BVH
+
+ENGINES = ("auto", "jax", "native")
+
+THREADS = 1
+"""Threads a native call splits its rays over (the kernel releases the GIL). One: on the
+2-core shared machine two threads gave ~25% more rays per wall second but ~20% fewer per
+CPU second (bench/results/bench_rays_native.md, "Threads"); raise it for wall time on
+an idle machine with more cores."""
+MIN_RAYS_PER_THREAD = 256
+"""Fewer rays than this per thread run on one thread (a thread's start costs ~50 us)."""
+
+CACHE_KERNELS = False
+"""Whether numba keeps the compiled kernels on disk (set by :func:`kernels` before the import)."""
+
+
+def native_available() -> bool:
+    """numba can be imported (checked without importing it)."""
+    return importlib.util.find_spec("numba") is not None
+
+
+def is_traced(*trees) -> bool:
+    """Some leaf of ``trees`` is a JAX tracer (the call is inside ``jit`` / ``vmap`` / ``grad``)."""
+    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(trees))
+
+
+def choose_engine(engine: str, *arrays, triangles: bool = True) -> str:
+    """``"jax"`` or ``"native"`` for a call with ``arrays`` (any pytrees); ``triangles``:
+    the primitives are triangles (the default ``intersect``).
+
+    ``"auto"`` picks native when numba imports, JAX's default backend is the CPU, no
+    argument is traced and the primitives are triangles; else jax. ``"native"`` raises
+    when it cannot run: ``TypeError`` for traced arguments or another intersector,
+    ``ImportError`` without numba.
+    """
+    if engine not in ENGINES:
+        raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")
+    if engine == "jax":
+        return "jax"
+    traced = is_traced(arrays)
+    if engine == "native":
+        if traced:
+            raise TypeError("engine='native' traces concrete arrays on the host and cannot run inside "
+                            "jax.jit / vmap / grad; use engine='jax' there (or jaxbvh.queries.raycast)")
+        if not triangles:
+            raise TypeError("engine='native' tests triangles only; use engine='jax' for another intersect")
+        if not native_available():
+            raise ImportError("engine='native' needs numba (pip install numba); engine='jax' runs without it")
+        return "native"
+    native = triangles and not traced and jax.default_backend() == "cpu" and native_available()
+    return "native" if native else "jax"
+
+
+def numba_cache_folder() -> Path | None:
+    """Where numba keeps compiled kernels: ``numba/`` in jaxbvh's compilation cache
+    folder while jaxbvh owns JAX's cache, else None (nothing written). A user's
+    ``$NUMBA_CACHE_DIR`` is left as it is (numba then caches there)."""
+    state = compile_cache.status()
+    if state["owner"] != "jaxbvh":
+        return None
+    return Path(state["folder"]) / "numba"
+
+
+_kernels = {}
+
+
+def kernels():
+    """:mod:`jaxbvh.rays.native_kernels`, imported (with numba) on first use, its disk
+    cache set up first (module docstring)."""
+    if "module" not in _kernels:
+        global CACHE_KERNELS
+        if os.environ.get("NUMBA_CACHE_DIR"):
+            CACHE_KERNELS = True
+        else:
+            folder = numba_cache_folder()
+            if folder is not None:
+                os.environ["NUMBA_CACHE_DIR"] = str(folder)
+                import numba  # noqa: E402: numba reads NUMBA_CACHE_DIR at import, or here if imported already
+
+                numba.config.CACHE_DIR = str(folder)
+                CACHE_KERNELS = True
+        # the one library import inside a function (tests/test_architecture.py,
+        # DEFERS_IMPORTS): it imports numba, which `import jaxbvh` must not
+        from jaxbvh.rays import native_kernels
+
+        _kernels["module"] = native_kernels
+    return _kernels["module"]
+
+
+def _c(x, dtype):
+    """``x`` as a C-contiguous, writable array of ``dtype``: numba types read-only arrays
+    (NumPy views of JAX arrays) apart, and each type would be one more compile."""
+    a = np.ascontiguousarray(x, dtype)
+    return a if a.flags.writeable else a.copy()
+
+
+def _aligned_rows(n: int, width: int, dtype):
+    """An uninitialised [n, width] array of ``dtype`` starting on a 64-byte boundary (a
+    binary float32 node row is 64 bytes: one cache line) and its integer view."""
+    itemsize = np.dtype(dtype).itemsize
+    raw = np.empty(n * width * itemsize + 64, np.uint8)
+    offset = -raw.ctypes.data % 64
+    rows = raw[offset:offset + n * width * itemsize].view(dtype).reshape(n, width)
+    return rows, rows.view(np.int32 if itemsize == 4 else np.int64)
+
+
+class _Arrays:
+    """A tree and its triangles packed as the kernel reads them
+    (:func:`~jaxbvh.rays.native_kernels.trace_rays`; :func:`~jaxbvh.rays.native_kernels.pack`
+    fills them: O(N k + P), a few ms per 100k triangles)."""
+
+    def __init__(self, kernels, tree, triangles, skip, dtype):
+        i32 = np.int32
+        if isinstance(tree, BVH):
+            child = np.stack([np.asarray(tree.left, i32), np.asarray(tree.right, i32)], axis=1)
+            axis = _c(tree.axis, i32)
+        else:
+            child = _c(tree.child, i32)
+            axis = np.full(child.shape[0], -1, i32)  # wide nodes: distance order
+        n, k = child.shape
+        self.has_skip = skip is not None and bool(np.any(skip))
+        skip = np.zeros(n, i32) if skip is None else _c(skip, i32)
+        prim_index = _c(tree.prim_index, i32)
+        self.root = int(np.asarray(tree.root))
+        self.parent = _c(tree.parent, i32)
+        self.rows, self.irows = _aligned_rows(n, 7 * k + 2, dtype)
+        self.flags = np.empty(n, i32)
+        self.slot_rows, self.slot_irows = _aligned_rows(prim_index.shape[0], 10, dtype)
+        lo, hi = _c(tree.lo, dtype), _c(tree.hi, dtype)
+        kernels.pack(child, lo, hi, _c(tree.prim_start, i32), _c(tree.prim_count, i32), axis, skip, prim_index,
+                     _c(triangles, dtype), self.rows, self.irows, self.flags, self.slot_rows, self.slot_irows)
+        self.root_box = np.concatenate([lo[self.root], hi[self.root]])
+        self.consts = np.array([1, robust_factor(dtype), INV_BIG], dtype)
+
+
+def trace(tree, triangles, origin, direction, t_min, t_max, *, dtype, mode: str, capacity: int, max_hits: int,
+          step_limit: int, skip=None, leaf_width: int = LEAF_WIDTH, batch: int | None = None,
+          on_batch: Callable[[int], None] | None = None) -> Hits:
+    """The native engine of :func:`jaxbvh.rays.traversal.trace` (checked arguments):
+    :class:`Hits` of NumPy arrays [R], the dtypes of the JAX engine's.
+
+    ``tree`` (NumPy or JAX arrays), ``triangles`` [T, 3, 3], ``origin``, ``direction``
+    [R, 3]; ``t_min``, ``t_max`` scalars or [R]; ``dtype``: the tree's float dtype as the
+    JAX engine sees it (float32 unless x64); ``skip``: [N] bool or None. ``batch``: rays
+    between ``on_batch(n)`` calls (None: one call for all).
+    """
+    k = kernels()
+    a = _Arrays(k, tree, triangles, skip, dtype)
+    r = origin.shape[0]
+    o = _c(origin, dtype)
+    d = _c(direction, dtype)
+    lo_t = _c(np.broadcast_to(np.asarray(t_min, dtype), (r,)), dtype)
+    hi_t = _c(np.broadcast_to(np.asarray(t_max, dtype), (r,)), dtype)
+    all_hits = mode == "all"
+    h = max_hits if all_hits else 0
+    out = dict(t=np.empty(r, dtype), u=np.empty(r, dtype), v=np.empty(r, dtype), prim=np.empty(r, np.int32),
+               counts=np.empty((r, 4), np.int32), limit=np.empty(r, np.bool_), hit_count=np.zeros(r, np.int32),
+               hit_prims=np.full((r, h), -1, np.int32), hit_t=np.full((r, h), np.inf, dtype))
+    code = MODES.index(mode)
+
+    def run(first, stop):
+        k.trace_rays(a.rows, a.irows, a.flags, a.has_skip, a.parent, a.root_box, a.slot_rows, a.slot_irows, a.root, o, d, lo_t, hi_t, a.consts, code, int(capacity), int(h),
+                     int(step_limit), int(max(1, leaf_width)), first, stop, out["t"], out["u"], out["v"],
+                     out["prim"], out["counts"], out["limit"], out["hit_count"], out["hit_prims"], out["hit_t"])
+
+    step = max(1, r if batch is None else int(batch))
+    for start in range(0, r, step):
+        stop = min(start + step, r)
+        threads = max(1, min(THREADS, (stop - start) // MIN_RAYS_PER_THREAD))
+        if threads == 1:
+            run(start, stop)
+        else:
+            # interleaved chunks would balance better, but contiguous ones keep each thread's
+            # rays (and so its writes) apart; rays of a set are shuffled enough in practice
+            edges = np.linspace(start, stop, threads + 1).astype(int)
+            with ThreadPoolExecutor(threads) as pool:
+                list(pool.map(run, edges[:-1], edges[1:]))
+        if on_batch is not None:
+            on_batch(stop - start)
+    extra = {}
+    if all_hits:
+        extra = dict(hit_count=out["hit_count"], hit_prims=out["hit_prims"], hit_t=out["hit_t"],
+                     hits_overflow=out["hit_count"] > max_hits)
+    c = out["counts"]
+    return Hits(t=out["t"], prim=out["prim"], u=out["u"], v=out["v"], box_tests=c[:, 0].copy(),
+                prim_tests=c[:, 1].copy(), nodes_visited=c[:, 2].copy(), leaves_visited=c[:, 3].copy(),
+                stack_overflow=np.zeros(r, np.bool_), step_limit=out["limit"], **extra)

@@ -1,0 +1,236 @@
+"""The native ray engine (jaxbvh.rays.native): the JAX walk's hits and counters, ray by ray.
+
+Checked against the NumPy twin (jaxbvh.rays.traversal_reference) under hypothesis (small
+random trees binary and wide, every mode, float32 and float64, stacks that spill and climb,
+skip flags, ties, zero direction components: hits, distances and counters bit for bit, as
+neither numba nor NumPy contracts multiply-adds), against the JAX walk on the shapes
+test_rays.py compiles (counters and hits exact, distances to the last bits), on a deep
+chain, on a broken tree (the step bound), and for the engine choice and the import cost.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from test_rays import (
+    BATCH,
+    CAP,
+    COUNTERS,
+    assert_t_close,
+    chain_tree,
+    fixed,
+    median_tree,
+    mixed_rays,
+    padded,
+    random_triangles,
+    widen,
+)
+
+from jaxbvh import rays
+from jaxbvh.rays import native
+from jaxbvh.rays import traversal as traverse
+from jaxbvh.rays import traversal_reference as ref
+from jaxbvh.tree.layout import BVH
+from jaxbvh.tree.validate import InvalidTreeError
+
+pytest.importorskip("numba")
+
+LISTS = ("hit_count", "hit_prims", "hit_t", "hits_overflow")
+
+
+def twin_arrays(twin, name, mode, max_hits):
+    """The twin's field ``name`` [R] (lists padded to ``max_hits`` as the engines pad them)."""
+    if name == "hit_prims":
+        return np.array([r[name] + [-1] * (max_hits - len(r[name])) for r in twin])
+    if name == "hit_t":
+        return np.array([r[name] + [np.inf] * (max_hits - len(r[name])) for r in twin])
+    return np.array([r[name] for r in twin])
+
+
+def assert_equal_to_twin(hits, twin, mode, max_hits, exact_t=True):
+    names = COUNTERS + ("prim", "step_limit", "stack_overflow") + (("t", "u", "v") if exact_t else ())
+    names += LISTS if mode == "all" else ()
+    for name in names:
+        expected = twin_arrays(twin, name, mode, max_hits)
+        got = np.asarray(getattr(hits, name))
+        if name in ("t", "u", "v", "hit_t"):
+            expected = expected.astype(got.dtype)
+        assert got.shape == expected.shape, name
+        bad = np.flatnonzero((got != expected).reshape(len(got), -1).any(axis=1))
+        assert bad.size == 0, f"{mode}: {name} differs on rays {bad[:5]}: {got[bad[:5]]} vs {expected[bad[:5]]}"
+
+
+def with_ties_and_axis_rays(rng, tri, origin, direction):
+    """Triangles with a copy of some (equal ``t`` on two ids: ties go to the lower id)
+    and rays along the axes (zero direction components)."""
+    copies = tri[rng.integers(0, len(tri), max(1, len(tri) // 4))]
+    tri = np.concatenate([tri, copies])
+    n = len(origin) // 4
+    axis_dir = np.zeros((n, 3), direction.dtype)
+    axis_dir[np.arange(n), np.arange(n) % 3] = np.where(np.arange(n) % 2, 1, -1)
+    direction = np.concatenate([direction[: len(direction) - n], axis_dir])
+    return tri, origin, direction
+
+
+def as_dtype(tree, dtype):
+    return tree.replace(lo=np.asarray(tree.lo, dtype), hi=np.asarray(tree.hi, dtype))
+
+
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 40), max_leaf=st.sampled_from([1, 3]),
+       shape=st.sampled_from(["binary-axis", "binary-distance", "wide4"]),
+       mode=st.sampled_from(["closest", "any", "all"]), dtype=st.sampled_from(["float32", "float64"]),
+       short_stack=st.booleans(), flags=st.booleans())
+def test_native_equals_twin(seed, n, max_leaf, shape, mode, dtype, short_stack, flags):
+    """Hits, distances, barycentrics, counters and hit lists of the twin, ray by ray."""
+    rng = np.random.default_rng(seed)
+    tri = random_triangles(rng, n, size=0.4)
+    origin, direction = mixed_rays(rng, tri, 48)
+    tri, origin, direction = with_ties_and_axis_rays(rng, tri, origin, direction)
+    tree = median_tree(tri, max_leaf)
+    if shape == "binary-distance":
+        tree = tree.replace(axis=np.full(tree.capacity, -1, np.int32))
+    elif shape == "wide4":
+        tree = widen(tree, 4)
+    k = 4 if shape == "wide4" else 2
+    capacity = k if short_stack else CAP
+    # skip flags on random nodes (the root's box is always tested): any flags are a valid
+    # "assume hit" input, and both walks must honour them alike
+    skip = (rng.random(tree.capacity) < 0.3) & (np.arange(tree.capacity) != int(tree.root)) if flags else None
+    max_hits = 4  # short: lists overflow too
+    with jax.enable_x64(dtype == "float64"):
+        tree = as_dtype(tree, dtype)
+        tri = tri.astype(dtype)
+        origin, direction = origin.astype(dtype), direction.astype(dtype)
+        hits = traverse.trace(tree, tri, origin, direction, mode=mode, capacity=capacity, max_hits=max_hits,
+                              skip=skip, engine="native")
+    assert hits.t.dtype == np.dtype(dtype)
+    twin = ref.trace(tree, tri, origin, direction, mode=mode, capacity=capacity, max_hits=max_hits, skip=skip)
+    assert_equal_to_twin(hits, twin, mode, max_hits)
+    if mode == "closest":
+        _, prim = ref.brute_force_closest(tri, origin, direction)
+        assert np.array_equal(hits.prim, prim)
+
+
+@pytest.mark.parametrize("shape,mode,capacity", [
+    (shape, mode, capacity) for shape in ("binary-axis", "binary-distance", "wide4")
+    for mode in ("closest", "any", "all") for capacity in (CAP, 2) if capacity == CAP or shape == "binary-axis"])
+def test_native_equals_jax_walk(shape, mode, capacity):
+    """The same Hits as the JAX walk (the shapes test_rays.py compiles): counters, hits and
+    lists exact, distances up to the JAX walk's fused multiply-adds; the same dtypes."""
+    rng = np.random.default_rng(17)
+    tri = random_triangles(rng, 120, size=0.3)
+    tree = median_tree(tri, max_leaf=3)
+    if shape == "binary-distance":
+        tree = tree.replace(axis=np.full(tree.capacity, -1, np.int32))
+    elif shape == "wide4":
+        tree = widen(tree, 4)
+    origin, direction = mixed_rays(rng, tri, 96)
+    kwargs = dict(mode=mode, capacity=capacity, max_hits=16, batch=BATCH)
+    jax_hits = traverse.trace(fixed(tree), padded(tri), origin, direction, engine="jax", **kwargs)
+    hits = traverse.trace(fixed(tree), padded(tri), origin, direction, engine="native", **kwargs)
+    assert jax.tree_util.tree_structure(hits) == jax.tree_util.tree_structure(jax_hits)
+    for name in COUNTERS + ("prim", "step_limit", "stack_overflow") + (("hit_count", "hit_prims", "hits_overflow")
+                                                                       if mode == "all" else ()):
+        a, b = np.asarray(getattr(hits, name)), np.asarray(getattr(jax_hits, name))
+        assert a.dtype == b.dtype and np.array_equal(a, b), name
+    assert hits.t.dtype == jax_hits.t.dtype
+    assert_t_close(hits.t, jax_hits.t, tri, direction, hits.prim)
+    assert (hits.prim >= 0).any() and (hits.prim < 0).any()
+
+
+def test_deep_chain_climbs_like_the_twin():
+    """A 199-deep chain on a stack of 2 entries: the twin's counters (climbs included) and
+    brute force's hits; rays climb."""
+    rng = np.random.default_rng(12)
+    tri = random_triangles(rng, 200, spread=3.0, size=0.2)
+    tri = tri[np.argsort(tri.mean(axis=1)[:, 0])]
+    tree = chain_tree(tri)
+    origin, direction = mixed_rays(rng, tri, 96)
+    hits = traverse.trace(tree, tri, origin, direction, capacity=2, engine="native")
+    twin = ref.trace(tree, tri, origin, direction, capacity=2)
+    assert_equal_to_twin(hits, twin, "closest", 16)
+    unbounded = np.array([r["box_tests"] for r in ref.trace(tree, tri, origin, direction)])
+    assert (hits.box_tests > unbounded).mean() > 0.1  # the climbs' box tests
+    assert (hits.nodes_visited + hits.prim_tests).max() > 100
+
+
+@pytest.mark.parametrize("engine", ["native", "jax"])
+def test_broken_tree_reaches_the_step_bound(engine):
+    """A cycle (the root listed as its own child) ends at the step bound and raises, on
+    both engines; it does not hang. Sound trees of the same shapes do not."""
+    rng = np.random.default_rng(3)
+    tri = random_triangles(rng, 30)
+    tree = median_tree(tri)
+    origin, direction = mixed_rays(rng, tri, 8)
+    traverse.trace(fixed(tree), padded(tri), origin, direction, mode="all", capacity=CAP, batch=BATCH,
+                   engine=engine)
+    left = np.asarray(tree.left).copy()
+    left[int(tree.root)] = int(tree.root)
+    broken = tree.replace(left=left)
+    with pytest.raises(InvalidTreeError, match="did not end"):
+        traverse.trace(fixed(broken), padded(tri), origin, direction, mode="all", capacity=CAP, batch=BATCH,
+                       engine=engine)
+
+
+def test_engine_choice_and_errors():
+    """auto picks native on concrete CPU arrays with triangles, jax for another intersector;
+    native under jit says to use jax; an unknown engine is refused."""
+    rng = np.random.default_rng(1)
+    tri = random_triangles(rng, 10)
+    tree = median_tree(tri)
+    origin, direction = mixed_rays(rng, tri, 8)
+    assert native.choose_engine("auto", tree, tri, origin, direction) == "native"
+    assert native.choose_engine("auto", tree, tri, origin, direction, triangles=False) == "jax"
+    assert native.choose_engine("jax", tree, tri, origin, direction) == "jax"
+    with pytest.raises(ValueError, match="engine must be one of"):
+        rays.closest_hit(tree, tri, origin, direction, engine="embree")
+
+    @jax.jit
+    def inside(o):
+        return rays.closest_hit(tree, tri, o, direction, engine="native").t
+
+    with pytest.raises(TypeError, match="engine='jax'"):
+        inside(jnp.asarray(origin))
+    with pytest.raises(TypeError, match="triangles only"):
+        traverse.trace(tree, tri, origin, direction, engine="native", intersect=lambda *a: None)
+
+
+def test_numba_cache_folder_follows_jaxbvh_cache(monkeypatch, tmp_path):
+    from jaxbvh import compile_cache
+
+    monkeypatch.setattr(compile_cache, "status", lambda: {"folder": str(tmp_path / "jax"), "owner": "jaxbvh"})
+    assert native.numba_cache_folder() == tmp_path / "jax" / "numba"
+    monkeypatch.setattr(compile_cache, "status", lambda: {"folder": str(tmp_path / "mine"), "owner": "user"})
+    assert native.numba_cache_folder() is None
+    monkeypatch.setattr(compile_cache, "status", lambda: {"folder": None, "owner": None})
+    assert native.numba_cache_folder() is None
+
+
+def test_import_does_not_import_numba():
+    """numba (a second of import and its compiles) loads on the first native trace only."""
+    code = ("import sys, jaxbvh, jaxbvh.rays, jaxbvh.queries, jaxbvh.rays.native; "
+            "assert 'numba' not in sys.modules, 'numba imported'")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+def test_binary_and_wide_inputs_as_jax_arrays():
+    """Trees and rays given as JAX arrays (read-only NumPy views) trace alike."""
+    rng = np.random.default_rng(5)
+    tri = random_triangles(rng, 30)
+    tree = median_tree(tri, max_leaf=2)
+    assert isinstance(tree, BVH)
+    origin, direction = mixed_rays(rng, tri, 32)
+    a = rays.closest_hit(tree, tri, origin, direction, engine="native")
+    b = rays.closest_hit(jax.tree_util.tree_map(jnp.asarray, tree), jnp.asarray(tri), jnp.asarray(origin),
+                         jnp.asarray(direction), engine="native")
+    for name in COUNTERS + ("prim", "t"):
+        assert np.array_equal(getattr(a, name), getattr(b, name))
+    none = rays.all_hits(tree, tri, origin[:0], direction[:0], max_hits=3, engine="native")
+    assert none.prim.shape == (0,) and none.hit_prims.shape == (0, 3)
