@@ -141,7 +141,7 @@ TESTS = Path(__file__).resolve().parent
 # the compilation cache that `import jaxbvh` turns on, the engine rule every query follows
 WHOLE_PACKAGE_TESTS = {"test_architecture.py", "test_notebooks.py", "test_docs.py", "test_docs_examples.py",
                        "test_compile_cache.py", "test_compile_policy.py", "test_program_store.py",
-                       "test_native.py"}
+                       "test_engines.py"}
 
 
 def test_tests_follow_the_packages():

@@ -12,7 +12,7 @@ runs on one of two engines, chosen by ``engine=``:
   measured that the array program's step costs ~270 ns per lane under XLA's CPU compiler,
   ``bench/results/bench_rays_native.md`` what the loop costs). Needs numba and concrete
   (not traced) arrays; rays run on :data:`THREADS` threads (the kernel releases the GIL);
-* ``"auto"`` (default): :func:`choose_engine`, the one place that decides.
+* ``"auto"`` (default): :func:`jaxbvh.native.choose` decides (the one rule of every query).
 
 Both engines make the same walk with the same rules (visiting order, the
 ``entry <= t_best`` cull, the robust slab test, Möller–Trumbore in the tree's dtype, ties
@@ -30,29 +30,21 @@ progress callback's steps.
 
 First-call cost. numba compiles :func:`~jaxbvh.rays.native_kernels.trace_rays` once per
 float dtype (a few CPU seconds). numba is imported on the first native trace, never by
-``import jaxbvh``; compiled kernels are kept on disk in ``numba/`` beside the programs of
-jaxbvh's compilation cache (:mod:`jaxbvh.compile_cache`) while that cache is jaxbvh's
-(``$NUMBA_CACHE_DIR``, if you set it, wins); with jaxbvh's cache off, or a JAX cache of
-your own, nothing is written and each process compiles again.
+``import jaxbvh``, and keeps its compiled kernels where :mod:`jaxbvh.native` says (beside
+jaxbvh's compilation cache).
 """
 
 from __future__ import annotations
 
-import importlib.util
-import os
 from concurrent.futures import ThreadPoolExecutor
-from pathlib import Path
 from typing import Callable
 
-import jax
 import numpy as np
 
-from jaxbvh import compile_cache
+from jaxbvh import native
 from jaxbvh.numerics import INV_BIG, robust_factor
 from jaxbvh.rays.stack_walk import LEAF_WIDTH, MODES, Hits
 from jaxbvh.tree.layout import BVH
-
-ENGINES = ("auto", "jax", "native")
 
 THREADS = 1
 """Threads a native call splits its rays over (the kernel releases the GIL). One: on the
@@ -62,75 +54,14 @@ an idle machine with more cores."""
 MIN_RAYS_PER_THREAD = 256
 """Fewer rays than this per thread run on one thread (a thread's start costs ~50 us)."""
 
-CACHE_KERNELS = False
-"""Whether numba keeps the compiled kernels on disk (set by :func:`kernels` before the import)."""
-
-
-def native_available() -> bool:
-    """numba can be imported (checked without importing it)."""
-    return importlib.util.find_spec("numba") is not None
-
-
-def is_traced(*trees) -> bool:
-    """Some leaf of ``trees`` is a JAX tracer (the call is inside ``jit`` / ``vmap`` / ``grad``)."""
-    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(trees))
-
-
-def choose_engine(engine: str, *arrays, triangles: bool = True) -> str:
-    """``"jax"`` or ``"native"`` for a call with ``arrays`` (any pytrees); ``triangles``:
-    the primitives are triangles (the default ``intersect``).
-
-    ``"auto"`` picks native when numba imports, JAX's default backend is the CPU, no
-    argument is traced and the primitives are triangles; else jax. ``"native"`` raises
-    when it cannot run: ``TypeError`` for traced arguments or another intersector,
-    ``ImportError`` without numba.
-    """
-    if engine not in ENGINES:
-        raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")
-    if engine == "jax":
-        return "jax"
-    traced = is_traced(arrays)
-    if engine == "native":
-        if traced:
-            raise TypeError("engine='native' traces concrete arrays on the host and cannot run inside "
-                            "jax.jit / vmap / grad; use engine='jax' there (or jaxbvh.queries.raycast)")
-        if not triangles:
-            raise TypeError("engine='native' tests triangles only; use engine='jax' for another intersect")
-        if not native_available():
-            raise ImportError("engine='native' needs numba (pip install numba); engine='jax' runs without it")
-        return "native"
-    native = triangles and not traced and jax.default_backend() == "cpu" and native_available()
-    return "native" if native else "jax"
-
-
-def numba_cache_folder() -> Path | None:
-    """Where numba keeps compiled kernels: ``numba/`` in jaxbvh's compilation cache
-    folder while jaxbvh owns JAX's cache, else None (nothing written). A user's
-    ``$NUMBA_CACHE_DIR`` is left as it is (numba then caches there)."""
-    state = compile_cache.status()
-    if state["owner"] != "jaxbvh":
-        return None
-    return Path(state["folder"]) / "numba"
-
-
 _kernels = {}
 
 
 def kernels():
-    """:mod:`jaxbvh.rays.native_kernels`, imported (with numba) on first use, its disk
-    cache set up first (module docstring)."""
+    """:mod:`jaxbvh.rays.native_kernels`, imported (with numba, :func:`jaxbvh.native.numba`,
+    its disk cache set up first) on first use."""
     if "module" not in _kernels:
-        global CACHE_KERNELS
-        if os.environ.get("NUMBA_CACHE_DIR"):
-            CACHE_KERNELS = True
-        else:
-            folder = numba_cache_folder()
-            if folder is not None:
-                os.environ["NUMBA_CACHE_DIR"] = str(folder)
-                import numba  # noqa: E402: numba reads NUMBA_CACHE_DIR at import, or here if imported already
-
-                numba.config.CACHE_DIR = str(folder)
-                CACHE_KERNELS = True
+        native.numba()
         # the one library import inside a function (tests/test_architecture.py,
         # DEFERS_IMPORTS): it imports numba, which `import jaxbvh` must not
         from jaxbvh.rays import native_kernels

@@ -1,8 +1,8 @@
 """The numba kernels of the native ray engine (imported only by :mod:`jaxbvh.rays.native`).
 
 This module imports numba at its top, so nothing imports it but
-:func:`jaxbvh.rays.native.kernels`, which first points numba's on-disk cache into
-jaxbvh's cache folder. The walk is :mod:`jaxbvh.rays.stack_walk`'s, one ray at a time
+:func:`jaxbvh.rays.native.kernels`, which first imports numba through
+:func:`jaxbvh.native.numba` (its on-disk cache in jaxbvh's cache folder). The walk is :mod:`jaxbvh.rays.stack_walk`'s, one ray at a time
 (its docstring has the rules; every branch below names the JAX function it mirrors):
 the same ring stack of ``capacity`` entries with its ``sp`` / ``base`` bookkeeping,
 the same parent-link climb, the same visiting order and tie rules, the same primitive
@@ -26,7 +26,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from jaxbvh.rays.native import CACHE_KERNELS
+from jaxbvh import native
+
+#: numba's on-disk cache, as jaxbvh.native set it up before this import
+CACHE_KERNELS = native.caching()
 
 CLOSEST, ANY, ALL = 0, 1, 2
 """``mode`` codes: one kernel for the three modes (one compile, not three)."""

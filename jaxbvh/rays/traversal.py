@@ -82,7 +82,7 @@ Engines. :func:`trace` runs this walk as a JAX program (``engine="jax"``) or as 
 walk compiled by numba for the CPU (``engine="native"``, :mod:`jaxbvh.rays.native`: the
 same hits and counters ray by ray, many times the rays per CPU second);
 ``engine="auto"`` picks native for concrete arrays on the CPU
-(:func:`~jaxbvh.rays.native.choose_engine`).
+(:func:`jaxbvh.native.choose`).
 
 Plugging in other primitives. The traversal never looks at triangles itself: it calls
 ``intersect(prims, prim_id, origin, direction) -> (t, u, v)`` (``t = inf`` for a miss)
@@ -102,8 +102,8 @@ import numpy as np
 
 from jaxbvh.numerics import INV_BIG, robust_factor
 from jaxbvh.program_store import stored_jit
+from jaxbvh import native as engines
 from jaxbvh.rays import native
-from jaxbvh.rays.native import choose_engine
 from jaxbvh.rays.stack_walk import I32, LEAF_WIDTH, MODES, STACK, Hits, Hooks, Node, Ray, lanes_for, walk_rays
 from jaxbvh.tree.layout import BVH, depth, to_jax
 from jaxbvh.tree.validate import InvalidTreeError
@@ -350,7 +350,7 @@ def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t
           intersect: Callable = intersect_triangle, capacity: int | None = None,
           max_hits: int = 16, batch: int = BATCH, allow_overflow: bool = False, skip=None,
           lanes: int | None = None, leaf_width: int = LEAF_WIDTH, on_batch: Callable[[int], None] | None = None,
-          engine: str = "auto") -> Hits:
+          engine: str = engines.DEFAULT_ENGINE) -> Hits:
     """Trace any number of rays in batches of ``batch``; returns :class:`Hits` (NumPy).
 
     ``tree``: :class:`~jaxbvh.tree.layout.BVH` or :class:`~jaxbvh.tree.layout.WideBVH`;
@@ -368,11 +368,11 @@ def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t
     :class:`~jaxbvh.tree.validate.InvalidTreeError` when a ray reaches the step bound.
     ``engine``: ``"auto"``, ``"jax"`` or ``"native"`` (:mod:`jaxbvh.rays.native`: the same
     walk, hits and counters compiled by numba for the CPU; ``"auto"`` picks it where it can
-    run, :func:`~jaxbvh.rays.native.choose_engine`).
+    run, :func:`jaxbvh.native.choose`).
     """
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-    engine = choose_engine(engine, tree, prims, origin, direction, triangles=intersect is intersect_triangle)
+    engine = engines.choose(engine, tree, prims, origin, direction, supported=intersect is intersect_triangle)
     origin, direction = check_rays(origin, direction)
     capacity = STACK if capacity is None else int(capacity)
     if capacity < arity(tree):

@@ -33,6 +33,7 @@ from test_rays import (
     widen,
 )
 
+from jaxbvh import native as engines
 from jaxbvh import rays
 from jaxbvh.rays import native
 from jaxbvh.rays import traversal as traverse
@@ -186,9 +187,9 @@ def test_engine_choice_and_errors():
     tri = random_triangles(rng, 10)
     tree = median_tree(tri)
     origin, direction = mixed_rays(rng, tri, 8)
-    assert native.choose_engine("auto", tree, tri, origin, direction) == "native"
-    assert native.choose_engine("auto", tree, tri, origin, direction, triangles=False) == "jax"
-    assert native.choose_engine("jax", tree, tri, origin, direction) == "jax"
+    assert engines.choose("auto", tree, tri, origin, direction) == "native"
+    assert engines.choose("auto", tree, tri, origin, direction, supported=False) == "jax"
+    assert engines.choose("jax", tree, tri, origin, direction) == "jax"
     with pytest.raises(ValueError, match="engine must be one of"):
         rays.closest_hit(tree, tri, origin, direction, engine="embree")
 
@@ -198,19 +199,20 @@ def test_engine_choice_and_errors():
 
     with pytest.raises(TypeError, match="engine='jax'"):
         inside(jnp.asarray(origin))
-    with pytest.raises(TypeError, match="triangles only"):
+    with pytest.raises(TypeError, match="custom intersector"):
         traverse.trace(tree, tri, origin, direction, engine="native", intersect=lambda *a: None)
 
 
 def test_numba_cache_folder_follows_jaxbvh_cache(monkeypatch, tmp_path):
     from jaxbvh import compile_cache
 
+    monkeypatch.delenv("JAXBVH_CACHE", raising=False)
     monkeypatch.setattr(compile_cache, "status", lambda: {"folder": str(tmp_path / "jax"), "owner": "jaxbvh"})
-    assert native.numba_cache_folder() == tmp_path / "jax" / "numba"
+    assert engines.cache_folder() == tmp_path / "jax" / "numba"
     monkeypatch.setattr(compile_cache, "status", lambda: {"folder": str(tmp_path / "mine"), "owner": "user"})
-    assert native.numba_cache_folder() is None
+    assert engines.cache_folder() is None
     monkeypatch.setattr(compile_cache, "status", lambda: {"folder": None, "owner": None})
-    assert native.numba_cache_folder() is None
+    assert engines.cache_folder() is None
 
 
 def test_import_does_not_import_numba():
