@@ -162,7 +162,7 @@ def test_batched_costs_and_trace_equal_single_calls(soups):
         single = jaxbvh.all_costs(tree)
         for name, value in single.items():
             assert costs[name][i] == pytest.approx(value, rel=1e-6), name
-        want = jaxbvh.rays.trace(tree, triangles[i], np.asarray(rays[i][0]), np.asarray(rays[i][1]))
+        want = jaxbvh.rays.trace(tree, triangles[i], np.asarray(rays[i][0]), np.asarray(rays[i][1]), engine="jax")
         for field in ("t", "prim", "box_tests", "prim_tests", "nodes_visited"):
             np.testing.assert_array_equal(getattr(hits[i], field), getattr(want, field), err_msg=field)
 
@@ -378,11 +378,11 @@ def test_batched_trace_of_a_tree_deeper_than_the_stack_equals_the_single_trace()
     # rays down the chain from +x: each level leaves its leaf pending (more than the stack holds)
     origin = np.column_stack([np.full(40, 2.0), rng.uniform(0.05, 0.3, (40, 2))]).astype(np.float32)
     direction = np.column_stack([-np.ones(40), rng.uniform(-0.01, 0.01, (40, 2))]).astype(np.float32)
-    deep = jaxbvh.rays.trace(chain, tri, origin, direction, capacity=n)
-    spilled = jaxbvh.rays.trace(chain, tri, origin, direction)
+    deep = jaxbvh.rays.trace(chain, tri, origin, direction, capacity=n, engine="jax")
+    spilled = jaxbvh.rays.trace(chain, tri, origin, direction, engine="jax")
     assert (spilled.box_tests > deep.box_tests).any()  # the rays do climb with the walk's stack
     hits = batch.trace(trees, [tri, tri], [origin] * 2, [direction] * 2, rays_per_call=40)
     for got, tree in zip(hits, (chain, balanced)):
-        want = jaxbvh.rays.trace(tree, tri, origin, direction)
+        want = jaxbvh.rays.trace(tree, tri, origin, direction, engine="jax")
         for field in ("t", "prim", "box_tests", "prim_tests", "nodes_visited"):
             np.testing.assert_array_equal(getattr(got, field), getattr(want, field), err_msg=field)
