@@ -42,17 +42,20 @@ def kernel():
 
 
 def _make(numba):
+    # the helpers become module globals, not closure cells: numba's on-disk cache cannot
+    # find a closure's entry again in a new process (its key holds the cells' objects)
+    global _at, _box_distance2, _closest_on_triangle, _child_boxes
     jit = numba.njit(cache=True, nogil=True)
 
     @jit
-    def at(i, n):
+    def _at(i, n):
         # JAX's gather: a negative index counts from the end, then clamped into [0, n)
         if i < 0:
             i += n
         return min(max(i, 0), n - 1)
 
     @jit
-    def box_distance2(p, lo, hi, zero):
+    def _box_distance2(p, lo, hi, zero):
         # geometry.box_distance2: gap summed x, y, z in that order
         total = zero
         for a in range(3):
@@ -66,7 +69,7 @@ def _make(numba):
         return total
 
     @jit
-    def closest_on_triangle(p, a, b, c, zero, one):
+    def _closest_on_triangle(p, a, b, c, zero, one):
         # geometry.closest_on_triangle, in scalars: (d2, q0, q1, q2, u, v, feature)
         ab0, ab1, ab2 = b[0] - a[0], b[1] - a[1], b[2] - a[2]
         ac0, ac1, ac2 = c[0] - a[0], c[1] - a[1], c[2] - a[2]
@@ -128,12 +131,12 @@ def _make(numba):
         return e0 * e0 + e1 * e1 + e2 * e2, q0, q1, q2, u, v, feature
 
     @jit
-    def child_boxes(mode, child, lo, hi, here, qa, qb, qr, best, zero, key, keep):
+    def _child_boxes(mode, child, lo, hi, here, qa, qb, qr, best, zero, key, keep):
         # the order key and keep flag of every child slot of node ``here`` (Hooks.boxes)
         k = child.shape[1]
         n = lo.shape[0]
         for j in range(k):
-            c = at(max(child[here, j], 0), n)  # a missing child reads node 0's box, as in JAX
+            c = _at(max(child[here, j], 0), n)  # a missing child reads node 0's box, as in JAX
             if mode == OVERLAP:
                 key[j] = zero
                 meets = True
@@ -142,7 +145,7 @@ def _make(numba):
                         meets = False
                 keep[j] = meets
             else:
-                key[j] = box_distance2(qa, lo[c], hi[c], zero)
+                key[j] = _box_distance2(qa, lo[c], hi[c], zero)
                 keep[j] = key[j] <= (best if mode == CLOSEST else qr)
 
     @jit
@@ -157,7 +160,7 @@ def _make(numba):
         key = np.empty(k, lo.dtype)
         keep = np.empty(k, np.bool_)
         rank = np.empty(k, np.int64)
-        root_c = at(root, n_nodes)
+        root_c = _at(root, n_nodes)
         for qi in range(q_a.shape[0]):
             qa, qb, qr = q_a[qi], q_b[qi], q_r[qi]
             best, bprim = qr, -1  # closest point: the best d2 so far (max_d2 at first), its triangle
@@ -172,7 +175,7 @@ def _make(numba):
                     if not (lo[root_c, a] <= qb[a] and qa[a] <= hi[root_c, a]):
                         root_keep = False
             else:
-                root_keep = box_distance2(qa, lo[root_c], hi[root_c], zero) <= qr
+                root_keep = _box_distance2(qa, lo[root_c], hi[root_c], zero) <= qr
             root_leaf = prim_count[root_c] > 0
             node, up = root, root_leaf
             leaf_pos = leaf_end = 0
@@ -192,18 +195,18 @@ def _make(numba):
                     prim_tests += 1
                     leaf_pos += 1
                     if mode == CLOSEST:
-                        tri = triangles[at(max(prim, 0), n_tri)]
-                        d2 = closest_on_triangle(qa, tri[0], tri[1], tri[2], zero, one)[0]
+                        tri = triangles[_at(max(prim, 0), n_tri)]
+                        d2 = _closest_on_triangle(qa, tri[0], tri[1], tri[2], zero, one)[0]
                         if d2 < best or (d2 == best and (bprim < 0 or prim < bprim)):
                             best, bprim = d2, prim
                     else:
                         if mode == WITHIN_TRIANGLES:
-                            tri = triangles[at(max(prim, 0), n_tri)]
-                            hit = closest_on_triangle(qa, tri[0], tri[1], tri[2], zero, one)[0] <= qr
+                            tri = triangles[_at(max(prim, 0), n_tri)]
+                            hit = _closest_on_triangle(qa, tri[0], tri[1], tri[2], zero, one)[0] <= qr
                         else:
-                            b = at(max(prim, 0), n_box)
+                            b = _at(max(prim, 0), n_box)
                             if mode == WITHIN_BOXES:
-                                hit = box_distance2(qa, p_lo[b], p_hi[b], zero) <= qr
+                                hit = _box_distance2(qa, p_lo[b], p_hi[b], zero) <= qr
                             else:
                                 hit = True
                                 for a in range(3):
@@ -222,9 +225,9 @@ def _make(numba):
                     done = True
                     break
                 # node move: look at the children of ``here``
-                here = parent[at(node, n_nodes)] if up else node
-                here_c = at(max(here, 0), n_nodes)
-                child_boxes(mode, child, lo, hi, here_c, qa, qb, qr, best, zero, key, keep)
+                here = parent[_at(node, n_nodes)] if up else node
+                here_c = _at(max(here, 0), n_nodes)
+                _child_boxes(mode, child, lo, hi, here_c, qa, qb, qr, best, zero, key, keep)
                 real = 0
                 for j in range(k):
                     if child[here_c, j] >= 0:
@@ -251,7 +254,7 @@ def _make(numba):
                     node, up = here, True
                     continue
                 nxt = child[here_c, nxt_slot]
-                nxt_c = at(nxt, n_nodes)
+                nxt_c = _at(nxt, n_nodes)
                 nodes_visited += 1
                 node = nxt
                 up = prim_count[nxt_c] > 0
@@ -276,8 +279,8 @@ def _make(numba):
             prim = best_prim[qi]
             if prim < 0:
                 continue
-            tri = triangles[at(prim, n_tri)]
-            d2, q0, q1, q2, uu, vv, f = closest_on_triangle(points[qi], tri[0], tri[1], tri[2], zero, one)
+            tri = triangles[_at(prim, n_tri)]
+            d2, q0, q1, q2, uu, vv, f = _closest_on_triangle(points[qi], tri[0], tri[1], tri[2], zero, one)
             distance[qi] = np.sqrt(d2) if d2 > zero else zero
             q[qi, 0], q[qi, 1], q[qi, 2] = q0, q1, q2
             u[qi], v[qi], feature[qi] = uu, vv, f
