@@ -364,7 +364,8 @@ def render_native(meta, rows, depth_rows):
         else:
             warp = ("—", "—", "—")
         lines.append(f"| {r['mesh']} | {r['triangles']:,} | {r['points']} | {r['native_points_per_cpu_s']:,.0f} | "
-                     f"{r['jax_points_per_cpu_s']:,.0f} | {r['native_points_per_cpu_s'] / r['jax_points_per_cpu_s']:.0f}x "
+                     f"{r['jax_points_per_cpu_s']:,.0f} | "
+                     f"{r['native_points_per_cpu_s'] / r['jax_points_per_cpu_s']:.0f}x "
                      f"| {warp[0]} | {warp[1]} | {r['same_prim_as_jax']:.4f} | "
                      f"{r['same_box_tests_as_jax']:.4f} | {r['max_abs_diff_jax']:.1e} "
                      f"| {warp[2]} | {r['box_tests']:.0f} | {r['prim_tests']:.1f} |")
