@@ -24,6 +24,12 @@ and Embree (embreex) on the same rays in the same process; ``--before``: the sam
 child process that imports another checkout's ``jaxbvh`` (e.g. main). Process CPU
 seconds, median of ``--repeat`` warm runs, and the first call's CPU seconds (trace and
 compile, persistent cache off). Writes ``bench/results/bench_queries_raycast.json`` and ``.md``.
+
+``--native``: the native engine (:mod:`jaxbvh.queries.native_search`, numba) beside the
+JAX engine and Warp on the same point sets and the same depth trees, points per CPU-second
+(the JAX engine on the first ``--jax-points`` points only: it is 100x slower), and the
+first native call in a fresh process with empty caches (cold) and in a second process
+(warm). Writes ``bench/results/bench_queries_native.json`` and ``.md``.
 """
 
 from __future__ import annotations
@@ -71,15 +77,16 @@ def point_sets(tri, n, rng):
     return {"box": box.astype(np.float32), "near": near.astype(np.float32)}
 
 
-def ours(tree, tri, points, batch):
-    """closest_point over ``points`` in batches of ``batch`` (last one padded): NumPy results."""
+def ours(tree, tri, points, batch, engine="jax"):
+    """closest_point over ``points`` in batches of ``batch`` (last one padded) by ``engine``:
+    NumPy results."""
     n = len(points)
     parts = []
     for start in range(0, n, batch):
         chunk = np.zeros((batch, 3), np.float32)
         piece = points[start:start + batch]
         chunk[: len(piece)] = piece
-        parts.append((len(piece), queries.closest_point(tree, tri, chunk)))
+        parts.append((len(piece), queries.closest_point(tree, tri, chunk, engine=engine)))
     jax.block_until_ready([p for _, p in parts])
     return {k: np.concatenate([np.asarray(getattr(p, k))[:m] for m, p in parts])
             for k in ("distance", "prim", "box_tests", "prim_tests")}
@@ -248,6 +255,142 @@ def raycast_main(args):
     print(f"wrote {out.with_suffix('.md')}")
 
 
+FIRST_CALL = """
+import resource, sys, numpy as np
+import jaxbvh
+from jaxbvh import queries
+from jaxbvh.io import bundled_mesh_path, load_mesh
+mesh = load_mesh(bundled_mesh_path())
+lo, hi = mesh.local_boxes()
+tree = jaxbvh.build(lo, hi)
+points = np.random.default_rng(0).uniform(lo.min(0), hi.max(0), (1000, 3)).astype(np.float32)
+tri = np.asarray(mesh.local_triangles())
+r = resource.getrusage(resource.RUSAGE_SELF)
+c = r.ru_utime + r.ru_stime
+queries.closest_point(tree, tri, points, engine="native").distance.block_until_ready()
+r = resource.getrusage(resource.RUSAGE_SELF)
+print(r.ru_utime + r.ru_stime - c)
+"""
+
+
+def native_main(args):
+    import tempfile
+
+    rng = np.random.default_rng(0)
+    rows, depth_rows = [], []
+    jax_n = args.jax_points
+    for name in args.meshes:
+        path = DATA / MESHES[name] if MESHES[name] and (DATA / MESHES[name]).exists() else bundled_mesh_path()
+        mesh = load_mesh(path)
+        lo, hi = mesh.local_boxes()
+        tri = mesh.local_triangles()
+        tree = jaxbvh.build(lo, hi)
+        warp = warp_query(tri)
+        for kind, pts in point_sets(tri, args.points, rng).items():
+            ours(tree, tri, pts[: args.batch], args.batch, "native")  # compiles or loads the kernel
+            nat, _, cpu = timed(lambda: ours(tree, tri, pts, args.batch, "native"), args.repeat)
+            ours(tree, tri, pts[: args.batch], args.batch, "jax")  # compiles
+            jx, _, jcpu = timed(lambda: ours(tree, tri, pts[:jax_n], args.batch, "jax"), args.repeat)
+            row = dict(mesh=name, triangles=int(len(tri)), points=kind, n=len(pts), native_cpu_s=cpu,
+                       native_points_per_cpu_s=len(pts) / cpu, jax_n=jax_n, jax_cpu_s=jcpu,
+                       jax_points_per_cpu_s=jax_n / jcpu,
+                       same_prim_as_jax=float(np.mean(nat["prim"][:jax_n] == jx["prim"])),
+                       same_box_tests_as_jax=float(np.mean(nat["box_tests"][:jax_n] == jx["box_tests"])),
+                       max_abs_diff_jax=float(np.max(np.abs(nat["distance"][:jax_n] - jx["distance"]))),
+                       box_tests=float(nat["box_tests"].mean()), prim_tests=float(nat["prim_tests"].mean()))
+            if warp is not None:
+                warp(pts[:64])
+                (wd, wf), _, wcpu = timed(lambda: warp(pts), args.repeat)
+                row.update(warp_cpu_s=wcpu, warp_points_per_cpu_s=len(pts) / wcpu,
+                           same_prim_as_warp=float(np.mean(wf == nat["prim"])))
+            rows.append(row)
+            print(row, flush=True)
+    mesh = load_mesh(DATA / MESHES[args.meshes[0]] if MESHES[args.meshes[0]] else bundled_mesh_path())
+    tri = mesh.local_triangles()[:2000]
+    lo, hi = tri.min(axis=1), tri.max(axis=1)
+    pts = point_sets(tri, args.depth_points, rng)["near"]
+    for label, tree in (("balanced (jaxbvh.build)", jaxbvh.build(lo, hi, max_leaf=1)),
+                        ("2,000-deep chain", chain_tree(lo, hi))):
+        height = int(np.max(jaxbvh.tree.depth(tree)))
+        row = dict(tree=label, height=height)
+        for engine, n in (("native", len(pts)), ("jax", min(jax_n, len(pts)))):
+            ours(tree, tri, pts[: args.batch], args.batch, engine)
+            res, _, cpu = timed(lambda: ours(tree, tri, pts[:n], args.batch, engine), args.repeat)
+            steps = res["box_tests"].sum() / 2 + res["prim_tests"].sum()
+            row.update({f"{engine}_points_per_cpu_s": n / cpu, f"{engine}_ns_per_step": 1e9 * cpu / steps,
+                        "steps_per_point": float(steps / n)})
+        depth_rows.append(row)
+        print(row, flush=True)
+    first = {}
+    env = dict(os.environ)
+    env.pop("XLA_FLAGS", None)
+    env.pop("NUMBA_CACHE_DIR", None)
+    with tempfile.TemporaryDirectory() as folder:
+        env["JAXBVH_CACHE_DIR"] = folder
+        for label in ("cold", "warm"):
+            out = subprocess.run([sys.executable, "-c", FIRST_CALL], env=env, check=True, stdout=subprocess.PIPE,
+                                 text=True)
+            first[label] = float(out.stdout.strip().splitlines()[-1])
+    meta = dict(machine=platform.processor() or platform.machine(), cpus=os.cpu_count(), load=os.getloadavg(),
+                jax=jax.__version__, batch=args.batch, repeat=args.repeat, first_call_cpu_s=first)
+    out = args.out.with_name(args.out.name + "_native")
+    with atomic_write(out.with_suffix(".json"), "w") as f:
+        json.dump(dict(meta=meta, rows=rows, depth=depth_rows), f, indent=1)
+    with atomic_write(out.with_suffix(".md"), "w") as f:
+        f.write(render_native(meta, rows, depth_rows))
+    print(f"wrote {out.with_suffix('.md')}")
+
+
+def render_native(meta, rows, depth_rows):
+    nan = float("nan")
+    first = meta["first_call_cpu_s"]
+    lines = ["# Closest point: the native engine (numba) beside the JAX engine and Warp", "",
+             f"CPU, {meta['cpus']} cores, load average {', '.join(f'{x:.1f}' for x in meta['load'])} at the end "
+             f"(a shared machine); JAX {meta['jax']}; batches of {meta['batch']} points per call; points per "
+             f"CPU-second of the process, median of {meta['repeat']} warm runs. Native: "
+             "`closest_point(..., engine=\"native\")`, one thread. JAX: `engine=\"jax\"` (a `vmap`-ed "
+             "`while_loop` per batch), on the first points of the set only. Warp: `mesh_query_point_no_sign` on "
+             "its CPU device, its own BVH (a dash: warp-lang not installed in this run). \"same prim / box tests as "
+             "JAX\": the fraction of the points both engines ran where the native engine's triangle / box-test "
+             "count is the JAX engine's; max \\|d - d_jax\\|: the largest distance difference.", "",
+             "| mesh | triangles | points | native points/CPU s | JAX points/CPU s | native / JAX | Warp points/CPU s "
+             "| Warp / native | same prim as JAX | same box tests as JAX | max \\|d - d_jax\\| | same prim as Warp "
+             "| box tests | prim tests |",
+             "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        if "warp_points_per_cpu_s" in r:
+            warp = r["warp_points_per_cpu_s"]
+            warp = (f"{warp:,.0f}", f"{warp / r['native_points_per_cpu_s']:.2f}x", f"{r['same_prim_as_warp']:.4f}")
+        else:
+            warp = ("—", "—", "—")
+        lines.append(f"| {r['mesh']} | {r['triangles']:,} | {r['points']} | {r['native_points_per_cpu_s']:,.0f} | "
+                     f"{r['jax_points_per_cpu_s']:,.0f} | "
+                     f"{r['native_points_per_cpu_s'] / r['jax_points_per_cpu_s']:.0f}x "
+                     f"| {warp[0]} | {warp[1]} | {r['same_prim_as_jax']:.4f} | "
+                     f"{r['same_box_tests_as_jax']:.4f} | {r['max_abs_diff_jax']:.1e} "
+                     f"| {warp[2]} | {r['box_tests']:.0f} | {r['prim_tests']:.1f} |")
+    lines += ["", "Depth: the same near-surface points through a balanced tree and a 2,000-deep chain over the "
+              "first 2,000 triangles of the first mesh (steps = box tests / 2 + primitive tests).", "",
+              "| tree | height | steps per point | native points/CPU s | native ns per step | JAX points/CPU s | "
+              "JAX ns per step |", "|---|---:|---:|---:|---:|---:|---:|"]
+    for r in depth_rows:
+        lines.append(f"| {r['tree']} | {r['height']:,} | {r['steps_per_point']:.0f} | "
+                     f"{r['native_points_per_cpu_s']:,.0f} | {r['native_ns_per_step']:.0f} | "
+                     f"{r['jax_points_per_cpu_s']:,.0f} | {r['jax_ns_per_step']:.0f} |")
+    lines += ["", f"First native call (1,000 points, spot), CPU s of the call in a new process: cold (empty "
+              f"JAXBVH_CACHE_DIR: numba compiles the kernel, float32) {first['cold']:.2f}; warm (a second process, "
+              f"numba's cache in that folder) {first['warm']:.2f}.", "",
+              "Notes. \"same prim as JAX\" below 1 with the same box tests everywhere: exact ties, a point closest "
+              "to a vertex that several triangles share. The native engine evaluates the NumPy twin's formulas "
+              "bit for bit and names the lowest id; XLA rounds the shared vertex's distance differently from one "
+              "triangle to the next (a fused multiply-add), so the JAX engine can name another of the equidistant "
+              "triangles (checked on spot's box points: the 7 of 256 that differ all have native == twin). "
+              "The ratio native / JAX is of one CPU thread against XLA's program on the same thread count; "
+              "the JAX engine's ns per step falls on the chain because every lane of a batch walks the same long "
+              "path there (no lane waits for a slower one)."]
+    return "\n".join(lines) + "\n"
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--meshes", nargs="+", default=["bunny", "legocar"], choices=sorted(MESHES))
@@ -262,9 +405,13 @@ def main(argv=None):
     ap.add_argument("--rays", type=int, default=20_000)
     ap.add_argument("--ray-batch", type=int, default=4096)
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--native", action="store_true", help="the native engine beside jax and Warp (docstring)")
+    ap.add_argument("--jax-points", type=int, default=2048, help="with --native: points the JAX engine answers")
     args = ap.parse_args(argv)
     if args.raycast:
         return raycast_main(args)
+    if args.native:
+        return native_main(args)
     if args.render:
         saved = json.loads(args.out.with_suffix(".json").read_text())
         with atomic_write(args.out.with_suffix(".md"), "w") as f:

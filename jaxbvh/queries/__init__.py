@@ -3,7 +3,8 @@
 ``search``: :func:`closest_point`, :func:`overlap`, :func:`within` and :func:`raycast`
 (closest or any hit, inside jit), jitted functions of
 the tree and primitives, for use inside your own ``jit`` / ``vmap`` / ``grad`` (twin:
-``search_reference``); ``parent_walk``: the stackless walk they share (state independent
+``search_reference``; the first three also run natively, ``engine=``: ``native_search``);
+``parent_walk``: the stackless walk they share (state independent
 of the tree's depth); ``geometry``: the per-primitive tests, differentiable (also
 :func:`ray_hit`, a ray's hit distance and barycentrics on a chosen triangle);
 ``normals``: pseudonormals for signed distances. The ray queries :func:`closest_hit` and

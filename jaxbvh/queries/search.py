@@ -20,6 +20,16 @@ Results. :class:`PointHit` for :func:`closest_point`, :class:`Listed` for the li
 queries; each with the walk's counters and ``step_limit`` (the walk was cut off: the
 tree is broken, results incomplete).
 
+Engines. :func:`closest_point`, :func:`overlap` and :func:`within` take ``engine``
+(:data:`jaxbvh.native.ENGINES`, default :data:`jaxbvh.native.DEFAULT_ENGINE`; the one
+rule is :func:`jaxbvh.native.choose`): ``"jax"``, the array program described here;
+``"native"``, the same walk compiled by numba (:mod:`jaxbvh.queries.native_search`: one
+CPU thread, query after query, many times faster on a CPU), the same results field for
+field; ``"auto"`` takes native on a CPU with concrete arguments and jax whenever an
+argument is being traced, i.e. inside your ``jit``, ``vmap``, ``grad`` or ``jvp`` (so
+gradients always come from the jax engine, and ``engine="native"`` there is an error).
+The native engine returns JAX arrays of the same shapes and dtypes.
+
 Gradients. The search is a discrete choice and is not differentiated (it runs on
 ``stop_gradient`` copies of its inputs); the answer is then recomputed from the chosen
 primitive's corners (:mod:`jaxbvh.queries.geometry`), so ``jax.grad`` / ``jax.jvp`` of
@@ -39,7 +49,9 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
+from jaxbvh import native
 from jaxbvh.program_store import stored_jit
 from jaxbvh.queries import geometry
 from jaxbvh.queries.parent_walk import Hooks, walk
@@ -166,7 +178,27 @@ def _closest_one(tree, triangles, pseudonormals, max_distance, point):
 
 
 @stored_jit
-def closest_point(tree, triangles, points, pseudonormals=None, max_distance=jnp.inf) -> PointHit:
+def _closest_point_jax(tree, triangles, points, pseudonormals=None, max_distance=jnp.inf) -> PointHit:
+    one = partial(_closest_one, tree, triangles, pseudonormals)
+    return _batched(lambda p, r: one(r, p), (1, 0), jnp.asarray(points), jnp.asarray(max_distance))
+
+
+def _flat_queries(dtype, *queries):
+    """NumPy ``queries`` (each ``(array, n_core)``) in ``dtype``, broadcast over their
+    leading shape and flattened: ``(shape, [flat arrays])`` (the native twin of :func:`_batched`)."""
+    arrays = [np.asarray(q).astype(dtype, copy=False) for q, _ in queries]
+    shape = np.broadcast_shapes(*(a.shape[: a.ndim - k] for a, (_, k) in zip(arrays, queries)))
+    return shape, [np.broadcast_to(a, shape + a.shape[a.ndim - k:]).reshape((-1,) + a.shape[a.ndim - k:])
+                   for a, (_, k) in zip(arrays, queries)]
+
+
+def _shaped(result_type, shape, fields):
+    """``result_type`` of JAX arrays from the native engine's flat NumPy ``fields``."""
+    return result_type(**{name: jnp.asarray(a.reshape(shape + a.shape[1:])) for name, a in fields.items()})
+
+
+def closest_point(tree, triangles, points, pseudonormals=None, max_distance=jnp.inf, *,
+                  engine: str = native.DEFAULT_ENGINE) -> PointHit:
     """Closest point on a triangle mesh to each of ``points`` [..., 3]; jitted, differentiable.
 
     ``tree``: :class:`~jaxbvh.tree.layout.BVH` or :class:`~jaxbvh.tree.layout.WideBVH`
@@ -177,10 +209,17 @@ def closest_point(tree, triangles, points, pseudonormals=None, max_distance=jnp.
     the closest point lies on, Bærentzen & Aanæs 2005; exact for closed manifold meshes).
     ``max_distance`` (scalar or [...]): search radius; a point farther from every
     triangle gets ``prim = -1`` and ``distance = inf`` (and the search is cheaper the
-    smaller it is). Returns :class:`PointHit` (module docstring for gradients).
+    smaller it is). ``engine``: ``"auto"``, ``"jax"`` or ``"native"`` (module docstring).
+    Returns :class:`PointHit` (module docstring for gradients).
     """
-    one = partial(_closest_one, tree, triangles, pseudonormals)
-    return _batched(lambda p, r: one(r, p), (1, 0), jnp.asarray(points), jnp.asarray(max_distance))
+    if native.choose(engine, tree, triangles, points, pseudonormals, max_distance) == "jax":
+        return _closest_point_jax(tree, triangles, points, pseudonormals, max_distance)
+    from jaxbvh.queries import native_search
+
+    dtype = np.asarray(tree.lo).dtype
+    shape, (flat, radius) = _flat_queries(dtype, (points, 1), (max_distance, 0))
+    max_d2 = np.where(np.isinf(radius), dtype.type(np.inf), radius * radius)
+    return _shaped(PointHit, shape, native_search.closest_point(tree, triangles, flat, max_d2, pseudonormals))
 
 
 # ----------------------------------------------------------------------------------
@@ -230,16 +269,28 @@ def _overlap_one(tree, prims, capacity, q_lo, q_hi):
 
 
 @partial(stored_jit, static_argnames=("capacity",))
-def overlap(tree, prims, lo, hi, *, capacity: int) -> Listed:
+def _overlap_jax(tree, prims, lo, hi, *, capacity: int) -> Listed:
+    one = partial(_overlap_one, tree, prims, capacity)
+    return _batched(one, (1, 1), jnp.asarray(lo), jnp.asarray(hi))
+
+
+def overlap(tree, prims, lo, hi, *, capacity: int, engine: str = native.DEFAULT_ENGINE) -> Listed:
     """Primitives whose box overlaps the query box ``lo``, ``hi`` [..., 3] (closed boxes:
     touching counts); jitted.
 
     ``prims``: triangles [T, 3, 3] (their bounding boxes are tested) or boxes ``(lo, hi)``
-    [T, 3], in the tree's frame. ``capacity`` (static): list length. Returns
-    :class:`Listed`; children in slot order.
+    [T, 3], in the tree's frame. ``capacity`` (static): list length. ``engine``: module
+    docstring. Returns :class:`Listed`; children in slot order.
     """
-    one = partial(_overlap_one, tree, prims, capacity)
-    return _batched(one, (1, 1), jnp.asarray(lo), jnp.asarray(hi))
+    if native.choose(engine, tree, prims, lo, hi) == "jax":
+        return _overlap_jax(tree, prims, lo, hi, capacity=capacity)
+    from jaxbvh.queries import native_search
+
+    dtype = np.asarray(tree.lo).dtype
+    shape, (q_lo, q_hi) = _flat_queries(dtype, (lo, 1), (hi, 1))
+    fields = native_search.lists(tree, prims, native_search.OVERLAP, q_lo, q_hi, np.zeros(len(q_lo), dtype),
+                                 int(capacity))
+    return _shaped(Listed, shape, fields)
 
 
 def _within_one(tree, prims, capacity, point, radius):
@@ -266,17 +317,28 @@ def _within_one(tree, prims, capacity, point, radius):
 
 
 @partial(stored_jit, static_argnames=("capacity",))
-def within(tree, prims, points, radius, *, capacity: int) -> Listed:
+def _within_jax(tree, prims, points, radius, *, capacity: int) -> Listed:
+    one = partial(_within_one, tree, prims, capacity)
+    return _batched(one, (1, 0), jnp.asarray(points), jnp.asarray(radius))
+
+
+def within(tree, prims, points, radius, *, capacity: int, engine: str = native.DEFAULT_ENGINE) -> Listed:
     """Primitives within ``radius`` (scalar or [...], tree units; the ball is closed) of
     each of ``points`` [..., 3]; jitted.
 
     ``prims``: triangles [T, 3, 3] (exact point–triangle distance) or boxes ``(lo, hi)``
     [T, 3] (point–box distance). ``capacity`` (static): list length. Returns
     :class:`Listed`; children visited nearest box first, so on overflow the list holds
-    primitives near the point.
+    primitives near the point. ``engine``: module docstring.
     """
-    one = partial(_within_one, tree, prims, capacity)
-    return _batched(one, (1, 0), jnp.asarray(points), jnp.asarray(radius))
+    if native.choose(engine, tree, prims, points, radius) == "jax":
+        return _within_jax(tree, prims, points, radius, capacity=capacity)
+    from jaxbvh.queries import native_search
+
+    dtype = np.asarray(tree.lo).dtype
+    shape, (centre, r) = _flat_queries(dtype, (points, 1), (radius, 0))
+    fields = native_search.lists(tree, prims, native_search.WITHIN_TRIANGLES, centre, centre, r * r, int(capacity))
+    return _shaped(Listed, shape, fields)
 
 
 # ----------------------------------------------------------------------------------

@@ -102,7 +102,7 @@ def test_closest_point_equals_brute_force_and_twin(seed, n, kind):
     tree = make_tree(tri, kind)
     points = rng.uniform(-1.6, 1.6, (16, 3)).astype(np.float32)
     points[:4] = tri[rng.integers(0, n, 4), rng.integers(0, 3, 4)]  # on a corner: ties between triangles
-    got = jax.tree_util.tree_map(np.asarray, queries.closest_point(tree, padded(tri), points))
+    got = jax.tree_util.tree_map(np.asarray, queries.closest_point(tree, padded(tri), points, engine="jax"))
     assert not got.step_limit.any()
     for i, p in enumerate(points):
         d2 = brute_closest(tri, p)
@@ -221,8 +221,9 @@ def test_overlap_and_within_equal_brute_force_and_twin(seed, n, kind, capacity, 
     half = rng.uniform(0, 0.6, (8, 3)).astype(np.float32)
     radius = rng.uniform(0, 0.8, 8).astype(np.float32)
     got_box = jax.tree_util.tree_map(np.asarray, queries.overlap(tree, prims, centre - half, centre + half,
-                                                                 capacity=capacity))
-    got_ball = jax.tree_util.tree_map(np.asarray, queries.within(tree, prims, centre, radius, capacity=capacity))
+                                                                 capacity=capacity, engine="jax"))
+    got_ball = jax.tree_util.tree_map(np.asarray, queries.within(tree, prims, centre, radius, capacity=capacity,
+                                                                  engine="jax"))
     for i in range(len(centre)):
         q_lo, q_hi = centre[i] - half[i], centre[i] + half[i]
         box_truth = np.flatnonzero(np.all((t_lo <= q_hi) & (q_lo <= t_hi), axis=1))
@@ -242,7 +243,8 @@ def test_overlap_and_within_equal_brute_force_and_twin(seed, n, kind, capacity, 
             assert not got.step_limit[i]
 
 
-def test_queries_use_no_stack_a_deep_chain_is_exact():
+@pytest.mark.parametrize("engine", ["jax", "native"])
+def test_queries_use_no_stack_a_deep_chain_is_exact(engine):
     """A 2,000-deep chain (a stack walk would need 2,000 entries per query): closest point
     and radius lists equal brute force; the walk's state is a few scalars."""
     rng = np.random.default_rng(7)
@@ -251,8 +253,8 @@ def test_queries_use_no_stack_a_deep_chain_is_exact():
     tree = chain_tree(tri.min(axis=1), tri.max(axis=1))
     assert int(np.max(jaxbvh.tree.depth(tree))) == n - 1
     points = rng.uniform(-3, 3, (8, 3)).astype(np.float32)
-    got = queries.closest_point(tree, tri, points)
-    listed = queries.within(tree, tri, points, 0.3, capacity=32)
+    got = queries.closest_point(tree, tri, points, engine=engine)
+    listed = queries.within(tree, tri, points, 0.3, capacity=32, engine=engine)
     for i, p in enumerate(points):
         d2 = brute_closest(tri, p)
         assert int(got.prim[i]) == np.flatnonzero(d2 == d2.min())[0]
