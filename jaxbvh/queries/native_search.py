@@ -45,7 +45,8 @@ def _make(numba):
     # the helpers become module globals, not closure cells: numba's on-disk cache cannot
     # find a closure's entry again in a new process (its key holds the cells' objects)
     global _at, _box_distance2, _closest_on_triangle, _child_boxes
-    jit = numba.njit(cache=True, nogil=True)
+    # on disk where jaxbvh.native set numba's cache up (nowhere with jaxbvh's cache off)
+    jit = numba.njit(cache=native.caching(), nogil=True)
 
     @jit
     def _at(i, n):

@@ -53,7 +53,7 @@ import numpy as np
 
 from jaxbvh import native
 from jaxbvh.program_store import stored_jit
-from jaxbvh.queries import geometry
+from jaxbvh.queries import geometry, native_search
 from jaxbvh.queries.parent_walk import Hooks, walk
 from jaxbvh.rays.stack_walk import Hits
 from jaxbvh.rays.traversal import trace_batch
@@ -214,7 +214,6 @@ def closest_point(tree, triangles, points, pseudonormals=None, max_distance=jnp.
     """
     if native.choose(engine, tree, triangles, points, pseudonormals, max_distance) == "jax":
         return _closest_point_jax(tree, triangles, points, pseudonormals, max_distance)
-    from jaxbvh.queries import native_search
 
     dtype = np.asarray(tree.lo).dtype
     shape, (flat, radius) = _flat_queries(dtype, (points, 1), (max_distance, 0))
@@ -284,7 +283,6 @@ def overlap(tree, prims, lo, hi, *, capacity: int, engine: str = native.DEFAULT_
     """
     if native.choose(engine, tree, prims, lo, hi) == "jax":
         return _overlap_jax(tree, prims, lo, hi, capacity=capacity)
-    from jaxbvh.queries import native_search
 
     dtype = np.asarray(tree.lo).dtype
     shape, (q_lo, q_hi) = _flat_queries(dtype, (lo, 1), (hi, 1))
@@ -333,7 +331,6 @@ def within(tree, prims, points, radius, *, capacity: int, engine: str = native.D
     """
     if native.choose(engine, tree, prims, points, radius) == "jax":
         return _within_jax(tree, prims, points, radius, capacity=capacity)
-    from jaxbvh.queries import native_search
 
     dtype = np.asarray(tree.lo).dtype
     shape, (centre, r) = _flat_queries(dtype, (points, 1), (radius, 0))
