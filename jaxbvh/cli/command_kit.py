@@ -61,10 +61,12 @@ DEFAULT_SEED = 0
 BUILDER_EXCLUDE = ("pad", "dtype")
 
 
-def builder_options(default: BuilderConfig | None = None, methods=BUILDERS) -> config_options.ConfigOptions:
+def builder_options(default: BuilderConfig | None = None, methods=BUILDERS,
+                    max_leaf: int | None = None) -> config_options.ConfigOptions:
     """The builder options of the builders ``methods`` (names); ``default``: a Config whose
-    values are its builder's defaults (None: every builder's class defaults)."""
-    configs = {m: BUILDERS[m] for m in methods}
+    values are its builder's defaults (None: every builder's class defaults); ``max_leaf``:
+    every builder's default leaf limit instead of its class default (None: the class's)."""
+    configs = {m: BUILDERS[m] if max_leaf is None else BUILDERS[m](max_leaf=max_leaf) for m in methods}
     if default is not None:
         configs[default.method] = default
     return config_options.ConfigOptions(configs, exclude=BUILDER_EXCLUDE, method_flag="--builder",
@@ -72,12 +74,14 @@ def builder_options(default: BuilderConfig | None = None, methods=BUILDERS) -> c
                                         check_while_parsing=True)
 
 
-def add_builder_args(parser, *, default: BuilderConfig | None = None, methods=BUILDERS) -> None:
+def add_builder_args(parser, *, default: BuilderConfig | None = None, methods=BUILDERS,
+                     max_leaf: int | None = None) -> None:
     """``--builder`` and the builders' knobs (:mod:`jaxbvh.builders.configs`); ``default``:
     the builder (its method and values) when no option says otherwise (None:
     :data:`~jaxbvh.builders.configs.DEFAULT_BUILDER` with its class defaults);
     ``methods``: the builders a command offers (a command that builds from boxes alone
-    leaves out :data:`~jaxbvh.builders.configs.TRIANGLE_BUILDERS`)."""
+    leaves out :data:`~jaxbvh.builders.configs.TRIANGLE_BUILDERS`); ``max_leaf``: every
+    builder's default leaf limit (None: each Config's own)."""
     method = DEFAULT_BUILDER if default is None else default.method
     triangles = any(m in TRIANGLE_BUILDERS for m in methods)
     parser.add_argument("--builder", choices=list(methods), default=method,
@@ -85,7 +89,7 @@ def add_builder_args(parser, *, default: BuilderConfig | None = None, methods=BU
                              "from Morton order: much faster on big inputs)"
                              + (", sbvh (spatial splits: triangles in several leaves)" if triangles else "")
                              + " (default: %(default)s)")
-    options = builder_options(default, methods)
+    options = builder_options(default, methods, max_leaf)
     options.add_to(parser, "builder options (knobs of each builder's Config)")
     parser.set_defaults(builder_options=options)
 

@@ -300,12 +300,14 @@ DEFAULT_BUILDER = BinnedConfig(max_leaf=OBJECT_MAX_LEAF)
 def object_builder(builder: BuilderConfig | None = None, **options) -> BuilderConfig:
     """The builder Config of the object BVHs: ``builder`` (None: :data:`DEFAULT_BUILDER`),
     or in the older keyword form the Config of ``method`` (default: the default's) made
-    from ``options`` (``max_leaf``, ``bins``, ``ct``, ``ci``, ...; knobs of other builders
-    are ignored, :func:`jaxbvh.builders.configs.make_config`). Not both at once."""
+    from ``options`` (``max_leaf``, default :data:`OBJECT_MAX_LEAF`, ``bins``, ``ct``,
+    ``ci``, ...; knobs of other builders are ignored,
+    :func:`jaxbvh.builders.configs.make_config`). Not both at once."""
     if options:
         if builder is not None:
             raise TypeError("give a builder Config or keyword builder options, not both "
                             "(builder.replace(...) changes a Config)")
+        options.setdefault("max_leaf", OBJECT_MAX_LEAF)
         return make_config(options.pop("method", DEFAULT_BUILDER.method), **options)
     if builder is None:
         return DEFAULT_BUILDER

@@ -115,3 +115,24 @@ def test_sbvh_is_not_offered_and_refused_in_one_line(capsys, tmp_path):
     mesh = grid_obj(tmp_path / "g.obj", 2, 0)
     assert_one_line_error(*run_cli(capsys, "rebraid", mesh, "--builder", "sbvh"), "--builder", "sbvh")
     assert_one_line_error(*run_cli(capsys, "rebraid", mesh, "--alpha", "0"), "--alpha")
+
+
+def test_object_bvhs_keep_the_object_leaf_limit_whichever_builder():
+    """The object BVHs' leaves stop at OBJECT_MAX_LEAF (re-braiding opens nodes), below the
+    builders' own default, for every builder: in the library's keyword form and in
+    `jaxbvh rebraid --builder NAME`."""
+    from jaxbvh.builders.configs import BOX_BUILDERS
+    from jaxbvh.cli import app, command_kit
+    from jaxbvh.configs import DEFAULT_MAX_LEAF
+    from jaxbvh.twolevel import objects as fm
+
+    assert fm.OBJECT_MAX_LEAF < DEFAULT_MAX_LEAF
+    assert fm.object_builder().max_leaf == fm.OBJECT_MAX_LEAF
+    parser, _ = app.make_parser()
+    for method in BOX_BUILDERS:
+        assert fm.object_builder(method=method).max_leaf == fm.OBJECT_MAX_LEAF, method
+        assert fm.object_builder(method=method, max_leaf=2).max_leaf == 2, method
+        args = parser.parse_args(["rebraid", "scene.glb", "--builder", method])
+        assert command_kit.builder_config(args).max_leaf == fm.OBJECT_MAX_LEAF, method
+        args = parser.parse_args(["rebraid", "scene.glb", "--builder", method, "--max-leaf", "7"])
+        assert command_kit.builder_config(args).max_leaf == 7, method

@@ -49,9 +49,11 @@ def add_parser(subparsers):
                         "objects and instances are kept")
     OPTIONS.add_to(parser)
     # the builder of the object BVHs and of the single BVH: the two-level builder's
-    # (binned SAH, the default leaves), not jaxbvh.build's sweep. Builders from boxes
-    # only: the two-level BVH's objects and BRefs are built from boxes (no spatial splits)
-    command_kit.add_builder_args(parser, default=fm.DEFAULT_BUILDER, methods=BOX_BUILDERS)
+    # (binned SAH, leaves up to OBJECT_MAX_LEAF whichever builder), not jaxbvh.build's sweep.
+    # Builders from boxes only: the two-level BVH's objects and BRefs are built from boxes
+    # (no spatial splits)
+    command_kit.add_builder_args(parser, default=fm.DEFAULT_BUILDER, methods=BOX_BUILDERS,
+                                 max_leaf=fm.OBJECT_MAX_LEAF)
     parser.add_argument("--object-space", action="store_true",
                         help="build every object in its own frame, also those placed by one instance "
                         "(default: those are built in world space)")
