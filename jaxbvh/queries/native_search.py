@@ -304,9 +304,18 @@ def _arrays(tree):
             ids(tree.prim_count), ids(tree.prim_index), int(np.asarray(tree.root)))
 
 
+#: the float dtypes the kernels are compiled for (a tree of another goes to the JAX engine)
+DTYPES = (np.float32, np.float64)
+
+
+def supports(tree) -> bool:
+    """Whether the kernels take ``tree`` (its boxes' float dtype; traced trees too)."""
+    return np.dtype(tree.lo.dtype) in DTYPES
+
+
 def _dtype(tree):
     dtype = np.asarray(tree.lo).dtype
-    if dtype not in (np.float32, np.float64):
+    if dtype not in DTYPES:
         raise TypeError(f"the native engine takes float32 or float64 trees, got {dtype}")
     return dtype
 

@@ -212,7 +212,8 @@ def closest_point(tree, triangles, points, pseudonormals=None, max_distance=jnp.
     smaller it is). ``engine``: ``"auto"``, ``"jax"`` or ``"native"`` (module docstring).
     Returns :class:`PointHit` (module docstring for gradients).
     """
-    if native.choose(engine, tree, triangles, points, pseudonormals, max_distance) == "jax":
+    if native.choose(engine, tree, triangles, points, pseudonormals, max_distance,
+                     supported=native_search.supports(tree)) == "jax":
         return _closest_point_jax(tree, triangles, points, pseudonormals, max_distance)
 
     dtype = np.asarray(tree.lo).dtype
@@ -281,7 +282,7 @@ def overlap(tree, prims, lo, hi, *, capacity: int, engine: str = native.DEFAULT_
     [T, 3], in the tree's frame. ``capacity`` (static): list length. ``engine``: module
     docstring. Returns :class:`Listed`; children in slot order.
     """
-    if native.choose(engine, tree, prims, lo, hi) == "jax":
+    if native.choose(engine, tree, prims, lo, hi, supported=native_search.supports(tree)) == "jax":
         return _overlap_jax(tree, prims, lo, hi, capacity=capacity)
 
     dtype = np.asarray(tree.lo).dtype
@@ -329,7 +330,7 @@ def within(tree, prims, points, radius, *, capacity: int, engine: str = native.D
     :class:`Listed`; children visited nearest box first, so on overflow the list holds
     primitives near the point. ``engine``: module docstring.
     """
-    if native.choose(engine, tree, prims, points, radius) == "jax":
+    if native.choose(engine, tree, prims, points, radius, supported=native_search.supports(tree)) == "jax":
         return _within_jax(tree, prims, points, radius, capacity=capacity)
 
     dtype = np.asarray(tree.lo).dtype

@@ -127,7 +127,9 @@ def test_every_knob_option_has_the_config_default_and_states_it(command):
     for options in {id(a.config_options): a.config_options for a in knob_actions(command)}.values():
         for method in options.methods:
             args = parse(command, *method_argv(options, method))
-            library = two_level_objects.DEFAULT_BUILDER if (command, method) == ("rebraid", "binned") \
+            # rebraid builds object BVHs: their builder's defaults (leaves up to OBJECT_MAX_LEAF)
+            library = two_level_objects.object_builder(method=method) \
+                if command == "rebraid" and method in BOX_BUILDERS \
                 else type(options.bases[method])()
             assert options.config(method, args) == library, (command, method)
     assert ESTABLISHED[command] <= offered, ESTABLISHED[command] - offered

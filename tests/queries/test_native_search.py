@@ -20,6 +20,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from jaxbvh import queries
+from jaxbvh.queries import native_search
 from jaxbvh.queries import search_reference as ref
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
@@ -190,3 +191,18 @@ def test_importing_the_queries_does_not_import_numba():
     code = ("import sys, jaxbvh, jaxbvh.queries, jaxbvh.queries.native_search; "
             "assert 'numba' not in sys.modules, 'numba imported'")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
+
+
+def test_a_tree_the_kernels_do_not_take_goes_to_the_jax_engine():
+    """A float16 tree: "auto" answers on the JAX engine, "native" refuses it plainly."""
+    rng = np.random.default_rng(3)
+    tri = random_triangles(rng, 10)
+    tree = make_tree(tri, "binned")
+    half = tree.replace(lo=np.asarray(tree.lo).astype(np.float16), hi=np.asarray(tree.hi).astype(np.float16))
+    points = rng.uniform(-1, 1, (4, 3)).astype(np.float16)
+    assert native_search.supports(tree) and not native_search.supports(half)
+    auto = queries.closest_point(half, padded(tri).astype(np.float16), points)
+    jax_engine = queries.closest_point(half, padded(tri).astype(np.float16), points, engine="jax")
+    np.testing.assert_array_equal(np.asarray(auto.prim), np.asarray(jax_engine.prim))
+    with pytest.raises(TypeError, match="does not cover"):
+        queries.closest_point(half, padded(tri).astype(np.float16), points, engine="native")

@@ -361,7 +361,7 @@ def test_plain_mesh_builds_no_top_level_and_equals_the_single_bvh():
     assert int(tl.bref_count) == 1 and np.asarray(tl.top.left).shape == (1,)
     assert int(tl.bref_node[0]) == int(tl.forest.root[0]) and float(tl.instances.margin[0]) == 0
     lo, hi = mesh.local_boxes()
-    single = jaxbvh.to_numpy(jaxbvh.build(lo, hi, method="binned"))
+    single = jaxbvh.to_numpy(jaxbvh.build(lo, hi, method="binned", max_leaf=fm.OBJECT_MAX_LEAF))
     flat = twolevel.flatten(tl)
     jaxbvh.validate(flat, lo, hi)
     np.testing.assert_array_equal(jaxbvh.to_interchange(flat)["lo"], jaxbvh.to_interchange(single)["lo"])
