@@ -304,63 +304,59 @@ def trace_rays(rows, irows, flags, has_skip, parent, root_box, slot_rows, slot_i
                         leaves_visited += 1
                         leaf_pos = irows[ref, 7 * k + 1]
                         leaf_end = leaf_pos + n_prims
-                    elif k == 2 and not (has_skip and (flags[ref] & 6) != 0):
-                        # a binary node without skip flags, written out (the common case; the
-                        # loops over k below cost about twice as much): the same tests, order, push
-                        c0 = irows[ref, 12]
-                        c1 = irows[ref, 13]
-                        h0 = False
-                        h1 = False
-                        e0 = zero
-                        e1 = zero
-                        if c0 >= 0:
-                            box_tests += 1
-                            h0, e0 = _slab(rows, ref, 0, t_min, found_t, ox, oy, oz, ix, iy, iz, robust)
-                        if c1 >= 0:
-                            box_tests += 1
-                            h1, e1 = _slab(rows, ref, 1, t_min, found_t, ox, oy, oz, ix, iy, iz, robust)
-                        split = irows[ref, 15]
-                        if split >= 0:  # by axis: the lower child first where the direction is >= 0
-                            zero_first = (dx if split == 0 else (dy if split == 1 else dz)) >= 0
-                        else:  # by entry; ties: the lower slot
-                            zero_first = not (e1 < e0)
-                        n_push = 0
-                        if h0 and h1:
-                            upper = slot + 1 if slot + 1 < capacity else 0
-                            stack_node[upper] = c0 if zero_first else c1  # nearest on top
-                            stack_entry[upper] = e0 if zero_first else e1
-                            stack_node[slot] = c1 if zero_first else c0
-                            stack_entry[slot] = e1 if zero_first else e0
-                            n_push = 2
-                        elif h0 or h1:
-                            stack_node[slot] = c0 if h0 else c1
-                            stack_entry[slot] = e0 if h0 else e1
-                            n_push = 1
-                        sp = top + n_push
-                        sp_slot = slot + n_push
-                        if sp_slot >= capacity:
-                            sp_slot -= capacity
-                        base = max(base, sp - capacity)
                     else:
-                        box_tests += _children(rows, irows, flags, has_skip, ref, entry, t_min, found_t, ox, oy,
-                                               oz, ix, iy, iz, dx, dy, dz, robust, kid_hit, kid_entry, key)
-                        # the hit children in visiting order (key, then slot: an insertion sort,
-                        # stable), nearest on top: the ranks of stack_walk._push
-                        n_push = 0
-                        for j in range(k):
-                            if kid_hit[j]:
-                                pos = n_push
-                                while pos > 0 and key[order[pos - 1]] > key[j]:
-                                    order[pos] = order[pos - 1]
-                                    pos -= 1
-                                order[pos] = j
-                                n_push += 1
-                        for rank in range(n_push):
-                            at = slot + n_push - 1 - rank
-                            if at >= capacity:
-                                at -= capacity
-                            stack_node[at] = irows[ref, 6 * k + order[rank]]
-                            stack_entry[at] = kid_entry[order[rank]]
+                        if k == 2 and not (has_skip and (flags[ref] & 6) != 0):
+                            # a binary node without skip flags, written out (the common case; the
+                            # loops over k below cost about twice as much): the same tests, order, push
+                            c0 = irows[ref, 12]
+                            c1 = irows[ref, 13]
+                            h0 = False
+                            h1 = False
+                            e0 = zero
+                            e1 = zero
+                            if c0 >= 0:
+                                box_tests += 1
+                                h0, e0 = _slab(rows, ref, 0, t_min, found_t, ox, oy, oz, ix, iy, iz, robust)
+                            if c1 >= 0:
+                                box_tests += 1
+                                h1, e1 = _slab(rows, ref, 1, t_min, found_t, ox, oy, oz, ix, iy, iz, robust)
+                            split = irows[ref, 15]
+                            if split >= 0:  # by axis: the lower child first where the direction is >= 0
+                                zero_first = (dx if split == 0 else (dy if split == 1 else dz)) >= 0
+                            else:  # by entry; ties: the lower slot
+                                zero_first = not (e1 < e0)
+                            n_push = 0
+                            if h0 and h1:
+                                upper = slot + 1 if slot + 1 < capacity else 0
+                                stack_node[upper] = c0 if zero_first else c1  # nearest on top
+                                stack_entry[upper] = e0 if zero_first else e1
+                                stack_node[slot] = c1 if zero_first else c0
+                                stack_entry[slot] = e1 if zero_first else e0
+                                n_push = 2
+                            elif h0 or h1:
+                                stack_node[slot] = c0 if h0 else c1
+                                stack_entry[slot] = e0 if h0 else e1
+                                n_push = 1
+                        else:
+                            box_tests += _children(rows, irows, flags, has_skip, ref, entry, t_min, found_t, ox, oy,
+                                                   oz, ix, iy, iz, dx, dy, dz, robust, kid_hit, kid_entry, key)
+                            # the hit children in visiting order (key, then slot: an insertion sort,
+                            # stable), nearest on top: the ranks of stack_walk._push
+                            n_push = 0
+                            for j in range(k):
+                                if kid_hit[j]:
+                                    pos = n_push
+                                    while pos > 0 and key[order[pos - 1]] > key[j]:
+                                        order[pos] = order[pos - 1]
+                                        pos -= 1
+                                    order[pos] = j
+                                    n_push += 1
+                            for rank in range(n_push):
+                                at = slot + n_push - 1 - rank
+                                if at >= capacity:
+                                    at -= capacity
+                                stack_node[at] = irows[ref, 6 * k + order[rank]]
+                                stack_entry[at] = kid_entry[order[rank]]
                         sp = top + n_push
                         sp_slot = slot + n_push
                         if sp_slot >= capacity:
