@@ -1,4 +1,4 @@
-"""Closest-hit traversal of two-level BVHs through instance transforms (jitted).
+"""Closest- and any-hit traversal of two-level BVHs through instance transforms.
 
 The algorithm and the stack of ``(node, tag)`` pairs are described in
 :mod:`jaxbvh.twolevel.rebraid` (section "Traversal"); the stack is short and fixed
@@ -9,6 +9,13 @@ subtree back to the top-level leaf it was entered through (the tag); the tree is
 the one-level traversal's own, with this module's hooks (``_primitive``, ``_expand``);
 slab and Möller-Trumbore tests, ray checks and batching come from
 :mod:`jaxbvh.rays.traversal`.
+
+Engines (:func:`trace`, ``engine=``): ``"jax"`` runs :func:`trace_batch`, the jitted walk
+(the one to call inside a ``jit`` / ``vmap``); ``"native"`` runs the same walk compiled
+by numba (:mod:`jaxbvh.twolevel.native`: equal hits and counters, many times the rays
+per CPU second, ``bench/results/bench_twolevel_native.md``); ``"auto"`` picks by
+:func:`jaxbvh.native.choose`, the one rule of every query. The NumPy twin is
+:mod:`jaxbvh.twolevel.traversal_reference`.
 """
 
 from __future__ import annotations
@@ -19,10 +26,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxbvh import native as engines
 from jaxbvh.program_store import stored_jit
 from jaxbvh.rays.stack_walk import LEAF_WIDTH, STACK, Hits, Hooks, Node, Ray, lanes_for, walk_rays
 from jaxbvh.rays.traversal import check_rays, in_batches, inverse_direction, moller_trumbore, slab
 from jaxbvh.tree.layout import depth, to_jax, to_numpy
+from jaxbvh.tree.validate import InvalidTreeError
+from jaxbvh.twolevel import native as twolevel_native
+
+
+MODES = ("closest", "any")
+"""The two-level walk's modes (closest hit; any hit, e.g. shadow rays: the first found)."""
 
 
 def stack_capacity(tl) -> int:
@@ -89,7 +103,9 @@ def _ray(tl, origin, direction, t_max, i) -> Ray:
     def ray_in(k):
         """The ray in instance ``k``'s object frame (``k = -1``: the scene frame)."""
         m = to_object[jnp.where(k >= 0, k, n_inst)]
-        return m[:, :3] @ o + m[:, 3], m[:, :3] @ d
+        # written out, not ``m[:, :3] @ o``: one summation order, the native engine's and the twin's
+        return (m[:, 0] * o[0] + m[:, 1] * o[1] + m[:, 2] * o[2] + m[:, 3],
+                m[:, 0] * d[0] + m[:, 1] * d[1] + m[:, 2] * d[2])
 
     def primitive(slot, leaf):
         return _primitive(tl, ray_in, slot, leaf)
@@ -159,49 +175,77 @@ def _expand(tl, ray_in, ref, leaf, t_min, t_far) -> Node:
                 parent=parent, parent_tag=jnp.where(back_to_top, -1, entered))
 
 
-@partial(stored_jit, static_argnames=("capacity", "lanes", "leaf_width"))
-def trace_batch(tl, origin, direction, t_max, max_steps, *, capacity, lanes=None, leaf_width=LEAF_WIDTH):
-    """Closest hits of rays ``origin``, ``direction`` [R, 3] (scene frame) through ``tl``.
+@partial(stored_jit, static_argnames=("mode", "capacity", "lanes", "leaf_width"))
+def trace_batch(tl, origin, direction, t_max, max_steps, *, mode="closest", capacity, lanes=None,
+                leaf_width=LEAF_WIDTH):
+    """Closest (``mode="closest"``) or any hits (``"any"``) of rays ``origin``,
+    ``direction`` [R, 3] (scene frame) through ``tl``: the JAX engine, usable inside
+    ``jit`` / ``vmap`` (the tree a pytree argument).
 
     ``t_max`` [R]; ``max_steps``: loop bound (:func:`step_bound`); ``capacity``: static
-    stack size (:data:`~jaxbvh.rays.stack_walk.STACK` by default in :func:`closest_hit`:
+    stack size (:data:`~jaxbvh.rays.stack_walk.STACK` by default in :func:`trace`:
     a spilled stack climbs by parent links, so one program serves every depth). Returns :class:`~jaxbvh.rays.traversal.Hits` (``step_limit``:
     the ray was still busy at the bound).
     """
+    if mode not in MODES:
+        raise ValueError(f"two-level mode must be one of {MODES}, got {mode!r}")
     r = origin.shape[0]
-    return walk_rays(partial(_ray, tl, origin, direction, t_max), r, mode="closest", capacity=capacity,
+    return walk_rays(partial(_ray, tl, origin, direction, t_max), r, mode=mode, capacity=capacity,
                      max_hits=0, step_limit=max_steps, lanes=lanes_for(r, capacity, lanes),
                      leaf_width=leaf_width, tagged=True, climbs=True)
 
 
-def closest_hit(tl, origin, direction, *, batch: int = 256,
-                capacity: int | None = None) -> Hits:
-    """Closest hit of every ray through the two-level tree (module docstring); NumPy :class:`Hits`.
+def trace(tl, origin, direction, *, mode: str = "closest", batch: int = 256, capacity: int | None = None,
+          engine: str = engines.DEFAULT_ENGINE) -> Hits:
+    """Closest or any hit of every ray through the two-level tree (module docstring); NumPy :class:`Hits`.
 
     ``origin``, ``direction``: [R, 3] float, in the scene frame (``Mesh.frame``); ``t`` in
-    units of ``|direction|``, ``prim`` a world triangle id (-1: miss). ``capacity``: stack
+    units of ``|direction|``, ``prim`` a world triangle id (-1: miss). ``mode``:
+    ``"closest"`` or ``"any"`` (stops at the first hit found). ``capacity``: stack
     entries per ray (:data:`~jaxbvh.rays.stack_walk.STACK`: whatever the depth; a ray whose
-    stack spills climbs by parent links, with the same hits and primitive tests). Raises
-    ``RuntimeError`` if a ray passes its step bound (a malformed tree).
+    stack spills climbs by parent links, with the same hits and primitive tests).
+    ``batch``: rays per jitted call (JAX engine). ``engine``: ``"auto"``, ``"jax"`` or
+    ``"native"`` (:mod:`jaxbvh.twolevel.native`: the same walk, hits and counters,
+    compiled by numba for the CPU; ``"auto"`` picks it where it can run,
+    :func:`jaxbvh.native.choose`). Raises
+    :class:`~jaxbvh.tree.validate.InvalidTreeError` if a ray passes its step bound (a
+    malformed tree).
     """
+    if mode not in MODES:
+        raise ValueError(f"two-level mode must be one of {MODES}, got {mode!r}")
+    engine = engines.choose(engine, tl, origin, direction)
     origin, direction = check_rays(origin, direction)
     capacity = STACK if capacity is None else int(capacity)
-    bound = np.int32(step_bound(tl))
-    jtl = to_jax(tl)
+    if capacity < 2:
+        raise ValueError(f"capacity {capacity} is below the tree's 2 children per node")
+    bound = step_bound(tl)
+    if engine == "native":
+        dtype = np.dtype(jax.dtypes.canonicalize_dtype(np.asarray(tl.top.lo).dtype))
+        hits = twolevel_native.trace(tl, origin, direction, np.full(origin.shape[0], np.inf, dtype), dtype=dtype,
+                                     mode=mode, capacity=capacity, step_limit=bound)
+    else:
+        jtl = to_jax(tl)
 
-    def run(o, d, _, t_max):
-        return trace_batch(jtl, o, d, t_max, bound, capacity=capacity)
+        def run(o, d, _, t_max):
+            return trace_batch(jtl, o, d, t_max, np.int32(bound), mode=mode, capacity=capacity)
 
-    hits = in_batches(run, origin, direction, 0.0, np.inf, batch=batch, dtype=np.dtype(jtl.top.lo.dtype))
-    if hits.stack_overflow.any():
-        bad = np.flatnonzero(hits.stack_overflow)
-        raise RuntimeError(f"two-level traversal stack of {capacity} entries overflowed on "
-                           f"{bad.size} ray(s) (first: {bad[:5].tolist()})")
+        hits = in_batches(run, origin, direction, 0.0, np.inf, batch=batch, dtype=np.dtype(jtl.top.lo.dtype))
     if hits.step_limit.any():
         bad = np.flatnonzero(hits.step_limit)
-        raise RuntimeError(f"two-level traversal passed its bound of {int(bound)} steps on "
-                           f"{bad.size} ray(s) (first: {bad[:5].tolist()}): the tree is malformed")
+        raise InvalidTreeError([f"two-level traversal passed its bound of {int(bound)} steps on "
+                                f"{bad.size} ray(s) (first: {bad[:5].tolist()}): the tree is malformed"])
     return hits
+
+
+def closest_hit(tl, origin, direction, **kwargs) -> Hits:
+    """Closest hit of every ray (:func:`trace` with ``mode="closest"``)."""
+    return trace(tl, origin, direction, mode="closest", **kwargs)
+
+
+def any_hit(tl, origin, direction, **kwargs) -> Hits:
+    """Some hit of every ray, the first the walk finds (:func:`trace` with ``mode="any"``):
+    shadow rays."""
+    return trace(tl, origin, direction, mode="any", **kwargs)
 
 
 def brute_force(triangles, origin, direction, *, batch: int = 1024):
