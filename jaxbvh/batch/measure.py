@@ -8,7 +8,9 @@
   referenced), in slices of ``rays_per_call`` rays; every tree's hits and counts
   equal the single-tree :func:`jaxbvh.rays.traversal.trace` (tested). The stack is the
   ray walk's fixed one (:data:`jaxbvh.rays.stack_walk.STACK`, climbing by parent links
-  where it spills), as the single trace's: one compiled program for any depth.
+  where it spills), as the single trace's: one compiled program for any depth. Under
+  ``engine="native"`` (or ``"auto"`` on a CPU with numba) each tree is traced by the
+  native engine instead (:mod:`jaxbvh.rays.native`), mesh after mesh.
 * :func:`collapse`: Pinto's collapse (:func:`jaxbvh.wide.collapse`) of every tree. Its
   level schedule is made on the host from each tree's depths, so this is a loop of
   single-tree calls (one compile per capacity), not one vmapped call.
@@ -22,10 +24,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxbvh import native as engines
 from jaxbvh.batch import devices as batch_devices
 from jaxbvh.batch.layout import TreeBatch
 from jaxbvh.rays.stack_walk import STACK
-from jaxbvh.rays.traversal import check_rays, intersect_triangle, trace_batch
+from jaxbvh.rays import native as rays_native
+from jaxbvh.rays.traversal import check_rays, intersect_triangle, max_steps, trace_batch
 from jaxbvh.tree.cost import goldsmith_salmon_cost, ng_trifonov_cost, sah
 from jaxbvh.tree.layout import to_numpy
 from jaxbvh.wide.collapse import collapse as collapse_one
@@ -76,21 +80,26 @@ def _trace_rows(trees, triangles, origin, direction, *, mode, capacity, max_hits
 
 
 def trace(trees: TreeBatch, triangles, origin, direction, *, mode: str = "closest", max_hits: int = 16,
-          rays_per_call: int = 256, devices=None) -> list:
+          rays_per_call: int = 256, devices=None, engine: str = engines.DEFAULT_ENGINE) -> list:
     """Trace each mesh's rays through its tree; a list of per-mesh ``Hits`` (NumPy, [R] each).
 
     ``triangles``: per mesh [n, 3, 3] in the tree's frame; ``origin``, ``direction``: per
     mesh [R, 3] (one R for all meshes). ``mode``: ``"closest"``, ``"any"``, ``"all"``.
     Counts per tree: ``hits.box_tests.sum()`` etc. Raises like the single trace on a stack
-    overflow or a ray past the step bound. A mesh left out gets None.
+    overflow or a ray past the step bound. A mesh left out gets None. ``engine``:
+    ``"auto"``, ``"jax"`` or ``"native"`` (:func:`jaxbvh.native.choose`): the native
+    engine traces mesh after mesh with :mod:`jaxbvh.rays.native` (the same hits and
+    counters; ``rays_per_call`` and ``devices`` then change nothing).
     """
-    devs = batch_devices.resolve(devices)
     if not len(triangles) == len(origin) == len(direction) == trees.size:
         raise ValueError(f"trace: {trees.size} meshes but {len(triangles)} triangle sets, "
                          f"{len(origin)} origins and {len(direction)} directions")
     rays = [check_rays(o, d) for o, d in zip(origin, direction)]
     if len({o.shape[0] for o, _ in rays}) > 1:
         raise ValueError("trace: every mesh needs the same number of rays")
+    if engines.choose(engine, triangles, origin, direction) == "native":
+        return _trace_native(trees, triangles, rays, mode=mode, max_hits=max_hits)
+    devs = batch_devices.resolve(devices)
     out = [None] * trees.size
     for group in trees.groups:
         capacity = STACK  # at least every tree's arity (binary trees)
@@ -115,6 +124,24 @@ def trace(trees: TreeBatch, triangles, origin, direction, *, mode: str = "closes
             one = jax.tree_util.tree_map(lambda a, k=k: a[k], hits)
             _check_hits(one, int(group.index[k]), capacity)
             out[int(group.index[k])] = one
+    return out
+
+
+def _trace_native(trees: TreeBatch, triangles, rays, *, mode, max_hits) -> list:
+    """:func:`trace` on the native engine: each mesh's padded tree row as the JAX engine
+    reads it (the same step bound), its own triangles, one kernel call per mesh."""
+    out = [None] * trees.size
+    for group in trees.groups:
+        t = to_numpy(group.trees)
+        dt = np.dtype(jax.dtypes.canonicalize_dtype(np.asarray(t.lo).dtype))
+        for k in range(len(group)):
+            mesh = int(group.index[k])
+            tree = jax.tree_util.tree_map(lambda a, k=k: np.asarray(a)[k], t)
+            o, d = rays[mesh]
+            one = rays_native.trace(tree, np.asarray(triangles[mesh], dt), o, d, 0.0, np.inf, dtype=dt, mode=mode,
+                                    capacity=STACK, max_hits=max_hits, step_limit=max_steps(tree))
+            _check_hits(one, mesh, STACK)
+            out[mesh] = one
     return out
 
 
