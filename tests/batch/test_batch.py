@@ -157,7 +157,7 @@ def test_batched_costs_and_trace_equal_single_calls(soups):
     rays = [jaxbvh.rays.random_rays(jax.random.key(i), lo.min(0), hi.max(0), 20) for i, (lo, hi) in
             enumerate(meshes)]
     hits = batch.trace(trees, triangles, [np.asarray(o) for o, _ in rays], [np.asarray(d) for _, d in rays],
-                       rays_per_call=16)
+                       rays_per_call=16, engine="jax")
     for i, tree in enumerate(trees.unstack()):
         single = jaxbvh.all_costs(tree)
         for name, value in single.items():
@@ -381,7 +381,7 @@ def test_batched_trace_of_a_tree_deeper_than_the_stack_equals_the_single_trace()
     deep = jaxbvh.rays.trace(chain, tri, origin, direction, capacity=n, engine="jax")
     spilled = jaxbvh.rays.trace(chain, tri, origin, direction, engine="jax")
     assert (spilled.box_tests > deep.box_tests).any()  # the rays do climb with the walk's stack
-    hits = batch.trace(trees, [tri, tri], [origin] * 2, [direction] * 2, rays_per_call=40)
+    hits = batch.trace(trees, [tri, tri], [origin] * 2, [direction] * 2, rays_per_call=40, engine="jax")
     for got, tree in zip(hits, (chain, balanced)):
         want = jaxbvh.rays.trace(tree, tri, origin, direction, engine="jax")
         for field in ("t", "prim", "box_tests", "prim_tests", "nodes_visited"):

@@ -21,6 +21,7 @@ import jaxbvh
 from jaxbvh import scenes, twolevel
 from jaxbvh.rays.traversal import moller_trumbore
 from jaxbvh.testing.plugin import examples
+from jaxbvh.tree.validate import InvalidTreeError
 from jaxbvh.twolevel import brefs
 from jaxbvh.twolevel import brefs_reference as ref
 from jaxbvh.twolevel import objects as fm
@@ -215,7 +216,7 @@ def test_flattened_tree_is_valid_and_traversal_finds_the_closest_hits(mesh, opti
     tri[:mesh.n_triangles] = mesh.local_triangles()
     key = jax.random.key(0)
     origin, direction = jaxbvh.rays.make_rays(key, "random", flat, tri, 200)
-    hits = twolevel.closest_hit(tl, origin, direction, capacity=STACK)
+    hits = twolevel.closest_hit(tl, origin, direction, capacity=STACK, engine="jax")
     t_brute, p_brute = twolevel.brute_force(tri, origin, direction)
     flat_hits = jaxbvh.rays.closest_hit(flat, tri, origin, direction, capacity=STACK)
     for name, t, prim in (("two-level", hits.t, hits.prim), ("flattened", flat_hits.t, flat_hits.prim)):
@@ -242,8 +243,8 @@ def test_a_short_stack_climbs_to_the_same_hits_and_primitive_tests(mesh, options
                              shapes=SHAPES)
     flat = jaxbvh.tree.pad_to(twolevel.flatten(tl, pad=False), *FLAT)
     origin, direction = jaxbvh.rays.make_rays(jax.random.key(1), "random", flat, None, 200)
-    roomy = twolevel.closest_hit(tl, origin, direction, capacity=twolevel.stack_capacity(tl))
-    short = twolevel.closest_hit(tl, origin, direction, capacity=2)
+    roomy = twolevel.closest_hit(tl, origin, direction, capacity=twolevel.stack_capacity(tl), engine="jax")
+    short = twolevel.closest_hit(tl, origin, direction, capacity=2, engine="jax")
     # two compiled programs (stack sizes): the instance transform may round apart in the last bit
     np.testing.assert_allclose(short.t, roomy.t, rtol=1e-5)
     np.testing.assert_array_equal(short.prim, roomy.prim)
@@ -541,7 +542,7 @@ def test_few_barely_overlapping_brefs_stop_opening(step, opens):
 
 def test_traversal_of_a_cyclic_top_level_stops_at_its_bound():
     """A top level whose root is its own left child: the loop ends at its step bound and the
-    driver raises (the stack is made large enough that the bound, not the stack, stops it)."""
+    driver raises InvalidTreeError (the stack is made large enough that the bound, not the stack, stops it)."""
     import dataclasses
 
     mesh = _row_of_trees(0.5)
@@ -554,8 +555,8 @@ def test_traversal_of_a_cyclic_top_level_stops_at_its_bound():
     centre = np.asarray(top.lo[int(top.root)] + 0.5 * size, np.float32)
     origin = np.repeat((centre - size)[None], 4, 0)  # rays through the root box's centre
     direction = np.repeat(size[None], 4, 0)
-    with pytest.raises(RuntimeError, match="bound of"):
-        twolevel.closest_hit(broken, origin, direction, capacity=4 * twolevel.step_bound(broken))
+    with pytest.raises(InvalidTreeError, match="bound of"):
+        twolevel.closest_hit(broken, origin, direction, capacity=4 * twolevel.step_bound(broken), engine="jax")
 
 
 @pytest.mark.parametrize("options, message", [
