@@ -58,7 +58,7 @@ def kernel():
 def _make(numba):
     # helpers are module globals, not closure cells: numba's disk cache cannot find a
     # closure's entry again in a new process (jaxbvh.queries.native_search)
-    global _at, _frame, _look
+    global _at, _frame, _look, _slab
     # error_model="numpy": 1 / 0 is inf as in XLA (numba's default raises)
     jit = numba.njit(cache=native.caching(), nogil=True, error_model="numpy")
 
@@ -70,13 +70,13 @@ def _make(numba):
         return min(max(i, 0), n - 1)
 
     @jit
-    def _frame(to_object, k, ray, one, big):
+    def _frame(to_object, k, ray, one, big, out):
         """``_ray.ray_in``: the ray ``ray`` [6] (origin, direction) in instance ``k``'s
         frame (-1: the identity, the last row of ``to_object``) and its inverse
-        direction (``traversal.inverse_direction``): [9]."""
+        direction (``traversal.inverse_direction``), written to ``out`` [9] (no
+        allocation: a ray changes frames at every instance it enters)."""
         n = to_object.shape[0] - 1
         m = to_object[_at(k, n + 1) if k >= 0 else n]
-        out = np.empty(9, ray.dtype)
         for a in range(3):
             out[a] = m[a, 0] * ray[0] + m[a, 1] * ray[1] + m[a, 2] * ray[2] + m[a, 3]
             out[3 + a] = m[a, 0] * ray[3] + m[a, 1] * ray[4] + m[a, 2] * ray[5]
@@ -86,7 +86,21 @@ def _make(numba):
             if d == 0:
                 inv = big if inv > 0 else -big  # copysign(INV_BIG, d)
             out[6 + a] = inv
-        return out
+
+    @jit
+    def _slab(box, c, frames, fr, t_min, t_far, robust, inf):
+        """``traversal.slab`` of box ``c`` (row of ``box`` [N, 6]) against the ray in frame
+        row ``fr`` of ``frames``: ``(entry, hit)``, the far side scaled by 1 + 2 gamma(3)."""
+        near = -inf
+        far = inf
+        for a in range(3):
+            t0 = (box[c, a] - frames[fr, a]) * frames[fr, 6 + a]
+            t1 = (box[c, 3 + a] - frames[fr, a]) * frames[fr, 6 + a]
+            near = max(near, min(t0, t1))
+            far = min(far, max(t0, t1))
+        far = far * robust
+        e = max(near, t_min)
+        return e, e <= min(far, t_far)
 
     @jit
     def _look(ref, tag, n_top, top_rows, top_index, f_rows, bref_node, bref_instance):
@@ -139,12 +153,17 @@ def _make(numba):
         zero = one - one
         inf = one / zero
         n_top = top_rows.shape[0]
+        n_f = f_rows.shape[0]
         n_slots = f_index.shape[0]
         n_tri = f_tri.shape[0]
         stack_ref = np.zeros(capacity, np.int64)
         stack_tag = np.zeros(capacity, np.int64)
         stack_entry = np.zeros(capacity, top_box.dtype)
         ray = np.empty(6, top_box.dtype)
+        # the ray in the scene frame and in the last instance entered (_frame): a ray goes
+        # back and forth between the top level and an instance; each frame is made once
+        frames = np.empty((2, 9), top_box.dtype)  # row 0: scene frame, row 1: the instance obj_k
+        inv = np.empty(3, top_box.dtype)
         kid_ref = np.zeros(2, np.int64)
         kid_hit = np.zeros(2, np.bool_)
         kid_entry = np.zeros(2, top_box.dtype)
@@ -156,10 +175,9 @@ def _make(numba):
                 ray[3 + a] = direction[i, a]
             t_min = zero
             t_max = t_hi[i]
-            fr = _frame(to_object, -1, ray, one, big)
-            frame_k = -1
+            _frame(to_object, -1, ray, one, big, frames[0])
+            obj_k = -2  # no instance yet
             # the root box with the ray as given (traversal._ray), not mapped by the identity
-            inv = np.empty(3, top_box.dtype)
             for a in range(3):
                 inv[a] = one / ray[3 + a]
                 if ray[3 + a] == 0:
@@ -180,6 +198,7 @@ def _make(numba):
             hit_u = zero
             hit_v = zero
             sp = 0
+            sp_slot = 0  # sp % capacity
             base = 0
             last = root
             last_tag = -1
@@ -196,6 +215,7 @@ def _make(numba):
             leaves_visited = 0
             if root_entry <= min(far, t_max):
                 sp = 1
+                sp_slot = 1 if capacity > 1 else 0
                 stack_ref[0] = root
                 stack_tag[0] = -1
                 stack_entry[0] = root_entry
@@ -208,9 +228,10 @@ def _make(numba):
                     b = _at(top_index[_at(top_rows[_at(max(leaf_tag, 0), n_top), START], top_index.shape[0])],
                             bref_node.shape[0])
                     k = bref_instance[b]
-                    if k != frame_k:
-                        fr = _frame(to_object, k, ray, one, big)
-                        frame_k = k
+                    if k != obj_k and k >= 0:
+                        _frame(to_object, k, ray, one, big, frames[1])
+                        obj_k = k
+                    fr = 0 if k < 0 else 1
                     shift = prim_shift[_at(k, prim_shift.shape[0])]
                     n_tested = min(width, leaf_end - leaf_pos)
                     pick = -1
@@ -224,7 +245,7 @@ def _make(numba):
                         v0x, v0y, v0z = f_tri[tri, 0, 0], f_tri[tri, 0, 1], f_tri[tri, 0, 2]
                         e1x, e1y, e1z = f_tri[tri, 1, 0] - v0x, f_tri[tri, 1, 1] - v0y, f_tri[tri, 1, 2] - v0z
                         e2x, e2y, e2z = f_tri[tri, 2, 0] - v0x, f_tri[tri, 2, 1] - v0y, f_tri[tri, 2, 2] - v0z
-                        ox, oy, oz, dx, dy, dz = fr[0], fr[1], fr[2], fr[3], fr[4], fr[5]
+                        ox, oy, oz, dx, dy, dz = frames[fr, 0], frames[fr, 1], frames[fr, 2], frames[fr, 3], frames[fr, 4], frames[fr, 5]
                         px = dy * e2z - dz * e2y
                         py = dz * e2x - dx * e2z
                         pz = dx * e2y - dy * e2x
@@ -274,7 +295,8 @@ def _make(numba):
                 else:
                     # stack_walk._node_step: pop the top entry
                     sp -= 1
-                    slot = sp % capacity
+                    sp_slot = sp_slot - 1 if sp_slot > 0 else capacity - 1
+                    slot = sp_slot
                     ref = stack_ref[slot]
                     tag = stack_tag[slot]
                     entry = stack_entry[slot]
@@ -295,34 +317,31 @@ def _make(numba):
                         leaf_tag = entered
                         continue
                 # the children's boxes in the node's frame (traversal._expand)
-                if k != frame_k:
-                    fr = _frame(to_object, k, ray, one, big)
-                    frame_k = k
-                rows = f_rows if in_forest else top_rows
-                box = f_box if in_forest else top_box
-                n_rows = rows.shape[0]
+                if k != obj_k and k >= 0:
+                    _frame(to_object, k, ray, one, big, frames[1])
+                    obj_k = k
+                fr = 0 if k < 0 else 1
                 for j in range(2):
-                    c = rows[row, LEFT + j]
-                    kid_ref[j] = c + n_top if in_forest else c
+                    # the two levels' arrays apart, not one chosen into a variable: numba counts
+                    # references on every such choice (choosing the frame row that way cost 25%)
+                    if in_forest:
+                        c = f_rows[row, LEFT + j]
+                        kid_ref[j] = c + n_top
+                        e, inside = _slab(f_box, min(max(c, 0), n_f - 1), frames, fr, t_min, found_t, robust, inf)
+                    else:
+                        c = top_rows[row, LEFT + j]
+                        kid_ref[j] = c
+                        e, inside = _slab(top_box, min(max(c, 0), n_top - 1), frames, fr, t_min, found_t, robust,
+                                          inf)
                     real = c >= 0
                     if real:
                         box_tests += 1
-                    cb = min(max(c, 0), n_rows - 1)
-                    near = -inf
-                    far = inf
-                    for a in range(3):
-                        t0 = (box[cb, a] - fr[a]) * fr[6 + a]
-                        t1 = (box[cb, 3 + a] - fr[a]) * fr[6 + a]
-                        near = max(near, min(t0, t1))
-                        far = min(far, max(t0, t1))
-                    far = far * robust
-                    e = max(near, t_min)
                     kid_entry[j] = e
-                    kid_hit[j] = real and e <= min(far, found_t)
+                    kid_hit[j] = real and inside
                 # stack_walk._visit_key: by slot along the split axis, else by entry
-                split = rows[row, AXIS]
+                split = f_rows[row, AXIS] if in_forest else top_rows[row, AXIS]
                 if split >= 0:
-                    lower_first = fr[3 + min(split, 2)] >= 0
+                    lower_first = frames[fr, 3 + min(split, 2)] >= 0
                     key[0] = zero if lower_first else one
                     key[1] = one if lower_first else zero
                 else:
@@ -344,28 +363,35 @@ def _make(numba):
                         last, last_tag, up, up_tag = up, up_tag, parent, parent_tag
                         continue
                     j = 0 if cand0 else 1
-                    stack_ref[sp % capacity] = kid_ref[j]
-                    stack_tag[sp % capacity] = kid_tag
-                    stack_entry[sp % capacity] = kid_entry[j]
-                    sp += 1
+                    stack_ref[sp_slot] = kid_ref[j]
+                    stack_tag[sp_slot] = kid_tag
+                    stack_entry[sp_slot] = kid_entry[j]
+                    n_push = 1
                 else:
                     # stack_walk._push: nearest on top
+                    n_push = 0
                     if kid_hit[0] and kid_hit[1]:
                         near_j = 0 if first_before else 1
                         far_j = 1 - near_j
-                        stack_ref[sp % capacity] = kid_ref[far_j]
-                        stack_tag[sp % capacity] = kid_tag
-                        stack_entry[sp % capacity] = kid_entry[far_j]
-                        stack_ref[(sp + 1) % capacity] = kid_ref[near_j]
-                        stack_tag[(sp + 1) % capacity] = kid_tag
-                        stack_entry[(sp + 1) % capacity] = kid_entry[near_j]
-                        sp += 2
+                        upper = sp_slot + 1 if sp_slot + 1 < capacity else 0
+                        stack_ref[sp_slot] = kid_ref[far_j]
+                        stack_tag[sp_slot] = kid_tag
+                        stack_entry[sp_slot] = kid_entry[far_j]
+                        stack_ref[upper] = kid_ref[near_j]
+                        stack_tag[upper] = kid_tag
+                        stack_entry[upper] = kid_entry[near_j]
+                        n_push = 2
                     elif kid_hit[0] or kid_hit[1]:
                         j = 0 if kid_hit[0] else 1
-                        stack_ref[sp % capacity] = kid_ref[j]
-                        stack_tag[sp % capacity] = kid_tag
-                        stack_entry[sp % capacity] = kid_entry[j]
-                        sp += 1
+                        stack_ref[sp_slot] = kid_ref[j]
+                        stack_tag[sp_slot] = kid_tag
+                        stack_entry[sp_slot] = kid_entry[j]
+                        n_push = 1
+                # stack_walk._push: the ring keeps the newest ``capacity`` entries
+                sp += n_push
+                sp_slot += n_push  # the slot of logical entry sp (sp % capacity, no division)
+                if sp_slot >= capacity:
+                    sp_slot -= capacity
                 base = max(base, sp - capacity)
             out_prim[i] = hit_prim
             out_t[i] = found_t if hit_prim >= 0 else inf
