@@ -36,7 +36,7 @@ def test_native_refuses_traced_arguments():
 @pytest.mark.skipif(not native.available(), reason="numba not installed")
 def test_numba_is_lazy_and_caches_beside_jaxbvh(tmp_path):
     # every module of both engines imported, numba still not: it loads on the first native call
-    code = ("import sys, os, jaxbvh, jaxbvh.rays, jaxbvh.queries, jaxbvh.rays.native, jaxbvh.queries.native_search\n"
+    code = ("import sys, os, jaxbvh, jaxbvh.rays, jaxbvh.queries, jaxbvh.rays.native, jaxbvh.queries.native_search, jaxbvh.twolevel.native\n"
             "from jaxbvh import compile_cache, native\n"
             "assert 'numba' not in sys.modules, 'numba imported'\n"
             "native.numba()\n"
