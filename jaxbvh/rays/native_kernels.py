@@ -337,6 +337,59 @@ def trace_rays(rows, irows, flags, has_skip, parent, root_box, slot_rows, slot_i
                                 stack_node[slot] = c0 if h0 else c1
                                 stack_entry[slot] = e0 if h0 else e1
                                 n_push = 1
+                        elif k == 4 and irows[ref, 29] < 0 and not (has_skip and (flags[ref] >> 1) != 0):
+                            # a 4-wide node in distance order without skip flags, written out on
+                            # scalars (the loops over k and the arrays below cost about twice as
+                            # much): the same tests; each hit child's rank in visiting order
+                            # (entry, then slot: stack_walk._order) is the number of hit children
+                            # before it, the nearest goes on top (stack_walk._push)
+                            c0 = irows[ref, 24]
+                            c1 = irows[ref, 25]
+                            c2 = irows[ref, 26]
+                            c3 = irows[ref, 27]
+                            h0 = False
+                            h1 = False
+                            h2 = False
+                            h3 = False
+                            e0 = zero
+                            e1 = zero
+                            e2 = zero
+                            e3 = zero
+                            if c0 >= 0:
+                                box_tests += 1
+                                h0, e0 = _slab(rows, ref, 0, t_min, found_t, ox, oy, oz, ix, iy, iz, robust)
+                            if c1 >= 0:
+                                box_tests += 1
+                                h1, e1 = _slab(rows, ref, 1, t_min, found_t, ox, oy, oz, ix, iy, iz, robust)
+                            if c2 >= 0:
+                                box_tests += 1
+                                h2, e2 = _slab(rows, ref, 2, t_min, found_t, ox, oy, oz, ix, iy, iz, robust)
+                            if c3 >= 0:
+                                box_tests += 1
+                                h3, e3 = _slab(rows, ref, 3, t_min, found_t, ox, oy, oz, ix, iy, iz, robust)
+                            # (a hit child's entry is never NaN: NaN fails the slab's <=)
+                            n_push = np.int64(h0) + np.int64(h1) + np.int64(h2) + np.int64(h3)
+                            top_at = slot + n_push - 1
+                            if h0:
+                                at = top_at - ((h1 and e1 < e0) + (h2 and e2 < e0) + (h3 and e3 < e0))
+                                at = at - capacity if at >= capacity else at
+                                stack_node[at] = c0
+                                stack_entry[at] = e0
+                            if h1:
+                                at = top_at - ((h0 and e0 <= e1) + (h2 and e2 < e1) + (h3 and e3 < e1))
+                                at = at - capacity if at >= capacity else at
+                                stack_node[at] = c1
+                                stack_entry[at] = e1
+                            if h2:
+                                at = top_at - ((h0 and e0 <= e2) + (h1 and e1 <= e2) + (h3 and e3 < e2))
+                                at = at - capacity if at >= capacity else at
+                                stack_node[at] = c2
+                                stack_entry[at] = e2
+                            if h3:
+                                at = top_at - ((h0 and e0 <= e3) + (h1 and e1 <= e3) + (h2 and e2 <= e3))
+                                at = at - capacity if at >= capacity else at
+                                stack_node[at] = c3
+                                stack_entry[at] = e3
                         else:
                             box_tests += _children(rows, irows, flags, has_skip, ref, entry, t_min, found_t, ox, oy,
                                                    oz, ix, iy, iz, dx, dy, dz, robust, kid_hit, kid_entry, key)
