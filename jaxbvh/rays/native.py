@@ -36,9 +36,13 @@ jaxbvh's compilation cache).
 
 from __future__ import annotations
 
+import threading
+import weakref
+from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
 
+import jax
 import numpy as np
 
 from jaxbvh import native
@@ -54,7 +58,17 @@ an idle machine with more cores."""
 MIN_RAYS_PER_THREAD = 256
 """Fewer rays than this per thread run on one thread (a thread's start costs ~50 us)."""
 
+PACKED_TREES = 4
+"""Packed trees kept for reuse (least recently used first out), for trees and triangles
+given as JAX arrays only: those are immutable, so a packed copy stays right while they
+live (a NumPy array can change in place between calls, so it is packed again each call).
+Packing costs ~5 ms per 100k triangles, as much as tracing 20,000 camera rays
+(bench/results/bench_rays_native.md)."""
+
 _kernels = {}
+_packed = OrderedDict()  # key (leaf ids, dtype) -> (weak references to the leaves, _Arrays)
+_packed_lock = threading.Lock()  # callers on several threads share the cache
+_spare = {}  # (rows, width, dtype) -> the rows of the last uncached call, reused (no page faults)
 
 
 def kernels():
@@ -79,7 +93,12 @@ def _c(x, dtype):
 
 def _aligned_rows(n: int, width: int, dtype):
     """An uninitialised [n, width] array of ``dtype`` starting on a 64-byte boundary (a
-    binary float32 node row is 64 bytes: one cache line) and its integer view."""
+    binary float32 node row is 64 bytes: one cache line) and its integer view; the last
+    uncached call's rows of that shape when there are (:func:`_release`): fresh memory
+    costs a page fault per 4 kB, more than packing into it."""
+    spare = _spare.pop((n, width, np.dtype(dtype).str), None)
+    if spare is not None:
+        return spare
     itemsize = np.dtype(dtype).itemsize
     raw = np.empty(n * width * itemsize + 64, np.uint8)
     offset = -raw.ctypes.data % 64
@@ -115,6 +134,41 @@ class _Arrays:
         self.root_box = np.concatenate([lo[self.root], hi[self.root]])
         self.consts = np.array([1, robust_factor(dtype), INV_BIG], dtype)
 
+    def release(self):
+        """Leave the rows for the next uncached call (this object is not used again)."""
+        for rows, irows in ((self.rows, self.irows), (self.slot_rows, self.slot_irows)):
+            _spare[(rows.shape[0], rows.shape[1], rows.dtype.str)] = (rows, irows)
+
+
+def _immutable(x) -> bool:
+    return isinstance(x, (jax.Array, np.generic, int, float))
+
+
+def packed(kernels, tree, triangles, skip, dtype) -> tuple[_Arrays, bool]:
+    """The packed arrays of ``tree`` and ``triangles`` (:class:`_Arrays`) and whether they
+    are cached: a tree and triangles of JAX arrays (immutable) packed before and still
+    alive are not packed again (:data:`PACKED_TREES`); the key holds the leaves' ids and
+    weak references check that they are the same objects (an id is reused after death)."""
+    leaves = jax.tree_util.tree_leaves((tree, triangles))
+    if skip is not None or not all(_immutable(x) for x in leaves):
+        return _Arrays(kernels, tree, triangles, skip, dtype), False
+    key = (tuple(id(x) for x in leaves), type(tree).__name__, np.dtype(dtype).str)
+    with _packed_lock:
+        hit = _packed.get(key)
+        if hit is not None and all(ref is leaf or (callable(ref) and ref() is leaf)
+                                   for ref, leaf in zip(hit[0], leaves)):
+            _packed.move_to_end(key)
+            return hit[1], True
+    arrays = _Arrays(kernels, tree, triangles, None, dtype)
+    # scalars cannot be weakly referenced: they are kept (and compared) as they are
+    refs = tuple(weakref.ref(x) if isinstance(x, jax.Array) else x for x in leaves)
+    with _packed_lock:
+        _packed[key] = (refs, arrays)
+        _packed.move_to_end(key)
+        while len(_packed) > PACKED_TREES:
+            _packed.popitem(last=False)
+    return arrays, True
+
 
 def trace(tree, triangles, origin, direction, t_min, t_max, *, dtype, mode: str, capacity: int, max_hits: int,
           step_limit: int, skip=None, leaf_width: int = LEAF_WIDTH, batch: int | None = None,
@@ -128,7 +182,7 @@ def trace(tree, triangles, origin, direction, t_min, t_max, *, dtype, mode: str,
     between ``on_batch(n)`` calls (None: one call for all).
     """
     k = kernels()
-    a = _Arrays(k, tree, triangles, skip, dtype)
+    a, cached = packed(k, tree, triangles, skip, dtype)
     r = origin.shape[0]
     o = _c(origin, dtype)
     d = _c(direction, dtype)
@@ -160,6 +214,8 @@ def trace(tree, triangles, origin, direction, t_min, t_max, *, dtype, mode: str,
                 list(pool.map(run, edges[:-1], edges[1:]))
         if on_batch is not None:
             on_batch(stop - start)
+    if not cached:
+        a.release()
     extra = {}
     if all_hits:
         extra = dict(hit_count=out["hit_count"], hit_prims=out["hit_prims"], hit_t=out["hit_t"],

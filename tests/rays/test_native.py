@@ -226,3 +226,41 @@ def test_binary_and_wide_inputs_as_jax_arrays():
         assert np.array_equal(getattr(a, name), getattr(b, name))
     none = rays.all_hits(tree, tri, origin[:0], direction[:0], max_hits=3, engine="native")
     assert none.prim.shape == (0,) and none.hit_prims.shape == (0, 3)
+
+
+def test_packed_trees_are_reused_only_while_right():
+    """A tree of JAX arrays is packed once and reused; another tree (JAX arrays of the same
+    shapes) or a NumPy tree changed in place between calls is traced as it is now, never
+    through a stale packed copy (the cache, and the rows reused between uncached calls)."""
+    rng = np.random.default_rng(8)
+    tri = random_triangles(rng, 40, size=0.3)
+    tree = median_tree(tri, max_leaf=2)
+    origin, direction = mixed_rays(rng, tri, 64)
+    jtree = jax.tree_util.tree_map(jnp.asarray, tree)
+    jtri = jnp.asarray(tri)
+    first = rays.closest_hit(jtree, jtri, origin, direction, engine="native")
+    packed = next(reversed(native._packed.values()))[1]
+    again = rays.closest_hit(jtree, jtri, origin, direction, engine="native")
+    assert next(reversed(native._packed.values()))[1] is packed  # packed once, reused
+    # the same shapes, other boxes and triangles: mirrored in x
+    flipped_tri = tri * np.array([-1, 1, 1], tri.dtype)
+    flipped = median_tree(flipped_tri, max_leaf=2)
+    assert flipped.lo.shape == tree.lo.shape
+    other = rays.closest_hit(jax.tree_util.tree_map(jnp.asarray, flipped), jnp.asarray(flipped_tri), origin,
+                             direction, engine="native")
+    twin = ref.trace(tree, tri, origin, direction)
+    assert_equal_to_twin(first, twin, "closest", 16)
+    assert_equal_to_twin(again, twin, "closest", 16)
+    assert_equal_to_twin(other, ref.trace(flipped, flipped_tri, origin, direction), "closest", 16)
+    assert not np.array_equal(other.prim, first.prim)
+    # a NumPy tree and triangles changed in place: the next call sees the change
+    np_tree = jax.tree_util.tree_map(np.array, tree)
+    np_tri = tri.copy()
+    assert_equal_to_twin(rays.closest_hit(np_tree, np_tri, origin, direction, engine="native"), twin, "closest", 16)
+    for name in ("lo", "hi"):
+        getattr(np_tree, name)[...] = getattr(flipped, name)
+    for name in ("left", "right", "parent", "prim_start", "prim_count", "prim_index", "axis"):
+        getattr(np_tree, name)[...] = getattr(flipped, name)
+    np_tri[...] = flipped_tri
+    assert_equal_to_twin(rays.closest_hit(np_tree, np_tri, origin, direction, engine="native"),
+                         ref.trace(flipped, flipped_tri, origin, direction), "closest", 16)
