@@ -25,6 +25,10 @@ from __future__ import annotations
 
 import numba
 import numpy as np
+from llvmlite import ir
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 from jaxbvh import native
 
@@ -91,6 +95,29 @@ def _slab(rows, ref, j, t_min, t_far, ox, oy, oz, ix, iy, iz, robust):
     far = min(far, max(t0, t1)) * robust
     e = max(near, t_min)
     return e <= min(far, t_far), e
+
+
+@intrinsic
+def prefetch_row(typingctx, rows, row):
+    """Ask the CPU to start loading the first cache line of ``rows[row]`` (2-D, C order;
+    ``row`` in range): ``llvm.prefetch``, a hint that never faults and changes no result."""
+
+    def codegen(context, builder, signature, args):
+        rows_type = signature.args[0]
+        array = context.make_array(rows_type)(context, builder, args[0])
+        index = context.cast(builder, args[1], signature.args[1], types.intp)
+        pointer = cgutils.get_item_pointer2(context, builder, data=array.data,
+                                            shape=cgutils.unpack_tuple(builder, array.shape),
+                                            strides=cgutils.unpack_tuple(builder, array.strides),
+                                            layout=rows_type.layout, inds=[index, context.get_constant(types.intp, 0)],
+                                            wraparound=False, boundscheck=False)
+        i32 = ir.IntType(32)
+        prefetch = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [pointer.type, i32, i32, i32]),
+                                                  "llvm.prefetch.p0")
+        builder.call(prefetch, [pointer, i32(0), i32(3), i32(1)])  # read, keep in all caches, data
+        return context.get_dummy_value()
+
+    return types.void(rows, row), codegen
 
 
 @_jit
@@ -310,6 +337,9 @@ def trace_rays(rows, irows, flags, has_skip, parent, root_box, slot_rows, slot_i
                             # loops over k below cost about twice as much): the same tests, order, push
                             c0 = irows[ref, 12]
                             c1 = irows[ref, 13]
+                            # the children's rows start loading while their boxes are tested
+                            prefetch_row(rows, min(max(c0, 0), n_nodes - 1))
+                            prefetch_row(rows, min(max(c1, 0), n_nodes - 1))
                             h0 = False
                             h1 = False
                             e0 = zero
@@ -347,6 +377,10 @@ def trace_rays(rows, irows, flags, has_skip, parent, root_box, slot_rows, slot_i
                             c1 = irows[ref, 25]
                             c2 = irows[ref, 26]
                             c3 = irows[ref, 27]
+                            prefetch_row(rows, min(max(c0, 0), n_nodes - 1))
+                            prefetch_row(rows, min(max(c1, 0), n_nodes - 1))
+                            prefetch_row(rows, min(max(c2, 0), n_nodes - 1))
+                            prefetch_row(rows, min(max(c3, 0), n_nodes - 1))
                             h0 = False
                             h1 = False
                             h2 = False
