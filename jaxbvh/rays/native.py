@@ -106,6 +106,17 @@ def _aligned_rows(n: int, width: int, dtype):
     return rows, rows.view(np.int32 if itemsize == 4 else np.int64)
 
 
+def row_width(k: int, dtype) -> int:
+    """Entries of a packed node row of a ``k``-wide tree (:func:`~jaxbvh.rays.native_kernels.trace_rays`):
+    ``7 k + 2``, padded to whole 64-byte cache lines where the padding is under 7 entries
+    (so ``(width - 2) // 7`` still gives ``k``): a 4-wide float32 row is 128 bytes, two
+    lines, rather than 120 bytes over two or three."""
+    width = 7 * k + 2
+    per_line = 64 // np.dtype(dtype).itemsize
+    padded = -(-width // per_line) * per_line
+    return padded if (padded - 2) // 7 == k else width
+
+
 class _Arrays:
     """A tree and its triangles packed as the kernel reads them
     (:func:`~jaxbvh.rays.native_kernels.trace_rays`; :func:`~jaxbvh.rays.native_kernels.pack`
@@ -125,7 +136,7 @@ class _Arrays:
         prim_index = _c(tree.prim_index, i32)
         self.root = int(np.asarray(tree.root))
         self.parent = _c(tree.parent, i32)
-        self.rows, self.irows = _aligned_rows(n, 7 * k + 2, dtype)
+        self.rows, self.irows = _aligned_rows(n, row_width(k, dtype), dtype)
         self.flags = np.empty(n, i32)
         self.slot_rows, self.slot_irows = _aligned_rows(prim_index.shape[0], 10, dtype)
         lo, hi = _c(tree.lo, dtype), _c(tree.hi, dtype)

@@ -98,26 +98,27 @@ def _slab(rows, ref, j, t_min, t_far, ox, oy, oz, ix, iy, iz, robust):
 
 
 @intrinsic
-def prefetch_row(typingctx, rows, row):
-    """Ask the CPU to start loading the first cache line of ``rows[row]`` (2-D, C order;
-    ``row`` in range): ``llvm.prefetch``, a hint that never faults and changes no result."""
+def prefetch(typingctx, rows, row, column):
+    """Ask the CPU to start loading the cache line of ``rows[row, column]`` (2-D, C order;
+    in range): ``llvm.prefetch``, a hint that never faults and changes no result."""
 
     def codegen(context, builder, signature, args):
         rows_type = signature.args[0]
         array = context.make_array(rows_type)(context, builder, args[0])
         index = context.cast(builder, args[1], signature.args[1], types.intp)
+        column = context.cast(builder, args[2], signature.args[2], types.intp)
         pointer = cgutils.get_item_pointer2(context, builder, data=array.data,
                                             shape=cgutils.unpack_tuple(builder, array.shape),
                                             strides=cgutils.unpack_tuple(builder, array.strides),
-                                            layout=rows_type.layout, inds=[index, context.get_constant(types.intp, 0)],
+                                            layout=rows_type.layout, inds=[index, column],
                                             wraparound=False, boundscheck=False)
         i32 = ir.IntType(32)
-        prefetch = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [pointer.type, i32, i32, i32]),
+        hint = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [pointer.type, i32, i32, i32]),
                                                   "llvm.prefetch.p0")
-        builder.call(prefetch, [pointer, i32(0), i32(3), i32(1)])  # read, keep in all caches, data
+        builder.call(hint, [pointer, i32(0), i32(3), i32(1)])  # read, keep in all caches, data
         return context.get_dummy_value()
 
-    return types.void(rows, row), codegen
+    return types.void(rows, row, column), codegen
 
 
 @_jit
@@ -338,8 +339,8 @@ def trace_rays(rows, irows, flags, has_skip, parent, root_box, slot_rows, slot_i
                             c0 = irows[ref, 12]
                             c1 = irows[ref, 13]
                             # the children's rows start loading while their boxes are tested
-                            prefetch_row(rows, min(max(c0, 0), n_nodes - 1))
-                            prefetch_row(rows, min(max(c1, 0), n_nodes - 1))
+                            prefetch(rows, min(max(c0, 0), n_nodes - 1), 0)
+                            prefetch(rows, min(max(c1, 0), n_nodes - 1), 0)
                             h0 = False
                             h1 = False
                             e0 = zero
@@ -377,10 +378,10 @@ def trace_rays(rows, irows, flags, has_skip, parent, root_box, slot_rows, slot_i
                             c1 = irows[ref, 25]
                             c2 = irows[ref, 26]
                             c3 = irows[ref, 27]
-                            prefetch_row(rows, min(max(c0, 0), n_nodes - 1))
-                            prefetch_row(rows, min(max(c1, 0), n_nodes - 1))
-                            prefetch_row(rows, min(max(c2, 0), n_nodes - 1))
-                            prefetch_row(rows, min(max(c3, 0), n_nodes - 1))
+                            # (a row is two cache lines; its last one holds the children's ids)
+                            for c in (c0, c1, c2, c3):
+                                prefetch(rows, min(max(c, 0), n_nodes - 1), 0)
+                                prefetch(rows, min(max(c, 0), n_nodes - 1), rows.shape[1] - 1)
                             h0 = False
                             h1 = False
                             h2 = False
