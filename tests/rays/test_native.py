@@ -264,3 +264,40 @@ def test_packed_trees_are_reused_only_while_right():
     np_tri[...] = flipped_tri
     assert_equal_to_twin(rays.closest_hit(np_tree, np_tri, origin, direction, engine="native"),
                          ref.trace(flipped, flipped_tri, origin, direction), "closest", 16)
+
+
+@pytest.mark.parametrize("shape", ["binary", "wide4"])
+@pytest.mark.parametrize("broken", ["cycle", "parent"])
+@pytest.mark.parametrize("arrays", ["numpy", "jax"])
+def test_broken_trees_raise_on_every_packed_path(shape, broken, arrays):
+    """A child cycle, or a parent link to itself met by a climb (a stack of ``k``
+    entries), ends at the step bound and raises on the written-out binary and 4-wide
+    branches, packed per call (NumPy) or cached (JAX arrays): no hang, no stale pack."""
+    rng = np.random.default_rng(4)
+    tri = random_triangles(rng, 60, size=0.3)
+    tree = median_tree(tri)
+    origin, direction = mixed_rays(rng, tri, 32)
+    if shape == "wide4":
+        tree = widen(tree, 4)
+    k = 4 if shape == "wide4" else 2
+    as_arrays = (lambda t: jax.tree_util.tree_map(jnp.asarray, t)) if arrays == "jax" else (lambda t: t)
+    sound = rays.closest_hit(as_arrays(tree), tri, origin, direction, capacity=k, engine="native")
+    assert_equal_to_twin(sound, ref.trace(tree, tri, origin, direction, capacity=k), "closest", 16)
+    root = int(np.asarray(tree.root))
+    if broken == "cycle":
+        if shape == "binary":
+            left = np.asarray(tree.left).copy()
+            left[root] = root
+            bad = tree.replace(left=left)
+        else:
+            child = np.asarray(tree.child).copy()
+            child[root, 0] = root
+            bad = tree.replace(child=child)
+    else:
+        # every node below the root names itself as parent: the first climb never ends
+        parent = np.asarray(tree.parent).copy()
+        nodes = np.flatnonzero(parent >= 0)
+        parent[nodes] = nodes
+        bad = tree.replace(parent=parent)
+    with pytest.raises(InvalidTreeError, match="did not end"):
+        rays.closest_hit(as_arrays(bad), tri, origin, direction, capacity=k, engine="native")
