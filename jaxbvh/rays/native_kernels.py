@@ -113,8 +113,8 @@ def prefetch(typingctx, rows, row, column):
                                             layout=rows_type.layout, inds=[index, column],
                                             wraparound=False, boundscheck=False)
         i32 = ir.IntType(32)
-        hint = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [pointer.type, i32, i32, i32]),
-                                                  "llvm.prefetch.p0")
+        signature_ir = ir.FunctionType(ir.VoidType(), [pointer.type, i32, i32, i32])
+        hint = cgutils.get_or_insert_function(builder.module, signature_ir, "llvm.prefetch.p0")
         builder.call(hint, [pointer, i32(0), i32(3), i32(1)])  # read, keep in all caches, data
         return context.get_dummy_value()
 
