@@ -16,6 +16,14 @@ comes from ``consts`` (an array of that dtype), because numba, like NumPy, would
 a fused multiply-add (XLA on CPU does), so hit distances equal the NumPy twin's bit for
 bit and the JAX walk's to the last bits (``tests/rays/test_rays.py::assert_t_close``).
 
+Speed (bench/results/bench_rays_native.md): binary nodes and 4-wide nodes in distance
+order are written out on scalars (the generic k-ary branch, loops over small arrays and
+calls, costs about twice as much per node); the children's rows are prefetched while
+their boxes are tested (a step on a tree that does not fit the caches waits on memory).
+Tried and not kept (within the noise of the shared machine, or slower): a depth-first
+renumbering of the packed rows, rays sorted by Morton code and octant, huge pages,
+64-byte triangle rows, and pushes without branches (15% slower).
+
 Signatures: the integer arrays are int32, the float arrays all in the tree's dtype, the
 scalars int64, so there are two compiled versions of :func:`trace_rays` (float32 and
 float64), each a few CPU seconds once, then loaded from the cache.
@@ -161,7 +169,9 @@ def trace_rays(rows, irows, flags, has_skip, parent, root_box, slot_rows, slot_i
 
     Tree, packed as :class:`jaxbvh.rays.traversal.Packed` (a node's children's boxes in
     its own row: a node costs one row read, 64 bytes for a binary float32 tree): ``rows``
-    [N, 7 k + 2] float and ``irows``, an integer view of the same memory; row ``n``: child
+    [N, W] float, ``W = 7 k + 2`` or padded to whole cache lines with ``(W - 2) // 7 == k``
+    (:func:`jaxbvh.rays.native.row_width`), and ``irows``, an integer view of the same
+    memory; row ``n``: child
     ``j``'s lo, hi at ``6 j``, the children at ``6 k`` (-1: none), ``prim_count`` at
     ``7 k``, then ``prim_start`` (a leaf) or the split axis (-1: by distance; wide trees);
     ``flags`` [N] int32 skip flags (bit 0 the node's own, bit ``1 + j`` child ``j``'s; read
