@@ -424,7 +424,7 @@ def native_main(args, extra):
     if args.previous:
         # an earlier run's native figures, side by side (another process, another load)
         previous = json.loads(Path(args.previous).read_text())
-        meta["previous"] = {"file": str(args.previous), "uptime": previous.get("uptime")}
+        meta["previous"] = {"file": args.previous_label or str(args.previous), "uptime": previous.get("uptime")}
         before = {(r["mesh"], r["kind"], r["tree"]): r for r in previous["rows"] if r["section"] in ("mesh", "depth")}
         for r in result["rows"]:
             old = before.get((r.get("mesh"), r.get("kind"), r.get("tree")))
@@ -545,6 +545,7 @@ def main(argv=None):
     parser.add_argument("--big-tree", help=argparse.SUPPRESS)
     parser.add_argument("--previous", help="--native: an earlier bench_rays_native.json whose native figures "
                         "are shown as 'before'")
+    parser.add_argument("--previous-label", help="what --previous is, for the table (default: its path)")
     parser.add_argument("--native", action="store_true",
                         help="the native engine beside the JAX walk and Embree (bench/results/bench_rays_native)")
     args = parser.parse_args(argv)
