@@ -147,14 +147,18 @@ class _Arrays:
         self.flags = np.empty(n, i32)
         self.slot_rows, self.slot_irows = _aligned_rows(prim_index.shape[0], 10, dtype)
         lo, hi = _c(tree.lo, dtype), _c(tree.hi, dtype)
-        kernels.pack(child, lo, hi, _c(tree.prim_start, i32), _c(tree.prim_count, i32), axis, skip, prim_index,
-                     _c(triangles, dtype), self.rows, self.irows, self.flags, self.slot_rows, self.slot_irows)
+        n_rows = kernels.pack(child, lo, hi, _c(tree.prim_start, i32), _c(tree.prim_count, i32), axis, skip,
+                              prim_index, _c(triangles, dtype), self.rows, self.irows, self.flags, self.slot_rows,
+                              self.slot_irows)
+        # the kernel reads the filled rows only (a capacity's padding shares the last one)
+        self.full_rows = (self.rows, self.irows)
+        self.rows, self.irows, self.flags = self.rows[:n_rows], self.irows[:n_rows], self.flags[:n_rows]
         self.root_box = np.concatenate([lo[self.root], hi[self.root]])
         self.consts = np.array([1, robust_factor(dtype), INV_BIG], dtype)
 
     def release(self):
         """Leave the rows for the next uncached call (this object is not used again)."""
-        for rows, irows in ((self.rows, self.irows), (self.slot_rows, self.slot_irows)):
+        for rows, irows in (self.full_rows, (self.slot_rows, self.slot_irows)):
             _spare[(rows.shape[0], rows.shape[1], rows.dtype.str)] = (rows, irows)
 
 

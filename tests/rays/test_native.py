@@ -301,3 +301,39 @@ def test_broken_trees_raise_on_every_packed_path(shape, broken, arrays):
         bad = tree.replace(parent=parent)
     with pytest.raises(InvalidTreeError, match="did not end"):
         rays.closest_hit(as_arrays(bad), tri, origin, direction, capacity=k, engine="native")
+
+
+@pytest.mark.parametrize("shape", ["binary", "wide4"])
+def test_capacity_padding_shares_one_packed_row(shape):
+    """A tree padded to a capacity packs its padding into one shared row; the walk is the
+    twin's on the padded tree (a stack of ``k``: climbs), and on a broken one whose root's
+    child points into the padding (the middle of it and its last node)."""
+    rng = np.random.default_rng(6)
+    tri = random_triangles(rng, 50, size=0.3)
+    tree = median_tree(tri, max_leaf=2)
+    padded_tree = fixed(tree) if shape == "binary" else widen(tree, 4)
+    k = 2 if shape == "binary" else 4
+    n = padded_tree.capacity
+    module = native.kernels()
+    packed = native._Arrays(module, padded_tree, tri, None, np.float32)
+    assert packed.rows.shape[0] < n  # the padding shares a row
+    origin, direction = mixed_rays(rng, tri, 64)
+    root = int(np.asarray(padded_tree.root))
+    for target in (None, packed.rows.shape[0] + (n - packed.rows.shape[0]) // 2, n - 1):
+        tree_now = padded_tree
+        if target is not None:
+            if shape == "binary":
+                right = np.asarray(padded_tree.right).copy()
+                right[root] = target
+                tree_now = padded_tree.replace(right=right)
+            else:
+                child = np.asarray(padded_tree.child).copy()
+                child[root, 1] = target
+                tree_now = padded_tree.replace(child=child)
+        # (the twin climbs sound trees only)
+        for capacity in (k, CAP) if target is None else (CAP,):
+            hits = native.trace(tree_now, tri, origin, direction, 0.0, np.inf, dtype=np.dtype(np.float32),
+                                mode="closest", capacity=capacity, max_hits=16,
+                                step_limit=traverse.max_steps(tree_now))
+            twin = ref.trace(tree_now, tri, origin, direction, capacity=capacity)
+            assert_equal_to_twin(hits, twin, "closest", 16)
