@@ -73,7 +73,7 @@ Packing costs ~5 ms per 100k triangles, as much as tracing 20,000 camera rays
 (bench/results/bench_rays_native.md)."""
 
 _kernels = {}
-_packed = OrderedDict()  # key (leaf ids, dtype) -> (weak references to the leaves, _Arrays)
+_packed = OrderedDict()  # key (leaf ids, dtype) -> (weak references to the leaves, PackedTree)
 _packed_lock = threading.Lock()  # callers on several threads share the cache
 _spare = {}  # (rows, width, dtype) -> the rows of the last uncached call, reused (no page faults)
 
@@ -124,7 +124,7 @@ def row_width(k: int, dtype) -> int:
     return padded if (padded - 2) // 7 == k else width
 
 
-class _Arrays:
+class PackedTree:
     """A tree and its triangles packed as the kernel reads them
     (:func:`~jaxbvh.rays.native_kernels.trace_rays`; :func:`~jaxbvh.rays.native_kernels.pack`
     fills them: O(N k + P), a few ms per 100k triangles)."""
@@ -166,14 +166,14 @@ def _immutable(x) -> bool:
     return isinstance(x, (jax.Array, np.generic, int, float))
 
 
-def packed(kernels, tree, triangles, skip, dtype) -> tuple[_Arrays, bool]:
-    """The packed arrays of ``tree`` and ``triangles`` (:class:`_Arrays`) and whether they
+def packed(kernels, tree, triangles, skip, dtype) -> tuple[PackedTree, bool]:
+    """The packed arrays of ``tree`` and ``triangles`` (:class:`PackedTree`) and whether they
     are cached: a tree and triangles of JAX arrays (immutable) packed before and still
     alive are not packed again (:data:`PACKED_TREES`); the key holds the leaves' ids and
     weak references check that they are the same objects (an id is reused after death)."""
     leaves = jax.tree_util.tree_leaves((tree, triangles))
     if skip is not None or not all(_immutable(x) for x in leaves):
-        return _Arrays(kernels, tree, triangles, skip, dtype), False
+        return PackedTree(kernels, tree, triangles, skip, dtype), False
     key = (tuple(id(x) for x in leaves), type(tree).__name__, np.dtype(dtype).str)
     with _packed_lock:
         hit = _packed.get(key)
@@ -181,7 +181,7 @@ def packed(kernels, tree, triangles, skip, dtype) -> tuple[_Arrays, bool]:
                                    for ref, leaf in zip(hit[0], leaves)):
             _packed.move_to_end(key)
             return hit[1], True
-    arrays = _Arrays(kernels, tree, triangles, None, dtype)
+    arrays = PackedTree(kernels, tree, triangles, None, dtype)
     # scalars cannot be weakly referenced: they are kept (and compared) as they are
     refs = tuple(weakref.ref(x) if isinstance(x, jax.Array) else x for x in leaves)
     with _packed_lock:

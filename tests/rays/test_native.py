@@ -239,9 +239,11 @@ def test_packed_trees_are_reused_only_while_right():
     jtree = jax.tree_util.tree_map(jnp.asarray, tree)
     jtri = jnp.asarray(tri)
     first = rays.closest_hit(jtree, jtri, origin, direction, engine="native")
-    packed = next(reversed(native._packed.values()))[1]
+    dtype = np.dtype(np.float32)
+    packed, cached = native.packed(native.kernels(), jtree, jtri, None, dtype)
+    assert cached and native.packed(native.kernels(), jtree, jtri, None, dtype)[0] is packed  # packed once, reused
+    assert not native.packed(native.kernels(), tree, tri, None, dtype)[1]  # NumPy: packed per call
     again = rays.closest_hit(jtree, jtri, origin, direction, engine="native")
-    assert next(reversed(native._packed.values()))[1] is packed  # packed once, reused
     # the same shapes, other boxes and triangles: mirrored in x
     flipped_tri = tri * np.array([-1, 1, 1], tri.dtype)
     flipped = median_tree(flipped_tri, max_leaf=2)
@@ -315,7 +317,7 @@ def test_capacity_padding_shares_one_packed_row(shape):
     k = 2 if shape == "binary" else 4
     n = padded_tree.capacity
     module = native.kernels()
-    packed = native._Arrays(module, padded_tree, tri, None, np.float32)
+    packed = native.PackedTree(module, padded_tree, tri, None, np.float32)
     assert packed.rows.shape[0] < n  # the padding shares a row
     origin, direction = mixed_rays(rng, tri, 64)
     root = int(np.asarray(padded_tree.root))
