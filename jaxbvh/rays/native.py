@@ -126,7 +126,7 @@ def row_width(k: int, dtype) -> int:
 
 class PackedTree:
     """A tree and its triangles packed as the kernel reads them
-    (:func:`~jaxbvh.rays.native_kernels.trace_rays`; :func:`~jaxbvh.rays.native_kernels.pack`
+    (:func:`~jaxbvh.rays.native_kernels.trace_rays`; :func:`~jaxbvh.rays.native_kernels.pack_rows`
     fills them: O(N k + P), a few ms per 100k triangles)."""
 
     def __init__(self, kernels, tree, triangles, skip, dtype):
@@ -147,7 +147,7 @@ class PackedTree:
         self.flags = np.empty(n, i32)
         self.slot_rows, self.slot_irows = _aligned_rows(prim_index.shape[0], 10, dtype)
         lo, hi = _c(tree.lo, dtype), _c(tree.hi, dtype)
-        n_rows = kernels.pack(child, lo, hi, _c(tree.prim_start, i32), _c(tree.prim_count, i32), axis, skip,
+        n_rows = kernels.pack_rows(child, lo, hi, _c(tree.prim_start, i32), _c(tree.prim_count, i32), axis, skip,
                               prim_index, _c(triangles, dtype), self.rows, self.irows, self.flags, self.slot_rows,
                               self.slot_irows)
         # the kernel reads the filled rows only (a capacity's padding shares the last one)

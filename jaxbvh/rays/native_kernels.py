@@ -513,6 +513,18 @@ def trace_rays(rows, irows, flags, has_skip, parent, root_box, slot_rows, slot_i
 @_jit
 def pack(child, lo, hi, prim_start, prim_count, axis, skip, prim_index, triangles, rows, irows, flags, slot_rows,
          slot_irows):
+    """Fill every row of the packed arrays (:func:`pack_rows`, its rows from ``M`` on copies
+    of row ``M - 1``, which they equal)."""
+    n_rows = pack_rows(child, lo, hi, prim_start, prim_count, axis, skip, prim_index, triangles, rows, irows, flags,
+                       slot_rows, slot_irows)
+    for i in range(n_rows, irows.shape[0]):
+        irows[i, :] = irows[n_rows - 1, :]  # (the integer view: the bits as they are)
+        flags[i] = flags[n_rows - 1]
+
+
+@_jit
+def pack_rows(child, lo, hi, prim_start, prim_count, axis, skip, prim_index, triangles, rows, irows, flags, slot_rows,
+              slot_irows):
     """Fill the packed arrays :func:`trace_rays` reads (``rows`` / ``irows``, ``flags``,
     ``slot_rows`` / ``slot_irows``, [N, ...] each) from a tree's arrays (``child`` [N, k],
     ``skip`` [N] int32) and ``triangles`` [T, 3, 3]; indices out of range are clamped (as

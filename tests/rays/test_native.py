@@ -319,6 +319,22 @@ def test_capacity_padding_shares_one_packed_row(shape):
     module = native.kernels()
     packed = native.PackedTree(module, padded_tree, tri, None, np.float32)
     assert packed.rows.shape[0] < n  # the padding shares a row
+    # pack (every row, for other kernels): each node's own children ids and count in its row
+    child = (np.stack([padded_tree.left, padded_tree.right], 1) if k == 2 else np.asarray(padded_tree.child))
+    child = child.astype(np.int32)
+    width = native.row_width(k, np.float32)
+    rows = np.zeros((n, width), np.float32)
+    flags = np.zeros(n, np.int32)
+    slots = np.zeros((padded_tree.prim_index.shape[0], 10), np.float32)
+    i32 = np.int32
+    axis = np.asarray(padded_tree.axis, i32) if k == 2 else np.full(n, -1, i32)
+    module.pack(child, np.asarray(padded_tree.lo, np.float32), np.asarray(padded_tree.hi, np.float32),
+                np.asarray(padded_tree.prim_start, i32), np.asarray(padded_tree.prim_count, i32), axis,
+                np.zeros(n, i32), np.asarray(padded_tree.prim_index, i32), tri.astype(np.float32), rows,
+                rows.view(i32), flags, slots, slots.view(i32))
+    assert np.array_equal(rows.view(i32)[:, 6 * k:7 * k], child)
+    assert np.array_equal(rows.view(i32)[:, 7 * k], np.asarray(padded_tree.prim_count))
+    assert np.array_equal(rows.view(i32)[: packed.rows.shape[0], : 7 * k + 2], packed.irows[:, : 7 * k + 2])
     origin, direction = mixed_rays(rng, tri, 64)
     root = int(np.asarray(padded_tree.root))
     for target in (None, packed.rows.shape[0] + (n - packed.rows.shape[0]) // 2, n - 1):
