@@ -101,7 +101,7 @@ def _c(x, dtype):
 def _aligned_rows(n: int, width: int, dtype):
     """An uninitialised [n, width] array of ``dtype`` starting on a 64-byte boundary (a
     binary float32 node row is 64 bytes: one cache line) and its integer view; the last
-    uncached call's rows of that shape when there are (:func:`_release`): fresh memory
+    uncached call's rows of that shape when there are (:meth:`PackedTree.release`): fresh memory
     costs a page fault per 4 kB, more than packing into it."""
     spare = _spare.pop((n, width, np.dtype(dtype).str), None)
     if spare is not None:
@@ -148,8 +148,8 @@ class PackedTree:
         self.slot_rows, self.slot_irows = _aligned_rows(prim_index.shape[0], 10, dtype)
         lo, hi = _c(tree.lo, dtype), _c(tree.hi, dtype)
         n_rows = kernels.pack_rows(child, lo, hi, _c(tree.prim_start, i32), _c(tree.prim_count, i32), axis, skip,
-                              prim_index, _c(triangles, dtype), self.rows, self.irows, self.flags, self.slot_rows,
-                              self.slot_irows)
+                                   prim_index, _c(triangles, dtype), self.rows, self.irows, self.flags,
+                                   self.slot_rows, self.slot_irows)
         # the kernel reads the filled rows only (a capacity's padding shares the last one)
         self.full_rows = (self.rows, self.irows)
         self.rows, self.irows, self.flags = self.rows[:n_rows], self.irows[:n_rows], self.flags[:n_rows]
@@ -182,8 +182,11 @@ def packed(kernels, tree, triangles, skip, dtype) -> tuple[PackedTree, bool]:
             _packed.move_to_end(key)
             return hit[1], True
     arrays = PackedTree(kernels, tree, triangles, None, dtype)
-    # scalars cannot be weakly referenced: they are kept (and compared) as they are
-    refs = tuple(weakref.ref(x) if isinstance(x, jax.Array) else x for x in leaves)
+    # scalars cannot be weakly referenced: they are kept (and compared) as they are; the
+    # entry goes when a leaf dies (a dict's pop is atomic: no lock in a callback of the
+    # collector, which may run while this thread holds it)
+    forget = lambda _, key=key: _packed.pop(key, None)  # noqa: E731
+    refs = tuple(weakref.ref(x, forget) if isinstance(x, jax.Array) else x for x in leaves)
     with _packed_lock:
         _packed[key] = (refs, arrays)
         _packed.move_to_end(key)

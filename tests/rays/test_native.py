@@ -10,6 +10,9 @@ chain, on a broken tree (the step bound), and for the engine choice and the impo
 
 from __future__ import annotations
 
+import gc
+import weakref
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -266,6 +269,14 @@ def test_packed_trees_are_reused_only_while_right():
     np_tri[...] = flipped_tri
     assert_equal_to_twin(rays.closest_hit(np_tree, np_tri, origin, direction, engine="native"),
                          ref.trace(flipped, flipped_tri, origin, direction), "closest", 16)
+    # a tree that dies leaves the cache (its packed copy is freed)
+    probe, probe_tri = jax.tree_util.tree_map(jnp.asarray, tree), jnp.asarray(tri)
+    arrays, cached = native.packed(native.kernels(), probe, probe_tri, None, dtype)
+    assert cached
+    gone = weakref.ref(arrays)
+    del arrays, probe, probe_tri
+    gc.collect()
+    assert gone() is None
 
 
 @pytest.mark.parametrize("shape", ["binary", "wide4"])
