@@ -37,6 +37,7 @@ Writes ``bench/results/bench_rays.json`` and ``.md``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
@@ -129,6 +130,52 @@ def embree_run(tri, origin, direction, repeat):
     scene.run(origin[:1000], direction[:1000])
     cpu, wall, out = timed(lambda: scene.run(origin, direction, output=1), repeat)
     return {"cpu": cpu, "wall": wall, "prim": np.asarray(out["primID"])}
+
+
+def warp_run(tri, origin, direction, repeat):
+    """Closest hits by NVIDIA Warp's ``mesh_query_ray`` on its CPU device, or None without
+    ``warp-lang`` (optional; not a jaxbvh dependency): ``wp.Mesh`` (Warp's own BVH) built
+    once per mesh, outside the timing; one warm-up launch (compiles the kernel), then the
+    median CPU and wall seconds of ``repeat`` launches + synchronize on arrays made before."""
+    try:
+        import warp as wp
+    except ImportError:
+        return None
+    # Warp prints its module loads to stdout, where the child writes its JSON
+    with contextlib.redirect_stdout(sys.stderr):
+        return _warp_run(wp, tri, origin, direction, repeat)
+
+
+def _warp_run(wp, tri, origin, direction, repeat):
+    wp.config.quiet = True
+    wp.init()
+    vertices = wp.array(tri.reshape(-1, 3).astype(np.float32), dtype=wp.vec3, device="cpu")
+    indices = wp.array(np.arange(tri.shape[0] * 3, dtype=np.int32), dtype=wp.int32, device="cpu")
+    mesh = wp.Mesh(points=vertices, indices=indices)
+
+    @wp.kernel
+    def closest(mesh_id: wp.uint64, origin: wp.array(dtype=wp.vec3), direction: wp.array(dtype=wp.vec3),
+                t: wp.array(dtype=float), face: wp.array(dtype=int)):
+        i = wp.tid()
+        q = wp.mesh_query_ray(mesh_id, origin[i], direction[i], 1.0e30)
+        if q.result:
+            t[i] = q.t
+            face[i] = q.face
+        else:
+            face[i] = -1
+
+    o = wp.array(np.asarray(origin, np.float32), dtype=wp.vec3, device="cpu")
+    d = wp.array(np.asarray(direction, np.float32), dtype=wp.vec3, device="cpu")
+    t = wp.zeros(len(origin), dtype=float, device="cpu")
+    face = wp.zeros(len(origin), dtype=int, device="cpu")
+
+    def launch():
+        wp.launch(closest, dim=len(origin), inputs=[mesh.id, o, d, t, face], device="cpu")
+        wp.synchronize()
+
+    launch()
+    cpu, wall, _ = timed(launch, repeat)
+    return {"cpu": cpu, "wall": wall, "prim": face.numpy().copy(), "mesh": mesh}
 
 
 def child(args):
@@ -245,6 +292,12 @@ def native_child(args):
         rays.closest_hit(tree, tri, o[:256], d[:256], engine="native")
         rays.closest_hit(tree, tri, o[:n_jax], d[:n_jax], engine="jax")  # the same batch shape: compiled
         nat_cpu, nat_wall, nat = timed(lambda: rays.closest_hit(tree, tri, o, d, engine="native"), args.repeat)
+        # packing excluded: the same tree and triangles as JAX arrays (immutable), packed once
+        # by the first call and reused (jaxbvh.rays.native.PACKED_TREES)
+        jtree, jtri = jax.tree_util.tree_map(jax.numpy.asarray, tree), jax.numpy.asarray(tri)
+        rays.closest_hit(jtree, jtri, o[:256], d[:256], engine="native")
+        cached_cpu, _, cached = timed(lambda: rays.closest_hit(jtree, jtri, o, d, engine="native"), args.repeat)
+        assert np.array_equal(cached.prim, nat.prim) and np.array_equal(cached.box_tests, nat.box_tests)
         jax_cpu, jax_wall, jx = timed(lambda: rays.closest_hit(tree, tri, o[:n_jax], d[:n_jax], engine="jax"), 1)
         names = ("prim", "box_tests", "prim_tests", "nodes_visited", "leaves_visited")
         differ = np.flatnonzero(np.any([getattr(nat, name)[:n_jax] != getattr(jx, name) for name in names], axis=0))
@@ -256,7 +309,8 @@ def native_child(args):
                 "equal_to_twin": bool(all(r[name] == getattr(nat, name)[i] for i, r in zip(checked, twin)
                                           for name in names))}
         return {"rays": int(len(o)), "native_cpu": nat_cpu, "native_wall": nat_wall,
-                "native_rays_per_cpu_s": len(o) / nat_cpu, "jax_rays": int(n_jax), "jax_cpu": jax_cpu,
+                "native_rays_per_cpu_s": len(o) / nat_cpu, "native_cached_cpu": cached_cpu,
+                "native_cached_rays_per_cpu_s": len(o) / cached_cpu, "jax_rays": int(n_jax), "jax_cpu": jax_cpu,
                 "jax_wall": jax_wall, "jax_rays_per_cpu_s": n_jax / jax_cpu,
                 "native_over_jax": (len(o) / nat_cpu) / (n_jax / jax_cpu), "equal_to_jax": same,
                 "steps": float(np.mean(nat.nodes_visited + nat.prim_tests)),
@@ -274,12 +328,16 @@ def native_child(args):
         for kind in args.kinds:
             origin, direction = rays.make_rays(jax.random.key(0), kind, ref_tree, tri, args.rays)
             embree = embree_run(tri, origin, direction, args.repeat)
+            warp = warp_run(tri, origin, direction, args.repeat)
             for label, tree in trees.items():
                 row, hits = both(tree, tri, origin, direction)
                 row.update(section="mesh", mesh=name, triangles=int(tri.shape[0]), kind=kind, tree=label)
                 if embree is not None:
                     row["embree_rays_per_cpu_s"] = len(origin) / embree["cpu"]
                     row["same_prim_as_embree"] = float(np.mean(hits.prim == embree["prim"]))
+                if warp is not None:
+                    row["warp_rays_per_cpu_s"] = len(origin) / warp["cpu"]
+                    row["same_prim_as_warp"] = float(np.mean(hits.prim == warp["prim"]))
                 rows.append(row)
                 print(f"{name} {kind} {label}: native {row['native_rays_per_cpu_s']:,.0f}, jax "
                       f"{row['jax_rays_per_cpu_s']:,.0f} rays/cpu-s", file=sys.stderr, flush=True)
@@ -363,6 +421,16 @@ def native_main(args, extra):
     result["first_calls"] = first_calls()
     meta = {"machine": platform.platform(), "cpus": os.cpu_count(), "rays": args.rays, "repeat": args.repeat,
             "chain_rays": args.chain_rays}
+    if args.previous:
+        # an earlier run's native figures, side by side (another process, another load)
+        previous = json.loads(Path(args.previous).read_text())
+        meta["previous"] = {"file": args.previous_label or str(args.previous), "uptime": previous.get("uptime")}
+        before = {(r["mesh"], r["kind"], r["tree"]): r for r in previous["rows"] if r["section"] in ("mesh", "depth")}
+        for r in result["rows"]:
+            old = before.get((r.get("mesh"), r.get("kind"), r.get("tree")))
+            if r["section"] in ("mesh", "depth") and old is not None:
+                r["before"] = {"native_rays_per_cpu_s": old["native_rays_per_cpu_s"],
+                               "native_over_jax": old["native_over_jax"]}
     write_native(Path(args.out), meta, result)
 
 
@@ -378,33 +446,54 @@ def write_native(out, meta, result):
     from jaxbvh.files import atomic_write
 
     rows = result["rows"]
-    lines = ["# Ray traversal: the native engine beside the JAX walk and Embree (closest hit)\n",
+    prev = meta.get("previous")
+    lines = ["# Ray traversal: the native engine beside the JAX walk, Warp and Embree (closest hit)\n",
              f"{meta['machine']}, {meta['cpus']} CPUs, shared (load average at the end {result['uptime']}). "
-             f"{meta['rays']:,} rays per set; rays per CPU-second of the process, warm (native: median of "
-             f"{meta['repeat']} runs; JAX: one run after a warm-up; Embree: embreex `run`, its own BVH, median of "
-             f"{meta['repeat']}), all in one process on the same trees and rays. `equal`: native and JAX give the "
-             "same prim, box tests, primitive tests, nodes and leaves visited on every ray but the number "
-             "given, and on those (up to 50 checked) native equals the NumPy twin (XLA contracts multiply-adds "
-             "in Möller–Trumbore, numba and NumPy do not, so a hit distance an ulp apart can cull a box "
-             "differently).\n",
-             "| mesh | rays | tree | JAX rays/s | native rays/s | native / JAX | Embree rays/s | Embree / native | "
-             "same prim as Embree | equal | steps/ray |",
-             "|---|---|---|---:|---:|---:|---:|---:|---:|---|---:|"]
+             f"{meta['rays']:,} rays per set; rays per CPU-second of the process, warm, all in one process on the "
+             f"same trees and rays. Native: median of {meta['repeat']} calls of `closest_hit`, the tree as loaded "
+             "(NumPy arrays: packed into the kernel's layout in every call, `per call`) and the same tree as JAX "
+             "arrays (immutable: packed by a first call and reused, `packing excluded`). JAX: one run after a "
+             "warm-up. Warp: `warp-lang` `mesh_query_ray` in a kernel on its `cpu` device, `wp.Mesh` (its own "
+             f"BVH) built once per mesh and not timed, one warm-up launch, median of {meta['repeat']} launches + "
+             f"synchronize. Embree: embreex `run`, its own BVH, median of {meta['repeat']}. Warp / native and "
+             "Embree / native divide by native with packing excluded (none of the three builds or packs in the "
+             "timing). `same prim`: the fraction of rays whose primitive (or miss) is the native engine's. "
+             "`equal`: native and JAX give the same prim, box tests, primitive tests, nodes and leaves visited on "
+             "every ray but the number given, and on those (up to 50 checked) native equals the NumPy twin (XLA "
+             "contracts multiply-adds in Möller–Trumbore, numba and NumPy do not, so a hit distance an ulp apart "
+             "can cull a box differently).\n"]
+    if prev:
+        lines.append(f"`before`: the native figures of an earlier run ({prev['file']}, load average at its end "
+                     f"{prev['uptime']}), another process at another load: compare ratios to JAX, not rays/s.\n")
+    lines += ["| mesh | rays | tree | JAX rays/s | native rays/s (per call) | native / JAX | native rays/s "
+              "(packing excluded) | native (excl.) / JAX | before: native rays/s | before: native / JAX | "
+              "Warp rays/s | Warp / native | same prim as Warp | Embree rays/s | Embree / native | "
+              "same prim as Embree | equal | steps/ray |",
+              "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
+    nan = float("nan")
     for r in (r for r in rows if r["section"] == "mesh"):
-        emb = r.get("embree_rays_per_cpu_s", float("nan"))
+        emb = r.get("embree_rays_per_cpu_s", nan)
+        warp = r.get("warp_rays_per_cpu_s", nan)
+        excl = r["native_cached_rays_per_cpu_s"]
+        old = r.get("before", {})
         lines.append(f"| {r['mesh']} ({r['triangles']:,}) | {r['kind']} | {r['tree']} | {r['jax_rays_per_cpu_s']:,.0f} | "
-                     f"{r['native_rays_per_cpu_s']:,.0f} | {r['native_over_jax']:.1f}x | {emb:,.0f} | "
-                     f"{emb / r['native_rays_per_cpu_s']:.1f}x | {r.get('same_prim_as_embree', float('nan')):.4f} | "
-                     f"{equal(r)} | {r['steps']:.1f} |")
+                     f"{r['native_rays_per_cpu_s']:,.0f} | {r['native_over_jax']:.1f}x | {excl:,.0f} | "
+                     f"{excl / r['jax_rays_per_cpu_s']:.1f}x | {old.get('native_rays_per_cpu_s', nan):,.0f} | "
+                     f"{old.get('native_over_jax', nan):.1f}x | {warp:,.0f} | {warp / excl:.1f}x | "
+                     f"{r.get('same_prim_as_warp', nan):.4f} | {emb:,.0f} | {emb / excl:.1f}x | "
+                     f"{r.get('same_prim_as_embree', nan):.4f} | {equal(r)} | {r['steps']:.1f} |")
+    if not any("warp_rays_per_cpu_s" in r for r in rows):
+        lines.append("\n(Warp columns empty: `warp-lang` was not installed in this run.)")
     lines += ["\n## Depth: chains (one triangle peeled per level), random rays, warm\n",
               "| chain | depth | rays (native) | native CPU s | native wall s | native steps/CPU s | "
-              "rays (JAX) | JAX CPU s | JAX steps/CPU s | native / JAX | equal | steps/ray |",
-              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
+              "rays (JAX) | JAX CPU s | JAX steps/CPU s | native / JAX | before: native / JAX | equal | steps/ray |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
     for r in (r for r in rows if r["section"] == "depth"):
         lines.append(f"| {r['mesh']} | {r['triangles'] - 1} | {r['rays']:,} | {r['native_cpu']:.2f} | "
                      f"{r['native_wall']:.2f} | {r['native_steps_per_cpu_s']:,.0f} | {r['jax_rays']:,} | "
                      f"{r['jax_cpu']:.2f} | {r['jax_steps_per_cpu_s']:,.0f} | {r['native_over_jax']:.1f}x | "
-                     f"{equal(r)} | {r['steps']:.0f} |")
+                     f"{r.get('before', {}).get('native_over_jax', float('nan')):.1f}x | {equal(r)} | "
+                     f"{r['steps']:.0f} |")
     lines += ["\n## Threads (native, first mesh's binary tree, random rays; alternated)\n",
               "| threads | rays/CPU s | rays/wall s |", "|---:|---:|---:|"]
     for r in (r for r in rows if r["section"] == "threads"):
@@ -454,6 +543,9 @@ def main(argv=None):
     parser.add_argument("--few-deep", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--old-walk", action="store_true", help="--before is the walk before the wavefront")
     parser.add_argument("--big-tree", help=argparse.SUPPRESS)
+    parser.add_argument("--previous", help="--native: an earlier bench_rays_native.json whose native figures "
+                        "are shown as 'before'")
+    parser.add_argument("--previous-label", help="what --previous is, for the table (default: its path)")
     parser.add_argument("--native", action="store_true",
                         help="the native engine beside the JAX walk and Embree (bench/results/bench_rays_native)")
     args = parser.parse_args(argv)

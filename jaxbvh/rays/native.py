@@ -28,6 +28,13 @@ triangles are read in the tree's dtype (the JAX walk promotes a float32 tree's r
 float64 triangles under x64); ``lanes`` and ``batch`` change nothing here but the
 progress callback's steps.
 
+Packing. The kernel reads the tree in its own layout (each node's children's boxes in the
+node's row, the triangles as edge rows in leaf order), packed from the tree's arrays: a
+few ms per 100k triangles, as much as tracing 20,000 camera rays. A tree and triangles
+given as JAX arrays (immutable) are packed once and reused while they live
+(:data:`PACKED_TREES`); NumPy arrays may change in place between calls, so they are
+packed in every call (into the previous call's memory).
+
 First-call cost. numba compiles :func:`~jaxbvh.rays.native_kernels.trace_rays` once per
 float dtype (a few CPU seconds). numba is imported on the first native trace, never by
 ``import jaxbvh``, and keeps its compiled kernels where :mod:`jaxbvh.native` says (beside
@@ -36,9 +43,13 @@ jaxbvh's compilation cache).
 
 from __future__ import annotations
 
+import threading
+import weakref
+from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
 
+import jax
 import numpy as np
 
 from jaxbvh import native
@@ -54,7 +65,17 @@ an idle machine with more cores."""
 MIN_RAYS_PER_THREAD = 256
 """Fewer rays than this per thread run on one thread (a thread's start costs ~50 us)."""
 
+PACKED_TREES = 4
+"""Packed trees kept for reuse (least recently used first out), for trees and triangles
+given as JAX arrays only: those are immutable, so a packed copy stays right while they
+live (a NumPy array can change in place between calls, so it is packed again each call).
+Packing costs ~5 ms per 100k triangles, as much as tracing 20,000 camera rays
+(bench/results/bench_rays_native.md)."""
+
 _kernels = {}
+_packed = OrderedDict()  # key (leaf ids, dtype) -> (weak references to the leaves, PackedTree)
+_packed_lock = threading.Lock()  # callers on several threads share the cache
+_spare = {}  # (rows, width, dtype) -> the rows of the last uncached call, reused (no page faults)
 
 
 def kernels():
@@ -79,7 +100,12 @@ def _c(x, dtype):
 
 def _aligned_rows(n: int, width: int, dtype):
     """An uninitialised [n, width] array of ``dtype`` starting on a 64-byte boundary (a
-    binary float32 node row is 64 bytes: one cache line) and its integer view."""
+    binary float32 node row is 64 bytes: one cache line) and its integer view; the last
+    uncached call's rows of that shape when there are (:meth:`PackedTree.release`): fresh memory
+    costs a page fault per 4 kB, more than packing into it."""
+    spare = _spare.pop((n, width, np.dtype(dtype).str), None)
+    if spare is not None:
+        return spare
     itemsize = np.dtype(dtype).itemsize
     raw = np.empty(n * width * itemsize + 64, np.uint8)
     offset = -raw.ctypes.data % 64
@@ -87,9 +113,20 @@ def _aligned_rows(n: int, width: int, dtype):
     return rows, rows.view(np.int32 if itemsize == 4 else np.int64)
 
 
-class _Arrays:
+def row_width(k: int, dtype) -> int:
+    """Entries of a packed node row of a ``k``-wide tree (:func:`~jaxbvh.rays.native_kernels.trace_rays`):
+    ``7 k + 2``, padded to whole 64-byte cache lines where the padding is under 7 entries
+    (so ``(width - 2) // 7`` still gives ``k``): a 4-wide float32 row is 128 bytes, two
+    lines, rather than 120 bytes over two or three."""
+    width = 7 * k + 2
+    per_line = 64 // np.dtype(dtype).itemsize
+    padded = -(-width // per_line) * per_line
+    return padded if (padded - 2) // 7 == k else width
+
+
+class PackedTree:
     """A tree and its triangles packed as the kernel reads them
-    (:func:`~jaxbvh.rays.native_kernels.trace_rays`; :func:`~jaxbvh.rays.native_kernels.pack`
+    (:func:`~jaxbvh.rays.native_kernels.trace_rays`; :func:`~jaxbvh.rays.native_kernels.pack_rows`
     fills them: O(N k + P), a few ms per 100k triangles)."""
 
     def __init__(self, kernels, tree, triangles, skip, dtype):
@@ -106,14 +143,56 @@ class _Arrays:
         prim_index = _c(tree.prim_index, i32)
         self.root = int(np.asarray(tree.root))
         self.parent = _c(tree.parent, i32)
-        self.rows, self.irows = _aligned_rows(n, 7 * k + 2, dtype)
+        self.rows, self.irows = _aligned_rows(n, row_width(k, dtype), dtype)
         self.flags = np.empty(n, i32)
         self.slot_rows, self.slot_irows = _aligned_rows(prim_index.shape[0], 10, dtype)
         lo, hi = _c(tree.lo, dtype), _c(tree.hi, dtype)
-        kernels.pack(child, lo, hi, _c(tree.prim_start, i32), _c(tree.prim_count, i32), axis, skip, prim_index,
-                     _c(triangles, dtype), self.rows, self.irows, self.flags, self.slot_rows, self.slot_irows)
+        n_rows = kernels.pack_rows(child, lo, hi, _c(tree.prim_start, i32), _c(tree.prim_count, i32), axis, skip,
+                                   prim_index, _c(triangles, dtype), self.rows, self.irows, self.flags,
+                                   self.slot_rows, self.slot_irows)
+        # the kernel reads the filled rows only (a capacity's padding shares the last one)
+        self.full_rows = (self.rows, self.irows)
+        self.rows, self.irows, self.flags = self.rows[:n_rows], self.irows[:n_rows], self.flags[:n_rows]
         self.root_box = np.concatenate([lo[self.root], hi[self.root]])
         self.consts = np.array([1, robust_factor(dtype), INV_BIG], dtype)
+
+    def release(self):
+        """Leave the rows for the next uncached call (this object is not used again)."""
+        for rows, irows in (self.full_rows, (self.slot_rows, self.slot_irows)):
+            _spare[(rows.shape[0], rows.shape[1], rows.dtype.str)] = (rows, irows)
+
+
+def _immutable(x) -> bool:
+    return isinstance(x, (jax.Array, np.generic, int, float))
+
+
+def packed(kernels, tree, triangles, skip, dtype) -> tuple[PackedTree, bool]:
+    """The packed arrays of ``tree`` and ``triangles`` (:class:`PackedTree`) and whether they
+    are cached: a tree and triangles of JAX arrays (immutable) packed before and still
+    alive are not packed again (:data:`PACKED_TREES`); the key holds the leaves' ids and
+    weak references check that they are the same objects (an id is reused after death)."""
+    leaves = jax.tree_util.tree_leaves((tree, triangles))
+    if skip is not None or not all(_immutable(x) for x in leaves):
+        return PackedTree(kernels, tree, triangles, skip, dtype), False
+    key = (tuple(id(x) for x in leaves), type(tree).__name__, np.dtype(dtype).str)
+    with _packed_lock:
+        hit = _packed.get(key)
+        if hit is not None and all(ref is leaf or (callable(ref) and ref() is leaf)
+                                   for ref, leaf in zip(hit[0], leaves)):
+            _packed.move_to_end(key)
+            return hit[1], True
+    arrays = PackedTree(kernels, tree, triangles, None, dtype)
+    # scalars cannot be weakly referenced: they are kept (and compared) as they are; the
+    # entry goes when a leaf dies (a dict's pop is atomic: no lock in a callback of the
+    # collector, which may run while this thread holds it)
+    forget = lambda _, key=key: _packed.pop(key, None)  # noqa: E731
+    refs = tuple(weakref.ref(x, forget) if isinstance(x, jax.Array) else x for x in leaves)
+    with _packed_lock:
+        _packed[key] = (refs, arrays)
+        _packed.move_to_end(key)
+        while len(_packed) > PACKED_TREES:
+            _packed.popitem(last=False)
+    return arrays, True
 
 
 def trace(tree, triangles, origin, direction, t_min, t_max, *, dtype, mode: str, capacity: int, max_hits: int,
@@ -128,7 +207,7 @@ def trace(tree, triangles, origin, direction, t_min, t_max, *, dtype, mode: str,
     between ``on_batch(n)`` calls (None: one call for all).
     """
     k = kernels()
-    a = _Arrays(k, tree, triangles, skip, dtype)
+    a, cached = packed(k, tree, triangles, skip, dtype)
     r = origin.shape[0]
     o = _c(origin, dtype)
     d = _c(direction, dtype)
@@ -160,6 +239,8 @@ def trace(tree, triangles, origin, direction, t_min, t_max, *, dtype, mode: str,
                 list(pool.map(run, edges[:-1], edges[1:]))
         if on_batch is not None:
             on_batch(stop - start)
+    if not cached:
+        a.release()
     extra = {}
     if all_hits:
         extra = dict(hit_count=out["hit_count"], hit_prims=out["hit_prims"], hit_t=out["hit_t"],

@@ -16,6 +16,14 @@ comes from ``consts`` (an array of that dtype), because numba, like NumPy, would
 a fused multiply-add (XLA on CPU does), so hit distances equal the NumPy twin's bit for
 bit and the JAX walk's to the last bits (``tests/rays/test_rays.py::assert_t_close``).
 
+Speed (bench/results/bench_rays_native.md): binary nodes and 4-wide nodes in distance
+order are written out on scalars (the generic k-ary branch, loops over small arrays and
+calls, costs about twice as much per node); the children's rows are prefetched while
+their boxes are tested (a step on a tree that does not fit the caches waits on memory).
+Tried and not kept (within the noise of the shared machine, or slower): a depth-first
+renumbering of the packed rows, rays sorted by Morton code and octant, huge pages,
+64-byte triangle rows, and pushes without branches (15% slower).
+
 Signatures: the integer arrays are int32, the float arrays all in the tree's dtype, the
 scalars int64, so there are two compiled versions of :func:`trace_rays` (float32 and
 float64), each a few CPU seconds once, then loaded from the cache.
@@ -25,6 +33,10 @@ from __future__ import annotations
 
 import numba
 import numpy as np
+from llvmlite import ir
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 from jaxbvh import native
 
@@ -93,6 +105,30 @@ def _slab(rows, ref, j, t_min, t_far, ox, oy, oz, ix, iy, iz, robust):
     return e <= min(far, t_far), e
 
 
+@intrinsic
+def prefetch(typingctx, rows, row, column):
+    """Ask the CPU to start loading the cache line of ``rows[row, column]`` (2-D, C order;
+    in range): ``llvm.prefetch``, a hint that never faults and changes no result."""
+
+    def codegen(context, builder, signature, args):
+        rows_type = signature.args[0]
+        array = context.make_array(rows_type)(context, builder, args[0])
+        index = context.cast(builder, args[1], signature.args[1], types.intp)
+        column = context.cast(builder, args[2], signature.args[2], types.intp)
+        pointer = cgutils.get_item_pointer2(context, builder, data=array.data,
+                                            shape=cgutils.unpack_tuple(builder, array.shape),
+                                            strides=cgutils.unpack_tuple(builder, array.strides),
+                                            layout=rows_type.layout, inds=[index, column],
+                                            wraparound=False, boundscheck=False)
+        i32 = ir.IntType(32)
+        signature_ir = ir.FunctionType(ir.VoidType(), [pointer.type, i32, i32, i32])
+        hint = cgutils.get_or_insert_function(builder.module, signature_ir, "llvm.prefetch.p0")
+        builder.call(hint, [pointer, i32(0), i32(3), i32(1)])  # read, keep in all caches, data
+        return context.get_dummy_value()
+
+    return types.void(rows, row, column), codegen
+
+
 @_jit
 def _before(key, i, j):
     """Child slot ``i`` comes before slot ``j`` (``stack_walk._order``: key, then slot)."""
@@ -133,7 +169,9 @@ def trace_rays(rows, irows, flags, has_skip, parent, root_box, slot_rows, slot_i
 
     Tree, packed as :class:`jaxbvh.rays.traversal.Packed` (a node's children's boxes in
     its own row: a node costs one row read, 64 bytes for a binary float32 tree): ``rows``
-    [N, 7 k + 2] float and ``irows``, an integer view of the same memory; row ``n``: child
+    [N, W] float, ``W = 7 k + 2`` or padded to whole cache lines with ``(W - 2) // 7 == k``
+    (:func:`jaxbvh.rays.native.row_width`), and ``irows``, an integer view of the same
+    memory; row ``n``: child
     ``j``'s lo, hi at ``6 j``, the children at ``6 k`` (-1: none), ``prim_count`` at
     ``7 k``, then ``prim_start`` (a leaf) or the split axis (-1: by distance; wide trees);
     ``flags`` [N] int32 skip flags (bit 0 the node's own, bit ``1 + j`` child ``j``'s; read
@@ -310,6 +348,9 @@ def trace_rays(rows, irows, flags, has_skip, parent, root_box, slot_rows, slot_i
                             # loops over k below cost about twice as much): the same tests, order, push
                             c0 = irows[ref, 12]
                             c1 = irows[ref, 13]
+                            # the children's rows start loading while their boxes are tested
+                            prefetch(rows, min(max(c0, 0), n_nodes - 1), 0)
+                            prefetch(rows, min(max(c1, 0), n_nodes - 1), 0)
                             h0 = False
                             h1 = False
                             e0 = zero
@@ -337,6 +378,63 @@ def trace_rays(rows, irows, flags, has_skip, parent, root_box, slot_rows, slot_i
                                 stack_node[slot] = c0 if h0 else c1
                                 stack_entry[slot] = e0 if h0 else e1
                                 n_push = 1
+                        elif k == 4 and irows[ref, 29] < 0 and not (has_skip and (flags[ref] >> 1) != 0):
+                            # a 4-wide node in distance order without skip flags, written out on
+                            # scalars (the loops over k and the arrays below cost about twice as
+                            # much): the same tests; each hit child's rank in visiting order
+                            # (entry, then slot: stack_walk._order) is the number of hit children
+                            # before it, the nearest goes on top (stack_walk._push)
+                            c0 = irows[ref, 24]
+                            c1 = irows[ref, 25]
+                            c2 = irows[ref, 26]
+                            c3 = irows[ref, 27]
+                            # (a row is two cache lines; its last one holds the children's ids)
+                            for c in (c0, c1, c2, c3):
+                                prefetch(rows, min(max(c, 0), n_nodes - 1), 0)
+                                prefetch(rows, min(max(c, 0), n_nodes - 1), rows.shape[1] - 1)
+                            h0 = False
+                            h1 = False
+                            h2 = False
+                            h3 = False
+                            e0 = zero
+                            e1 = zero
+                            e2 = zero
+                            e3 = zero
+                            if c0 >= 0:
+                                box_tests += 1
+                                h0, e0 = _slab(rows, ref, 0, t_min, found_t, ox, oy, oz, ix, iy, iz, robust)
+                            if c1 >= 0:
+                                box_tests += 1
+                                h1, e1 = _slab(rows, ref, 1, t_min, found_t, ox, oy, oz, ix, iy, iz, robust)
+                            if c2 >= 0:
+                                box_tests += 1
+                                h2, e2 = _slab(rows, ref, 2, t_min, found_t, ox, oy, oz, ix, iy, iz, robust)
+                            if c3 >= 0:
+                                box_tests += 1
+                                h3, e3 = _slab(rows, ref, 3, t_min, found_t, ox, oy, oz, ix, iy, iz, robust)
+                            # (a hit child's entry is never NaN: NaN fails the slab's <=)
+                            n_push = np.int64(h0) + np.int64(h1) + np.int64(h2) + np.int64(h3)
+                            top_at = slot + n_push - 1
+                            if h0:
+                                at = top_at - ((h1 and e1 < e0) + (h2 and e2 < e0) + (h3 and e3 < e0))
+                                at = at - capacity if at >= capacity else at
+                                stack_node[at] = c0
+                                stack_entry[at] = e0
+                            if h1:
+                                at = top_at - ((h0 and e0 <= e1) + (h2 and e2 < e1) + (h3 and e3 < e1))
+                                at = at - capacity if at >= capacity else at
+                                stack_node[at] = c1
+                                stack_entry[at] = e1
+                            if h2:
+                                at = top_at - ((h0 and e0 <= e2) + (h1 and e1 <= e2) + (h3 and e3 < e2))
+                                at = at - capacity if at >= capacity else at
+                                stack_node[at] = c2
+                                stack_entry[at] = e2
+                            if h3:
+                                at = top_at - ((h0 and e0 <= e3) + (h1 and e1 <= e3) + (h2 and e2 <= e3))
+                                at = at - capacity if at >= capacity else at
+                                stack_node[at] = c3
+                                stack_entry[at] = e3
                         else:
                             box_tests += _children(rows, irows, flags, has_skip, ref, entry, t_min, found_t, ox, oy,
                                                    oz, ix, iy, iz, dx, dy, dz, robust, kid_hit, kid_entry, key)
@@ -368,7 +466,7 @@ def trace_rays(rows, irows, flags, has_skip, parent, root_box, slot_rows, slot_i
                 if last == root:
                     done = True
                     continue
-                up = parent[min(max(last, 0), n_nodes - 1)]  # the JAX walk reads it with ``last``
+                up = parent[min(max(last, 0), parent.shape[0] - 1)]  # the JAX walk reads it with ``last``
                 ref = min(max(up, 0), n_nodes - 1)
                 box_tests += _children(rows, irows, flags, has_skip, ref, t_min, t_min, found_t, ox, oy, oz, ix,
                                        iy, iz, dx, dy, dz, robust, kid_hit, kid_entry, key)
@@ -415,12 +513,41 @@ def trace_rays(rows, irows, flags, has_skip, parent, root_box, slot_rows, slot_i
 @_jit
 def pack(child, lo, hi, prim_start, prim_count, axis, skip, prim_index, triangles, rows, irows, flags, slot_rows,
          slot_irows):
+    """Fill every row of the packed arrays (:func:`pack_rows`, its rows from ``M`` on copies
+    of row ``M - 1``, which they equal)."""
+    n_rows = pack_rows(child, lo, hi, prim_start, prim_count, axis, skip, prim_index, triangles, rows, irows, flags,
+                       slot_rows, slot_irows)
+    for i in range(n_rows, irows.shape[0]):
+        irows[i, :] = irows[n_rows - 1, :]  # (the integer view: the bits as they are)
+        flags[i] = flags[n_rows - 1]
+
+
+@_jit
+def pack_rows(child, lo, hi, prim_start, prim_count, axis, skip, prim_index, triangles, rows, irows, flags, slot_rows,
+              slot_irows):
     """Fill the packed arrays :func:`trace_rays` reads (``rows`` / ``irows``, ``flags``,
-    ``slot_rows`` / ``slot_irows``) from a tree's arrays (``child`` [N, k], ``skip`` [N]
-    int32) and ``triangles`` [T, 3, 3]; indices out of range are clamped (as XLA's
-    gathers clamp them: a broken tree reads some node, the step bound ends its rays)."""
+    ``slot_rows`` / ``slot_irows``, [N, ...] each) from a tree's arrays (``child`` [N, k],
+    ``skip`` [N] int32) and ``triangles`` [T, 3, 3]; indices out of range are clamped (as
+    XLA's gathers clamp them: a broken tree reads some node, the step bound ends its rays).
+
+    Returns ``M``: only rows ``0 .. M - 1`` are filled and read. The nodes from ``M - 1``
+    on all pack to the same row (no children, the same count, start or axis and skip flag
+    as the last node: a capacity's padding), so :func:`trace_rays`, clamping a node to
+    ``M - 1``, reads what their own rows would hold (``jaxbvh.build``'s bunny4 tree: 786k
+    nodes, 300k rows)."""
     n, k = child.shape
-    for i in range(n):
+    last_tag = prim_start[n - 1] if prim_count[n - 1] > 0 else axis[n - 1]
+    n_rows = n
+    while n_rows > 1:
+        i = n_rows - 2
+        same = prim_count[i] == prim_count[n - 1] and skip[i] == skip[n - 1]
+        same = same and (prim_start[i] if prim_count[i] > 0 else axis[i]) == last_tag
+        for j in range(k):
+            same = same and child[i, j] == -1 and child[n - 1, j] == -1
+        if not same:
+            break
+        n_rows -= 1
+    for i in range(n_rows):
         f = 1 if skip[i] != 0 else 0
         for j in range(k):
             c = child[i, j]
@@ -443,3 +570,4 @@ def pack(child, lo, hi, prim_start, prim_count, axis, skip, prim_index, triangle
             slot_rows[s, 3 + a] = triangles[p, 1, a] - v0
             slot_rows[s, 6 + a] = triangles[p, 2, a] - v0
         slot_irows[s, 9] = prim_index[s]
+    return n_rows

@@ -10,6 +10,9 @@ chain, on a broken tree (the step bound), and for the engine choice and the impo
 
 from __future__ import annotations
 
+import gc
+import weakref
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -226,3 +229,140 @@ def test_binary_and_wide_inputs_as_jax_arrays():
         assert np.array_equal(getattr(a, name), getattr(b, name))
     none = rays.all_hits(tree, tri, origin[:0], direction[:0], max_hits=3, engine="native")
     assert none.prim.shape == (0,) and none.hit_prims.shape == (0, 3)
+
+
+def test_packed_trees_are_reused_only_while_right():
+    """A tree of JAX arrays is packed once and reused; another tree (JAX arrays of the same
+    shapes) or a NumPy tree changed in place between calls is traced as it is now, never
+    through a stale packed copy (the cache, and the rows reused between uncached calls)."""
+    rng = np.random.default_rng(8)
+    tri = random_triangles(rng, 40, size=0.3)
+    tree = median_tree(tri, max_leaf=2)
+    origin, direction = mixed_rays(rng, tri, 64)
+    jtree = jax.tree_util.tree_map(jnp.asarray, tree)
+    jtri = jnp.asarray(tri)
+    first = rays.closest_hit(jtree, jtri, origin, direction, engine="native")
+    dtype = np.dtype(np.float32)
+    packed, cached = native.packed(native.kernels(), jtree, jtri, None, dtype)
+    assert cached and native.packed(native.kernels(), jtree, jtri, None, dtype)[0] is packed  # packed once, reused
+    assert not native.packed(native.kernels(), tree, tri, None, dtype)[1]  # NumPy: packed per call
+    again = rays.closest_hit(jtree, jtri, origin, direction, engine="native")
+    # the same shapes, other boxes and triangles: mirrored in x
+    flipped_tri = tri * np.array([-1, 1, 1], tri.dtype)
+    flipped = median_tree(flipped_tri, max_leaf=2)
+    assert flipped.lo.shape == tree.lo.shape
+    other = rays.closest_hit(jax.tree_util.tree_map(jnp.asarray, flipped), jnp.asarray(flipped_tri), origin,
+                             direction, engine="native")
+    twin = ref.trace(tree, tri, origin, direction)
+    assert_equal_to_twin(first, twin, "closest", 16)
+    assert_equal_to_twin(again, twin, "closest", 16)
+    assert_equal_to_twin(other, ref.trace(flipped, flipped_tri, origin, direction), "closest", 16)
+    assert not np.array_equal(other.prim, first.prim)
+    # a NumPy tree and triangles changed in place: the next call sees the change
+    np_tree = jax.tree_util.tree_map(np.array, tree)
+    np_tri = tri.copy()
+    assert_equal_to_twin(rays.closest_hit(np_tree, np_tri, origin, direction, engine="native"), twin, "closest", 16)
+    for name in ("lo", "hi"):
+        getattr(np_tree, name)[...] = getattr(flipped, name)
+    for name in ("left", "right", "parent", "prim_start", "prim_count", "prim_index", "axis"):
+        getattr(np_tree, name)[...] = getattr(flipped, name)
+    np_tri[...] = flipped_tri
+    assert_equal_to_twin(rays.closest_hit(np_tree, np_tri, origin, direction, engine="native"),
+                         ref.trace(flipped, flipped_tri, origin, direction), "closest", 16)
+    # a tree that dies leaves the cache (its packed copy is freed)
+    probe, probe_tri = jax.tree_util.tree_map(jnp.asarray, tree), jnp.asarray(tri)
+    arrays, cached = native.packed(native.kernels(), probe, probe_tri, None, dtype)
+    assert cached
+    gone = weakref.ref(arrays)
+    del arrays, probe, probe_tri
+    gc.collect()
+    assert gone() is None
+
+
+@pytest.mark.parametrize("shape", ["binary", "wide4"])
+@pytest.mark.parametrize("broken", ["cycle", "parent"])
+@pytest.mark.parametrize("arrays", ["numpy", "jax"])
+def test_broken_trees_raise_on_every_packed_path(shape, broken, arrays):
+    """A child cycle, or a parent link to itself met by a climb (a stack of ``k``
+    entries), ends at the step bound and raises on the written-out binary and 4-wide
+    branches, packed per call (NumPy) or cached (JAX arrays): no hang, no stale pack."""
+    rng = np.random.default_rng(4)
+    tri = random_triangles(rng, 60, size=0.3)
+    tree = median_tree(tri)
+    origin, direction = mixed_rays(rng, tri, 32)
+    if shape == "wide4":
+        tree = widen(tree, 4)
+    k = 4 if shape == "wide4" else 2
+    as_arrays = (lambda t: jax.tree_util.tree_map(jnp.asarray, t)) if arrays == "jax" else (lambda t: t)
+    sound = rays.closest_hit(as_arrays(tree), tri, origin, direction, capacity=k, engine="native")
+    assert_equal_to_twin(sound, ref.trace(tree, tri, origin, direction, capacity=k), "closest", 16)
+    root = int(np.asarray(tree.root))
+    if broken == "cycle":
+        if shape == "binary":
+            left = np.asarray(tree.left).copy()
+            left[root] = root
+            bad = tree.replace(left=left)
+        else:
+            child = np.asarray(tree.child).copy()
+            child[root, 0] = root
+            bad = tree.replace(child=child)
+    else:
+        # every node below the root names itself as parent: the first climb never ends
+        parent = np.asarray(tree.parent).copy()
+        nodes = np.flatnonzero(parent >= 0)
+        parent[nodes] = nodes
+        bad = tree.replace(parent=parent)
+    with pytest.raises(InvalidTreeError, match="did not end"):
+        rays.closest_hit(as_arrays(bad), tri, origin, direction, capacity=k, engine="native")
+
+
+@pytest.mark.parametrize("shape", ["binary", "wide4"])
+def test_capacity_padding_shares_one_packed_row(shape):
+    """A tree padded to a capacity packs its padding into one shared row; the walk is the
+    twin's on the padded tree (a stack of ``k``: climbs), and on a broken one whose root's
+    child points into the padding (the middle of it and its last node)."""
+    rng = np.random.default_rng(6)
+    tri = random_triangles(rng, 50, size=0.3)
+    tree = median_tree(tri, max_leaf=2)
+    padded_tree = fixed(tree) if shape == "binary" else widen(tree, 4)
+    k = 2 if shape == "binary" else 4
+    n = padded_tree.capacity
+    module = native.kernels()
+    packed = native.PackedTree(module, padded_tree, tri, None, np.float32)
+    assert packed.rows.shape[0] < n  # the padding shares a row
+    # pack (every row, for other kernels): each node's own children ids and count in its row
+    child = (np.stack([padded_tree.left, padded_tree.right], 1) if k == 2 else np.asarray(padded_tree.child))
+    child = child.astype(np.int32)
+    width = native.row_width(k, np.float32)
+    rows = np.zeros((n, width), np.float32)
+    flags = np.zeros(n, np.int32)
+    slots = np.zeros((padded_tree.prim_index.shape[0], 10), np.float32)
+    i32 = np.int32
+    axis = np.asarray(padded_tree.axis, i32) if k == 2 else np.full(n, -1, i32)
+    module.pack(child, np.asarray(padded_tree.lo, np.float32), np.asarray(padded_tree.hi, np.float32),
+                np.asarray(padded_tree.prim_start, i32), np.asarray(padded_tree.prim_count, i32), axis,
+                np.zeros(n, i32), np.asarray(padded_tree.prim_index, i32), tri.astype(np.float32), rows,
+                rows.view(i32), flags, slots, slots.view(i32))
+    assert np.array_equal(rows.view(i32)[:, 6 * k:7 * k], child)
+    assert np.array_equal(rows.view(i32)[:, 7 * k], np.asarray(padded_tree.prim_count))
+    assert np.array_equal(rows.view(i32)[: packed.rows.shape[0], : 7 * k + 2], packed.irows[:, : 7 * k + 2])
+    origin, direction = mixed_rays(rng, tri, 64)
+    root = int(np.asarray(padded_tree.root))
+    for target in (None, packed.rows.shape[0] + (n - packed.rows.shape[0]) // 2, n - 1):
+        tree_now = padded_tree
+        if target is not None:
+            if shape == "binary":
+                right = np.asarray(padded_tree.right).copy()
+                right[root] = target
+                tree_now = padded_tree.replace(right=right)
+            else:
+                child = np.asarray(padded_tree.child).copy()
+                child[root, 1] = target
+                tree_now = padded_tree.replace(child=child)
+        # (the twin climbs sound trees only)
+        for capacity in (k, CAP) if target is None else (CAP,):
+            hits = native.trace(tree_now, tri, origin, direction, 0.0, np.inf, dtype=np.dtype(np.float32),
+                                mode="closest", capacity=capacity, max_hits=16,
+                                step_limit=traverse.max_steps(tree_now))
+            twin = ref.trace(tree_now, tri, origin, direction, capacity=capacity)
+            assert_equal_to_twin(hits, twin, "closest", 16)
