@@ -25,8 +25,10 @@ renumbering of the packed rows, rays sorted by Morton code and octant, huge page
 64-byte triangle rows, and pushes without branches (15% slower).
 
 Signatures: the integer arrays are int32, the float arrays all in the tree's dtype, the
-scalars int64, so there are two compiled versions of :func:`trace_rays` (float32 and
-float64), each a few CPU seconds once, then loaded from the cache.
+scalars int64, so :func:`trace_rays` is compiled once per float dtype (float32, float64)
+and per kind of tree: its ``four_wide`` and ``other_nodes`` arguments are None (numba then
+leaves that branch out of the compiled code) or 1 (:func:`jaxbvh.rays.native._branches`);
+each version costs a few CPU seconds once, then loads from the cache.
 """
 
 from __future__ import annotations
@@ -163,7 +165,7 @@ def _push(irows, ref, mask, key, kid_entry, top_slot, capacity, stack_node, stac
 @_jit
 def trace_rays(rows, irows, flags, has_skip, parent, root_box, slot_rows, slot_irows, root,
                origin, direction, t_lo, t_hi, consts, mode, capacity, max_hits, step_limit, leaf_width,
-               first, stop, out_t, out_u, out_v, out_prim, out_counts, out_limit, out_hit_count,
+               four_wide, other_nodes, first, stop, out_t, out_u, out_v, out_prim, out_counts, out_limit, out_hit_count,
                out_hit_prims, out_hit_t):
     """Trace rays ``first .. stop - 1``; writes their results into the ``out_*`` arrays.
 
@@ -378,7 +380,7 @@ def trace_rays(rows, irows, flags, has_skip, parent, root_box, slot_rows, slot_i
                                 stack_node[slot] = c0 if h0 else c1
                                 stack_entry[slot] = e0 if h0 else e1
                                 n_push = 1
-                        elif k == 4 and irows[ref, 29] < 0 and not (has_skip and (flags[ref] >> 1) != 0):
+                        elif four_wide is not None and k == 4 and irows[ref, 29] < 0 and not (has_skip and (flags[ref] >> 1) != 0):
                             # a 4-wide node in distance order without skip flags, written out on
                             # scalars (the loops over k and the arrays below cost about twice as
                             # much): the same tests; each hit child's rank in visiting order
@@ -435,7 +437,7 @@ def trace_rays(rows, irows, flags, has_skip, parent, root_box, slot_rows, slot_i
                                 at = at - capacity if at >= capacity else at
                                 stack_node[at] = c3
                                 stack_entry[at] = e3
-                        else:
+                        elif other_nodes is not None:
                             box_tests += _children(rows, irows, flags, has_skip, ref, entry, t_min, found_t, ox, oy,
                                                    oz, ix, iy, iz, dx, dy, dz, robust, kid_hit, kid_entry, key)
                             # the hit children in visiting order (key, then slot: an insertion sort,
@@ -455,6 +457,8 @@ def trace_rays(rows, irows, flags, has_skip, parent, root_box, slot_rows, slot_i
                                     at -= capacity
                                 stack_node[at] = irows[ref, 6 * k + order[rank]]
                                 stack_entry[at] = kid_entry[order[rank]]
+                        else:  # not reached: other_nodes is None only where every node takes the binary branch
+                            n_push = 0
                         sp = top + n_push
                         sp_slot = slot + n_push
                         if sp_slot >= capacity:
