@@ -185,6 +185,8 @@ def trace_rays(rows, irows, flags, has_skip, parent, root_box, slot_rows, slot_i
     the tree's dtype. Out: ``out_counts`` [R, 4] int32 (box, primitive tests, nodes,
     leaves visited), ``out_limit`` [R] bool (the ray reached ``step_limit``), the lists
     ``out_hit_prims`` [R, H] (filled with -1) and ``out_hit_t`` [R, H] (inf) for ``ALL``.
+    ``four_wide``, ``other_nodes``: None leaves the written-out 4-wide branch, resp. the
+    general k-ary branch, out of the compiled kernel (a tree with no such node), else 1.
     """
     k = (rows.shape[1] - 2) // 7
     n_nodes = rows.shape[0]
