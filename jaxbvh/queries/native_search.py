@@ -22,6 +22,8 @@ engine (:func:`jaxbvh.native.choose`) and wraps the results.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from jaxbvh import native
@@ -31,14 +33,11 @@ __all__ = ["closest_point", "kernel", "lists"]
 #: the kernel's ``mode``: what one query is
 CLOSEST, OVERLAP, WITHIN_TRIANGLES, WITHIN_BOXES = 0, 1, 2, 3
 
-_KERNEL = []  # the compiled kernel, once made
 
-
+@functools.cache
 def kernel():
     """The numba kernel (compiled, or loaded from numba's cache, on first use)."""
-    if not _KERNEL:
-        _KERNEL.append(_make(native.numba()))
-    return _KERNEL[0]
+    return _make(native.numba())
 
 
 def _make(numba):

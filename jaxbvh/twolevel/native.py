@@ -31,6 +31,8 @@ both modes and every capacity: two compiled versions (float32, float64).
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from jaxbvh import native
@@ -45,14 +47,11 @@ CLOSEST, ANY = 0, 1
 # columns of the packed int32 node rows [N, 6] (:func:`_rows`)
 LEFT, RIGHT, PARENT, START, COUNT, AXIS = range(6)
 
-_KERNEL = []  # the compiled kernel, once made
 
-
+@functools.cache
 def kernel():
     """The numba kernel (compiled, or loaded from numba's cache, on first use)."""
-    if not _KERNEL:
-        _KERNEL.append(_make(native.numba()))
-    return _KERNEL[0]
+    return _make(native.numba())
 
 
 def _make(numba):
