@@ -20,6 +20,8 @@ The twin of each is the single-tree function itself, run tree by tree in the tes
 
 from __future__ import annotations
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -80,25 +82,55 @@ def _trace_rows(trees, triangles, origin, direction, *, mode, capacity, max_hits
 
 
 def trace(trees: TreeBatch, triangles, origin, direction, *, mode: str = "closest", max_hits: int = 16,
-          rays_per_call: int = 256, devices=None, engine: str = engines.DEFAULT_ENGINE) -> list:
+          rays_per_call: int = 256, devices=None, engine: str = engines.DEFAULT_ENGINE,
+          errors: str = "raise") -> list:
     """Trace each mesh's rays through its tree; a list of per-mesh ``Hits`` (NumPy, [R] each).
 
     ``triangles``: per mesh [n, 3, 3] in the tree's frame; ``origin``, ``direction``: per
     mesh [R, 3] (one R for all meshes). ``mode``: ``"closest"``, ``"any"``, ``"all"``.
-    Counts per tree: ``hits.box_tests.sum()`` etc. Raises like the single trace on a stack
-    overflow or a ray past the step bound. A mesh left out gets None. ``engine``:
+    Counts per tree: ``hits.box_tests.sum()`` etc. A mesh left out gets None. A broken
+    tree (a ray past the step bound; a stack overflow): ``errors="raise"`` (default)
+    raises naming the first such mesh, like the single trace; ``errors="keep"`` gives that
+    mesh None, delivers the others, and warns once naming every mesh it left out and why
+    (as :func:`jaxbvh.batch.build`'s ``errors``). ``engine``:
     ``"auto"``, ``"jax"`` or ``"native"`` (:func:`jaxbvh.native.choose`): the native
     engine traces mesh after mesh with :mod:`jaxbvh.rays.native` (the same hits and
     counters; ``rays_per_call`` and ``devices`` then change nothing).
     """
+    if errors not in ("raise", "keep"):
+        raise ValueError(f"errors must be 'raise' or 'keep', got {errors!r}")
     if not len(triangles) == len(origin) == len(direction) == trees.size:
         raise ValueError(f"trace: {trees.size} meshes but {len(triangles)} triangle sets, "
                          f"{len(origin)} origins and {len(direction)} directions")
     rays = [check_rays(o, d) for o, d in zip(origin, direction)]
     if len({o.shape[0] for o, _ in rays}) > 1:
         raise ValueError("trace: every mesh needs the same number of rays")
+    failed = {}  # mesh -> why it was left out (errors="keep")
+
+    def checked(hits, mesh: int, capacity: int):
+        try:
+            _check_hits(hits, mesh, capacity)
+        except (ValueError, RuntimeError) as exc:
+            if errors == "raise":
+                raise
+            failed[mesh] = str(exc)
+            return None
+        return hits
+
     if engines.choose(engine, triangles, origin, direction) == "native":
-        return _trace_native(trees, triangles, rays, mode=mode, max_hits=max_hits)
+        out = _trace_native(trees, triangles, rays, checked, mode=mode, max_hits=max_hits)
+    else:
+        out = _trace_jax(trees, triangles, rays, checked, mode=mode, max_hits=max_hits,
+                         rays_per_call=rays_per_call, devices=devices)
+    if failed:
+        warnings.warn(f"trace: {len(failed)} mesh(es) left out (None): " + "; ".join(failed[m] for m in sorted(failed)),
+                      stacklevel=2)
+    return out
+
+
+def _trace_jax(trees: TreeBatch, triangles, rays, checked, *, mode, max_hits, rays_per_call, devices) -> list:
+    """:func:`trace` on the JAX engine: each group's trees in compiled calls of
+    ``rays_per_call`` rays per mesh; ``checked(hits, mesh, capacity)`` keeps or drops a mesh."""
     devs = batch_devices.resolve(devices)
     out = [None] * trees.size
     for group in trees.groups:
@@ -122,12 +154,11 @@ def trace(trees: TreeBatch, triangles, origin, direction, *, mode: str = "closes
         hits = jax.tree_util.tree_map(lambda *a: np.concatenate(a, axis=1), *parts)
         for k in range(len(group)):
             one = jax.tree_util.tree_map(lambda a, k=k: a[k], hits)
-            _check_hits(one, int(group.index[k]), capacity)
-            out[int(group.index[k])] = one
+            out[int(group.index[k])] = checked(one, int(group.index[k]), capacity)
     return out
 
 
-def _trace_native(trees: TreeBatch, triangles, rays, *, mode, max_hits) -> list:
+def _trace_native(trees: TreeBatch, triangles, rays, checked, *, mode, max_hits) -> list:
     """:func:`trace` on the native engine: each mesh's padded tree row as the JAX engine
     reads it (the same step bound), its own triangles, one kernel call per mesh."""
     out = [None] * trees.size
@@ -140,8 +171,7 @@ def _trace_native(trees: TreeBatch, triangles, rays, *, mode, max_hits) -> list:
             o, d = rays[mesh]
             one = rays_native.trace(tree, np.asarray(triangles[mesh], dt), o, d, 0.0, np.inf, dtype=dt, mode=mode,
                                     capacity=STACK, max_hits=max_hits, step_limit=max_steps(tree))
-            _check_hits(one, mesh, STACK)
-            out[mesh] = one
+            out[mesh] = checked(one, mesh, STACK)
     return out
 
 

@@ -1,5 +1,6 @@
 """jaxbvh.batch.trace on the native engine: the same hits and counters as the JAX batch
-and as the single native trace, mesh by mesh; a broken tree fails naming its mesh."""
+and as the single native trace, mesh by mesh; a broken tree fails naming its mesh, or
+alone (``errors="keep"``)."""
 
 from __future__ import annotations
 
@@ -73,3 +74,12 @@ def test_a_broken_tree_fails_naming_its_mesh():
     for engine in ("native", "jax"):
         with pytest.raises(ValueError, match="mesh 1"):
             batch.trace(broken, triangles, origin, direction, engine=engine)
+        # errors="keep": the broken mesh alone is left out, named in one warning; the other delivered
+        with pytest.warns(UserWarning, match=r"1 mesh\(es\) left out .*mesh 1:"):
+            kept = batch.trace(broken, triangles, origin, direction, engine=engine, errors="keep")
+        assert kept[1] is None
+        single = jaxbvh.rays.trace(trees.unstack()[0], triangles[0], origin[0], direction[0], engine=engine)
+        for name in FIELDS:
+            np.testing.assert_array_equal(getattr(kept[0], name), getattr(single, name), err_msg=f"{engine} {name}")
+    with pytest.raises(ValueError, match="errors must be"):
+        batch.trace(trees, triangles, origin, direction, errors="skip")
