@@ -20,6 +20,7 @@ import time
 import jax
 import numpy as np
 
+from jaxbvh.native import DEFAULT_ENGINE
 from jaxbvh.rays.generation import bounce_rays, camera_rays, random_rays
 from jaxbvh.rays.traversal import (
     MODES,
@@ -27,6 +28,7 @@ from jaxbvh.rays.traversal import (
     all_hits,
     any_hit,
     closest_hit,
+    engine_of,
     intersect_triangle,
     moller_trumbore,
     stack_capacity,
@@ -106,7 +108,8 @@ def measure(tree, triangles, origin, direction, *, mode: str = "closest", ct: fl
     :func:`~jaxbvh.rays.traversal.trace` (``engine=``: both engines count alike).
 
     ``summary``: the :func:`empirical_cost` entries flattened to ``<name>`` (mean) and
-    ``<name>_ci`` (half-width), plus ``rays``, ``hit_fraction``, ``seconds`` (traversal
+    ``<name>_ci`` (half-width), plus ``rays``, ``engine`` (the one that ran: ``"jax"`` or
+    ``"native"``), ``hit_fraction``, ``seconds`` (traversal
     only, after a warm-up batch that compiles), ``rays_per_second`` and ``sah``.
     """
 
@@ -118,6 +121,8 @@ def measure(tree, triangles, origin, direction, *, mode: str = "closest", ct: fl
     hits = trace(tree, triangles, origin, direction, mode=mode, **trace_kwargs)
     seconds = time.perf_counter() - start
     summary = {"rays": int(origin.shape[0]), "mode": mode,
+               "engine": engine_of(trace_kwargs.get("engine", DEFAULT_ENGINE), tree, triangles, origin, direction,
+                                   intersect=trace_kwargs.get("intersect", intersect_triangle)),
                "hit_fraction": float(np.mean(hits.prim >= 0)) if origin.shape[0] else 0.0}
     for name, (mean, half) in empirical_cost(hits, ct=ct, ci=ci, z=z).items():
         summary[name] = mean

@@ -346,6 +346,12 @@ def trace_batch(tree, prims, origin, direction, t_min, t_max, skip=None, *,
 # ----------------------------------------------------------------------------------
 
 
+def engine_of(engine: str, tree, prims, origin, direction, *, intersect=intersect_triangle) -> str:
+    """The engine :func:`trace` runs for these arguments: :func:`jaxbvh.native.choose`, the
+    native engine only for the triangle test (``intersect``)."""
+    return engines.choose(engine, tree, prims, origin, direction, supported=intersect is intersect_triangle)
+
+
 def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t_max=np.inf,
           intersect: Callable = intersect_triangle, capacity: int | None = None,
           max_hits: int = 16, batch: int = BATCH, allow_overflow: bool = False, skip=None,
@@ -372,7 +378,7 @@ def trace(tree, prims, origin, direction, *, mode: str = "closest", t_min=0.0, t
     """
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-    engine = engines.choose(engine, tree, prims, origin, direction, supported=intersect is intersect_triangle)
+    engine = engine_of(engine, tree, prims, origin, direction, intersect=intersect)
     origin, direction = check_rays(origin, direction)
     capacity = STACK if capacity is None else int(capacity)
     if capacity < arity(tree):

@@ -182,7 +182,8 @@ def test_broken_tree_reaches_the_step_bound(engine):
 
 def test_engine_choice_and_errors():
     """auto picks native on concrete CPU arrays with triangles, jax for another intersector;
-    native under jit says to use jax; an unknown engine is refused."""
+    native under jit says to use jax; an unknown engine is refused; measure reports the
+    engine that ran."""
     rng = np.random.default_rng(1)
     tri = random_triangles(rng, 10)
     tree = median_tree(tri)
@@ -201,6 +202,9 @@ def test_engine_choice_and_errors():
         inside(jnp.asarray(origin))
     with pytest.raises(TypeError, match="custom intersector"):
         traverse.trace(tree, tri, origin, direction, engine="native", intersect=lambda *a: None)
+    # measure names the engine that ran, not the one asked for
+    for asked, ran in (("auto", "native"), ("jax", "jax"), ("native", "native")):
+        assert rays.measure(tree, tri, origin, direction, engine=asked)[1]["engine"] == ran
 
 
 def test_numba_cache_folder_follows_jaxbvh_cache(monkeypatch, tmp_path):
