@@ -22,14 +22,16 @@ noted):
   ``import jax`` and ``import jaxbvh`` and of the whole process;
 - ``compiled``: programs compiled by XLA (``/jax/core/compile/backend_compile_duration``
   events not preceded, in the same thread, by a ``/jax/compilation_cache/cache_hits``
-  event) and ``hits``: programs loaded from the persistent cache;
+  event) and ``hits``: programs loaded from the persistent cache or, compiled code and
+  all, from jaxbvh's program store (``jaxbvh.program_store.EXECUTABLE_LOAD_EVENT``);
 - ``trace_s``, ``lower_s``, ``compile_s``: seconds of jaxpr tracing
   (``/jax/core/compile/jaxpr_trace_duration``), lowering jaxpr -> MLIR
   (``/jax/core/compile/jaxpr_to_mlir_module_duration``) and XLA compiling (backend compile
   events of the compiled programs). Tracing nests (an inner ``jit`` is traced inside its
   caller's trace, and both report), so ``trace_s`` is the length of the *union* of the
   reported intervals, not their sum (``trace_sum_s`` is the sum); ``retrieve_s``: the
-  ``/jax/compilation_cache/cache_retrieval_time_sec`` sum (reading entries, hits and misses);
+  ``/jax/compilation_cache/cache_retrieval_time_sec`` sum (reading entries, hits and misses)
+  plus the program store's load events;
 - ``ops``: program size, the number of operations in the lowered StableHLO module of every
   program that went to the backend (compiled or loaded), counted by walking the MLIR module
   JAX hands to ``compile_or_get_cached`` (every op except ``builtin.module``,
@@ -137,6 +139,9 @@ def on_duration(event, duration, **kw):
         events.append((phase[0], "lower", end - duration, end))
     elif event == "/jax/compilation_cache/cache_retrieval_time_sec":
         retrieval.append((phase[0], duration))
+    elif event == "/jaxbvh/program_store/executable_load_sec":  # compiled code from jaxbvh's store
+        retrieval.append((phase[0], duration))
+        programs.append({"phase": phase[0], "name": "stored", "ops": None, "seconds": 0.0, "hit": True})
     elif event == "/jax/core/compile/backend_compile_duration":
         hit = getattr(local, "hit", False)
         local.hit = False

@@ -45,6 +45,10 @@ def _stored_files(folder):
     return sorted(folder.glob("*/*.jaxprog")) if folder.exists() else []
 
 
+def _executables(folder):
+    return sorted(folder.glob("*/*.jaxexe")) if folder.exists() else []
+
+
 def scaled_sum(x, y, *, power: int):
     return {"sum": (x ** power).sum() + y, "shape": jnp.zeros(x.shape[:1], jnp.int32)}
 
@@ -137,14 +141,19 @@ def test_the_switch_turns_the_store_off(store, monkeypatch):
 
 _WARM_PROBE = """
 import sys, jax.monitoring
-traced = []
-jax.monitoring.register_event_duration_secs_listener(
-    lambda event, duration, **kw: traced.append(kw.get("fun_name")) if event == "/jax/core/compile/jaxpr_trace_duration" else None)
+traced, events = [], []
+def listen(event, duration, **kw):
+    events.append(event)
+    if event == "/jax/core/compile/jaxpr_trace_duration":
+        traced.append(kw.get("fun_name"))
+jax.monitoring.register_event_duration_secs_listener(listen)
 import numpy as np, jaxbvh
+from jaxbvh.program_store import EXECUTABLE_LOAD_EVENT
 lo = np.random.default_rng(0).random((40, 3)).astype(np.float32)
 tree = jaxbvh.build(lo, lo + 0.05, method="sweep")
 print(float(jaxbvh.sah(tree)))
-print(sorted(set(traced)))
+print(sorted(set(traced)), events.count(EXECUTABLE_LOAD_EVENT),
+      events.count("/jax/core/compile/jaxpr_to_mlir_module_duration"))
 print("scipy" in sys.modules)  # JAX's LAPACK set-up imports it; no program of ours calls LAPACK
 import jax.numpy as jnp
 from jaxbvh.program_store import stored_jit
@@ -164,8 +173,12 @@ def test_a_warm_process_does_not_trace_the_builder(tmp_path):
     (cold_sah, cold_traced, _, cold_x), (warm_sah, warm_traced, warm_scipy, warm_x) = (
         r.stdout.split("\n")[:4] for r in runs)
     assert cold_sah == warm_sah
+    cold_traced, cold_loads, _ = cold_traced.rsplit(" ", 2)
+    warm_traced, warm_loads, warm_lowered = warm_traced.rsplit(" ", 2)
     assert "flat" in cold_traced   # exported in the cold process
     assert "flat" not in warm_traced  # loaded in the warm one
+    # ... compiled code and all: nothing lowered, every program of the build from the store
+    assert int(cold_loads) == 0 and int(warm_loads) >= 1 and int(warm_lowered) == 0
     # loading our stored programs left JAX's LAPACK set-up (and its scipy import) alone ...
     assert warm_scipy == "False"
     # ... and a stored program that does call LAPACK still gets it
@@ -186,3 +199,51 @@ def test_a_program_that_cannot_be_exported_runs_as_plain_jit_with_one_warning(st
         warnings.simplefilter("error")  # said once per function
         np.testing.assert_array_equal(np.asarray(stored(x[:2])), [1.0, 3.0])
     assert _stored_files(store) == []
+
+
+def test_compiled_code_is_kept_only_when_compiled_here_and_damage_is_replaced(store, tmp_path):
+    """A program's compiled code is kept beside it (a new process loads it, test above);
+    code JAX's cache served is not kept (serialized again, it loses its kernels); a damaged
+    kept file is removed, not trusted, and the program still gives its result."""
+    x = np.arange(6, dtype=np.float32).reshape(3, 2)
+    want = float(stored_scaled_sum(x, 0.25, power=2)["sum"])
+    [kept] = _executables(store)
+    assert kept.name.startswith(_stored_files(store)[0].stem)
+    # the same program again, with its files gone: JAX's persistent cache serves it
+    for path in (kept, *_stored_files(store)):
+        path.unlink()
+    program_store.clear_memory()
+    assert float(stored_scaled_sum(x, 0.25, power=2)["sum"]) == want
+    assert _stored_files(store) and _executables(store) == []
+    # a new program, compiled here: kept; then damaged
+    want = float(stored_scaled_sum(x, 0.5, power=3)["sum"])
+    [kept] = _executables(store)
+    for damage in (b"", b"garbage", kept.read_bytes()[:60]):
+        kept.write_bytes(damage)
+        program_store.clear_memory()
+        assert float(stored_scaled_sum(x, 0.5, power=3)["sum"]) == want
+        assert not kept.exists()  # removed, and not written again from JAX's cache
+        kept.write_bytes(b"")
+
+
+class _Refused:
+    """A kept executable that XLA refuses to start (as one with lost kernels is)."""
+
+    calls = 0
+
+    def __call__(self, *leaves):
+        _Refused.calls += 1
+        raise jax.errors.JaxRuntimeError(
+            "INTERNAL: Error dispatching computation: Function fusion not found (type id: 1)")
+
+
+def test_a_kept_executable_that_cannot_start_is_removed_and_the_program_still_runs(store, monkeypatch):
+    x = np.ones((4, 2), np.float32)
+    want = float(stored_scaled_sum(x, 1.5, power=2)["sum"])
+    [kept] = _executables(store)
+    program_store.clear_memory()
+    monkeypatch.setattr(program_store, "_read_executable", lambda path: _Refused())
+    assert float(stored_scaled_sum(x, 1.5, power=2)["sum"]) == want
+    assert float(stored_scaled_sum(x, 1.5, power=2)["sum"]) == want  # the refused one is not tried again
+    assert _Refused.calls == 1
+    assert not kept.exists()

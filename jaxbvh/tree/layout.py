@@ -141,8 +141,14 @@ def to_numpy(tree):
 
 
 def to_jax(tree):
-    """The same tree with every array as a JAX array."""
-    return jax.tree_util.tree_map(jnp.asarray, tree)
+    """The same tree with every array as a JAX array (NumPy arrays put on the device as
+    they are: ``jnp.asarray`` of a NumPy array compiles a small program per new shape in
+    every process, ~10 ms each, :func:`jaxbvh.numerics.on_device`)."""
+    return jax.tree_util.tree_map(_to_jax_array, tree)
+
+
+def _to_jax_array(x):
+    return jax.device_put(x) if isinstance(x, (np.ndarray, np.generic)) else jnp.asarray(x)
 
 
 def real_nodes(tree) -> np.ndarray:
