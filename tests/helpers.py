@@ -194,3 +194,19 @@ def crossing_slivers(rows: int = 6, offset: float = 0.0) -> np.ndarray:
         tri.append([[0, y, 0], [1, y + 0.01, 0.01], [1, y, 0.02]])  # along x
         tri.append([[y, 0, 0.01], [y + 0.01, 1, 0.0], [y, 1, 0.02]])  # along y, in the same slab
     return np.asarray(tri, np.float32)
+
+
+#: Python source for a child process, after ``import jax.monitoring``: counts what XLA
+#: compiled (``len(compiles) - len(hits)``) and what was loaded instead, from JAX's
+#: persistent cache (``hits``) or from jaxbvh's program store (``stored``)
+COUNT_COMPILES = """
+hits, compiles, stored = [], [], []
+jax.monitoring.register_event_listener(
+    lambda event, **kw: hits.append(1) if event == "/jax/compilation_cache/cache_hits" else None)
+def on_duration(event, duration, **kw):
+    if event == "/jax/core/compile/backend_compile_duration":  # JAX records this for cache hits too
+        compiles.append(1)
+    elif event == "/jaxbvh/program_store/executable_load_sec":  # program_store.EXECUTABLE_LOAD_EVENT
+        stored.append(1)  # compiled code loaded from jaxbvh's program store: not compiled either
+jax.monitoring.register_event_duration_secs_listener(on_duration)
+"""

@@ -11,6 +11,7 @@ import subprocess
 import sys
 
 import pytest
+from helpers import COUNT_COMPILES
 
 # prints what is in force after `import jaxbvh` (and, with "build", what one small build
 # compiled or loaded)
@@ -21,16 +22,7 @@ if pre:
     import jax
     jax.config.update("jax_compilation_cache_dir", pre)
 import jax.monitoring
-hits, compiles, stored = [], [], []
-jax.monitoring.register_event_listener(
-    lambda event, **kw: hits.append(1) if event == "/jax/compilation_cache/cache_hits" else None)
-def on_duration(event, duration, **kw):
-    if event == "/jax/core/compile/backend_compile_duration":  # JAX records this for cache hits too
-        compiles.append(1)
-    elif event == "/jaxbvh/program_store/executable_load_sec":  # program_store.EXECUTABLE_LOAD_EVENT
-        stored.append(1)  # compiled code loaded from jaxbvh's program store: not compiled either
-jax.monitoring.register_event_duration_secs_listener(on_duration)
-import numpy as np
+""" + COUNT_COMPILES + """import numpy as np
 import jaxbvh
 out = {"status": jaxbvh.compile_cache.status(), "dir": jax.config.jax_compilation_cache_dir,
        "min_secs": jax.config.jax_persistent_cache_min_compile_time_secs}

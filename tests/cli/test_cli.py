@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from helpers import (
     BROKEN,
+    COUNT_COMPILES,
     REPO,
     SHARED_DATA,
     assert_one_line_error,
@@ -400,16 +401,7 @@ def test_image_without_matplotlib_is_a_one_line_error(capsys, tmp_path, monkeypa
 _COUNT_COMPILES = """
 import json, sys
 import jax.monitoring
-hits, compiles, stored = [], [], []
-jax.monitoring.register_event_listener(
-    lambda event, **kw: hits.append(1) if event == "/jax/compilation_cache/cache_hits" else None)
-def on_duration(event, duration, **kw):
-    if event == "/jax/core/compile/backend_compile_duration":  # JAX records this for cache hits too
-        compiles.append(1)
-    elif event == "/jaxbvh/program_store/executable_load_sec":  # program_store.EXECUTABLE_LOAD_EVENT
-        stored.append(1)  # compiled code loaded from jaxbvh's program store: not compiled either
-jax.monitoring.register_event_duration_secs_listener(on_duration)
-from jaxbvh import cli
+""" + COUNT_COMPILES + """from jaxbvh import cli
 for argv in json.loads(sys.argv[1]):
     assert cli.main(argv) == 0, argv
 print("COMPILES", len(compiles) - len(hits), "HITS", len(hits) + len(stored))
