@@ -227,7 +227,7 @@ def main(argv=None) -> int:
     for name in args.meshes:
         report["meshes"].append(one_mesh(name, args, exe))
         with atomic_write(br.RESULTS / f"{args.name}.json", "w") as f:
-            json.dump(report, f, indent=1)
+            json.dump(report, f, separators=(",", ":"))  # the raw tracer lines make it large
         with atomic_write(br.RESULTS / f"{args.name}.md", "w") as f:
             f.write(markdown(report))
         print(markdown(report), file=sys.stderr)
