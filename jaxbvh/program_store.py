@@ -297,7 +297,8 @@ class StoredFunction:
                         executable.unlink()
                     compiled = None
                     through_jax = through_jax or jax_path()
-            return jax.tree_util.tree_unflatten(out_treedef, through_jax(*leaves))
+            with _lapack_left_alone(lapack_free):
+                return jax.tree_util.tree_unflatten(out_treedef, through_jax(*leaves))
 
         return program
 
