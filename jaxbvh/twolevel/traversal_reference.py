@@ -16,22 +16,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxbvh.numerics import INV_BIG, robust_factor
-from jaxbvh.rays.traversal_reference import moller_trumbore
-
-
-def _inverse(direction):
-    f = direction.dtype.type
-    return np.array([np.copysign(f(INV_BIG), c) if c == 0 else f(1) / c for c in direction], direction.dtype)
-
-
-def _slab(lo, hi, origin, inv_dir, t_min, t_max, robust):
-    t0 = (lo - origin) * inv_dir
-    t1 = (hi - origin) * inv_dir
-    near = np.max(np.minimum(t0, t1))
-    far = np.min(np.maximum(t0, t1)) * robust
-    entry = max(near, t_min)
-    return bool(entry <= min(far, t_max)), entry
+from jaxbvh.numerics import robust_factor
+# the one-level twin's ray arithmetic: the same inverse direction and slab test
+from jaxbvh.rays.traversal_reference import _inverse_direction as _inverse
+from jaxbvh.rays.traversal_reference import _slab, moller_trumbore
 
 
 class _Scene:
